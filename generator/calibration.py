@@ -1,0 +1,63 @@
+"""Fitted calibration of one sensor: what the fitters return and the chain consumes.
+
+Model (seed 000 eq. 5 and 7), in the sensor's frame axes (after the axis mapping):
+
+    B_cal = M(T) (B~ - b(T)),   b(T) = sum_k b_poly_nT[k] dT^k,   M(T) = sum_k M_poly[k] dT^k,
+    dT = clamp(T, t_min_C, t_max_C) - t_ref_C
+
+B~ is the uncalibrated field in frame axes (nT). When `body_frame` is True, M maps to the
+frame of the reference vectors (body frame, or the jig frame for boom sensors); when False
+(only magnitudes were known, ellipsoid fit), M is known only up to a rotation and is taken
+symmetric.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+POLY_DEGREE = 3  # cubic in temperature (seed 000 eq. 7)
+
+
+@dataclass
+class SensorCalibration:
+    name: str
+    b_poly_nT: np.ndarray              # (POLY_DEGREE+1, 3)
+    M_poly: np.ndarray                 # (POLY_DEGREE+1, 3, 3)
+    t_ref_C: float = 25.0
+    t_min_C: float = -40.0
+    t_max_C: float = 85.0
+    body_frame: bool = False
+    method: str = ""
+    b_poly_sigma_nT: np.ndarray | None = None   # 1-sigma of b_poly_nT, same shape
+    M_poly_sigma: np.ndarray | None = None      # 1-sigma of M_poly, same shape
+    stats: dict = field(default_factory=dict)   # rms, samples, segments, ... (JSON-able)
+
+    @staticmethod
+    def constant(name, b_nT, M, t_ref_C=25.0, t_min_C=-40.0, t_max_C=85.0, **kw):
+        """Temperature-independent calibration (rotation campaign at one temperature)."""
+        b = np.zeros((POLY_DEGREE + 1, 3))
+        Mp = np.zeros((POLY_DEGREE + 1, 3, 3))
+        b[0] = b_nT
+        Mp[0] = M
+        return SensorCalibration(name, b, Mp, t_ref_C, t_min_C, t_max_C, **kw)
+
+    def dT(self, temp_C):
+        t = np.clip(np.asarray(temp_C, dtype=float), self.t_min_C, self.t_max_C)
+        return t - self.t_ref_C
+
+    def b_at(self, temp_C) -> np.ndarray:
+        """b(T), shape (..., 3), float64 (for fitting and plots, not the flight reference)."""
+        d = self.dT(temp_C)[..., None]
+        return sum(self.b_poly_nT[k] * d**k for k in range(self.b_poly_nT.shape[0]))
+
+    def M_at(self, temp_C) -> np.ndarray:
+        """M(T), shape (..., 3, 3), float64."""
+        d = self.dT(temp_C)[..., None, None]
+        return sum(self.M_poly[k] * d**k for k in range(self.M_poly.shape[0]))
+
+    def apply64(self, field_frame_nT, temp_C) -> np.ndarray:
+        """B_cal in float64 (fitting and diagnostics; the flight reference is chain.py)."""
+        x = np.asarray(field_frame_nT, dtype=float) - self.b_at(temp_C)
+        return np.einsum("...ij,...j->...i", self.M_at(temp_C), x)

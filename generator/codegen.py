@@ -1,0 +1,184 @@
+"""Flight C for one unit: CasADi kernels from the chain definition, wrapped by Jinja2.
+
+Backends are data (the list TEMPLATES below, as acados keeps its template list): each
+entry names a template in ``templates/`` and the file it renders. The arithmetic comes
+from CasADi's CodeGenerator only; the templates add the fixed-size API, the coefficient
+layout, the compiled-in defaults and the wrapper logic (clamp, flags), all driven by the
+same ChainSpec that drives the Python reference.
+
+Output is deterministic: same coefficients, same bytes.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import casadi as ca
+import jinja2
+import numpy as np
+
+from . import __version__
+from .chain import STATUS_BITS, ChainSpec, CoeffView, sensor_kernel
+from .coeffs import CoefficientSet
+
+REPO = Path(__file__).resolve().parent.parent
+TEMPLATE_DIR = REPO / "templates"
+
+# (template, output file name pattern); {unit} is the unit id.
+TEMPLATES = (
+    ("magcal.h.j2", "{unit}_magcal.h"),
+    ("magcal.c.j2", "{unit}_magcal.c"),
+    ("coeffs_default.c.j2", "{unit}_coeffs_default.c"),
+)
+
+
+def versions() -> dict:
+    return {"magcal": __version__, "casadi": ca.__version__, "jinja2": jinja2.__version__}
+
+
+def kernel_name(spec: ChainSpec, sensor) -> str:
+    return f"{spec.unit.id}_{sensor.name}_kernel"
+
+
+def build_kernel(spec: ChainSpec, sensor) -> ca.Function:
+    """The CasADi Function of one sensor's chain, from `chain.sensor_kernel`."""
+    ins = spec.sensor_inputs(sensor)
+    sym = {i.name: ca.SX.sym(i.name, i.size) for i in ins}
+    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
+    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs()) if spec.n_unit_coeffs() else None
+    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
+    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks()) \
+        if u_sym is not None else None
+    raw = [sym["raw_counts"][k] for k in range(sym["raw_counts"].numel())]
+    coil = [sym["coil_A"][k] for k in range(sym["coil_A"].numel())] if "coil_A" in sym else []
+    out = sensor_kernel(spec, sensor, raw, sym["temp_C"][0], coil, c, u, ca.SX(0.5))
+    outs = spec.sensor_outputs(sensor)
+    args = [sym[i.name] for i in ins] + [c_sym] + ([u_sym] if u_sym is not None else [])
+    names_in = [i.name for i in ins] + ["coeffs"] + (["unit_coeffs"] if u_sym is not None else [])
+    return ca.Function(kernel_name(spec, sensor), args, [ca.vertcat(*out[o.name]) for o in outs],
+                       names_in, [o.name for o in outs])
+
+
+def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
+    """(kernels.c text, kernels.h text, {sensor: Function}) from CasADi's CodeGenerator."""
+    name = f"{spec.unit.id}_kernels"
+    real = "float" if spec.unit.float_type == "float32" else "double"
+    cg = ca.CodeGenerator(name, {"casadi_real": real, "casadi_int": "int",
+                                 "with_header": True, "with_mem": False})
+    funcs = {}
+    for s in spec.unit.sensors:
+        f = build_kernel(spec, s)
+        funcs[s.name] = f
+        cg.add(f)
+    with tempfile.TemporaryDirectory() as d:
+        cg.generate(d + "/")
+        c_text = (Path(d) / f"{name}.c").read_text()
+        h_text = (Path(d) / f"{name}.h").read_text()
+    return c_text, h_text, funcs
+
+
+def c_literal(value: float, float_type: str) -> str:
+    """Shortest literal that round-trips to the exact value in the flight float type."""
+    if float_type == "float32":
+        text = str(np.float32(value))
+        suffix = "f"
+    else:
+        text = repr(float(value))
+        suffix = ""
+    if "." not in text and "e" not in text:
+        text += ".0"
+    return text + suffix
+
+
+def _lines(literals, per_line=6) -> list:
+    """Initializer rows of at most per_line literals, each ending in a comma."""
+    return [", ".join(literals[i:i + per_line]) + "," for i in range(0, len(literals), per_line)]
+
+
+def _env() -> jinja2.Environment:
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
+        undefined=jinja2.StrictUndefined,
+        keep_trailing_newline=True,
+        trim_blocks=True,
+        lstrip_blocks=True,
+        autoescape=False,
+    )
+
+
+def template_context(cs: CoefficientSet) -> dict:
+    spec = cs.spec
+    unit = spec.unit
+    ft = unit.float_type
+    sensors = []
+    for s in unit.sensors:
+        blocks, k = [], 0
+        flat = cs.flat_sensor(s.name)
+        for b in spec.sensor_blocks(s):
+            vals = flat[k:k + b.size]
+            blocks.append({"name": b.name, "macro": b.name.upper(), "offset": k,
+                           "shape": b.shape, "size": b.size, "unit": b.unit, "doc": b.doc,
+                           "lines": _lines([c_literal(v, ft) for v in vals])})
+            k += b.size
+        sensors.append({
+            "name": s.name, "NAME": s.name.upper(), "part": s.part, "frame": s.frame,
+            "axes": list(s.axes), "set_reset": s.set_reset, "n_coeffs": k, "blocks": blocks,
+            "count_min": s.count_min, "count_max": s.count_max,
+            "n_raw": 6 if s.set_reset else 3,
+            "kernel": kernel_name(spec, s),
+            "outputs": [o.name for o in spec.sensor_outputs(s)],
+        })
+    ublocks, k = [], 0
+    flat_u = cs.flat_unit()
+    for b in spec.unit_blocks():
+        ublocks.append({"name": b.name, "macro": b.name.upper(), "offset": k, "shape": b.shape,
+                        "size": b.size, "unit": b.unit, "doc": b.doc,
+                        "lines": _lines([c_literal(v, ft) for v in flat_u[k:k + b.size]])})
+        k += b.size
+    return {
+        "unit": unit.id,
+        "UNIT": unit.id.upper(),
+        "real": "float" if ft == "float32" else "double",
+        "float_type": ft,
+        "versions": versions(),
+        "layout_hash": f"0x{spec.layout_hash():08x}",
+        "poly_degree": spec.poly_degree,
+        "coils": list(spec.coils),
+        "n_coils": len(spec.coils),
+        "sensors": sensors,
+        "unit_blocks": ublocks,
+        "n_unit_coeffs": k,
+        "status_bits": sorted(STATUS_BITS.items(), key=lambda kv: kv[1]),
+    }
+
+
+PREAMBLE = ("/* DO NOT EDIT: generated by magcal {magcal} (casadi {casadi}, jinja2 {jinja2}).\n"
+            " * Regenerate with `magcal generate COEFFS.json -o DIR`; the chain is defined in\n"
+            " * generator/chain.py. Unit {unit}, chain layout {layout_hash}. */\n")
+
+
+def render(cs: CoefficientSet) -> dict:
+    """{file name: text} of the unit's flight C sources."""
+    ctx = template_context(cs)
+    env = _env()
+    files = {}
+    for tpl, pattern in TEMPLATES:
+        files[pattern.format(unit=ctx["unit"])] = env.get_template(tpl).render(**ctx)
+    c_text, h_text, _ = casadi_sources(cs.spec)
+    pre = PREAMBLE.format(unit=ctx["unit"], layout_hash=ctx["layout_hash"], **ctx["versions"])
+    files[f"{ctx['unit']}_kernels.c"] = pre + c_text
+    files[f"{ctx['unit']}_kernels.h"] = pre + h_text
+    return dict(sorted(files.items()))
+
+
+def generate(cs: CoefficientSet, out_dir) -> list:
+    """Write the unit's flight C into out_dir; returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, text in render(cs).items():
+        p = out / name
+        p.write_text(text)
+        paths.append(p)
+    return paths

@@ -1,0 +1,183 @@
+"""A unit's coefficient set: `coefficients.json`, in the layout of the chain definition.
+
+The file carries the unit description and the chain structure, so `magcal generate`,
+`magcal apply` and `magcal table` need nothing else. Values are stored in float64 (JSON
+numbers round-trip exactly); the flight code rounds them to its float type once.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .calibration import SensorCalibration
+from .chain import ChainSpec
+from .errors import InputError
+from .unit import Unit
+
+FORMAT = "magcal-coefficients"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class CoefficientSet:
+    spec: ChainSpec
+    sensors: dict                      # name -> {block name: ndarray float64}
+    unit_values: dict = field(default_factory=dict)   # block name -> ndarray
+    uncertainty: dict = field(default_factory=dict)   # name -> {block: 1-sigma ndarray}
+    fit_info: dict = field(default_factory=dict)      # JSON-able: methods, stats, sources
+
+    @property
+    def unit(self) -> Unit:
+        return self.spec.unit
+
+    # ---- flat vectors in layout order --------------------------------------------------
+    def flat_sensor(self, name) -> np.ndarray:
+        s = self.unit.sensor(name)
+        parts = [np.asarray(self.sensors[name][b.name], dtype=np.float64).reshape(-1)
+                 for b in self.spec.sensor_blocks(s)]
+        return np.concatenate(parts)
+
+    def flat_unit(self) -> np.ndarray:
+        parts = [np.asarray(self.unit_values[b.name], dtype=np.float64).reshape(-1)
+                 for b in self.spec.unit_blocks()]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    # ---- construction ------------------------------------------------------------------
+    @staticmethod
+    def from_calibrations(unit: Unit, cals: dict, H_boom_to_body=None, K_nT_per_A=None,
+                          coils=(), fit_info=None) -> "CoefficientSet":
+        """From fitted SensorCalibration objects (and optional H and coil couplings)."""
+        spec = ChainSpec(unit, poly_degree=next(iter(cals.values())).b_poly_nT.shape[0] - 1,
+                         coils=tuple(coils))
+        sensors, unc = {}, {}
+        for s in unit.sensors:
+            cal: SensorCalibration = cals[s.name]
+            v = {
+                "lsb_nT": np.array(s.lsb_nT), "zero_count": np.array(float(s.zero_count)),
+                "t_ref_C": np.array(cal.t_ref_C), "t_min_C": np.array(cal.t_min_C),
+                "t_max_C": np.array(cal.t_max_C),
+                "b_poly_nT": np.asarray(cal.b_poly_nT, float),
+                "M_poly": np.asarray(cal.M_poly, float),
+            }
+            if coils:
+                v["K_nT_per_A"] = np.asarray(K_nT_per_A[s.name], float) if K_nT_per_A \
+                    else np.zeros((3, len(coils)))
+            sensors[s.name] = v
+            u = {}
+            if cal.b_poly_sigma_nT is not None:
+                u["b_poly_nT"] = np.asarray(cal.b_poly_sigma_nT, float)
+            if cal.M_poly_sigma is not None:
+                u["M_poly"] = np.asarray(cal.M_poly_sigma, float)
+            unc[s.name] = u
+        unit_values = {}
+        if spec.has_boom:
+            unit_values["H_boom_to_body"] = np.eye(3) if H_boom_to_body is None \
+                else np.asarray(H_boom_to_body, float)
+        info = dict(fit_info or {})
+        info.setdefault("sensors", {})
+        for name, cal in cals.items():
+            info["sensors"].setdefault(name, {}).update(
+                {"method": cal.method, "body_frame": cal.body_frame, "stats": cal.stats})
+        return CoefficientSet(spec, sensors, unit_values, unc, info)
+
+    def calibration(self, name) -> SensorCalibration:
+        v = self.sensors[name]
+        return SensorCalibration(
+            name, np.array(v["b_poly_nT"]), np.array(v["M_poly"]), float(v["t_ref_C"]),
+            float(v["t_min_C"]), float(v["t_max_C"]))
+
+    # ---- JSON --------------------------------------------------------------------------
+    def to_json_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "generator": f"magcal {__version__}",
+            "unit": self.unit.to_dict(),
+            "chain": self.spec.to_dict(),
+            "layout_hash": f"0x{self.spec.layout_hash():08x}",
+            "sensors": {n: {k: _tolist(a) for k, a in v.items()} for n, v in self.sensors.items()},
+            "unit_coefficients": {k: _tolist(a) for k, a in self.unit_values.items()},
+            "uncertainty_1sigma": {n: {k: _tolist(a) for k, a in v.items()}
+                                   for n, v in self.uncertainty.items()},
+            "fit": self.fit_info,
+        }
+
+    def save(self, path) -> None:
+        Path(path).write_text(json.dumps(self.to_json_dict(), indent=1, sort_keys=False,
+                                         default=_json_default) + "\n")
+
+    @staticmethod
+    def load(path) -> "CoefficientSet":
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(path, "file not found") from None
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise InputError(path, f"not a JSON coefficient file: {e}") from None
+        return CoefficientSet.from_json_dict(d, path)
+
+    @staticmethod
+    def from_json_dict(d: dict, path=None) -> "CoefficientSet":
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
+        if d.get("format_version") != FORMAT_VERSION:
+            raise InputError(path, f"format_version {d.get('format_version')!r} is not "
+                                   f"supported (this is {FORMAT_VERSION})")
+        try:
+            unit = Unit.from_dict(d["unit"])
+            spec = ChainSpec.from_dict(unit, d.get("chain", {}))
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(path, f"bad 'unit' or 'chain' section: {e!r}") from None
+        sensors = {}
+        for s in unit.sensors:
+            sv = d.get("sensors", {}).get(s.name)
+            if sv is None:
+                raise InputError(path, f"sensors.{s.name}: missing")
+            vals = {}
+            for b in spec.sensor_blocks(s):
+                vals[b.name] = _block_array(sv, b, f"sensors.{s.name}", path)
+            sensors[s.name] = vals
+        unit_values = {b.name: _block_array(d.get("unit_coefficients", {}), b,
+                                            "unit_coefficients", path)
+                       for b in spec.unit_blocks()}
+        unc = {n: {k: np.asarray(a, float) for k, a in v.items()}
+               for n, v in d.get("uncertainty_1sigma", {}).items()}
+        cs = CoefficientSet(spec, sensors, unit_values, unc, d.get("fit", {}))
+        want = d.get("layout_hash")
+        if want is not None and want != f"0x{spec.layout_hash():08x}":
+            raise InputError(path, f"layout_hash {want} does not match the chain structure "
+                                   f"in the file (0x{spec.layout_hash():08x}): edited by hand?")
+        return cs
+
+
+def _block_array(section, block, where, path):
+    if block.name not in section:
+        raise InputError(path, f"{where}.{block.name}: missing")
+    try:
+        a = np.asarray(section[block.name], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(path, f"{where}.{block.name}: not numbers") from None
+    if a.shape != tuple(block.shape):
+        raise InputError(path, f"{where}.{block.name}: shape {a.shape}, expected {block.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(path, f"{where}.{block.name}: non-finite value")
+    return a
+
+
+def _tolist(a):
+    a = np.asarray(a)
+    return a.item() if a.ndim == 0 else a.tolist()
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    raise TypeError(f"not JSON-serialisable: {type(o)}")

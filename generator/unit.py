@@ -1,0 +1,127 @@
+"""Unit file (ICD section 1): one flight unit's set of magnetometers.
+
+The dataclasses here are the contract the rest of the toolchain uses; `load_unit`
+reads and validates a TOML file into them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+# Parts the toolchain knows. count_min/count_max: the raw output range; a reading at
+# or beyond either end is saturated (AK8963 reports +-32760 at full scale, the
+# MMC5883MA is a 16-bit unsigned output).
+PARTS = {
+    "MMC5883MA": {"count_min": 0, "count_max": 65535, "set_reset_capable": True},
+    "MPU-9255": {"count_min": -32760, "count_max": 32760, "set_reset_capable": False},
+}
+
+FRAMES = ("body", "boom")
+FLOAT_TYPES = ("float32", "float64")
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    name: str                 # [a-z][a-z0-9_]*; telemetry column prefix
+    part: str                 # a key of PARTS
+    frame: str                # "body" or "boom"
+    axes: tuple               # e.g. ("+z", "+y", "+x"): frame axes X, Y, Z are these sensor axes
+    lsb_nT: float             # nT per count
+    zero_count: int           # count at zero field
+    set_reset: bool           # telemetry holds SET and RESET outputs
+    noise_nT: float | None = None
+
+    @property
+    def count_min(self) -> int:
+        return PARTS[self.part]["count_min"]
+
+    @property
+    def count_max(self) -> int:
+        return PARTS[self.part]["count_max"]
+
+    @property
+    def count_columns(self) -> tuple:
+        """Telemetry columns of raw counts (ICD section 2), in this order:
+        SET/RESET: <s>_set_x, _set_y, _set_z, <s>_reset_x, _reset_y, _reset_z; else <s>_x, _y, _z."""
+        if self.set_reset:
+            return tuple(f"{self.name}_{kind}_{a}" for kind in ("set", "reset") for a in "xyz")
+        return tuple(f"{self.name}_{a}" for a in "xyz")
+
+    @property
+    def temp_column(self) -> str:
+        return f"{self.name}_temp_C"
+
+    def axis_map(self) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+        """(index, sign): frame[k] = sign[k] * sensor[index[k]] (seed 000, eq. 1)."""
+        idx = tuple("xyz".index(a[1]) for a in self.axes)
+        sign = tuple(1 if a[0] == "+" else -1 for a in self.axes)
+        return idx, sign  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Unit:
+    id: str
+    sensors: tuple            # of SensorSpec, in file order
+    lab_field_nT: float | None = None
+    float_type: str = "float32"
+    boom_reference: str | None = None   # body-frame sensor the boom sensors are aligned to
+    path: str | None = None   # where it was read from (for messages)
+    extra: dict = field(default_factory=dict, compare=False)  # unknown tables kept verbatim
+
+    def sensor(self, name: str) -> SensorSpec:
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    @property
+    def sensor_names(self) -> tuple:
+        return tuple(s.name for s in self.sensors)
+
+    def to_dict(self) -> dict:
+        """Plain-data form, embedded in coefficients.json so `generate` needs no TOML."""
+        return {
+            "id": self.id,
+            "lab_field_nT": self.lab_field_nT,
+            "float": self.float_type,
+            "boom_reference": self.boom_reference,
+            "sensors": [
+                {
+                    "name": s.name, "part": s.part, "frame": s.frame, "axes": list(s.axes),
+                    "lsb_nT": s.lsb_nT, "zero_count": s.zero_count,
+                    "set_reset": s.set_reset, "noise_nT": s.noise_nT,
+                }
+                for s in self.sensors
+            ],
+        }
+
+    @staticmethod
+    def from_dict(d: dict) -> "Unit":
+        return Unit(
+            id=d["id"],
+            lab_field_nT=d.get("lab_field_nT"),
+            float_type=d.get("float", "float32"),
+            boom_reference=d.get("boom_reference"),
+            sensors=tuple(
+                SensorSpec(
+                    name=s["name"], part=s["part"], frame=s["frame"], axes=tuple(s["axes"]),
+                    lsb_nT=float(s["lsb_nT"]), zero_count=int(s["zero_count"]),
+                    set_reset=bool(s["set_reset"]), noise_nT=s.get("noise_nT"),
+                )
+                for s in d["sensors"]
+            ),
+        )
+
+
+def load_unit(path) -> Unit:
+    """Read and validate a unit TOML file (ICD section 1).
+
+    Raises generator.errors.InputError naming the file (and the key / [[sensor]] index)
+    on any fault: TOML syntax, missing key, bad id or name pattern, unknown part,
+    unknown frame, axes that are not a signed permutation of x, y, z, non-positive
+    lsb_nT, set_reset on a part that cannot, duplicate sensor names, boom.reference
+    that is not a body-frame sensor, float not in FLOAT_TYPES.
+    """
+    from .unitfile import read_unit_toml  # implemented in unitfile.py
+
+    return read_unit_toml(path)

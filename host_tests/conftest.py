@@ -1,0 +1,23 @@
+"""Shared fixtures: paths to the repository, the shared data and the example unit."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+SHARED = REPO.parent / "shared"
+FM1 = SHARED / "data" / "samsat_fm1"
+REALDATA = SHARED / "realdata"
+
+
+@pytest.fixture(scope="session")
+def fm1_dir() -> Path:
+    if not FM1.is_dir():
+        pytest.skip(f"shared example unit not found at {FM1}")
+    return FM1
