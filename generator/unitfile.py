@@ -1,0 +1,271 @@
+"""Read and validate a unit file (ICD section 1) into generator.unit.Unit.
+
+Every fault raises InputError naming the file, the table and the key, and the line where
+the key (or its table) is written when that can be found, e.g.
+
+    unit.toml:34: [[sensor]] #3 'mpu2': axes: '+w' is not one of +x,-x,+y,-y,+z,-z
+
+Unknown tables and keys are not errors: they are kept in Unit.extra so that a newer file
+still loads in an older toolchain (the ICD allows accepting more).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from pathlib import Path
+
+from .errors import InputError
+from .unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
+
+NAME_PATTERN = "[a-z][a-z0-9_]*"
+_NAME_RE = re.compile(NAME_PATTERN)
+AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+UNIT_KEYS = ("id", "lab_field_nT", "float")
+BOOM_KEYS = ("reference",)
+SENSOR_KEYS = ("name", "part", "frame", "axes", "lsb_nT", "zero_count", "set_reset", "noise_nT")
+
+_TABLE_HEADER_RE = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_-]+)\s*\]\]?\s*(#.*)?$")
+_KEY_RE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
+_TOML_POS_RE = re.compile(r"\s*\(at line (\d+), column (\d+)\)$")
+_MISSING = object()
+
+
+def read_unit_toml(path) -> Unit:
+    """Read and validate one unit file; see generator.unit.load_unit for what is checked."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise InputError(path, f"cannot read unit file: {e.strerror or e}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(path, f"not UTF-8 (byte 0x{raw[e.start]:02x})",
+                         line=raw.count(b"\n", 0, e.start) + 1) from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        msg = str(e)
+        m = _TOML_POS_RE.search(msg)
+        line = int(m.group(1)) if m else None
+        raise InputError(path, f"TOML syntax: {_TOML_POS_RE.sub('', msg)}", line=line) from None
+
+    lines = _LineFinder(text)
+    extra: dict = {}
+
+    unit_tbl = _Table.top(path, lines, doc, "unit", required=True)
+    unit_id = unit_tbl.name("id")
+    lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True)
+    float_type = unit_tbl.choice("float", FLOAT_TYPES, default="float32")
+    unit_tbl.keep_unknown(UNIT_KEYS, extra, "unit")
+
+    sensor_list = doc.get("sensor", _MISSING)
+    if sensor_list is _MISSING:
+        raise InputError(path, "[[sensor]]: no sensor (at least one [[sensor]] table is needed)")
+    if not isinstance(sensor_list, list) or not all(isinstance(s, dict) for s in sensor_list):
+        raise InputError(path, "sensor: must be an array of tables, written [[sensor]]",
+                         line=lines.table("sensor", 1))
+    if not sensor_list:
+        raise InputError(path, "[[sensor]]: no sensor (at least one [[sensor]] table is needed)")
+
+    sensors = []
+    sensor_extra = {}
+    for i, d in enumerate(sensor_list, start=1):
+        spec, unknown = _read_sensor(_Table(path, lines, d, "sensor", i))
+        sensors.append(spec)
+        if unknown:
+            sensor_extra[spec.name] = unknown
+    if sensor_extra:
+        extra["sensor"] = sensor_extra
+
+    _check_unique_names_and_columns(path, lines, sensors)
+
+    boom_reference = None
+    boom_sensors = [s.name for s in sensors if s.frame == "boom"]
+    boom_tbl = _Table.top(path, lines, doc, "boom", required=False)
+    if boom_tbl is None and boom_sensors:
+        raise InputError(path, f"[boom]: reference: missing; sensor(s) {', '.join(boom_sensors)} "
+                               "have frame = \"boom\" and need a body-frame reference sensor")
+    if boom_tbl is not None:
+        boom_reference = boom_tbl.name("reference", required=bool(boom_sensors))
+        if boom_reference is not None:
+            body = [s.name for s in sensors if s.frame == "body"]
+            if boom_reference not in body:
+                what = ("is a boom-frame sensor" if boom_reference in boom_sensors
+                        else "is not a sensor of this unit")
+                boom_tbl.fail("reference", f"'{boom_reference}' {what}; it must name a "
+                                           f"body-frame sensor (one of {', '.join(body) or 'none'})")
+        boom_tbl.keep_unknown(BOOM_KEYS, extra, "boom")
+
+    for key, value in doc.items():
+        if key not in ("unit", "boom", "sensor"):
+            extra[key] = value
+
+    return Unit(id=unit_id, sensors=tuple(sensors), lab_field_nT=lab_field_nT,
+                float_type=float_type, boom_reference=boom_reference, path=str(path), extra=extra)
+
+
+def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
+    name = t.name("name")
+    t.label = f"[[sensor]] #{t.index} '{name}'"
+    part = t.choice("part", tuple(PARTS))
+    frame = t.choice("frame", FRAMES)
+    axes = _read_axes(t)
+    lsb_nT = t.number("lsb_nT", positive=True)
+    zero_count = t.integer("zero_count")
+    lo, hi = PARTS[part]["count_min"], PARTS[part]["count_max"]
+    if not lo < zero_count < hi:
+        t.fail("zero_count", f"{zero_count} is not inside the {part} raw range ({lo}, {hi})")
+    set_reset = t.boolean("set_reset", default=False)
+    if set_reset and not PARTS[part]["set_reset_capable"]:
+        t.fail("set_reset", f"the {part} has no SET/RESET; set_reset must be false")
+    noise_nT = t.number("noise_nT", required=False, positive=True)
+    unknown = {k: v for k, v in t.d.items() if k not in SENSOR_KEYS}
+    spec = SensorSpec(name=name, part=part, frame=frame, axes=axes, lsb_nT=lsb_nT,
+                      zero_count=zero_count, set_reset=set_reset, noise_nT=noise_nT)
+    return spec, unknown
+
+
+def _read_axes(t: "_Table") -> tuple:
+    axes = t.get("axes")
+    if not isinstance(axes, list) or len(axes) != 3:
+        t.fail("axes", f"{axes!r} must be a list of three entries such as [\"+z\", \"+y\", \"+x\"]")
+    for a in axes:
+        if a not in AXIS_TOKENS:
+            t.fail("axes", f"{a!r} is not one of {','.join(AXIS_TOKENS)}")
+    if sorted(a[1] for a in axes) != ["x", "y", "z"]:
+        t.fail("axes", f"{axes!r} is not a permutation of x, y, z")
+    return tuple(axes)
+
+
+def _check_unique_names_and_columns(path, lines, sensors) -> None:
+    owner: dict = {}
+    for i, s in enumerate(sensors, start=1):
+        where = f"[[sensor]] #{i} '{s.name}'"
+        line = lines.key("sensor", i, "name")
+        if s.name in (o.name for o in sensors[: i - 1]):
+            raise InputError(path, f"{where}: name: duplicate sensor name '{s.name}'", line=line)
+        for col in (*s.count_columns, s.temp_column):
+            if col in owner:
+                raise InputError(path, f"{where}: name: telemetry column '{col}' would also "
+                                       f"belong to sensor '{owner[col]}'", line=line)
+            owner[col] = s.name
+
+
+class _LineFinder:
+    """Where a table or key is written, for messages (None when it cannot be told)."""
+
+    def __init__(self, text: str):
+        self.lines = text.splitlines()
+
+    def _sections(self, table):
+        """(header line number, [(line number, text)...]) of each [table] / [[table]];
+        table None: the root keys written before the first table header."""
+        out, current = [], None
+        if table is None:
+            current = (None, [])
+            out.append(current)
+        for no, line in enumerate(self.lines, start=1):
+            m = _TABLE_HEADER_RE.match(line)
+            if m:
+                current = (no, []) if m.group(2) == table else None
+                if current:
+                    out.append(current)
+            elif current:
+                current[1].append((no, line))
+        return out
+
+    def table(self, table: str, index: int):
+        sections = self._sections(table)
+        return sections[index - 1][0] if 0 < index <= len(sections) else None
+
+    def key(self, table: str, index: int, key: str):
+        sections = self._sections(table)
+        if not 0 < index <= len(sections):
+            return None
+        header, body = sections[index - 1]
+        for no, line in body:
+            m = _KEY_RE.match(line)
+            if m and m.group(1) == key:
+                return no
+        return header
+
+
+class _Table:
+    """One TOML table being validated: typed getters that fail with file, line, table, key."""
+
+    def __init__(self, path, lines: _LineFinder, d: dict, table: str, index: int):
+        self.path, self.lines, self.d, self.table, self.index = path, lines, d, table, index
+        self.label = f"[[{table}]] #{index}" if table == "sensor" else f"[{table}]"
+
+    @staticmethod
+    def top(path, lines, doc, table, required):
+        d = doc.get(table, _MISSING)
+        if d is _MISSING:
+            if required:
+                raise InputError(path, f"[{table}]: table missing")
+            return None
+        if not isinstance(d, dict):
+            raise InputError(path, f"{table}: must be a table, written [{table}]",
+                             line=lines.key(None, 1, table))
+        return _Table(path, lines, d, table, 1)
+
+    def fail(self, key, message):
+        raise InputError(self.path, f"{self.label}: {key}: {message}",
+                         line=self.lines.key(self.table, self.index, key))
+
+    def get(self, key, required=True):
+        if key not in self.d:
+            if required:
+                self.fail(key, "missing")
+            return None
+        return self.d[key]
+
+    def name(self, key, required=True):
+        v = self.get(key, required)
+        if v is None:
+            return None
+        if not isinstance(v, str) or not _NAME_RE.fullmatch(v):
+            self.fail(key, f"{v!r} does not match {NAME_PATTERN}")
+        return v
+
+    def choice(self, key, allowed, default=None):
+        v = self.get(key, required=default is None)
+        if v is None:
+            return default
+        if v not in allowed:
+            self.fail(key, f"{v!r} is not one of {', '.join(allowed)}")
+        return v
+
+    def number(self, key, required=True, positive=False):
+        v = self.get(key, required)
+        if v is None:
+            return None
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            self.fail(key, f"{v!r} is not a finite number")
+        if positive and not v > 0:
+            self.fail(key, f"{v!r} must be positive")
+        return float(v)
+
+    def integer(self, key):
+        v = self.get(key)
+        if isinstance(v, float) and math.isfinite(v) and v.is_integer():
+            v = int(v)
+        if isinstance(v, bool) or not isinstance(v, int):
+            self.fail(key, f"{v!r} is not an integer")
+        return v
+
+    def boolean(self, key, default):
+        v = self.get(key, required=False)
+        if v is None:
+            return default
+        if not isinstance(v, bool):
+            self.fail(key, f"{v!r} is not true or false")
+        return v
+
+    def keep_unknown(self, known, extra, into):
+        unknown = {k: v for k, v in self.d.items() if k not in known}
+        if unknown:
+            extra[into] = unknown
