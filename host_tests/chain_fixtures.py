@@ -1,0 +1,96 @@
+"""Coefficient sets and input generators shared by the bit-exact tests."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from generator.calibration import SensorCalibration
+from generator.coeffs import CoefficientSet
+from generator.unit import SensorSpec, Unit
+
+REPO = Path(__file__).resolve().parent.parent
+EXAMPLE_COEFFS = REPO / "generated" / "samsat_fm1" / "coefficients.json"
+
+# The SamSat-ION mounting of ICD section 1, written out here so these tests need no
+# unit file and no fit.
+SAMSAT_SENSORS = (
+    SensorSpec("mmc1", "MMC5883MA", "body", ("+z", "+y", "+x"), 25.0, 32768, True, 40.0),
+    SensorSpec("mpu1", "MPU-9255", "body", ("-z", "-y", "-x"), 150.0, 0, False, 250.0),
+    SensorSpec("mpu2", "MPU-9255", "body", ("-z", "+y", "+x"), 150.0, 0, False, 250.0),
+    SensorSpec("mmc2", "MMC5883MA", "boom", ("-y", "-z", "-x"), 25.0, 32768, True, 40.0),
+    SensorSpec("mpu3", "MPU-9255", "boom", ("-y", "-z", "+x"), 150.0, 0, False, 250.0),
+)
+
+
+def samsat_unit(unit_id="testsat", float_type="float32") -> Unit:
+    return Unit(id=unit_id, sensors=SAMSAT_SENSORS, lab_field_nT=51540.0,
+                float_type=float_type, boom_reference="mmc1")
+
+
+def random_rotation(rng, max_angle_rad=0.05) -> np.ndarray:
+    v = rng.normal(size=3)
+    v *= rng.uniform(0, max_angle_rad) / np.linalg.norm(v)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    th = np.linalg.norm(v)
+    if th == 0:
+        return np.eye(3)
+    K /= th
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def random_coeffs(rng, unit: Unit, coils=(), t_range=(-20.0, 55.0)) -> CoefficientSet:
+    """A plausible random coefficient set (cubic b(T), M(T); optional coil coupling)."""
+    cals = {}
+    for s in unit.sensors:
+        b = rng.normal(0, 1, (4, 3)) * np.array([2000, 5, 0.1, 2e-3])[:, None]
+        M = rng.normal(0, 1, (4, 3, 3)) * np.array([0.02, 2e-4, 3e-6, 5e-8])[:, None, None]
+        M[0] += np.eye(3) * rng.uniform(0.93, 1.07, 3)
+        cals[s.name] = SensorCalibration(s.name, b, M, 25.0, t_range[0], t_range[1])
+    K = {s.name: rng.normal(0, 3000, (3, len(coils))) for s in unit.sensors} if coils else None
+    return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=random_rotation(rng),
+                                            K_nT_per_A=K, coils=coils)
+
+
+def random_inputs(rng, sensor: SensorSpec, n: int, n_coils=0, t_range=(-20.0, 55.0)):
+    """Raw counts across the part's full range (rails included), temperatures across and
+    beyond the calibrated range, currents up to +-0.2 A."""
+    k = 6 if sensor.set_reset else 3
+    raw = rng.integers(sensor.count_min, sensor.count_max + 1, (n, k))
+    # half of the samples near zero field (the realistic case), half anywhere
+    near = rng.random(n) < 0.5
+    span = int(80000 / sensor.lsb_nT)
+    raw[near] = np.clip(sensor.zero_count + rng.integers(-span, span + 1, (near.sum(), k)),
+                        sensor.count_min, sensor.count_max)
+    lo, hi = t_range
+    temp = rng.uniform(lo - 20, hi + 20, n).astype(np.float32)
+    coil = rng.uniform(-0.2, 0.2, (n, n_coils)) if n_coils else None
+    return raw, temp, coil
+
+
+def with_float(cs: CoefficientSet, float_type: str) -> CoefficientSet:
+    unit = replace(cs.unit, float_type=float_type)
+    spec = replace(cs.spec, unit=unit)
+    return CoefficientSet(spec, cs.sensors, cs.unit_values, cs.uncertainty, cs.fit_info)
+
+
+def bits(a) -> np.ndarray:
+    """Bit patterns of a float array (uint32 for float32, uint64 for float64)."""
+    a = np.ascontiguousarray(a)
+    return a.view(np.uint32 if a.dtype == np.float32 else np.uint64)
+
+
+def assert_bit_identical(c_out: dict, py_out: dict, context=""):
+    assert set(c_out) == set(py_out), (set(c_out), set(py_out))
+    for key in c_out:
+        a, b = c_out[key], py_out[key]
+        assert a.dtype == b.dtype and a.shape == b.shape, (key, a.dtype, b.dtype, a.shape, b.shape)
+        if key == "status":
+            bad = np.nonzero(a != b)[0]
+        else:
+            bad = np.nonzero(np.any(bits(a) != bits(b), axis=-1))[0]
+        assert bad.size == 0, (
+            f"{context} {key}: {bad.size} of {a.shape[0]} samples differ; first at {bad[0]}: "
+            f"C {a[bad[0]]!r} vs Python {b[bad[0]]!r}")

@@ -1,0 +1,199 @@
+"""The core promise: the generated flight C and the Python reference agree bit for bit.
+
+C is compiled by cffi (-std=c99 -O2 -ffp-contract=off; wrappers -Wall -Wextra -Werror
+-pedantic); the Python reference is chain.reference_sensor (float32 elementwise, same
+operation order). Outputs are compared as bit patterns, never with a tolerance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from chain_fixtures import (EXAMPLE_COEFFS, assert_bit_identical, bits, random_coeffs,
+                            random_inputs, samsat_unit, with_float)
+from generator import chain
+from generator.chain import reference_sensor
+from generator.coeffs import CoefficientSet
+from generator.host import HostUnit
+
+COILS = ("coil_x_A", "coil_y_A", "coil_z_A")
+N_RANDOM = 100_000
+
+
+def _cases():
+    """(label, coefficient set) pairs: the committed example unit, and random sets with
+    and without coils, in float32 and float64."""
+    rng = np.random.default_rng(20261121)
+    cases = []
+    if EXAMPLE_COEFFS.exists():
+        cases.append(("example", CoefficientSet.load(EXAMPLE_COEFFS)))
+    cases.append(("random", random_coeffs(rng, samsat_unit("rnd32"))))
+    cases.append(("random_coils", random_coeffs(rng, samsat_unit("rndcoil"), coils=COILS)))
+    cases.append(("random_f64", with_float(random_coeffs(rng, samsat_unit("rnd64"), coils=COILS),
+                                           "float64")))
+    return cases
+
+
+CASES = _cases()
+
+
+@pytest.fixture(scope="module", params=CASES, ids=[c[0] for c in CASES])
+def built(request):
+    label, cs = request.param
+    return label, cs, HostUnit(cs)
+
+
+def _both(cs, host, sensor, raw, temp, coil, coeffs_flat=None):
+    spec = cs.spec
+    s = spec.unit.sensor(sensor)
+    c_out = host.correct(sensor, raw, temp, coil, coeffs_flat=coeffs_flat)
+    if coeffs_flat is None:
+        cs_flat, cu_flat = cs.flat_sensor(sensor), cs.flat_unit()
+    else:
+        cs_flat, cu_flat = _split(spec, sensor, coeffs_flat)
+    py_out = reference_sensor(spec, s, cs_flat, cu_flat, raw, temp, coil)
+    return c_out, py_out
+
+
+def _split(spec, sensor, flat):
+    k = 0
+    for s in spec.unit.sensors:
+        n = spec.n_sensor_coeffs(s)
+        if s.name == sensor:
+            mine = flat[k:k + n]
+        k += n
+    return mine, flat[k:]
+
+
+def test_random_inputs_bit_identical(built):
+    label, cs, host = built
+    rng = np.random.default_rng(1)
+    for s in cs.unit.sensors:
+        t = (cs.sensors[s.name]["t_min_C"], cs.sensors[s.name]["t_max_C"])
+        raw, temp, coil = random_inputs(rng, s, N_RANDOM, len(cs.spec.coils), t)
+        c_out, py_out = _both(cs, host, s.name, raw, temp, coil)
+        assert_bit_identical(c_out, py_out, f"{label}/{s.name}")
+        # the comparison is not vacuous: outputs vary and most samples are valid
+        assert np.unique(bits(c_out["field_body_nT"][:, 0])).size > N_RANDOM // 2
+        assert np.mean(c_out["status"] == 0) > 0.3
+
+
+def test_edge_cases_bit_identical(built):
+    label, cs, host = built
+    for s in cs.unit.sensors:
+        t_min = float(cs.sensors[s.name]["t_min_C"])
+        t_max = float(cs.sensors[s.name]["t_max_C"])
+        f32 = np.float32
+        temps = [t_min, t_max, np.nextafter(f32(t_min), f32(-np.inf)),
+                 np.nextafter(f32(t_max), f32(np.inf)), np.nextafter(f32(t_min), f32(np.inf)),
+                 -273.15, 1e30, -1e30, 0.0, -0.0, 25.0, np.inf, -np.inf, np.nan]
+        k = 6 if s.set_reset else 3
+        counts = [s.count_min, s.count_min + 1, s.zero_count, s.count_max - 1, s.count_max]
+        raws = [np.full(k, c) for c in counts]
+        raws.append(np.resize([s.count_min, s.count_max], k))
+        if s.set_reset:   # zero field with a bridge offset: set == reset
+            raws.append(np.array([40000, 30000, 20000, 40000, 30000, 20000]))
+        rows, trows = [], []
+        for r in raws:
+            for t in temps:
+                rows.append(r)
+                trows.append(t)
+        raw = np.array(rows)
+        temp = np.array(trows, dtype=np.float32)
+        coil = None
+        if cs.spec.coils:
+            coil = np.zeros((raw.shape[0], len(cs.spec.coils)))
+            coil[::7] = 0.1
+            coil[3::11, 0] = np.nan
+            coil[5::13, 1] = np.inf
+        c_out, py_out = _both(cs, host, s.name, raw, temp, coil)
+        assert_bit_identical(c_out, py_out, f"{label}/{s.name} edges")
+        st_ = c_out["status"]
+        nonfinite = ~np.isfinite(temp)
+        assert np.all(st_[nonfinite] & chain.STATUS_NONFINITE)
+        assert np.all(c_out["field_body_nT"][nonfinite] == 0)
+        beyond = np.isfinite(temp) & ((temp < np.float32(t_min)) | (temp > np.float32(t_max)))
+        if coil is not None:
+            beyond &= np.all(np.isfinite(coil), axis=1)
+        assert np.all(st_[beyond] & chain.STATUS_TEMP_CLAMPED)
+        at_rail = np.any((raw <= s.count_min) | (raw >= s.count_max), axis=1)
+        assert np.all(st_[at_rail] & chain.STATUS_SATURATED)
+        assert np.all((st_[~at_rail & ~nonfinite & ~beyond] & chain.STATUS_SATURATED) == 0)
+        if coil is None:
+            # zero field: a clamped temperature must give exactly the value at the range end
+            clamped_lo = temp == np.float32(-1e30)
+            at_lo = temp == np.float32(t_min)
+            np.testing.assert_array_equal(bits(c_out["field_body_nT"][clamped_lo]),
+                                          bits(c_out["field_body_nT"][at_lo]))
+
+
+def test_coils_null_equals_zero_currents(built):
+    label, cs, host = built
+    if not cs.spec.coils:
+        pytest.skip("no coils in this chain")
+    rng = np.random.default_rng(3)
+    s = cs.unit.sensors[0]
+    raw, temp, _ = random_inputs(rng, s, 1000)
+    a = host.correct(s.name, raw, temp, None)
+    b = host.correct(s.name, raw, temp, np.zeros((1000, len(cs.spec.coils))))
+    np.testing.assert_array_equal(bits(a["field_body_nT"]), bits(b["field_body_nT"]))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_property_any_single_sample(data):
+    """Hypothesis: any counts in range, any float32 temperature (inf/nan included), any
+    currents: C and Python agree bit for bit."""
+    label, cs = CASES[-2]   # random coefficient set with coils, float32
+    host = _HOSTS.setdefault(label, HostUnit(cs))
+    s = data.draw(st.sampled_from(cs.unit.sensors))
+    k = 6 if s.set_reset else 3
+    raw = np.array([data.draw(st.lists(st.integers(s.count_min, s.count_max), min_size=k,
+                                       max_size=k))])
+    temp = np.array([data.draw(st.floats(width=32, allow_nan=True, allow_infinity=True))],
+                    dtype=np.float32)
+    coil = np.array([data.draw(st.lists(st.floats(-1.0, 1.0, width=32), min_size=3,
+                                        max_size=3))])
+    c_out, py_out = _both(cs, host, s.name, raw, temp, coil)
+    assert_bit_identical(c_out, py_out, f"hypothesis/{s.name}")
+
+
+_HOSTS: dict = {}
+
+
+def test_the_comparison_catches_a_perturbed_coefficient(built):
+    """One ulp on one matrix coefficient in the reference only: the suite must notice."""
+    label, cs, host = built
+    rng = np.random.default_rng(7)
+    s = cs.unit.sensors[0]
+    t = (cs.sensors[s.name]["t_min_C"], cs.sensors[s.name]["t_max_C"])
+    raw, temp, coil = random_inputs(rng, s, 20_000, len(cs.spec.coils), t)
+    c_out = host.correct(s.name, raw, temp, coil)
+    flat = cs.flat_sensor(s.name).astype(host.dtype)
+    k = cs.spec.offsets(cs.spec.sensor_blocks(s))["M_poly"]  # m0_00
+    flat[k] = np.nextafter(flat[k], host.dtype(np.inf))
+    py_out = reference_sensor(cs.spec, s, flat, cs.flat_unit(), raw, temp, coil)
+    with pytest.raises(AssertionError, match="samples differ"):
+        assert_bit_identical(c_out, py_out)
+
+
+def test_the_comparison_catches_a_reordered_operation(built, monkeypatch):
+    """Summing the matrix row in another order is the same maths, not the same bits."""
+    label, cs, host = built
+    rng = np.random.default_rng(8)
+    s = cs.unit.sensors[1]
+    t = (cs.sensors[s.name]["t_min_C"], cs.sensors[s.name]["t_max_C"])
+    raw, temp, coil = random_inputs(rng, s, 20_000, len(cs.spec.coils), t)
+    c_out = host.correct(s.name, raw, temp, coil)
+    monkeypatch.setattr(chain, "_dot3", lambda row, v: row[2] * v[2] + row[1] * v[1] + row[0] * v[0])
+    py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw, temp, coil)
+    with pytest.raises(AssertionError, match="samples differ"):
+        assert_bit_identical(c_out, py_out)
+
+
+def test_compiled_in_defaults_are_the_coefficients(built):
+    label, cs, host = built
+    np.testing.assert_array_equal(bits(host.default_coeffs()), bits(host.flat_coeffs()))
