@@ -1,0 +1,401 @@
+"""Attitude-independent calibration at one temperature: ellipsoid fit (seed 000, eq. 5-6).
+
+Readings B~ of a field of known magnitude |B| lie on the ellipsoid |M (B~ - b)| = |B|.
+
+1. Algebraic fit. Each reading gives X_i = [x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1];
+   nu = [a, b, c, f, g, h, p, q, r, d] minimises |D^T nu|^2 under the ellipsoid-specific
+   normalisation of Li & Griffiths (2004), 4J - I^2 = 1 (I = a+b+c, J = ab+bc+ca-f^2-g^2-h^2),
+   a generalised eigenproblem. With A = [[a,h,g],[h,b,f],[g,f,c]], n = [p,q,r]:
+       b = -A^-1 n,   M = |B| / sqrt(n^T A^-1 n - d) * A^(1/2)      (symmetric square root)
+   When the reference magnitude differs between samples (field model along an orbit) the
+   algebraic stage instead solves X_i nu = |B_i|^2 in the least-squares sense.
+2. Geometric refinement: minimise sum_i (|M (B~_i - b)| - |B_i|)^2 over b and symmetric M
+   (Levenberg-Marquardt, analytic Jacobian), started from the algebraic fit. The algebraic
+   fit is biased by noise; the geometric one is the maximum-likelihood estimate for
+   isotropic noise, and gives the parameter covariance used to check that the geometry
+   determines the ellipsoid at all.
+
+Everything that cannot give a trustworthy ellipsoid raises InputError saying what is
+missing; nothing returns a silently wrong number.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+# Order of the six independent entries of a symmetric 3x3 matrix (seed order a,b,c,f,g,h).
+SYM_INDEX = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
+_SYM_BASIS = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(SYM_INDEX):
+    _SYM_BASIS[_k, _i, _j] = 1.0
+    _SYM_BASIS[_k, _j, _i] = 1.0
+
+MIN_SAMPLES = 9
+# Geometric checks: limits on the 1-sigma uncertainty the data leave on the parameters.
+MAX_OFFSET_SIGMA_REL = 0.02     # offset sigma / |B|
+MAX_MATRIX_SIGMA = 0.02         # sigma of an entry of M (M ~ identity)
+MAX_COND = 1e8                  # condition number of the scaled geometric Jacobian
+_AXES = "xyz"
+
+
+def sym_from6(m6) -> np.ndarray:
+    """Symmetric 3x3 from its six entries in SYM_INDEX order (..., 6) -> (..., 3, 3)."""
+    return np.einsum("...k,kij->...ij", np.asarray(m6, float), _SYM_BASIS)
+
+
+def sym_to6(M) -> np.ndarray:
+    M = np.asarray(M, float)
+    return np.stack([M[..., i, j] for i, j in SYM_INDEX], axis=-1)
+
+
+def sqrtm_spd(A) -> np.ndarray:
+    """Symmetric square root of a symmetric positive definite matrix."""
+    w, V = np.linalg.eigh(A)
+    return (V * np.sqrt(w)) @ V.T
+
+
+def polar_spd(M) -> np.ndarray:
+    """Symmetric positive factor P of M = R P (R orthogonal): sqrtm(M^T M)."""
+    M = np.asarray(M, float)
+    return sqrtm_spd(M.T @ M)
+
+
+# ---------------------------------------------------------------------------------------
+# Levenberg-Marquardt on the normal equations (few parameters, many residuals)
+# ---------------------------------------------------------------------------------------
+def lm_solve(resid_jac, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
+    """Minimise |r(x)|^2. resid_jac(x) -> (r (m,), J (m, p)). Returns (x, r, J, info).
+
+    Moré-style scaling by the diagonal of J^T J; converged when the relative decrease of
+    the cost or the relative step falls below tolerance.
+    """
+    x = np.asarray(x0, float).copy()
+    r, J = resid_jac(x)
+    cost = float(r @ r)
+    lam = 1e-3
+    it = 0
+    converged = False
+    for it in range(1, max_iter + 1):
+        JTJ = J.T @ J
+        g = J.T @ r
+        d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
+        Js = JTJ / np.outer(d, d)
+        gs = g / d
+        improved = False
+        for _ in range(30):
+            try:
+                step = -np.linalg.solve(Js + lam * np.eye(len(x)), gs) / d
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            x_new = x + step
+            r_new, J_new = resid_jac(x_new)
+            cost_new = float(r_new @ r_new)
+            if np.isfinite(cost_new) and cost_new <= cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            converged = True  # no descent possible: at a minimum to working precision
+            break
+        rel_drop = (cost - cost_new) / max(cost, 1e-300)
+        rel_step = np.linalg.norm(step * d) / max(np.linalg.norm(x * d), 1e-300)
+        x, r, J, cost = x_new, r_new, J_new, cost_new
+        lam = max(lam / 10.0, 1e-12)
+        if rel_drop < rtol or rel_step < xtol:
+            converged = True
+            break
+    return x, r, J, {"iterations": it, "cost": cost, "converged": converged}
+
+
+def covariance(J, r, n_params=None):
+    """Parameter covariance s^2 (J^T J)^-1 with s^2 = |r|^2/(m - p), and cond of scaled J."""
+    m, p = J.shape
+    JTJ = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
+    Js = JTJ / np.outer(d, d)
+    w = np.linalg.eigvalsh(Js)
+    cond = float(np.sqrt(w[-1] / max(w[0], 1e-300)))
+    dof = max(m - p, 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = np.linalg.inv(Js) / np.outer(d, d) * s2
+    except np.linalg.LinAlgError:
+        cov = np.full((p, p), np.inf)
+    return cov, cond, s2
+
+
+# ---------------------------------------------------------------------------------------
+# Input checks
+# ---------------------------------------------------------------------------------------
+def _check_inputs(field_nT, ref_norm_nT, source):
+    x = np.asarray(field_nT, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise InputError(source, f"ellipsoid fit: field must be (N, 3), got shape {x.shape}")
+    n = x.shape[0]
+    bad = ~np.isfinite(x).all(axis=1)
+    if bad.any():
+        raise InputError(source, f"ellipsoid fit: {int(bad.sum())} of {n} readings are not "
+                                 "finite (drop unusable samples first)")
+    R = np.broadcast_to(np.asarray(ref_norm_nT, dtype=float), (n,)).copy() if n else \
+        np.zeros(0)
+    if np.ndim(ref_norm_nT) not in (0, 1) or (np.ndim(ref_norm_nT) == 1 and
+                                               np.shape(ref_norm_nT)[0] != n):
+        raise InputError(source, "ellipsoid fit: reference magnitude must be a number or one "
+                                 f"per sample ({n}), got shape {np.shape(ref_norm_nT)}")
+    if not (np.isfinite(R).all() and (R > 0).all()):
+        raise InputError(source, "ellipsoid fit: reference field magnitude must be finite "
+                                 "and positive")
+    if n < MIN_SAMPLES:
+        raise InputError(source, f"ellipsoid fit: {n} usable readings, at least {MIN_SAMPLES}"
+                                 " in different orientations are needed")
+    return x, R
+
+
+def _plane_hint(x) -> str:
+    """Describe how the readings fail to fill 3-D: plane normal / line direction."""
+    c = x - x.mean(axis=0)
+    w, V = np.linalg.eigh(c.T @ c / len(x))
+    spread = np.sqrt(np.maximum(w, 0))
+    axis = V[:, 0]
+    k = int(np.argmax(np.abs(axis)))
+    return (f"the readings spread only {spread[0]:.0f} nT along direction "
+            f"[{axis[0]:+.2f}, {axis[1]:+.2f}, {axis[2]:+.2f}] (mostly frame {_AXES[k]}) "
+            f"against {spread[2]:.0f} nT across it: turn the unit about another axis")
+
+
+def coverage(unit_vectors) -> dict:
+    """How well calibrated directions cover the sphere (JSON-able).
+
+    eig: eigenvalues of mean(u u^T) (1/3 each for a full sphere; ~0 along a direction
+    never sampled off the plane); mean_resultant: |mean(u)| (0 full sphere, 0.5 hemisphere
+    cap, 1 one direction).
+    """
+    u = np.asarray(unit_vectors, float)
+    S = u.T @ u / max(len(u), 1)
+    w, V = np.linalg.eigh(S)
+    return {"eig": [float(v) for v in w], "least_direction": [float(v) for v in V[:, 0]],
+            "mean_resultant": float(np.linalg.norm(u.mean(axis=0)))}
+
+
+def distinct_rows(v, resolution, at_most=None) -> int:
+    """Number of distinct rows of an (N, 3) array on a grid of `resolution`; counting
+    stops at `at_most` when given (a cheap test for 'enough different values')."""
+    q = np.round(np.asarray(v, float) / resolution)
+    if at_most is not None:
+        seen = [q[0]] if len(q) else []
+        rest = q
+        while len(seen) < at_most:
+            rest = rest[np.any(rest != seen[-1], axis=1)]
+            if not len(rest):
+                break
+            seen.append(rest[0])
+        if len(seen) >= at_most:
+            return len(seen)
+    return int(np.unique(q, axis=0).shape[0])
+
+
+def _distinct_readings(x, rel=1e-4) -> int:
+    scale = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
+    if not np.isfinite(scale) or scale == 0:
+        return 1
+    return distinct_rows(x - x.mean(axis=0), rel * scale, at_most=MIN_SAMPLES)
+
+
+def _sym_grad(u, y):
+    """d(u^T M y)/dm for the six entries of symmetric M: (N, 6)."""
+    return np.stack([u[:, i] * y[:, j] + (u[:, j] * y[:, i] if i != j else 0.0)
+                     for i, j in SYM_INDEX], axis=1)
+
+
+# ---------------------------------------------------------------------------------------
+# Algebraic fit
+# ---------------------------------------------------------------------------------------
+def _design(x) -> np.ndarray:
+    X, Y, Z = x[:, 0], x[:, 1], x[:, 2]
+    one = np.ones_like(X)
+    return np.stack([X * X, Y * Y, Z * Z, 2 * Y * Z, 2 * X * Z, 2 * X * Y,
+                     2 * X, 2 * Y, 2 * Z, one], axis=1)
+
+
+def _quadric_to_bM(nu, R_scaled):
+    """nu (10,) in scaled coordinates -> centre b, symmetric M mapping to radius R_scaled."""
+    A = sym_from6(nu[:6])
+    n = nu[6:9]
+    d = nu[9]
+    w = np.linalg.eigvalsh(A)
+    if w[0] < 0 and w[-1] < 0:
+        A, n, d = -A, -n, -d
+        w = -w[::-1]
+    if w[0] <= 0:
+        return None
+    Ainv_n = np.linalg.solve(A, n)
+    b = -Ainv_n
+    k = float(n @ Ainv_n - d)
+    if not k > 0:
+        return None
+    M = R_scaled / np.sqrt(k) * sqrtm_spd(A)
+    return b, M
+
+
+def algebraic_ellipsoid(field_nT, ref_norm_nT, *, source=None):
+    """Algebraic ellipsoid fit (Li & Griffiths 2004; linear variant for varying |B|).
+
+    Returns (b_nT, M symmetric, details). Raises InputError when the readings do not fix
+    a unique quadric or the best quadric is not an ellipsoid.
+    """
+    x, R = _check_inputs(field_nT, ref_norm_nT, source)
+    n_distinct = _distinct_readings(x)
+    if n_distinct < MIN_SAMPLES:
+        raise InputError(source, f"ellipsoid fit: only {n_distinct} distinct readings among "
+                                 f"{len(x)}; at least {MIN_SAMPLES} orientations are needed")
+    # Centre and scale to O(1) coordinates for conditioning.
+    mu = x.mean(axis=0)
+    s = float(np.sqrt(np.mean(np.sum((x - mu) ** 2, axis=1))))
+    xs = (x - mu) / s
+    Rs = R / s
+    D = _design(xs)
+    col = np.sqrt(np.mean(D * D, axis=0))
+    sv = np.linalg.svd(D / col, compute_uv=False)
+    if sv[-2] < 1e-9 * sv[0]:
+        raise InputError(source, "ellipsoid fit: the readings fit more than one quadric "
+                                 f"(orientations cover too little of the sphere): {_plane_hint(x)}")
+    varying = np.ptp(R) > 1e-9 * R.mean()
+    method = "li-griffiths"
+    result = None
+    if not varying:
+        S = D.T @ D
+        S11, S12, S22 = S[:6, :6], S[:6, 6:], S[6:, 6:]
+        try:
+            S22inv_S21 = np.linalg.solve(S22, S12.T)
+        except np.linalg.LinAlgError:
+            S22inv_S21 = np.linalg.lstsq(S22, S12.T, rcond=None)[0]
+        Mred = S11 - S12 @ S22inv_S21
+        C1 = np.zeros((6, 6))
+        C1[:3, :3] = [[-1, 1, 1], [1, -1, 1], [1, 1, -1]]   # k = 4: k/2 - 1 = 1
+        C1[3:, 3:] = -4 * np.eye(3)
+        # Mred v = lam C1 v  <=>  C1^-1 Mred v = lam v ; the one positive eigenvalue's vector.
+        w, V = np.linalg.eig(np.linalg.solve(C1, Mred))
+        w, V = np.real(w), np.real(V)
+        cand = []
+        for i in np.argsort(w):
+            v1 = V[:, i]
+            if w[i] > 0 and v1 @ C1 @ v1 > 0:
+                v2 = -S22inv_S21 @ v1
+                cand.append(np.concatenate([v1, v2]))
+        for nu in cand:
+            result = _quadric_to_bM(nu, Rs[0])
+            if result is not None:
+                break
+    if result is None:
+        # Linear fit X_i nu = |B_i|^2 (exact scale, no normalisation constraint needed).
+        method = "linear-rhs" if varying else "linear-rhs (fallback)"
+        nu = np.linalg.lstsq(D, Rs ** 2, rcond=None)[0]
+        A = sym_from6(nu[:6])
+        w = np.linalg.eigvalsh(A)
+        if w[0] <= 0:
+            raise InputError(source, "ellipsoid fit: the best-fitting quadric is not an "
+                                     f"ellipsoid (eigenvalues {w[0]:.3g} .. {w[-1]:.3g}); "
+                                     f"{_plane_hint(x)}")
+        b_s = -np.linalg.solve(A, nu[6:9])
+        # |sqrtm(A)(x - b)|^2 = |B|^2 + k: rescale so the mean magnitude matches.
+        Ms = sqrtm_spd(A)
+        mag = np.linalg.norm((xs - b_s) @ Ms.T, axis=1)
+        Ms = Ms * float(np.mean(Rs) / np.mean(mag))
+        result = (b_s, Ms)
+    b_s, M_s = result
+    # |M_s (x' - b')| = |B|/s with x' = (x - mu)/s  <=>  |M_s (x - b)| = |B|, b = mu + s b'.
+    b = mu + s * b_s
+    M = 0.5 * (M_s + M_s.T)
+    return b, M, {"method": method, "distinct_readings": n_distinct,
+                  "design_sv_ratio": float(sv[-2] / sv[0])}
+
+
+# ---------------------------------------------------------------------------------------
+# Geometric refinement
+# ---------------------------------------------------------------------------------------
+def _geo_resid_jac(params, x, R, w):
+    b = params[:3]
+    M = sym_from6(params[3:])
+    y = x - b
+    z = y @ M.T
+    nz = np.linalg.norm(z, axis=1)
+    u = z / nz[:, None]
+    r = (nz - R) * w
+    Jb = -(u @ M) * w[:, None]                       # d|z|/db = -u^T M
+    # d|z|/dm_k = u^T E_k y
+    Jm = _sym_grad(u, y) * w[:, None]
+    return r, np.hstack([Jb, Jm])
+
+
+def _undetermined_message(cov, cond, R_mean, b_sig, M_sig, x, u):
+    cov_s = coverage(u)
+    e = np.array(cov_s["least_direction"])
+    k = int(np.argmax(np.abs(e)))
+    what = []
+    if np.any(b_sig > MAX_OFFSET_SIGMA_REL * R_mean):
+        what.append("offset along " + "/".join(_AXES[i] for i in np.nonzero(
+            b_sig > MAX_OFFSET_SIGMA_REL * R_mean)[0]) + f" (1-sigma up to {b_sig.max():.0f} nT)")
+    if np.any(M_sig > MAX_MATRIX_SIGMA):
+        what.append(f"matrix entries (1-sigma up to {M_sig.max():.3g})")
+    if not what:
+        what.append(f"the parameters (condition number {cond:.3g})")
+    return ("ellipsoid fit: orientations cover too little of the sphere to determine "
+            + " and ".join(what) + f"; calibrated directions hardly reach frame {_AXES[k]} "
+            f"(direction [{e[0]:+.2f}, {e[1]:+.2f}, {e[2]:+.2f}], spread "
+            f"{np.sqrt(max(cov_s['eig'][0], 0)):.3f} of 0.577 for a full sphere): add "
+            "orientations pointing that way")
+
+
+def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=None):
+    """Fit b (offset, nT) and symmetric M with |M (B~ - b)| = |B| (seed 000 eq. 5-6).
+
+    field_nT: (N, 3) uncalibrated readings in frame axes (usable samples only).
+    ref_norm_nT: scalar or (N,) reference field magnitude.
+    refine: follow the algebraic fit by the geometric least-squares refinement.
+    weights: optional (N,) residual weights (1/sigma).
+    Returns (b_nT (3,), M (3, 3) symmetric, info) where info holds both stages:
+    info["algebraic"] / info["geometric"] = {"b_nT", "M", "rms_nT"}, the 1-sigma
+    b_sigma_nT / M_sigma (geometric stage), the covariance, coverage and iterations.
+    """
+    x, R = _check_inputs(field_nT, ref_norm_nT, source)
+    w = np.ones(len(x)) if weights is None else np.broadcast_to(
+        np.asarray(weights, float), (len(x),)).copy()
+    b_a, M_a, det = algebraic_ellipsoid(x, R, source=source)
+
+    def rms(b, M):
+        return float(np.sqrt(np.mean((np.linalg.norm((x - b) @ M.T, axis=1) - R) ** 2)))
+
+    info = {"n": int(len(x)), "algebraic": {"b_nT": b_a, "M": M_a, "rms_nT": rms(b_a, M_a),
+                                            **det}}
+    p0 = np.concatenate([b_a, sym_to6(M_a)])
+    if refine:
+        p, r, J, lm = lm_solve(lambda q: _geo_resid_jac(q, x, R, w), p0)
+        info["lm"] = lm
+    else:
+        p = p0
+        r, J = _geo_resid_jac(p, x, R, w)
+    b, M = p[:3], sym_from6(p[3:])
+    wev = np.linalg.eigvalsh(M)
+    if wev[0] <= 0:
+        raise InputError(source, "ellipsoid fit: refinement left a matrix that is not "
+                                 f"positive definite (eigenvalues {wev[0]:.3g}..{wev[-1]:.3g})"
+                                 f"; {_plane_hint(x)}")
+    cov, cond, s2 = covariance(J, r)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0))
+    b_sig, m_sig = sig[:3], sig[3:]
+    M_sig = np.zeros((3, 3))  # entry-wise 1-sigma (an off-diagonal pair is one parameter)
+    for k, (i, j) in enumerate(SYM_INDEX):
+        M_sig[i, j] = M_sig[j, i] = m_sig[k]
+    z = (x - b) @ M.T
+    u = z / np.linalg.norm(z, axis=1)[:, None]
+    info["geometric" if refine else "final"] = {"b_nT": b, "M": M, "rms_nT": rms(b, M)}
+    info.update({"b_sigma_nT": b_sig, "M_sigma": M_sig, "cov": cov, "cond": cond,
+                 "residual_sigma_nT": float(np.sqrt(s2)), "coverage": coverage(u)})
+    R_mean = float(R.mean())
+    if (cond > MAX_COND or not np.all(np.isfinite(sig))
+            or np.any(b_sig > MAX_OFFSET_SIGMA_REL * R_mean) or np.any(m_sig > MAX_MATRIX_SIGMA)):
+        raise InputError(source, _undetermined_message(cov, cond, R_mean, b_sig, m_sig, x, u))
+    return b, M, info
