@@ -44,14 +44,28 @@ from .unit import SensorSpec, Unit
 
 CHAIN_VERSION = 1  # bump when the meaning of an existing block or stage changes
 
-STATUS_NONFINITE = 0x01
-STATUS_SATURATED = 0x02
-STATUS_TEMP_CLAMPED = 0x04
+STATUS_NONFINITE = 0x01      # a non-finite temperature or current: outputs are zeros
+STATUS_SATURATED = 0x02      # a count at a rail of the part's range
+STATUS_TEMP_CLAMPED = 0x04   # temperature outside the calibrated range, clamped to it
+STATUS_IMPLAUSIBLE = 0x08    # |B| outside [field_min_nT, field_max_nT]
+STATUS_DISAGREE = 0x10       # disagrees with most other valid sensors (set by select)
+STATUS_NO_OFFSET = 0x20      # SET-only reading with no stored SET/RESET offset yet
 STATUS_BITS = {
     "NONFINITE": STATUS_NONFINITE,
     "SATURATED": STATUS_SATURATED,
     "TEMP_CLAMPED": STATUS_TEMP_CLAMPED,
+    "IMPLAUSIBLE": STATUS_IMPLAUSIBLE,
+    "DISAGREE": STATUS_DISAGREE,
+    "NO_OFFSET": STATUS_NO_OFFSET,
 }
+
+# Reason codes of the selected vector for attitude control (see select_reference).
+SELECT_CONFIRMED = 0     # chosen sensor agrees with at least one other valid sensor
+SELECT_SINGLE = 1        # chosen sensor is the only valid one: nothing to compare with
+SELECT_UNCONFIRMED = 2   # chosen sensor disagrees with the only other valid sensor
+SELECT_NONE = 3          # no valid sensor: zero vector
+SELECT_REASONS = {"CONFIRMED": SELECT_CONFIRMED, "SINGLE": SELECT_SINGLE,
+                  "UNCONFIRMED": SELECT_UNCONFIRMED, "NONE": SELECT_NONE}
 
 
 @dataclass(frozen=True)
@@ -111,17 +125,25 @@ class ChainSpec:
         if self.coils:
             blocks.append(Block("K_nT_per_A", (3, len(self.coils)), "nT/A", "coupling",
                                 "magnetorquer coupling, one column per coil, frame axes"))
+        blocks.append(Block("agree_nT", (), "nT", "tolerance",
+                            "expected scatter for the cross-sensor agreement check"))
         return tuple(blocks)
 
     def unit_blocks(self) -> tuple:
-        blocks = []
+        blocks = [
+            Block("field_min_nT", (), "nT", "field_band", "lowest plausible |B|"),
+            Block("field_max_nT", (), "nT", "field_band", "highest plausible |B|"),
+        ]
         if self.has_boom:
             blocks.append(Block("H_boom_to_body", (3, 3), "1", "rotation",
                                 "orthogonal boom->body alignment (seed 000 eq. 2-3)"))
         return tuple(blocks)
 
-    def sensor_inputs(self, sensor: SensorSpec) -> tuple:
-        if sensor.set_reset:
+    def sensor_inputs(self, sensor: SensorSpec, set_only=False) -> tuple:
+        if set_only:
+            raw = Input("raw_counts", 6, "count",
+                        "SET x,y,z, then the stored bridge offset x,y,z (counts)")
+        elif sensor.set_reset:
             raw = Input("raw_counts", 6, "count", "SET x,y,z then RESET x,y,z, sensor axes")
         else:
             raw = Input("raw_counts", 3, "count", "x, y, z, sensor axes")
@@ -130,11 +152,25 @@ class ChainSpec:
             ins.append(Input("coil_A", len(self.coils), "A", "magnetorquer currents"))
         return tuple(ins)
 
-    def sensor_outputs(self, sensor: SensorSpec) -> tuple:
-        outs = [Input("field_body_nT", 3, "nT", "calibrated field, body frame")]
-        if sensor.set_reset:
+    def sensor_outputs(self, sensor: SensorSpec, set_only=False) -> tuple:
+        outs = [Input("field_body_nT", 3, "nT", "calibrated field, body frame"),
+                Input("band_margin_nT2", 2, "nT^2",
+                      "|B|^2 - field_min^2 and field_max^2 - |B|^2: both >= 0 when plausible")]
+        if sensor.set_reset and not set_only:
             outs.append(Input("chip_offset_nT", 3, "nT", "SET/RESET bridge offset, sensor axes"))
+            outs.append(Input("offset_counts", 3, "count",
+                              "(SET + RESET) / 2: the offset stored for SET-only readings"))
         return tuple(outs)
+
+    def fallback_order(self) -> tuple:
+        """Sensor indices in the order the attitude system takes them: lower-noise parts
+        first (MMC5883 before MPU-9255), boom before body (farther from the magnetorquers
+        and the electronics), then unit order. SamSat-ION: mmc2, mmc1, mpu3, mpu1, mpu2."""
+        rank = {"MMC5883MA": 0, "MPU-9255": 1}
+        sensors = list(enumerate(self.unit.sensors))
+        sensors.sort(key=lambda e: (rank.get(e[1].part, 9), 0 if e[1].frame == "boom" else 1,
+                                    e[0]))
+        return tuple(i for i, _ in sensors)
 
     def n_sensor_coeffs(self, sensor) -> int:
         return sum(b.size for b in self.sensor_blocks(sensor))
@@ -227,21 +263,29 @@ def _dot3(row, v):
 
 
 def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: CoeffView,
-                  u: CoeffView | None, half):
+                  u: CoeffView, half, set_only=False):
     """The arithmetic of the chain for one sensor and one sample.
 
     raw, coil_A: lists of scalars; temp_C: scalar (already clamped); c, u: coefficient
     views; half: the constant 0.5 in the backend's type. Works on any scalar type with
     + - * (CasADi SX, numpy float32/float64 arrays). Returns {output name: [scalars]}.
+    set_only: a SET/RESET sensor read after SET only; raw[3:6] is the stored offset
+    (SET + RESET) / 2 in counts from the last pair. With a fresh offset the result equals
+    the pair's bit for bit: (s - (s + r) * 0.5) and (s - r) * 0.5 are both exact here.
     """
     lsb = c.scalar("lsb_nT")
     zero = c.scalar("zero_count")
     out = {}
     # counts -> nT, sensor axes (seed 000 eq. 4 for SET/RESET)
-    if sensor.set_reset:
+    if set_only:
+        s, o = raw[0:3], raw[3:6]
+        field_s = [(s[i] - o[i]) * lsb for i in range(3)]
+    elif sensor.set_reset:
         s, r = raw[0:3], raw[3:6]
         field_s = [(s[i] - r[i]) * half * lsb for i in range(3)]
-        out["chip_offset_nT"] = [((s[i] + r[i]) * half - zero) * lsb for i in range(3)]
+        offset_counts = [(s[i] + r[i]) * half for i in range(3)]
+        out["chip_offset_nT"] = [(offset_counts[i] - zero) * lsb for i in range(3)]
+        out["offset_counts"] = offset_counts
     else:
         field_s = [(raw[i] - zero) * lsb for i in range(3)]
     # axis mapping to the board frame (seed 000 eq. 1): structural, signs are exact
@@ -272,7 +316,56 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
         H = u.get("H_boom_to_body")
         B = [_dot3(H[i], B) for i in range(3)]
     out["field_body_nT"] = B
+    # plausibility band of |B|: both margins >= 0 when plausible
+    norm2 = B[0] * B[0] + B[1] * B[1] + B[2] * B[2]
+    f_min, f_max = u.scalar("field_min_nT"), u.scalar("field_max_nT")
+    out["band_margin_nT2"] = [norm2 - f_min * f_min, f_max * f_max - norm2]
     return out
+
+
+def agreement_kernel(fields, agree):
+    """Cross-sensor agreement margins, pairs (i, j) with i < j in unit order:
+    (agree_i + agree_j)^2 - |B_i - B_j|^2, >= 0 when the two agree."""
+    n = len(fields)
+    margins = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = [fields[i][k] - fields[j][k] for k in range(3)]
+            tol = agree[i] + agree[j]
+            margins.append(tol * tol - (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+    return margins
+
+
+def select_logic(n_sensors, order, valid, agrees):
+    """Disagreement flags and the selected sensor, from validity and pairwise agreement.
+
+    valid[i]: status == 0 before this step; agrees(i, j): margin >= 0. A valid sensor that
+    has at least two valid others and agrees with fewer than half of them disagrees. The
+    selected sensor is the first in `order` that is valid and does not disagree.
+    Returns (disagree list, selected index or -1, reason, rank in order or -1).
+    """
+    n_cmp = [0] * n_sensors
+    n_agree = [0] * n_sensors
+    for i in range(n_sensors):
+        if not valid[i]:
+            continue
+        for j in range(n_sensors):
+            if j != i and valid[j]:
+                n_cmp[i] += 1
+                if agrees(min(i, j), max(i, j)):
+                    n_agree[i] += 1
+    disagree = [valid[i] and n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]
+                for i in range(n_sensors)]
+    for rank, i in enumerate(order):
+        if valid[i] and not disagree[i]:
+            if n_cmp[i] == 0:
+                reason = SELECT_SINGLE
+            elif n_agree[i] > 0:
+                reason = SELECT_CONFIRMED
+            else:
+                reason = SELECT_UNCONFIRMED
+            return disagree, i, reason, rank
+    return disagree, -1, SELECT_NONE, -1
 
 
 # ---- the Python reference: the wrapper logic and the kernel in float32 ----------------
@@ -283,29 +376,34 @@ def np_dtype(unit: Unit):
 
 
 def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
-                     raw_counts, temp_C, coil_A=None):
-    """Python reference of `<unit>_<sensor>_correct`, vectorised over samples.
+                     raw_counts, temp_C, coil_A=None, set_only=False, offset_counts=None):
+    """Python reference of `<unit>_<sensor>_correct` (and `_correct_set` when set_only),
+    vectorised over samples.
 
     Each chain scalar is a numpy array over samples of the unit's float type, and every
     operation is an elementwise IEEE operation in the order of `sensor_kernel`: no BLAS,
-    no reductions. raw_counts: int array (N, 6 or 3); temp_C: (N,) float (converted to the
-    float type first, as the C API takes it); coil_A: (N, ncoil) or None (zeros).
-    Returns dict of outputs (N, 3) arrays plus 'status' (N,) uint16.
+    no reductions. raw_counts: int array (N, 6|3), for set_only (N, 3) SET counts;
+    temp_C: (N,) float (converted to the float type first, as the C API takes it);
+    coil_A: (N, ncoil) or None (zeros); offset_counts: set_only, (N, 3) stored offsets in
+    the float type, NaN rows meaning "no offset stored". Returns dict of outputs (N, k)
+    arrays plus 'status' (N,) uint16. The wrapper steps, in the C's order: saturation,
+    non-finite inputs (-> zeros), missing offset (-> zeros), clamp, kernel, band check.
     """
     ft = np_dtype(spec.unit)
     raw_counts = np.asarray(raw_counts)
     n = raw_counts.shape[0]
     temp = np.asarray(temp_C, dtype=np.float64).astype(ft)
     coeffs_sensor = np.asarray(coeffs_sensor, dtype=ft)
-    blocks = spec.sensor_blocks(sensor)
-    c = CoeffView([coeffs_sensor[k] for k in range(coeffs_sensor.size)], blocks)
-    u = None
-    if spec.unit_blocks():
-        cu = np.asarray(coeffs_unit, dtype=ft)
-        u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
+    c = CoeffView([coeffs_sensor[k] for k in range(coeffs_sensor.size)],
+                  spec.sensor_blocks(sensor))
+    cu = np.asarray(coeffs_unit, dtype=ft)
+    u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
     status = np.zeros(n, dtype=np.uint16)
 
-    # wrapper: non-finite inputs
+    # saturation at the part's rails
+    sat = np.any((raw_counts <= sensor.count_min) | (raw_counts >= sensor.count_max), axis=1)
+    status[sat] |= STATUS_SATURATED
+    # non-finite inputs
     nonfinite = ~np.isfinite(temp)
     coils = []
     if spec.coils:
@@ -314,23 +412,77 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         nonfinite |= ~np.all(np.isfinite(cA), axis=1)
         coils = [np.where(nonfinite, ft(0), cA[:, j]) for j in range(cA.shape[1])]
     status[nonfinite] |= STATUS_NONFINITE
-    # wrapper: saturation at the part's rails
-    sat = np.any((raw_counts <= sensor.count_min) | (raw_counts >= sensor.count_max), axis=1)
-    status[sat] |= STATUS_SATURATED
-    # wrapper: clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...)
+    zeroed = nonfinite.copy()
+    raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
+    if set_only:
+        off = np.full((n, 3), np.nan, dtype=ft) if offset_counts is None else \
+            np.asarray(offset_counts, dtype=ft)
+        no_offset = ~np.all(np.isfinite(off), axis=1) & ~zeroed
+        status[no_offset] |= STATUS_NO_OFFSET
+        zeroed |= no_offset
+        raw += [np.where(zeroed, ft(0), off[:, i]) for i in range(3)]
+    # clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...)
     t_min, t_max = c.scalar("t_min_C"), c.scalar("t_max_C")
-    t = np.where(nonfinite, ft(0), temp)
+    t = np.where(zeroed, ft(0), temp)
     below, above = t < t_min, t > t_max
     t = np.where(below, t_min, np.where(above, t_max, t)).astype(ft)
-    status[(below | above) & ~nonfinite] |= STATUS_TEMP_CLAMPED
+    status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED
 
-    raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
     with np.errstate(all="ignore"):
-        out = sensor_kernel(spec, sensor, raw, t, coils, c, u, ft(0.5))
+        out = sensor_kernel(spec, sensor, raw, t, coils, c, u, ft(0.5), set_only=set_only)
     result = {}
     for name, vals in out.items():
         arr = np.stack([np.broadcast_to(np.asarray(v, dtype=ft), (n,)) for v in vals], axis=1)
-        arr = np.where(nonfinite[:, None], ft(0), arr).astype(ft)
-        result[name] = arr
+        result[name] = np.where(zeroed[:, None], ft(0), arr).astype(ft)
+    if "offset_counts" in result:   # stored in the offset state only by an unsaturated pair
+        stored = ~sat & ~zeroed
+        result["offset_counts"] = np.where(stored[:, None], result["offset_counts"],
+                                           ft(np.nan)).astype(ft)
+    margin = result.pop("band_margin_nT2")
+    plausible = (margin[:, 0] >= 0) & (margin[:, 1] >= 0)
+    status[~plausible & ~zeroed] |= STATUS_IMPLAUSIBLE
     result["status"] = status
     return result
+
+
+def reference_select(spec: ChainSpec, coeffs_by_sensor: dict, fields, statuses):
+    """Python reference of `<unit>_select`, over samples.
+
+    fields: (N, S, 3) calibrated fields in unit sensor order, float type; statuses: (N, S)
+    uint16 from the sensor calls. Returns dict: status (N, S) with DISAGREE added,
+    field_body_nT (N, 3), sensor (N,) int (-1 none), rank (N,), reason (N,).
+    """
+    ft = np_dtype(spec.unit)
+    fields = np.asarray(fields, dtype=ft)
+    statuses = np.array(statuses, dtype=np.uint16)
+    n, S = statuses.shape
+    agree = [ft(np.asarray(coeffs_by_sensor[s.name], dtype=ft)[
+        spec.offsets(spec.sensor_blocks(s))["agree_nT"]]) for s in spec.unit.sensors]
+    with np.errstate(all="ignore"):
+        margins = agreement_kernel([[fields[:, i, k] for k in range(3)] for i in range(S)],
+                                   agree)
+    pair_index = {}
+    k = 0
+    for i in range(S):
+        for j in range(i + 1, S):
+            pair_index[(i, j)] = k
+            k += 1
+    margins = np.stack(margins, axis=1) if margins else np.zeros((n, 0), ft)
+    order = spec.fallback_order()
+    out_status = statuses.copy()
+    sel_field = np.zeros((n, 3), dtype=ft)
+    sensor = np.full(n, -1, dtype=np.int64)
+    rank = np.full(n, -1, dtype=np.int64)
+    reason = np.full(n, SELECT_NONE, dtype=np.int64)
+    for r in range(n):   # the selection logic is branchy; it is cheap per sample
+        valid = [statuses[r, i] == 0 for i in range(S)]
+        disagree, chosen, why, rk = select_logic(
+            S, order, valid, lambda i, j: margins[r, pair_index[(i, j)]] >= 0)
+        for i in range(S):
+            if disagree[i]:
+                out_status[r, i] |= STATUS_DISAGREE
+        if chosen >= 0:
+            sel_field[r] = fields[r, chosen]
+        sensor[r], rank[r], reason[r] = chosen, rk, why
+    return {"status": out_status, "field_body_nT": sel_field, "sensor": sensor,
+            "rank": rank, "reason": reason}

@@ -19,7 +19,8 @@ import jinja2
 import numpy as np
 
 from . import __version__
-from .chain import STATUS_BITS, ChainSpec, CoeffView, sensor_kernel
+from .chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView,
+                    agreement_kernel, sensor_kernel)
 from .coeffs import CoefficientSet
 
 REPO = Path(__file__).resolve().parent.parent
@@ -37,27 +38,41 @@ def versions() -> dict:
     return {"magcal": __version__, "casadi": ca.__version__, "jinja2": jinja2.__version__}
 
 
-def kernel_name(spec: ChainSpec, sensor) -> str:
-    return f"{spec.unit.id}_{sensor.name}_kernel"
+def kernel_name(spec: ChainSpec, sensor, set_only=False) -> str:
+    return f"{spec.unit.id}_{sensor.name}_{'set_' if set_only else ''}kernel"
 
 
-def build_kernel(spec: ChainSpec, sensor) -> ca.Function:
-    """The CasADi Function of one sensor's chain, from `chain.sensor_kernel`."""
-    ins = spec.sensor_inputs(sensor)
+def build_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
+    """The CasADi Function of one sensor's chain, from `chain.sensor_kernel`.
+
+    Arguments: the chain inputs, then the sensor's coefficients, then the unit's."""
+    ins = spec.sensor_inputs(sensor, set_only)
     sym = {i.name: ca.SX.sym(i.name, i.size) for i in ins}
     c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
-    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs()) if spec.n_unit_coeffs() else None
+    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
     c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
-    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks()) \
-        if u_sym is not None else None
+    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
     raw = [sym["raw_counts"][k] for k in range(sym["raw_counts"].numel())]
     coil = [sym["coil_A"][k] for k in range(sym["coil_A"].numel())] if "coil_A" in sym else []
-    out = sensor_kernel(spec, sensor, raw, sym["temp_C"][0], coil, c, u, ca.SX(0.5))
-    outs = spec.sensor_outputs(sensor)
-    args = [sym[i.name] for i in ins] + [c_sym] + ([u_sym] if u_sym is not None else [])
-    names_in = [i.name for i in ins] + ["coeffs"] + (["unit_coeffs"] if u_sym is not None else [])
-    return ca.Function(kernel_name(spec, sensor), args, [ca.vertcat(*out[o.name]) for o in outs],
-                       names_in, [o.name for o in outs])
+    out = sensor_kernel(spec, sensor, raw, sym["temp_C"][0], coil, c, u, ca.SX(0.5),
+                        set_only=set_only)
+    outs = spec.sensor_outputs(sensor, set_only)
+    return ca.Function(kernel_name(spec, sensor, set_only),
+                       [sym[i.name] for i in ins] + [c_sym, u_sym],
+                       [ca.vertcat(*out[o.name]) for o in outs],
+                       [i.name for i in ins] + ["coeffs", "unit_coeffs"], [o.name for o in outs])
+
+
+def build_agreement_kernel(spec: ChainSpec) -> ca.Function:
+    """Pairwise agreement margins of all sensors, from `chain.agreement_kernel`."""
+    S = len(spec.unit.sensors)
+    fields = ca.SX.sym("field_body_nT", 3 * S)
+    agree = ca.SX.sym("agree_nT", S)
+    margins = agreement_kernel([[fields[3 * i + k] for k in range(3)] for i in range(S)],
+                               [agree[i] for i in range(S)])
+    return ca.Function(f"{spec.unit.id}_agree_kernel", [fields, agree],
+                       [ca.vertcat(*margins) if margins else ca.SX(0, 1)],
+                       ["field_body_nT", "agree_nT"], ["margin_nT2"])
 
 
 def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
@@ -68,9 +83,13 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
                                  "with_header": True, "with_mem": False})
     funcs = {}
     for s in spec.unit.sensors:
-        f = build_kernel(spec, s)
-        funcs[s.name] = f
-        cg.add(f)
+        funcs[s.name] = build_kernel(spec, s)
+        cg.add(funcs[s.name])
+        if s.set_reset:
+            funcs[s.name + ":set"] = build_kernel(spec, s, set_only=True)
+            cg.add(funcs[s.name + ":set"])
+    funcs[":agree"] = build_agreement_kernel(spec)
+    cg.add(funcs[":agree"])
     with tempfile.TemporaryDirectory() as d:
         cg.generate(d + "/")
         c_text = (Path(d) / f"{name}.c").read_text()
@@ -122,11 +141,13 @@ def template_context(cs: CoefficientSet) -> dict:
                            "lines": _lines([c_literal(v, ft) for v in vals])})
             k += b.size
         sensors.append({
+            "index": len(sensors),
             "name": s.name, "NAME": s.name.upper(), "part": s.part, "frame": s.frame,
             "axes": list(s.axes), "set_reset": s.set_reset, "n_coeffs": k, "blocks": blocks,
             "count_min": s.count_min, "count_max": s.count_max,
             "n_raw": 6 if s.set_reset else 3,
             "kernel": kernel_name(spec, s),
+            "set_kernel": kernel_name(spec, s, set_only=True),
             "outputs": [o.name for o in spec.sensor_outputs(s)],
         })
     ublocks, k = [], 0
@@ -150,6 +171,9 @@ def template_context(cs: CoefficientSet) -> dict:
         "unit_blocks": ublocks,
         "n_unit_coeffs": k,
         "status_bits": sorted(STATUS_BITS.items(), key=lambda kv: kv[1]),
+        "select_reasons": sorted(SELECT_REASONS.items(), key=lambda kv: kv[1]),
+        "fallback_order": list(spec.fallback_order()),
+        "pairs": [(i, j) for i in range(len(sensors)) for j in range(i + 1, len(sensors))],
     }
 
 

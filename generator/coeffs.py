@@ -22,6 +22,21 @@ from .unit import Unit
 FORMAT = "magcal-coefficients"
 FORMAT_VERSION = 1
 
+# Plausible |B| for the flight check: LEO spans about 18,000-55,000 nT, the lab ~50,000.
+FIELD_BAND_nT = (15000.0, 70000.0)
+AGREE_SIGMAS = 5.0
+
+
+def default_agree_nT(sensor, cal) -> float:
+    """Tolerance of one sensor in the cross-sensor check (nT)."""
+    per_axis = float(sensor.noise_nT or 0.0)
+    resid = (cal.stats or {}).get("rms_vector_nT")
+    if resid is not None and np.isfinite(resid):
+        per_axis = max(per_axis, float(resid) / np.sqrt(3.0))
+    if per_axis <= 0:
+        per_axis = 50.0 * sensor.lsb_nT / 25.0   # no noise figure: a few counts
+    return AGREE_SIGMAS * np.sqrt(3.0) * per_axis
+
 
 @dataclass
 class CoefficientSet:
@@ -50,8 +65,13 @@ class CoefficientSet:
     # ---- construction ------------------------------------------------------------------
     @staticmethod
     def from_calibrations(unit: Unit, cals: dict, H_boom_to_body=None, K_nT_per_A=None,
-                          coils=(), fit_info=None) -> "CoefficientSet":
-        """From fitted SensorCalibration objects (and optional H and coil couplings)."""
+                          coils=(), fit_info=None, agree_nT=None,
+                          field_band_nT=FIELD_BAND_nT) -> "CoefficientSet":
+        """From fitted SensorCalibration objects (and optional H and coil couplings).
+
+        agree_nT: {sensor: tolerance} for the cross-sensor check; by default
+        AGREE_SIGMAS x sqrt(3) x the sensor's per-axis scatter (its noise_nT, or the fit's
+        per-axis residual when larger)."""
         spec = ChainSpec(unit, poly_degree=next(iter(cals.values())).b_poly_nT.shape[0] - 1,
                          coils=tuple(coils))
         sensors, unc = {}, {}
@@ -67,6 +87,8 @@ class CoefficientSet:
             if coils:
                 v["K_nT_per_A"] = np.asarray(K_nT_per_A[s.name], float) if K_nT_per_A \
                     else np.zeros((3, len(coils)))
+            v["agree_nT"] = np.array(float(agree_nT[s.name]) if agree_nT else
+                                     default_agree_nT(s, cal))
             sensors[s.name] = v
             u = {}
             if cal.b_poly_sigma_nT is not None:
@@ -74,7 +96,8 @@ class CoefficientSet:
             if cal.M_poly_sigma is not None:
                 u["M_poly"] = np.asarray(cal.M_poly_sigma, float)
             unc[s.name] = u
-        unit_values = {}
+        unit_values = {"field_min_nT": np.array(float(field_band_nT[0])),
+                       "field_max_nT": np.array(float(field_band_nT[1]))}
         if spec.has_boom:
             unit_values["H_boom_to_body"] = np.eye(3) if H_boom_to_body is None \
                 else np.asarray(H_boom_to_body, float)

@@ -144,30 +144,71 @@ class HostUnit:
     def _ctype(self):
         return "float" if self.dtype == np.float32 else "double"
 
+    def _ptr(self, a, ctype=None):
+        return self._ffi.cast(f"{ctype or self._ctype} *", a.ctypes.data)
+
+    def _coil(self, coil_A, n):
+        if self.spec.coils and coil_A is not None:
+            coil = np.ascontiguousarray(np.asarray(coil_A, dtype=np.float64).astype(self.dtype))
+            assert coil.shape == (n, len(self.spec.coils))
+            return coil, self._ptr(coil)
+        return None, self._ffi.NULL
+
+    def _coeffs(self, coeffs_flat):
+        return np.ascontiguousarray(self.flat_coeffs() if coeffs_flat is None else
+                                    np.asarray(coeffs_flat, dtype=self.dtype))
+
     def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None) -> dict:
-        """Run `<unit>_<sensor>_correct` over samples; same outputs as chain.reference_sensor."""
+        """Run `<unit>_<sensor>_correct` over samples; same outputs as chain.reference_sensor
+        (offset_counts: what the call stored in a fresh offset state, NaN if nothing)."""
         s = self.spec.unit.sensor(sensor)
-        ffi, ct = self._ffi, self._ctype
         raw = np.ascontiguousarray(raw_counts, dtype=np.int32)
         n = raw.shape[0]
         assert raw.shape == (n, 6 if s.set_reset else 3), raw.shape
         temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
-        co = np.ascontiguousarray(self.flat_coeffs() if coeffs_flat is None else
-                                  np.asarray(coeffs_flat, dtype=self.dtype))
+        co = self._coeffs(coeffs_flat)
         field = np.zeros((n, 3), dtype=self.dtype)
-        offset = np.zeros((n, 3), dtype=self.dtype)
+        chip = np.zeros((n, 3), dtype=self.dtype)
+        offs = np.zeros((n, 3), dtype=self.dtype)
         status = np.zeros(n, dtype=np.uint16)
-        coil_ptr = ffi.NULL
-        if self.spec.coils and coil_A is not None:
-            coil = np.ascontiguousarray(np.asarray(coil_A, dtype=np.float64).astype(self.dtype))
-            assert coil.shape == (n, len(self.spec.coils))
-            coil_ptr = ffi.cast(f"{ct} *", coil.ctypes.data)
+        coil, coil_ptr = self._coil(coil_A, n)
         getattr(self._lib, f"host_{sensor}_batch")(
-            ffi.cast(f"{ct} *", co.ctypes.data), n, ffi.cast("int32_t *", raw.ctypes.data),
-            ffi.cast(f"{ct} *", temp.ctypes.data), coil_ptr,
-            ffi.cast(f"{ct} *", field.ctypes.data), ffi.cast(f"{ct} *", offset.ctypes.data),
-            ffi.cast("uint16_t *", status.ctypes.data))
+            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), coil_ptr,
+            self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"))
         out = {"field_body_nT": field, "status": status}
         if s.set_reset:
-            out["chip_offset_nT"] = offset
+            out["chip_offset_nT"] = chip
+            out["offset_counts"] = offs
         return out
+
+    def correct_set(self, sensor: str, set_counts, temp_C, offset_counts, coil_A=None,
+                    coeffs_flat=None) -> dict:
+        """Run `<unit>_<sensor>_correct_set` with a stored offset per sample (NaN: none)."""
+        raw = np.ascontiguousarray(set_counts, dtype=np.int32)
+        n = raw.shape[0]
+        temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
+        off = np.ascontiguousarray(np.asarray(offset_counts, dtype=self.dtype))
+        co = self._coeffs(coeffs_flat)
+        field = np.zeros((n, 3), dtype=self.dtype)
+        status = np.zeros(n, dtype=np.uint16)
+        coil, coil_ptr = self._coil(coil_A, n)
+        getattr(self._lib, f"host_{sensor}_set_batch")(
+            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), coil_ptr,
+            self._ptr(off), self._ptr(field), self._ptr(status, "uint16_t"))
+        return {"field_body_nT": field, "status": status}
+
+    def select(self, fields, statuses, coeffs_flat=None) -> dict:
+        """Run `<unit>_select` over samples: fields (N, S, 3), statuses (N, S)."""
+        f = np.ascontiguousarray(np.asarray(fields, dtype=self.dtype))
+        st = np.ascontiguousarray(np.array(statuses, dtype=np.uint16))
+        n = st.shape[0]
+        co = self._coeffs(coeffs_flat)
+        sel = np.zeros((n, 3), dtype=self.dtype)
+        sensor = np.zeros(n, dtype=np.int8)
+        rank = np.zeros(n, dtype=np.int8)
+        reason = np.zeros(n, dtype=np.uint8)
+        self._lib.host_select_batch(self._ptr(co), n, self._ptr(f), self._ptr(st, "uint16_t"),
+                                    self._ptr(sel), self._ptr(sensor, "int8_t"),
+                                    self._ptr(rank, "int8_t"), self._ptr(reason, "uint8_t"))
+        return {"status": st, "field_body_nT": sel, "sensor": sensor.astype(np.int64),
+                "rank": rank.astype(np.int64), "reason": reason.astype(np.int64)}
