@@ -65,21 +65,20 @@ def polar_spd(M) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # Levenberg-Marquardt on the normal equations (few parameters, many residuals)
 # ---------------------------------------------------------------------------------------
-def lm_solve(resid_jac, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
-    """Minimise |r(x)|^2. resid_jac(x) -> (r (m,), J (m, p)). Returns (x, r, J, info).
+def lm_solve(model, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
+    """Minimise a sum of squares given through its normal equations.
 
-    Moré-style scaling by the diagonal of J^T J; converged when the relative decrease of
-    the cost or the relative step falls below tolerance.
+    model(x, jac) -> (cost, JTJ, JTr, m): cost = |r|^2, and when jac is True the Gauss-
+    Newton matrix J^T J and gradient J^T r (else None), m the number of residuals.
+    Moré-style scaling by the diagonal of J^T J; stops when the relative decrease of the
+    cost or the relative step falls below tolerance. Returns (x, cost, JTJ, info).
     """
     x = np.asarray(x0, float).copy()
-    r, J = resid_jac(x)
-    cost = float(r @ r)
+    cost, JTJ, g, m = model(x, True)
     lam = 1e-3
     it = 0
     converged = False
     for it in range(1, max_iter + 1):
-        JTJ = J.T @ J
-        g = J.T @ r
         d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
         Js = JTJ / np.outer(d, d)
         gs = g / d
@@ -91,8 +90,7 @@ def lm_solve(resid_jac, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
                 lam *= 10.0
                 continue
             x_new = x + step
-            r_new, J_new = resid_jac(x_new)
-            cost_new = float(r_new @ r_new)
+            cost_new = model(x_new, False)[0]
             if np.isfinite(cost_new) and cost_new <= cost:
                 improved = True
                 break
@@ -102,24 +100,35 @@ def lm_solve(resid_jac, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
             break
         rel_drop = (cost - cost_new) / max(cost, 1e-300)
         rel_step = np.linalg.norm(step * d) / max(np.linalg.norm(x * d), 1e-300)
-        x, r, J, cost = x_new, r_new, J_new, cost_new
+        x = x_new
+        cost, JTJ, g, m = model(x, True)
         lam = max(lam / 10.0, 1e-12)
         if rel_drop < rtol or rel_step < xtol:
             converged = True
             break
-    return x, r, J, {"iterations": it, "cost": cost, "converged": converged}
+    return x, cost, JTJ, {"iterations": it, "cost": float(cost), "converged": converged,
+                          "residuals": int(m)}
 
 
-def covariance(J, r, n_params=None):
-    """Parameter covariance s^2 (J^T J)^-1 with s^2 = |r|^2/(m - p), and cond of scaled J."""
-    m, p = J.shape
-    JTJ = J.T @ J
+def residual_model(resid_jac):
+    """Adapter: resid_jac(x) -> (r, J) into the normal-equation model of lm_solve."""
+    def model(x, jac):
+        r, J = resid_jac(x)
+        if not jac:
+            return float(r @ r), None, None, len(r)
+        return float(r @ r), J.T @ J, J.T @ r, len(r)
+    return model
+
+
+def covariance(JTJ, cost, m):
+    """Parameter covariance s^2 (J^T J)^-1 with s^2 = cost/(m - p), and the condition
+    number of the column-scaled Jacobian. Returns (cov, cond, s2)."""
+    p = JTJ.shape[0]
     d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
     Js = JTJ / np.outer(d, d)
     w = np.linalg.eigvalsh(Js)
-    cond = float(np.sqrt(w[-1] / max(w[0], 1e-300)))
-    dof = max(m - p, 1)
-    s2 = float(r @ r) / dof
+    cond = float(np.sqrt(w[-1] / w[0])) if w[0] > 0 else np.inf
+    s2 = float(cost) / max(m - p, 1)
     try:
         cov = np.linalg.inv(Js) / np.outer(d, d) * s2
     except np.linalg.LinAlgError:
@@ -276,16 +285,21 @@ def algebraic_ellipsoid(field_nT, ref_norm_nT, *, source=None):
         C1 = np.zeros((6, 6))
         C1[:3, :3] = [[-1, 1, 1], [1, -1, 1], [1, 1, -1]]   # k = 4: k/2 - 1 = 1
         C1[3:, 3:] = -4 * np.eye(3)
-        # Mred v = lam C1 v  <=>  C1^-1 Mred v = lam v ; the one positive eigenvalue's vector.
+        # Generalised eigenproblem Mred v = lam C1 v, i.e. C1^-1 Mred v = lam v.
         w, V = np.linalg.eig(np.linalg.solve(C1, Mred))
         w, V = np.real(w), np.real(V)
+        # The solution is the eigenvector with v^T C1 v > 0 of smallest algebraic cost
+        # v^T Mred v / v^T C1 v (>= 0; exactly 0 for exact data, so allow rounding).
         cand = []
-        for i in np.argsort(w):
+        scale = max(float(np.max(np.abs(w))), 1e-300)
+        for i in range(len(w)):
             v1 = V[:, i]
-            if w[i] > 0 and v1 @ C1 @ v1 > 0:
-                v2 = -S22inv_S21 @ v1
-                cand.append(np.concatenate([v1, v2]))
-        for nu in cand:
+            q = float(v1 @ C1 @ v1)
+            if q > 0:
+                cost = float(v1 @ Mred @ v1) / q
+                if cost >= -1e-9 * scale:
+                    cand.append((cost, np.concatenate([v1, -S22inv_S21 @ v1])))
+        for _, nu in sorted(cand, key=lambda c: c[0]):
             result = _quadric_to_bM(nu, Rs[0])
             if result is not None:
                 break
@@ -330,23 +344,18 @@ def _geo_resid_jac(params, x, R, w):
     return r, np.hstack([Jb, Jm])
 
 
-def _undetermined_message(cov, cond, R_mean, b_sig, M_sig, x, u):
-    cov_s = coverage(u)
-    e = np.array(cov_s["least_direction"])
-    k = int(np.argmax(np.abs(e)))
+def _undetermined_message(cond, R_mean, b_sig, M_sig, x):
     what = []
-    if np.any(b_sig > MAX_OFFSET_SIGMA_REL * R_mean):
-        what.append("offset along " + "/".join(_AXES[i] for i in np.nonzero(
-            b_sig > MAX_OFFSET_SIGMA_REL * R_mean)[0]) + f" (1-sigma up to {b_sig.max():.0f} nT)")
+    bad_b = b_sig > MAX_OFFSET_SIGMA_REL * R_mean
+    if np.any(bad_b):
+        what.append("the offset along " + "/".join(_AXES[i] for i in np.nonzero(bad_b)[0])
+                    + f" (1-sigma up to {b_sig.max():.0f} nT)")
     if np.any(M_sig > MAX_MATRIX_SIGMA):
-        what.append(f"matrix entries (1-sigma up to {M_sig.max():.3g})")
+        what.append(f"the matrix (1-sigma up to {M_sig.max():.3g})")
     if not what:
         what.append(f"the parameters (condition number {cond:.3g})")
     return ("ellipsoid fit: orientations cover too little of the sphere to determine "
-            + " and ".join(what) + f"; calibrated directions hardly reach frame {_AXES[k]} "
-            f"(direction [{e[0]:+.2f}, {e[1]:+.2f}, {e[2]:+.2f}], spread "
-            f"{np.sqrt(max(cov_s['eig'][0], 0)):.3f} of 0.577 for a full sphere): add "
-            "orientations pointing that way")
+            + " and ".join(what) + ": " + _plane_hint(x))
 
 
 def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=None):
@@ -371,19 +380,20 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
     info = {"n": int(len(x)), "algebraic": {"b_nT": b_a, "M": M_a, "rms_nT": rms(b_a, M_a),
                                             **det}}
     p0 = np.concatenate([b_a, sym_to6(M_a)])
+    model = residual_model(lambda q: _geo_resid_jac(q, x, R, w))
     if refine:
-        p, r, J, lm = lm_solve(lambda q: _geo_resid_jac(q, x, R, w), p0)
+        p, cost, JTJ, lm = lm_solve(model, p0)
         info["lm"] = lm
     else:
         p = p0
-        r, J = _geo_resid_jac(p, x, R, w)
+        cost, JTJ, _, _ = model(p, True)
     b, M = p[:3], sym_from6(p[3:])
     wev = np.linalg.eigvalsh(M)
     if wev[0] <= 0:
         raise InputError(source, "ellipsoid fit: refinement left a matrix that is not "
                                  f"positive definite (eigenvalues {wev[0]:.3g}..{wev[-1]:.3g})"
                                  f"; {_plane_hint(x)}")
-    cov, cond, s2 = covariance(J, r)
+    cov, cond, s2 = covariance(JTJ, cost, len(x))
     sig = np.sqrt(np.maximum(np.diag(cov), 0))
     b_sig, m_sig = sig[:3], sig[3:]
     M_sig = np.zeros((3, 3))  # entry-wise 1-sigma (an off-diagonal pair is one parameter)
@@ -397,5 +407,5 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
     R_mean = float(R.mean())
     if (cond > MAX_COND or not np.all(np.isfinite(sig))
             or np.any(b_sig > MAX_OFFSET_SIGMA_REL * R_mean) or np.any(m_sig > MAX_MATRIX_SIGMA)):
-        raise InputError(source, _undetermined_message(cov, cond, R_mean, b_sig, m_sig, x, u))
+        raise InputError(source, _undetermined_message(cond, R_mean, b_sig, m_sig, x))
     return b, M, info

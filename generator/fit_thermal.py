@@ -6,8 +6,9 @@ dT = clamp(T) - t_ref. What is known about the true field decides the fit:
 * reference vectors (`ref_x/y/z_nT`, body frame): `reference_fit`. The measurement model
   B~ = W(T) B_ref + b(T) is linear in the coefficients of W and b, so it is solved by
   ordinary least squares with the noise where it is, in B~; then M(T) = W(T)^-1 is fitted
-  by a polynomial of the same degree (the truncation error is ~(|W1| dT)^4, far below any
-  noise). M is then the full matrix to the body frame.
+  by a polynomial of the same degree (truncation ~(|W2| dT^2)^2 + (|W1| dT)^4, about 1e-6
+  or 0.05 nT for parts like the SamSat ones, far below the noise). M is then the full
+  matrix to the body frame.
 * only the magnitude (`ref_norm_nT` or the unit's `lab_field_nT`): ellipsoid fit
   (generator.fit_ellipsoid), M symmetric (known only up to a rotation).
 
@@ -27,6 +28,10 @@ figures and the choice go into SensorCalibration.stats.
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
+
+Public API: fit_unit(unit, telemetries, progress) -> {name: SensorCalibration};
+fit_sensor(name, [FitData], degree=3); reference_fit(...); find_segments(...),
+group_levels(...), temperature_quantum(...), temperature_noise(...).
 """
 
 from __future__ import annotations
@@ -416,7 +421,10 @@ def _gather(name, datas, notes, per_file):
         # cross-validation groups: static positions, else four contiguous time blocks
         pos = d.position
         g = np.zeros(n, int)
-        if pos is not None and len(np.unique(pos[use & (np.nan_to_num(pos) > 0)])) > 1:
+        by_position = (pos is not None
+                       and len(np.unique(pos[use & (np.nan_to_num(pos) > 0)])) > 1)
+        per_file[-1]["holdout_groups"] = "static positions" if by_position else "time blocks"
+        if by_position:
             p = np.nan_to_num(pos).astype(int)
             g = p.copy()
             moving = p <= 0
@@ -504,40 +512,72 @@ def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source):
     xv, xm = S.x[vec], S.x[mag]
     nv, nm = len(Pv), len(Pm)
 
-    def resid_jac(q):
-        bp, Mp = unpack(q)
-        rs, Js = [], []
-        if nv:   # r = M(T)(x - b(T)) - B_ref, three rows per sample
-            MT = (Pv @ Mp.reshape(K, 9)).reshape(nv, 3, 3)
-            y = xv - Pv @ bp
-            z = np.einsum("nij,nj->ni", MT, y)
-            Jb = -(Pv[:, None, :, None] * MT[:, :, None, :]).reshape(nv, 3, nb)
-            Jm = np.zeros((nv, 3, K, 3, 3))
-            Py = Pv[:, :, None] * y[:, None, :]
-            for a in range(3):
-                Jm[:, a, :, a, :] = Py
-            rs.append((z - Bv).ravel())
-            Js.append(np.concatenate([Jb, Jm.reshape(nv, 3, -1)], axis=2).reshape(3 * nv, -1))
-        if nm:   # r = |M(T)(x - b(T))| - |B|
-            MT = (Pm @ Mp.reshape(K, 9)).reshape(nm, 3, 3)
-            y = xm - Pm @ bp
-            z = np.einsum("nij,nj->ni", MT, y)
-            nz = np.linalg.norm(z, axis=1)
-            u = z / nz[:, None]
-            v = np.einsum("ni,nij->nj", u, MT)                       # u^T M
-            Jb = -(Pm[:, :, None] * v[:, None, :]).reshape(nm, nb)
-            if body_frame:
-                Jm = (Pm[:, :, None, None] * u[:, None, :, None]
-                      * y[:, None, None, :]).reshape(nm, -1)
-            else:
-                w = _sym_grad(u, y)
-                Jm = (Pm[:, :, None] * w[:, None, :]).reshape(nm, -1)
-            rs.append(nz - Rm)
-            Js.append(np.hstack([Jb, Jm]))
-        return np.concatenate(rs), np.vstack(Js)
+    PPv = (Pv[:, :, None] * Pv[:, None, :]).reshape(nv, K * K)
 
-    q, r, J, lm = lm_solve(resid_jac, q0, max_iter=60)
-    cov, cond, s2 = covariance(J, r)
+    def vector_normal(bp, Mp, jac):
+        """Vector rows r = M(T)(x - b(T)) - B_ref: cost and, in closed form, J^T J, J^T r
+        (params: b[k,l], then M[k,a,c]); no (3N x p) Jacobian is formed."""
+        MT = (Pv @ Mp.reshape(K, 9)).reshape(nv, 3, 3)
+        y = xv - Pv @ bp
+        r = np.einsum("nij,nj->ni", MT, y) - Bv
+        cost = float(np.sum(r * r))
+        if not jac:
+            return cost, None, None
+        # M-M: delta_aa' sum_n P_k y_c P_m y_d
+        Py = (Pv[:, :, None] * y[:, None, :]).reshape(nv, 3 * K)
+        G = (Py.T @ Py).reshape(K, 3, K, 3)
+        MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
+        # b-b: sum_n P_k P_m (M^T M)[l,p]
+        Q = np.einsum("nil,nip->nlp", MT, MT).reshape(nv, 9)
+        bb = (PPv.T @ Q).reshape(K, K, 3, 3).transpose(0, 2, 1, 3).reshape(nb, nb)
+        # M-b: -sum_n P_k P_m y_c M[a,l]
+        YM = (y[:, :, None, None] * MT[:, None, :, :]).reshape(nv, 27)       # [c,a,l]
+        Mb = -(PPv.T @ YM).reshape(K, K, 3, 3, 3).transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)
+        JTJ = np.block([[bb, Mb.T], [Mb, MM]])
+        gM = (Py.T @ r).reshape(K, 3, 3).transpose(0, 2, 1).reshape(-1)       # [k,a,c]
+        gb = -(Pv.T @ np.einsum("nil,ni->nl", MT, r)).reshape(-1)              # [k,l]
+        return cost, JTJ, np.concatenate([gb, gM])
+
+    def magnitude_rows(bp, Mp, jac):
+        """Magnitude rows r = |M(T)(x - b(T))| - |B| and their Jacobian."""
+        MT = (Pm @ Mp.reshape(K, 9)).reshape(nm, 3, 3)
+        y = xm - Pm @ bp
+        z = np.einsum("nij,nj->ni", MT, y)
+        nz = np.linalg.norm(z, axis=1)
+        r = nz - Rm
+        if not jac:
+            return r, None
+        u = z / nz[:, None]
+        v = np.einsum("ni,nij->nj", u, MT)                       # u^T M
+        Jb = -(Pm[:, :, None] * v[:, None, :]).reshape(nm, nb)
+        if body_frame:
+            Jm = (Pm[:, :, None, None] * u[:, None, :, None]
+                  * y[:, None, None, :]).reshape(nm, -1)
+        else:
+            Jm = (Pm[:, :, None] * _sym_grad(u, y)[:, None, :]).reshape(nm, -1)
+        return r, np.hstack([Jb, Jm])
+
+    n_par = len(q0)
+
+    def model(q, jac):
+        bp, Mp = unpack(q)
+        cost, JTJ, g = 0.0, np.zeros((n_par, n_par)), np.zeros(n_par)
+        if nv:
+            c, A, gv = vector_normal(bp, Mp, jac)
+            cost += c
+            if jac:
+                JTJ += A
+                g += gv
+        if nm:
+            r, J = magnitude_rows(bp, Mp, jac)
+            cost += float(r @ r)
+            if jac:
+                JTJ += J.T @ J
+                g += J.T @ r
+        return cost, (JTJ if jac else None), (g if jac else None), 3 * nv + nm
+
+    q, cost, JTJ, lm = lm_solve(model, q0, max_iter=60)
+    cov, cond, s2 = covariance(JTJ, cost, 3 * nv + nm)
     if not cond < MAX_REF_COND:
         raise InputError(source, f"joint temperature fit: the data do not determine the "
                                  f"degree-{degree} model (condition {cond:.3g}); temperature "
@@ -570,12 +610,11 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
         dv = min(degree, _degree_for_span(span))
         b0, M0, _ = reference_fit(S.x[v], S.ref[v], S.T[v], dv, source=source)
     else:
-        b0c, M0c, _ = ellipsoid_fit(S.x, S.norm, source=source)
+        b0c, M0c, info = ellipsoid_fit(S.x, S.norm, source=source)
         b0, M0 = b0c[None, :], M0c[None]
-    if degree == 0 and not body_frame:
-        _, _, info = ellipsoid_fit(S.x, S.norm, source=source)
-        return _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
-                         info["b_sigma_nT"][None], info["M_sigma"][None])
+        if degree == 0:
+            return _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
+                             info["b_sigma_nT"][None], info["M_sigma"][None])
     b, M, bs, Ms, lm = _joint_nonlinear(S, degree, t_lo, t_hi, body_frame, (b0, M0), source)
     kind = "reference-vector + magnitude" if body_frame else "ellipsoid"
     return _make_cal(name, b, M, t_lo, t_hi, body_frame, f"{kind} joint, degree {degree}",
@@ -673,7 +712,14 @@ def _score(S: _Samples, cal):
 # Entry points
 # =======================================================================================
 def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalibration:
-    """Temperature calibration of one sensor from all its files (list of FitData)."""
+    """Temperature calibration of one sensor from all its files (list of FitData).
+
+    degree: highest polynomial degree in temperature; the degree used is also limited to
+    one per DEGREE_STEP_C of covered temperature span (a single temperature gives a
+    constant calibration). Returns a SensorCalibration padded to POLY_DEGREE, with
+    stats: files and exclusions, segments and levels found, the held-out comparison of
+    the "joint" and "segments" methods, the method chosen and why, and the fit RMS.
+    """
     say = progress or (lambda msg: None)
     notes, per_file = [], []
     source = datas[0].source if datas else None
@@ -708,8 +754,9 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalib
     if deg == 0:
         cal = _fit_joint(name, S, body_frame, 0, t_lo, t_hi, source)
         stats["chosen"] = "constant"
-        stats["why"] = (f"reported temperature spans {span:.1f} degC: a constant "
-                        f"calibration (no temperature model below {DEGREE_STEP_C} degC)")
+        stats["why"] = ("degree 0 requested" if degree == 0 else
+                        f"reported temperature spans {span:.1f} degC: a constant calibration "
+                        f"(one polynomial degree per {DEGREE_STEP_C:g} degC of span)")
         stats["fit"] = _score(S, cal)
         cal.stats = stats
         return cal
@@ -745,8 +792,10 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalib
                 held[m]["vec"].append(rv)
                 held[m]["norm"].append(rn)
         say(f"{name}: held-out comparison over {k} folds done")
-    holdout = {"scheme": ("leave-positions-out" if any(d.position is not None for d in datas)
-                          else "time blocks") + f", {k} folds",
+    kinds = sorted({f["holdout_groups"] for f in per_file})
+    scheme = "leave-positions-out" if kinds == ["static positions"] else \
+        "held-out " + " and ".join(kinds)
+    holdout = {"scheme": f"{scheme}, {k} folds",
                "metric": "vector RMS per axis" if body_frame else "|B| RMS"}
     scores = {}
     for m in methods:
@@ -799,6 +848,8 @@ def fit_unit(unit, telemetries, progress=None) -> dict:
     pre = [(_telemetry.preprocess(tel, unit), tel) for tel in telemetries]
     out = {}
     for s in unit.sensors:
-        datas = [fit_data_from(tel, data[s.name], unit) for data, tel in pre]
+        datas = [fit_data_from(tel, data[s.name], unit) for data, tel in pre if s.name in data]
+        if not datas:
+            raise InputError(telemetries[0].path, f"fit: no file has data of sensor '{s.name}'")
         out[s.name] = fit_sensor(s.name, datas, progress=progress)
     return out
