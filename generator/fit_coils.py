@@ -1,0 +1,352 @@
+"""Magnetorquer coupling K (seed 000, section "coils and the boom magnetometer").
+
+The coil field at a sensor is linear in the coil currents. In the chain it is subtracted
+in raw frame-axis units, before the calibration matrix:
+
+    B = M(T) (B~ - b(T) - K i)            K: 3 x ncoil, nT/A, the sensor's frame axes
+
+so K is what the coil adds to the *uncalibrated* frame-axis reading per ampere (the
+truth's K_coil_frame_nT_per_A). It is fitted from a coil campaign (coils.csv: the unit
+static in the jig, each magnetorquer stepped through +-25..100 mA) with no calibration at
+all: per sensor, per frame axis, ordinary least squares of B~ on the currents plus one
+constant per static position (the constant absorbs the field, the offsets and anything
+else that does not change while the unit sits still). M never enters, so K comes out in
+the chain's units. The temperature must hold still within a position (it does in the jig:
+the constant does not follow an offset drifting with temperature).
+
+Uncertainty: the OLS covariance with each axis' residual variance.
+
+Reports:
+* `interference_table`: |K column| x current (default 0.1 A) per sensor and coil, in nT and
+  as % of the lab field, scaled by 1/r^3 to the seed's points (5, 15, 30 cm) from an
+  assumed sensor-coil distance, beside the seed's 30 cm figures (167.87 nT without the
+  solar panel, 307.57 nT with it, 0.1 A); also the distance at which the seed's coil would
+  give the measured interference.
+* `correction_table`: |B| (and vector, where reference vectors exist) RMS error of the
+  calibrated readings with and without subtracting K i, per sensor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+
+# Seed 000: coil at 30 cm (point 6, the boom length) driven at 0.1 A, mean absolute error
+SEED_CURRENT_A = 0.1
+SEED_POINTS_CM = (5.0, 15.0, 30.0)            # points 1, 3 and 6
+SEED_30CM_NO_PANEL_NT = 167.87               # 0.33 %
+SEED_30CM_PANEL_NT = 307.57                  # 0.61 %
+
+# Assumed distance from a sensor to the magnetorquers when the caller gives none.
+#   boom: the boom length, 30 cm (seed 000: point 6 "the length of the boom");
+#   body: 10 cm -- an assumption: the flight computer inside a ~10 cm CubeSat body, about
+#         one body width from the torquer coils. Pass distance_cm to override.
+DEFAULT_DISTANCE_CM = {"boom": 30.0, "body": 10.0}
+
+
+def coil_columns(tel) -> list:
+    """The magnetorquer current columns of a telemetry file: coil_<name>_A, sorted."""
+    return sorted(c for c in tel.columns if c.startswith("coil_") and c.endswith("_A"))
+
+
+@dataclass
+class SensorCoilFit:
+    name: str
+    coils: tuple                       # current column names, column order of K
+    K_nT_per_A: np.ndarray             # (3, ncoil) frame axes
+    K_sigma_nT_per_A: np.ndarray       # (3, ncoil) 1-sigma
+    residual_sigma_nT: np.ndarray      # (3,) per frame axis
+    n_samples: int
+    n_positions: int
+    constants_nT: np.ndarray           # (n_positions, 3) per-position constant
+
+    def column_norm_nT_per_A(self) -> np.ndarray:
+        """|K[:, j]| per coil."""
+        return np.linalg.norm(self.K_nT_per_A, axis=0)
+
+    def column_norm_sigma_nT_per_A(self) -> np.ndarray:
+        """1-sigma of |K[:, j]| (first order, axes independent)."""
+        n = self.column_norm_nT_per_A()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.sqrt(np.sum((self.K_nT_per_A * self.K_sigma_nT_per_A) ** 2, axis=0)) / n
+        return np.where(n > 0, s, np.linalg.norm(self.K_sigma_nT_per_A, axis=0))
+
+    def to_dict(self) -> dict:
+        return {"coils": list(self.coils), "K_nT_per_A": self.K_nT_per_A.tolist(),
+                "K_sigma_nT_per_A": self.K_sigma_nT_per_A.tolist(),
+                "residual_sigma_nT": self.residual_sigma_nT.tolist(),
+                "n_samples": self.n_samples, "n_positions": self.n_positions}
+
+
+@dataclass
+class CoilFit:
+    coils: tuple
+    sensors: dict                      # name -> SensorCoilFit
+    notes: list = field(default_factory=list)
+
+    def K(self) -> dict:
+        """{sensor: K (3, ncoil)} for the chain / calibrated_fields."""
+        return {n: f.K_nT_per_A for n, f in self.sensors.items()}
+
+    def to_dict(self) -> dict:
+        return {"coils": list(self.coils),
+                "sensors": {n: f.to_dict() for n, f in self.sensors.items()},
+                "notes": list(self.notes)}
+
+
+def fit_coupling(field_frame_nT, coil_A, group, *, coils=None, name="", source=None
+                 ) -> SensorCoilFit:
+    """OLS of the raw frame-axis field on the currents plus a constant per group.
+
+    field_frame_nT (N, 3), coil_A (N, ncoil), group (N,) integer labels of static
+    positions; all rows must be finite (select them first).
+    """
+    y = np.asarray(field_frame_nT, float)
+    I = np.asarray(coil_A, float)
+    g = np.asarray(group)
+    n, nc = I.shape
+    coils = tuple(coils) if coils is not None else tuple(f"coil{j}" for j in range(nc))
+    labels, gi = np.unique(g, return_inverse=True)
+    ng = len(labels)
+    p = nc + ng
+    if n <= p:
+        raise InputError(source, f"coils: {name}: {n} usable samples for {p} unknowns "
+                                 f"({nc} couplings + {ng} position constants)")
+    # currents relative to their position mean: the constants separate exactly
+    Ic = I.copy()
+    for k in range(ng):
+        sel = gi == k
+        Ic[sel] -= I[sel].mean(axis=0)
+    span = np.sqrt(np.sum(Ic ** 2, axis=0))
+    for j in range(nc):
+        if span[j] == 0.0:
+            raise InputError(source, f"coils: {name}: current {coils[j]!r} never changes "
+                                     "within a static position: its coupling is undetermined")
+    G = Ic.T @ Ic
+    if np.linalg.cond(G) > 1e10:
+        raise InputError(source, f"coils: {name}: the coil currents always move together "
+                                 "(design matrix singular): step them separately")
+    Ginv = np.linalg.inv(G)
+    yc = y.copy()
+    const = np.zeros((ng, 3))
+    for k in range(ng):
+        sel = gi == k
+        const[k] = y[sel].mean(axis=0)
+        yc[sel] -= const[k]
+    K_T = Ginv @ (Ic.T @ yc)                       # (nc, 3)
+    r = yc - Ic @ K_T
+    s2 = np.sum(r ** 2, axis=0) / (n - p)           # per frame axis
+    K_sig = np.sqrt(np.outer(np.diag(Ginv), s2)).T  # (3, nc)
+    # constants at zero current
+    for k in range(ng):
+        sel = gi == k
+        const[k] -= I[sel].mean(axis=0) @ K_T
+    return SensorCoilFit(name=name, coils=coils, K_nT_per_A=K_T.T.copy(),
+                         K_sigma_nT_per_A=K_sig, residual_sigma_nT=np.sqrt(s2),
+                         n_samples=int(n), n_positions=int(ng), constants_nT=const)
+
+
+def fit_coils(unit, telemetries, *, coils=None, sensors=None) -> CoilFit:
+    """K per sensor from one or more coil-campaign files (Telemetry objects).
+
+    coils: current column names (default: every coil_*_A column of the first file, sorted;
+    all files must carry them). Static positions: (file, position) for position > 0;
+    samples with position 0 (moving) are left out; a file without a position column is
+    taken as one static position (noted). Rows with a missing current or an unusable
+    reading are left out.
+    """
+    from . import telemetry as _telemetry
+    if not telemetries:
+        raise InputError(unit.path, "coils: no telemetry files given")
+    if coils is None:
+        coils = coil_columns(telemetries[0])
+    coils = tuple(coils)
+    if not coils:
+        raise InputError(telemetries[0].path, "coils: no coil_*_A current columns")
+    names = [s.name for s in unit.sensors] if sensors is None else list(sensors)
+    notes = []
+    per_sensor = {n: ([], [], []) for n in names}
+    for fi, tel in enumerate(telemetries):
+        missing = [c for c in coils if c not in tel.columns]
+        if missing:
+            raise InputError(tel.path, f"coils: missing current column(s) {missing}")
+        I = np.column_stack([tel.columns[c] for c in coils])
+        if "position" in tel.columns:
+            pos = tel.columns["position"]
+            static = np.isfinite(pos) & (pos > 0)
+            group = np.where(static, fi * 100000 + np.nan_to_num(pos), -1).astype(np.int64)
+            if (~static).any():
+                notes.append(f"{tel.path}: {int((~static).sum())} samples not in a static "
+                             "position, left out")
+        else:
+            static = np.ones(tel.n, dtype=bool)
+            group = np.full(tel.n, fi * 100000, dtype=np.int64)
+            notes.append(f"{tel.path}: no position column; the file is taken as one static "
+                         "position")
+        ok_I = np.isfinite(I).all(axis=1)
+        data = _telemetry.preprocess(tel, unit)
+        for n in names:
+            sd = data[n]
+            sel = static & ok_I & sd.usable & np.isfinite(sd.field_frame_nT).all(axis=1)
+            per_sensor[n][0].append(sd.field_frame_nT[sel])
+            per_sensor[n][1].append(I[sel])
+            per_sensor[n][2].append(group[sel])
+    out = {}
+    src = ", ".join(str(t.path) for t in telemetries)
+    for n in names:
+        y = np.concatenate(per_sensor[n][0])
+        I = np.concatenate(per_sensor[n][1])
+        g = np.concatenate(per_sensor[n][2])
+        out[n] = fit_coupling(y, I, g, coils=coils, name=n, source=src)
+    return CoilFit(coils=coils, sensors=out, notes=notes)
+
+
+# =======================================================================================
+# Reports
+# =======================================================================================
+def default_distance_cm(spec) -> float:
+    return DEFAULT_DISTANCE_CM.get(spec.frame, DEFAULT_DISTANCE_CM["body"])
+
+
+def scale_inverse_cube(value_at_r0, r0_cm, r_cm):
+    """Dipole fall-off: value(r) = value(r0) (r0 / r)^3."""
+    return np.asarray(value_at_r0, float) * (float(r0_cm) / np.asarray(r_cm, float)) ** 3
+
+
+def equivalent_distance_cm(interference_nT, ref_nT=SEED_30CM_NO_PANEL_NT, ref_r_cm=30.0):
+    """Distance at which a coil giving ref_nT at ref_r_cm would give interference_nT."""
+    return float(ref_r_cm * (ref_nT / float(interference_nT)) ** (1.0 / 3.0))
+
+
+def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRENT_A,
+                       lab_field_nT: float | None = None, distance_cm: dict | None = None,
+                       points_cm=SEED_POINTS_CM) -> list:
+    """Rows {sensor, coil, K_col_nT_per_A, sigma, interference_nT, pct_of_lab_field,
+    distance_cm (assumed), at_cm {r: nT}, seed_no_panel_at_cm {r: nT} (the seed's 30 cm
+    figure scaled by 1/r^3; only 30 cm is measured in the seed), seed_panel_at_cm,
+    equivalent_distance_cm}. distance_cm: {sensor: cm}, default by frame (DEFAULT_DISTANCE_CM).
+    """
+    lab = lab_field_nT if lab_field_nT is not None else unit.lab_field_nT
+    rows = []
+    for name, f in coil_fit.sensors.items():
+        spec = unit.sensor(name)
+        r0 = (distance_cm or {}).get(name, default_distance_cm(spec))
+        norms = f.column_norm_nT_per_A()
+        sig = f.column_norm_sigma_nT_per_A()
+        for j, coil in enumerate(f.coils):
+            x = float(norms[j] * current_A)
+            rows.append({
+                "sensor": name, "coil": coil, "frame": spec.frame,
+                "K_col_nT_per_A": float(norms[j]), "K_col_sigma_nT_per_A": float(sig[j]),
+                "current_A": current_A, "interference_nT": x,
+                "interference_sigma_nT": float(sig[j] * current_A),
+                "pct_of_lab_field": (100.0 * x / lab) if lab else None,
+                "distance_cm": float(r0),
+                "at_cm": {float(r): float(scale_inverse_cube(x, r0, r)) for r in points_cm},
+                "seed_no_panel_at_cm": {float(r): float(scale_inverse_cube(
+                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                    for r in points_cm},
+                "seed_panel_at_cm": {float(r): float(scale_inverse_cube(
+                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                    for r in points_cm},
+                "equivalent_distance_cm": (equivalent_distance_cm(
+                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A) if x > 0 else None),
+            })
+    return rows
+
+
+def format_interference_table(rows) -> str:
+    if not rows:
+        return ""
+    pts = list(rows[0]["at_cm"])
+    head = ("| sensor | coil | K col nT/A | at {I} A nT | % lab | assumed r cm | "
+            + " | ".join(f"@{r:g} cm" for r in pts)
+            + " | seed no panel " + "/".join(f"{r:g}" for r in pts)
+            + " cm | seed panel " + "/".join(f"{r:g}" for r in pts) + " cm | seed-coil r_eq cm |")
+    head = head.replace("{I}", f"{rows[0]['current_A']:g}")
+    lines = [head, "|" + "---|" * (9 + len(pts))]
+    for r in rows:
+        seed_np = "/".join(f"{r['seed_no_panel_at_cm'][p]:.0f}" for p in pts)
+        seed_p = "/".join(f"{r['seed_panel_at_cm'][p]:.0f}" for p in pts)
+        pct = f"{r['pct_of_lab_field']:.3f}" if r["pct_of_lab_field"] is not None else "-"
+        lines.append(
+            f"| {r['sensor']} | {r['coil']} | {r['K_col_nT_per_A']:.0f} +- "
+            f"{r['K_col_sigma_nT_per_A']:.0f} | {r['interference_nT']:.1f} | {pct} | "
+            f"{r['distance_cm']:g} | "
+            + " | ".join(f"{r['at_cm'][p]:.1f}" for p in pts)
+            + f" | {seed_np} | {seed_p} | "
+            + (f"{r['equivalent_distance_cm']:.1f} |" if r["equivalent_distance_cm"] else "- |"))
+    lines.append("seed 000 measured only the 30 cm point (167.87 nT without the solar panel, "
+                 "307.57 nT with it, 0.1 A); its 5 and 15 cm columns are that figure scaled by "
+                 "1/r^3. r_eq: distance at which the seed's coil (no panel) would give the "
+                 "fitted interference.")
+    return "\n".join(lines)
+
+
+def correction_table(unit, tel, calibrations, coil_fit: CoilFit, *, H_boom_to_body=None
+                     ) -> dict:
+    """Per sensor, RMS errors of the calibrated field on a file without and with the
+    K i correction: {sensor: {"rms_norm_nT": {"without", "with"}, "rms_vector_nT":
+    {...} or None, "rms_norm_on_nT": {...} (samples with current only), "n", "n_on"}}.
+    |B| reference: ref_norm_nT, else the unit's lab_field_nT; vector reference: ref_x/y/z_nT
+    (body frame = the boom board's frame in the jig) when present. H_boom_to_body: give it
+    when the file was taken with the boom deployed; the boom sensors' reference vectors are
+    then H^T ref."""
+    from . import telemetry as _telemetry
+    data = _telemetry.preprocess(tel, unit)
+    I = np.column_stack([tel.columns[c] for c in coil_fit.coils])
+    if tel.has("ref_norm_nT"):
+        ref_norm = tel.columns["ref_norm_nT"]
+    elif unit.lab_field_nT:
+        ref_norm = np.full(tel.n, float(unit.lab_field_nT))
+    else:
+        raise InputError(tel.path, "coils: no ref_norm_nT column and no lab_field_nT")
+    ref_vec = (np.column_stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"])
+               if tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT") else None)
+    on = np.any(np.nan_to_num(I) != 0.0, axis=1)
+    out = {}
+    for name, f in coil_fit.sensors.items():
+        if name not in calibrations:
+            continue
+        sd = data[name]
+        ok = sd.usable & np.isfinite(I).all(axis=1) & np.isfinite(ref_norm)
+        cal = calibrations[name]
+        res = {"n": int(ok.sum()), "n_on": int((ok & on).sum())}
+        for key in ("rms_norm_nT", "rms_norm_on_nT", "rms_vector_nT"):
+            res[key] = {}
+        for label, x in (("without", sd.field_frame_nT),
+                         ("with", sd.field_frame_nT - np.nan_to_num(I) @ f.K_nT_per_A.T)):
+            B = cal.apply64(x, sd.temp_C)
+            e = np.linalg.norm(B, axis=1) - ref_norm
+            res["rms_norm_nT"][label] = float(np.sqrt(np.mean(e[ok] ** 2)))
+            res["rms_norm_on_nT"][label] = (float(np.sqrt(np.mean(e[ok & on] ** 2)))
+                                            if (ok & on).any() else None)
+            if ref_vec is not None and cal.body_frame:
+                rv = ref_vec
+                if H_boom_to_body is not None and unit.sensor(name).frame == "boom":
+                    rv = ref_vec @ np.asarray(H_boom_to_body, float)
+                ev = B - rv
+                res["rms_vector_nT"][label] = float(np.sqrt(np.mean(ev[ok] ** 2)))
+        if not res["rms_vector_nT"]:
+            res["rms_vector_nT"] = None
+        out[name] = res
+    return out
+
+
+def format_correction_table(table: dict) -> str:
+    lines = ["| sensor | |B| RMS without K nT | with K nT | |B| RMS, current on: without | "
+             "with | vector RMS without | with |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for n, r in table.items():
+        v = r["rms_vector_nT"] or {}
+        lines.append(
+            f"| {n} | {r['rms_norm_nT']['without']:.1f} | {r['rms_norm_nT']['with']:.1f} | "
+            f"{_f(r['rms_norm_on_nT']['without'])} | {_f(r['rms_norm_on_nT']['with'])} | "
+            f"{_f(v.get('without'))} | {_f(v.get('with'))} |")
+    return "\n".join(lines)
+
+
+def _f(x):
+    return "-" if x is None else f"{x:.1f}"
