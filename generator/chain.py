@@ -92,17 +92,93 @@ class Input:
 
 
 @dataclass(frozen=True)
+class SensorOptions:
+    """Optional stages of one sensor's chain (the flight forms of traced effects).
+
+    channels: telemetry columns whose linear coupling C (nT per unit, frame axes) is
+        subtracted like the coils' (heater currents, bus voltage, flags, ...);
+    thermal_lag: the element temperature follows the reported one through a first-order
+        filter, T_el += dt / (tau + dt) (T - T_el), kept in the sensor's state;
+    nonlinear: per-axis cubic of the reading, x_i -= n_i x_i^3 after the offsets;
+    sr_compensation: SET/RESET rotation error, x += c (w x x), w the body rate in the
+        sensor's frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg).
+    """
+
+    channels: tuple = ()
+    thermal_lag: bool = False
+    nonlinear: bool = False
+    sr_compensation: bool = False
+
+    def to_dict(self) -> dict:
+        return {"channels": list(self.channels), "thermal_lag": self.thermal_lag,
+                "nonlinear": self.nonlinear, "sr_compensation": self.sr_compensation}
+
+    @staticmethod
+    def from_dict(d: dict) -> "SensorOptions":
+        return SensorOptions(tuple(d.get("channels", ())), bool(d.get("thermal_lag", False)),
+                             bool(d.get("nonlinear", False)),
+                             bool(d.get("sr_compensation", False)))
+
+
+NO_OPTIONS = SensorOptions()
+MAX_POLY_DEGREE = 5
+
+
+@dataclass(frozen=True)
 class ChainSpec:
     """The structure of the chain for one unit: what the layout hash covers.
 
-    poly_degree: degree of b(T) and M(T) in dT (seed: cubic).
+    poly_degree: degree of b(T) and M(T) in dT (seed: cubic; at most MAX_POLY_DEGREE).
     coils: names of the telemetry columns of the magnetorquer currents whose coupling
         K (nT/A, one column per coil) is subtracted; empty when the chain has no coils.
+    sensor_options: ((sensor name, SensorOptions), ...) for sensors with optional stages.
     """
 
     unit: Unit
     poly_degree: int = 3
     coils: tuple = ()
+    sensor_options: tuple = ()
+
+    def __post_init__(self):
+        if not 0 <= self.poly_degree <= MAX_POLY_DEGREE:
+            raise ValueError(f"poly_degree {self.poly_degree} outside 0..{MAX_POLY_DEGREE}")
+        names = set(self.unit.sensor_names)
+        for name, _ in self.sensor_options:
+            if name not in names:
+                raise ValueError(f"sensor_options names unknown sensor '{name}'")
+
+    def opts(self, sensor) -> SensorOptions:
+        name = sensor if isinstance(sensor, str) else sensor.name
+        for n, o in self.sensor_options:
+            if n == name:
+                return o
+        return NO_OPTIONS
+
+    def has_state(self, sensor) -> bool:
+        """Whether the sensor's calls keep a state (stored offset, filtered temperature)."""
+        return sensor.set_reset or self.opts(sensor).thermal_lag
+
+    @property
+    def aux_channels(self) -> tuple:
+        """All channels any sensor uses, in first-use order: the aux struct's fields."""
+        out = []
+        for s in self.unit.sensors:
+            for c in self.opts(s).channels:
+                if c not in out:
+                    out.append(c)
+        return tuple(out)
+
+    @property
+    def needs_rate(self) -> bool:
+        return any(self.opts(s).sr_compensation for s in self.unit.sensors)
+
+    @property
+    def needs_dt(self) -> bool:
+        return any(self.opts(s).thermal_lag for s in self.unit.sensors)
+
+    @property
+    def has_aux(self) -> bool:
+        return bool(self.coils or self.aux_channels or self.needs_rate or self.needs_dt)
 
     # ---- structure -------------------------------------------------------------------
     @property
@@ -125,6 +201,19 @@ class ChainSpec:
         if self.coils:
             blocks.append(Block("K_nT_per_A", (3, len(self.coils)), "nT/A", "coupling",
                                 "magnetorquer coupling, one column per coil, frame axes"))
+        o = self.opts(sensor)
+        if o.channels:
+            blocks.append(Block("C_nT_per_unit", (3, len(o.channels)), "nT/unit", "coupling",
+                                "coupling of telemetry channels " + ", ".join(o.channels)))
+        if o.thermal_lag:
+            blocks.append(Block("lag_tau_s", (), "s", "time_constant",
+                                "thermal lag of the sensing element behind the reported T"))
+        if o.nonlinear:
+            blocks.append(Block("cubic_per_nT2", (3,), "1/nT^2", "nonlinearity",
+                                "per-axis cubic of the reading, x -= n x^3"))
+        if o.sr_compensation:
+            blocks.append(Block("sr_comp_s_per_deg", (), "s rad/deg", "sr_delay",
+                                "SET->RESET delay / 2 * pi/180: x += c (w x x)"))
         blocks.append(Block("agree_nT", (), "nT", "tolerance",
                             "expected scatter for the cross-sensor agreement check"))
         return tuple(blocks)
@@ -147,9 +236,14 @@ class ChainSpec:
             raw = Input("raw_counts", 6, "count", "SET x,y,z then RESET x,y,z, sensor axes")
         else:
             raw = Input("raw_counts", 3, "count", "x, y, z, sensor axes")
-        ins = [raw, Input("temp_C", 1, "degC", "sensor temperature, already clamped")]
+        ins = [raw, Input("temp_C", 1, "degC", "element temperature, already clamped")]
         if self.coils:
             ins.append(Input("coil_A", len(self.coils), "A", "magnetorquer currents"))
+        o = self.opts(sensor)
+        if o.channels:
+            ins.append(Input("channels", len(o.channels), "as named", ", ".join(o.channels)))
+        if o.sr_compensation:
+            ins.append(Input("rate_dps", 3, "deg/s", "body angular rate"))
         return tuple(ins)
 
     def sensor_outputs(self, sensor: SensorSpec, set_only=False) -> tuple:
@@ -196,7 +290,7 @@ class ChainSpec:
             "sensors": [
                 {
                     "name": s.name, "part": s.part, "frame": s.frame, "axes": list(s.axes),
-                    "set_reset": s.set_reset,
+                    "set_reset": s.set_reset, "options": self.opts(s).to_dict(),
                     "blocks": [[b.name, list(b.shape)] for b in self.sensor_blocks(s)],
                 }
                 for s in self.unit.sensors
@@ -210,12 +304,15 @@ class ChainSpec:
         return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
 
     def to_dict(self) -> dict:
-        return {"poly_degree": self.poly_degree, "coils": list(self.coils)}
+        return {"poly_degree": self.poly_degree, "coils": list(self.coils),
+                "sensor_options": {n: o.to_dict() for n, o in self.sensor_options}}
 
     @staticmethod
     def from_dict(unit: Unit, d: dict) -> "ChainSpec":
+        opts = tuple((n, SensorOptions.from_dict(o))
+                     for n, o in d.get("sensor_options", {}).items())
         return ChainSpec(unit, poly_degree=int(d.get("poly_degree", 3)),
-                         coils=tuple(d.get("coils", ())))
+                         coils=tuple(d.get("coils", ())), sensor_options=opts)
 
 
 # ---- the kernel: one definition, run on CasADi SX or on numpy float32 -----------------
@@ -262,8 +359,14 @@ def _dot3(row, v):
     return row[0] * v[0] + row[1] * v[1] + row[2] * v[2]
 
 
+def lag_kernel(temp_C, temp_el_C, dt_s, tau_s):
+    """Thermal lag: the element temperature after dt_s, first-order with time constant tau_s
+    (backward Euler, stable for any dt >= 0)."""
+    return temp_el_C + dt_s / (tau_s + dt_s) * (temp_C - temp_el_C)
+
+
 def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: CoeffView,
-                  u: CoeffView, half, set_only=False):
+                  u: CoeffView, half, set_only=False, channels=(), rate_dps=()):
     """The arithmetic of the chain for one sensor and one sample.
 
     raw, coil_A: lists of scalars; temp_C: scalar (already clamped); c, u: coefficient
@@ -309,6 +412,28 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
                 acc = acc + K[i][j] * coil_A[j]
             coil_nT.append(acc)
         x = [x[i] - coil_nT[i] for i in range(3)]
+    o = spec.opts(sensor)
+    if o.channels:   # linear coupling of other telemetry channels (traced effects)
+        C = c.get("C_nT_per_unit")
+        ch_nT = []
+        for i in range(3):
+            acc = C[i][0] * channels[0]
+            for j in range(1, len(o.channels)):
+                acc = acc + C[i][j] * channels[j]
+            ch_nT.append(acc)
+        x = [x[i] - ch_nT[i] for i in range(3)]
+    if o.nonlinear:  # per-axis cubic of the reading
+        n3 = c.get("cubic_per_nT2")
+        x = [x[i] - n3[i] * x[i] * x[i] * x[i] for i in range(3)]
+    if o.sr_compensation:   # SET/RESET rotation error: x += c (w x x), w in the frame
+        k = c.scalar("sr_comp_s_per_deg")
+        w = list(rate_dps)
+        if sensor.frame == "boom":   # w_boom = H^T w_body
+            H = u.get("H_boom_to_body")
+            w = [H[0][i] * rate_dps[0] + H[1][i] * rate_dps[1] + H[2][i] * rate_dps[2]
+                 for i in range(3)]
+        wx = [w[1] * x[2] - w[2] * x[1], w[2] * x[0] - w[0] * x[2], w[0] * x[1] - w[1] * x[0]]
+        x = [x[i] + k * wx[i] for i in range(3)]
     # calibration (eq. 5)
     B = [_dot3(M[i], x) for i in range(3)]
     # boom -> body (eq. 2-3)
@@ -376,20 +501,25 @@ def np_dtype(unit: Unit):
 
 
 def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
-                     raw_counts, temp_C, coil_A=None, set_only=False, offset_counts=None):
-    """Python reference of `<unit>_<sensor>_correct` (and `_correct_set` when set_only),
-    vectorised over samples.
+                     raw_counts, temp_C, coil_A=None, set_only=False, offset_counts=None,
+                     channels=None, rate_dps=None, dt_s=None):
+    """Python reference of `<unit>_<sensor>_correct` (and `_correct_set` when set_only) over
+    a sequence of samples, as successive calls on one sensor state (empty at the start).
 
     Each chain scalar is a numpy array over samples of the unit's float type, and every
     operation is an elementwise IEEE operation in the order of `sensor_kernel`: no BLAS,
-    no reductions. raw_counts: int array (N, 6|3), for set_only (N, 3) SET counts;
-    temp_C: (N,) float (converted to the float type first, as the C API takes it);
-    coil_A: (N, ncoil) or None (zeros); offset_counts: set_only, (N, 3) stored offsets in
-    the float type, NaN rows meaning "no offset stored". Returns dict of outputs (N, k)
-    arrays plus 'status' (N,) uint16. The wrapper steps, in the C's order: saturation,
-    non-finite inputs (-> zeros), missing offset (-> zeros), clamp, kernel, band check.
+    no reductions. Only the thermal-lag filter, a recursion, runs sample by sample.
+    raw_counts: int (N, 6|3), for set_only (N, 3) SET counts; temp_C: (N,) (converted to
+    the float type first, as the C API takes it); coil_A (N, ncoil), channels {column name:
+    (N,)}, rate_dps (N, 3), dt_s (N,): None means zeros (as a null aux);
+    offset_counts: set_only, (N, 3) stored offset per sample, NaN rows meaning none.
+    Returns {output: (N, k) array, 'status': (N,) uint16}; pair mode also 'offset_counts',
+    the state's stored offset after each call (NaN until the first unsaturated pair).
+    Wrapper steps, in the C's order: saturation; non-finite inputs (-> zeros, state kept);
+    thermal lag; missing offset (set_only -> zeros); clamp; kernel; band check; offset store.
     """
     ft = np_dtype(spec.unit)
+    o = spec.opts(sensor)
     raw_counts = np.asarray(raw_counts)
     n = raw_counts.shape[0]
     temp = np.asarray(temp_C, dtype=np.float64).astype(ft)
@@ -400,19 +530,43 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
     status = np.zeros(n, dtype=np.uint16)
 
+    def aux(values, width):
+        if values is None:
+            return np.zeros((n, width), dtype=ft)
+        return np.asarray(values, dtype=np.float64).astype(ft).reshape(n, width)
+
     # saturation at the part's rails
     sat = np.any((raw_counts <= sensor.count_min) | (raw_counts >= sensor.count_max), axis=1)
     status[sat] |= STATUS_SATURATED
-    # non-finite inputs
-    nonfinite = ~np.isfinite(temp)
-    coils = []
+    # non-finite inputs (only those this sensor reads)
+    inputs = {}
     if spec.coils:
-        cA = np.zeros((n, len(spec.coils)), dtype=ft) if coil_A is None else \
-            np.asarray(coil_A, dtype=np.float64).astype(ft)
-        nonfinite |= ~np.all(np.isfinite(cA), axis=1)
-        coils = [np.where(nonfinite, ft(0), cA[:, j]) for j in range(cA.shape[1])]
+        inputs["coil_A"] = aux(coil_A, len(spec.coils))
+    if o.channels:
+        inputs["channels"] = aux(None if channels is None else
+                                 np.stack([np.asarray(channels[name], dtype=np.float64)
+                                           for name in o.channels], axis=1), len(o.channels))
+    if o.sr_compensation:
+        inputs["rate_dps"] = aux(rate_dps, 3)
+    if o.thermal_lag:
+        inputs["dt_s"] = aux(dt_s, 1)
+    nonfinite = ~np.isfinite(temp)
+    for v in inputs.values():
+        nonfinite |= ~np.all(np.isfinite(v), axis=1)
     status[nonfinite] |= STATUS_NONFINITE
     zeroed = nonfinite.copy()
+    cols = {k: [np.where(nonfinite, ft(0), v[:, j]) for j in range(v.shape[1])]
+            for k, v in inputs.items()}
+    # thermal lag: the element temperature, a recursion over the calls
+    t = np.where(nonfinite, ft(0), temp)
+    if o.thermal_lag:
+        tau = c.scalar("lag_tau_s")
+        el = None
+        t_el = t.copy()
+        for k in np.nonzero(~nonfinite)[0]:
+            el = t[k] if el is None else lag_kernel(t[k], el, cols["dt_s"][0][k], tau)
+            t_el[k] = el
+        t = t_el
     raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
     if set_only:
         off = np.full((n, 3), np.nan, dtype=ft) if offset_counts is None else \
@@ -423,21 +577,25 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         raw += [np.where(zeroed, ft(0), off[:, i]) for i in range(3)]
     # clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...)
     t_min, t_max = c.scalar("t_min_C"), c.scalar("t_max_C")
-    t = np.where(zeroed, ft(0), temp)
+    t = np.where(zeroed, ft(0), t)
     below, above = t < t_min, t > t_max
     t = np.where(below, t_min, np.where(above, t_max, t)).astype(ft)
     status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED
 
     with np.errstate(all="ignore"):
-        out = sensor_kernel(spec, sensor, raw, t, coils, c, u, ft(0.5), set_only=set_only)
+        out = sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), c, u, ft(0.5),
+                            set_only=set_only, channels=cols.get("channels", ()),
+                            rate_dps=cols.get("rate_dps", ()))
     result = {}
     for name, vals in out.items():
         arr = np.stack([np.broadcast_to(np.asarray(v, dtype=ft), (n,)) for v in vals], axis=1)
         result[name] = np.where(zeroed[:, None], ft(0), arr).astype(ft)
-    if "offset_counts" in result:   # stored in the offset state only by an unsaturated pair
+    if "offset_counts" in result:   # the state's offset: refreshed by unsaturated pairs
         stored = ~sat & ~zeroed
-        result["offset_counts"] = np.where(stored[:, None], result["offset_counts"],
-                                           ft(np.nan)).astype(ft)
+        last = np.maximum.accumulate(np.where(stored, np.arange(n), -1))
+        result["offset_counts"] = np.where(
+            (last >= 0)[:, None], result["offset_counts"][np.maximum(last, 0)],
+            ft(np.nan)).astype(ft)
     margin = result.pop("band_margin_nT2")
     plausible = (margin[:, 0] >= 0) & (margin[:, 1] >= 0)
     status[~plausible & ~zeroed] |= STATUS_IMPLAUSIBLE

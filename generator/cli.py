@@ -60,6 +60,8 @@ def cmd_apply(args):
     from .pipeline import apply
 
     cs = CoefficientSet.load(args.coeffs)
+    if args.boom_stowed:
+        cs = cs.with_boom_stowed()
     apply(cs, args.data, args.output, progress=_progress(args))
     return 0
 
@@ -68,6 +70,8 @@ def _args_apply(p):
     p.add_argument("coeffs", help="coefficients.json")
     p.add_argument("data", help="telemetry CSV")
     p.add_argument("-o", "--output", required=True, help="output CSV")
+    p.add_argument("--boom-stowed", action="store_true",
+                   help="the data were taken with the boom stowed (ground jig): H = identity")
 
 
 @verb("generate", "write the unit's flight C sources and header")

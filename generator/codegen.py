@@ -19,8 +19,8 @@ import jinja2
 import numpy as np
 
 from . import __version__
-from .chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView,
-                    agreement_kernel, sensor_kernel)
+from .chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
+                    lag_kernel, sensor_kernel)
 from .coeffs import CoefficientSet
 
 REPO = Path(__file__).resolve().parent.parent
@@ -52,15 +52,27 @@ def build_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
     u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
     c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
     u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
-    raw = [sym["raw_counts"][k] for k in range(sym["raw_counts"].numel())]
-    coil = [sym["coil_A"][k] for k in range(sym["coil_A"].numel())] if "coil_A" in sym else []
-    out = sensor_kernel(spec, sensor, raw, sym["temp_C"][0], coil, c, u, ca.SX(0.5),
-                        set_only=set_only)
+    def elems(name):
+        return [sym[name][k] for k in range(sym[name].numel())] if name in sym else []
+
+    out = sensor_kernel(spec, sensor, elems("raw_counts"), sym["temp_C"][0], elems("coil_A"),
+                        c, u, ca.SX(0.5), set_only=set_only, channels=elems("channels"),
+                        rate_dps=elems("rate_dps"))
     outs = spec.sensor_outputs(sensor, set_only)
     return ca.Function(kernel_name(spec, sensor, set_only),
                        [sym[i.name] for i in ins] + [c_sym, u_sym],
                        [ca.vertcat(*out[o.name]) for o in outs],
                        [i.name for i in ins] + ["coeffs", "unit_coeffs"], [o.name for o in outs])
+
+
+def build_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
+    """The element-temperature update of a sensor with thermal lag, from `chain.lag_kernel`."""
+    temp, el, dt = ca.SX.sym("temp_C"), ca.SX.sym("temp_el_C"), ca.SX.sym("dt_s")
+    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
+    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
+    return ca.Function(f"{spec.unit.id}_{sensor.name}_lag_kernel", [temp, el, dt, c_sym],
+                       [lag_kernel(temp, el, dt, c.scalar("lag_tau_s"))],
+                       ["temp_C", "temp_el_C", "dt_s", "coeffs"], ["temp_el_next_C"])
 
 
 def build_agreement_kernel(spec: ChainSpec) -> ca.Function:
@@ -88,6 +100,9 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
         if s.set_reset:
             funcs[s.name + ":set"] = build_kernel(spec, s, set_only=True)
             cg.add(funcs[s.name + ":set"])
+        if spec.opts(s).thermal_lag:
+            funcs[s.name + ":lag"] = build_lag_kernel(spec, s)
+            cg.add(funcs[s.name + ":lag"])
     funcs[":agree"] = build_agreement_kernel(spec)
     cg.add(funcs[":agree"])
     with tempfile.TemporaryDirectory() as d:
@@ -108,6 +123,26 @@ def c_literal(value: float, float_type: str) -> str:
     if "." not in text and "e" not in text:
         text += ".0"
     return text + suffix
+
+
+def _macro(name: str) -> str:
+    return "".join(ch if ch.isalnum() else "_" for ch in name).upper()
+
+
+# C expression of each kernel input, by chain input name (the wrapper's locals and aux).
+_ARG_EXPR = {
+    "raw_counts": "counts",
+    "temp_C": "&temp_C",
+    "coil_A": "(aux != 0) ? aux->coil_A : 0",
+    "channels": "chan",
+    "rate_dps": "(aux != 0) ? aux->rate_dps : 0",
+}
+
+
+def _kernel_args(spec: ChainSpec, sensor, set_only) -> list:
+    """The wrapper's argument expressions of a kernel, in the kernel's input order."""
+    return [_ARG_EXPR[i.name] for i in spec.sensor_inputs(sensor, set_only)] + \
+        ["c", "coeffs->unit"]
 
 
 def _lines(literals, per_line=6) -> list:
@@ -148,6 +183,13 @@ def template_context(cs: CoefficientSet) -> dict:
             "n_raw": 6 if s.set_reset else 3,
             "kernel": kernel_name(spec, s),
             "set_kernel": kernel_name(spec, s, set_only=True),
+            "lag_kernel": f"{unit.id}_{s.name}_lag_kernel",
+            "kargs": _kernel_args(spec, s, False),
+            "set_kargs": _kernel_args(spec, s, True) if s.set_reset else [],
+            "has_state": spec.has_state(s),
+            "lag": spec.opts(s).thermal_lag,
+            "sr_comp": spec.opts(s).sr_compensation,
+            "channel_idx": [spec.aux_channels.index(ch) for ch in spec.opts(s).channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
         })
     ublocks, k = [], 0
@@ -167,6 +209,11 @@ def template_context(cs: CoefficientSet) -> dict:
         "poly_degree": spec.poly_degree,
         "coils": list(spec.coils),
         "n_coils": len(spec.coils),
+        "has_aux": spec.has_aux,
+        "channels": [{"name": ch, "macro": _macro(ch), "index": k}
+                     for k, ch in enumerate(spec.aux_channels)],
+        "needs_rate": spec.needs_rate,
+        "needs_dt": spec.needs_dt,
         "sensors": sensors,
         "unit_blocks": ublocks,
         "n_unit_coeffs": k,

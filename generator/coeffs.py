@@ -108,6 +108,14 @@ class CoefficientSet:
                 {"method": cal.method, "body_frame": cal.body_frame, "stats": cal.stats})
         return CoefficientSet(spec, sensors, unit_values, unc, info)
 
+    def with_boom_stowed(self) -> "CoefficientSet":
+        """The same coefficients with H = identity: for data taken in the jig."""
+        unit_values = dict(self.unit_values)
+        if "H_boom_to_body" in unit_values:
+            unit_values["H_boom_to_body"] = np.eye(3)
+        return CoefficientSet(self.spec, self.sensors, unit_values, self.uncertainty,
+                              self.fit_info)
+
     def calibration(self, name) -> SensorCalibration:
         v = self.sensors[name]
         return SensorCalibration(
@@ -175,7 +183,7 @@ class CoefficientSet:
         want = d.get("layout_hash")
         if want is not None and want != f"0x{spec.layout_hash():08x}":
             raise InputError(path, f"layout_hash {want} does not match the chain structure "
-                                   f"in the file (0x{spec.layout_hash():08x}): edited by hand?")
+                                   f"in the file (0x{spec.layout_hash():08x}): written for another chain version, or edited by hand")
         return cs
 
 

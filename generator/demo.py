@@ -50,9 +50,10 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     all_identical = True
     for s in cs.unit.sensors:
         inp = pipeline.chain_inputs(tel, cs.spec, s.name)
-        c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"])
+        aux = dict(channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+        c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
         py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
-                                  inp["raw_counts"], inp["temp_C"], inp["coil_A"])
+                                  inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
         same = all(np.array_equal(np.ascontiguousarray(c_out[k]).view(np.uint8),
                                   np.ascontiguousarray(py_out[k]).view(np.uint8))
                    for k in c_out)

@@ -147,20 +147,37 @@ class HostUnit:
     def _ptr(self, a, ctype=None):
         return self._ffi.cast(f"{ctype or self._ctype} *", a.ctypes.data)
 
-    def _coil(self, coil_A, n):
-        if self.spec.coils and coil_A is not None:
-            coil = np.ascontiguousarray(np.asarray(coil_A, dtype=np.float64).astype(self.dtype))
-            assert coil.shape == (n, len(self.spec.coils))
-            return coil, self._ptr(coil)
-        return None, self._ffi.NULL
+    def _aux(self, n, coil_A, channels, rate_dps, dt_s):
+        """Aux arrays (kept alive by the caller) and their pointers; NULL where not given."""
+        spec, keep = self.spec, []
+
+        def arr(values, width):
+            if values is None:
+                return self._ffi.NULL
+            a = np.ascontiguousarray(np.asarray(values, dtype=np.float64)
+                                     .astype(self.dtype).reshape(n, width))
+            keep.append(a)
+            return self._ptr(a)
+
+        chans = None
+        if channels is not None and spec.aux_channels:
+            chans = np.stack([np.asarray(channels.get(c, np.zeros(n)), dtype=np.float64)
+                              for c in spec.aux_channels], axis=1)
+        ptrs = (arr(coil_A if spec.coils else None, len(spec.coils)),
+                arr(chans, len(spec.aux_channels)),
+                arr(rate_dps if spec.needs_rate else None, 3),
+                arr(dt_s if spec.needs_dt else None, 1))
+        return keep, ptrs
 
     def _coeffs(self, coeffs_flat):
         return np.ascontiguousarray(self.flat_coeffs() if coeffs_flat is None else
                                     np.asarray(coeffs_flat, dtype=self.dtype))
 
-    def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None) -> dict:
-        """Run `<unit>_<sensor>_correct` over samples; same outputs as chain.reference_sensor
-        (offset_counts: what the call stored in a fresh offset state, NaN if nothing)."""
+    def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None,
+                channels=None, rate_dps=None, dt_s=None) -> dict:
+        """Run `<unit>_<sensor>_correct` over a sequence of samples on one state; same
+        outputs as chain.reference_sensor (offset_counts: the state's stored offset after
+        each call, NaN until the first unsaturated pair). channels: {column: (N,)}."""
         s = self.spec.unit.sensor(sensor)
         raw = np.ascontiguousarray(raw_counts, dtype=np.int32)
         n = raw.shape[0]
@@ -171,9 +188,9 @@ class HostUnit:
         chip = np.zeros((n, 3), dtype=self.dtype)
         offs = np.zeros((n, 3), dtype=self.dtype)
         status = np.zeros(n, dtype=np.uint16)
-        coil, coil_ptr = self._coil(coil_A, n)
+        keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_batch")(
-            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), coil_ptr,
+            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
             self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"))
         out = {"field_body_nT": field, "status": status}
         if s.set_reset:
@@ -182,7 +199,7 @@ class HostUnit:
         return out
 
     def correct_set(self, sensor: str, set_counts, temp_C, offset_counts, coil_A=None,
-                    coeffs_flat=None) -> dict:
+                    coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:
         """Run `<unit>_<sensor>_correct_set` with a stored offset per sample (NaN: none)."""
         raw = np.ascontiguousarray(set_counts, dtype=np.int32)
         n = raw.shape[0]
@@ -191,9 +208,9 @@ class HostUnit:
         co = self._coeffs(coeffs_flat)
         field = np.zeros((n, 3), dtype=self.dtype)
         status = np.zeros(n, dtype=np.uint16)
-        coil, coil_ptr = self._coil(coil_A, n)
+        keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_set_batch")(
-            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), coil_ptr,
+            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
             self._ptr(off), self._ptr(field), self._ptr(status, "uint16_t"))
         return {"field_body_nT": field, "status": status}
 

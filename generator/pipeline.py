@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import ChainSpec
+from .chain import STATUS_BITS, ChainSpec
 from .coeffs import CoefficientSet
 from .errors import InputError
 from .telemetry import Telemetry, read_telemetry
@@ -51,20 +51,54 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
     temp = tel.columns[f"{s.name}_temp_C"]
     present = np.all(np.isfinite(counts), axis=1) & np.isfinite(temp)
     raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
-    coil = None
-    if spec.coils:
-        if all(c in tel.columns for c in spec.coils):
-            coil = np.stack([tel.columns[c] for c in spec.coils], axis=1)
-            present &= np.all(np.isfinite(coil), axis=1)
-            coil = np.where(np.isfinite(coil), coil, 0.0)
+    def optional(names):
+        """Columns as (N, k), zeros where absent from the file; rows with a missing cell
+        are not present."""
+        nonlocal present
+        if not names:
+            return None
+        cols = np.stack([tel.columns.get(c, np.zeros(tel.n)) for c in names], axis=1)
+        present &= np.all(np.isfinite(cols), axis=1)
+        return np.where(np.isfinite(cols), cols, 0.0)
+
+    o = spec.opts(s)
+    coil = optional(list(spec.coils))
+    ch = optional(list(o.channels))
+    channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
+    rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [])
+    dt = None
+    if o.thermal_lag:
+        t = tel.time_s
+        dt = np.diff(t, prepend=t[0])
     return {"raw_counts": raw, "temp_C": np.where(np.isfinite(temp), temp, 0.0),
-            "coil_A": coil, "present": present}
+            "coil_A": coil, "channels": channels, "rate_dps": rate, "dt_s": dt,
+            "present": present}
 
 
 # ---- fit ----------------------------------------------------------------------------------
 
 
+def _has_coil_steps(tel: Telemetry) -> bool:
+    cols = [c for c in tel.columns if c.startswith("coil_") and c.endswith("_A")]
+    return bool(cols) and any(np.nanmax(np.abs(tel.columns[c])) > 0 for c in cols)
+
+
+def _has_ref_vectors(tel: Telemetry) -> bool:
+    return tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT")
+
+
 def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
+    """Fit a unit from all the given files jointly.
+
+    * b(T), M(T) per sensor: fit_thermal.fit_unit over every file (reference vectors where
+      a file carries them, else magnitudes; coil-driven samples left out);
+    * coil coupling K: from files whose magnetorquer currents step (fit_coils);
+    * boom alignment H: from a file recorded with the boom deployed, i.e. one without
+      reference vectors (the jig campaigns carry them with the boom stowed), by Wahba
+      between the reference body sensor and the boom MMC5883 (fit_alignment).
+    """
+    from .fit_alignment import align_boom
+    from .fit_coils import fit_coils
     from .fit_thermal import fit_unit
 
     progress = progress or Progress(quiet=True)
@@ -77,8 +111,31 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
         tels.append(tel)
     cals = fit_unit(unit, tels, progress=progress)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
-            "method": method}
-    return CoefficientSet.from_calibrations(unit, cals, fit_info=info)
+            "method": method, "notes": []}
+
+    K, coils = None, ()
+    coil_tels = [t for t in tels if _has_coil_steps(t)]
+    if coil_tels:
+        cf = fit_coils(unit, coil_tels)
+        K, coils = cf.K(), tuple(cf.coils)
+        info["coils"] = cf.to_dict()
+        progress(f"coil coupling K from {', '.join(t.path for t in coil_tels)}")
+
+    H = None
+    if any(s.frame == "boom" for s in unit.sensors):
+        deployed = [t for t in tels if not _has_ref_vectors(t)]
+        if deployed and unit.boom_reference:
+            al = align_boom(unit, deployed[0], cals, coil_K_nT_per_A=K)
+            H = al.H
+            info["alignment"] = {"source": deployed[0].path, **al.result.to_dict(),
+                                 "notes": list(al.notes)}
+            progress(f"boom alignment H from {deployed[0].path}: {al.result.angle_deg:.3f} "
+                     f"+- {al.result.sigma_angle_deg:.3f} deg")
+        else:
+            info["notes"].append("no campaign with the boom deployed (one without reference "
+                                 "vectors): H is the identity")
+    return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
+                                            coils=coils, fit_info=info)
 
 
 # ---- apply --------------------------------------------------------------------------------
@@ -97,26 +154,53 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     results = {}
     for s in cs.unit.sensors:
         inp = chain_inputs(tel, cs.spec, s.name)
-        out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"])
-        valid = (out["status"] == 0) & inp["present"]
+        out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                           channels=inp["channels"], rate_dps=inp["rate_dps"],
+                           dt_s=inp["dt_s"])
         results[s.name] = {"field_body_nT": out["field_body_nT"], "status": out["status"],
-                           "valid": valid, "present": inp["present"]}
-        progress(f"{s.name}: {int(valid.sum())} of {tel.n} samples valid")
+                           "present": inp["present"]}
+    # cross-check and selection for the attitude system, through the flight C
+    fields = np.stack([results[s.name]["field_body_nT"] for s in cs.unit.sensors], axis=1)
+    statuses = np.stack([np.where(results[s.name]["present"], results[s.name]["status"],
+                                  STATUS_ABSENT) for s in cs.unit.sensors], axis=1)
+    sel = host.select(fields, statuses)
+    for k, s in enumerate(cs.unit.sensors):
+        r = results[s.name]
+        r["status"] = np.where(r["present"], sel["status"][:, k], r["status"])
+        r["valid"] = (r["status"] == 0) & r["present"]
+        progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
+    results["selected"] = sel
+    results["fallback_order"] = cs.spec.fallback_order()
     write_apply_csv(out_path, tel, cs.unit, results)
     return results
 
 
+# status given to the selection for a sensor whose sample is missing from the file
+STATUS_ABSENT = 0x8000
+
+
 def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
+    """ICD columns (time_s, <s>_x/y/z_nT, <s>_valid) plus, compatibly, <s>_status and the
+    selected vector for the attitude system (sel_x/y/z_nT, sel_sensor, sel_reason)."""
+    from .chain import SELECT_REASONS
+
     header = ["time_s"]
     for s in unit.sensors:
         header += [f"{s.name}_x_nT", f"{s.name}_y_nT", f"{s.name}_z_nT", f"{s.name}_valid",
                    f"{s.name}_status"]
+    header += ["sel_x_nT", "sel_y_nT", "sel_z_nT", "sel_sensor", "sel_reason"]
+    reasons = {v: k for k, v in SELECT_REASONS.items()}
+    names = [s.name for s in unit.sensors]
+    sel = results["selected"]
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_suffix(out_path.suffix + ".part")
     with open(tmp, "w", newline="") as f:
         f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
-        f.write("# <s>_status: bits NONFINITE=1 SATURATED=2 TEMP_CLAMPED=4; valid = status 0\n")
+        f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
+                + f" ABSENT={STATUS_ABSENT}; valid = status 0\n")
+        f.write("# sel_*: the vector for attitude control (fallback order "
+                + " > ".join(names[i] for i in results["fallback_order"]) + ")\n")
         w = csv.writer(f, lineterminator="\n")
         w.writerow(header)
         t = tel.time_s
@@ -132,6 +216,13 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
                 else:
                     row += ["", "", ""]
                 row += ["1" if valid[i] else "0", str(int(status[i]))]
+            k = int(sel["sensor"][i])
+            if k >= 0:
+                row += [_fmt(sel["field_body_nT"][i, 0]), _fmt(sel["field_body_nT"][i, 1]),
+                        _fmt(sel["field_body_nT"][i, 2]), names[k]]
+            else:
+                row += ["", "", "", ""]
+            row.append(reasons[int(sel["reason"][i])])
             w.writerow(row)
     tmp.replace(out_path)   # nothing half-written
 

@@ -94,3 +94,46 @@ def assert_bit_identical(c_out: dict, py_out: dict, context=""):
         assert bad.size == 0, (
             f"{context} {key}: {bad.size} of {a.shape[0]} samples differ; first at {bad[0]}: "
             f"C {a[bad[0]]!r} vs Python {b[bad[0]]!r}")
+
+
+def with_options(rng, cs: CoefficientSet, options: dict, poly_degree=None) -> CoefficientSet:
+    """cs with optional stages (chain.SensorOptions per sensor name) and random plausible
+    values for their blocks; a higher poly_degree pads b(T), M(T) with small terms."""
+    from generator.chain import ChainSpec
+
+    deg = cs.spec.poly_degree if poly_degree is None else poly_degree
+    spec = ChainSpec(cs.unit, poly_degree=deg, coils=cs.spec.coils,
+                     sensor_options=tuple(sorted(options.items())))
+    sensors = {}
+    for s in cs.unit.sensors:
+        v = dict(cs.sensors[s.name])
+        for key, scale in (("b_poly_nT", 1e-5), ("M_poly", 1e-9)):
+            old = np.asarray(v[key])
+            new = np.zeros((deg + 1,) + old.shape[1:])
+            k = min(deg + 1, old.shape[0])
+            new[:k] = old[:k]
+            new[k:] = rng.normal(0, scale, new[k:].shape)
+            v[key] = new
+        o = spec.opts(s)
+        if o.channels:
+            v["C_nT_per_unit"] = rng.normal(0, 500, (3, len(o.channels)))
+        if o.thermal_lag:
+            v["lag_tau_s"] = np.array(rng.uniform(30, 900))
+        if o.nonlinear:
+            v["cubic_per_nT2"] = rng.normal(0, 1e-11, 3)
+        if o.sr_compensation:
+            v["sr_comp_s_per_deg"] = np.array(0.006 * np.pi / 180)
+        sensors[s.name] = v
+    return CoefficientSet(spec, sensors, cs.unit_values, cs.uncertainty, cs.fit_info)
+
+
+def random_aux(rng, spec, n, nan_fraction=0.0):
+    """Channels {name: (n,)}, rate_dps (n, 3), dt_s (n,) for a spec's optional stages."""
+    channels = {c: rng.normal(0, 1, n) for c in spec.aux_channels} or None
+    rate = rng.normal(0, 5, (n, 3)) if spec.needs_rate else None
+    dt = rng.uniform(0.05, 20, n) if spec.needs_dt else None
+    if nan_fraction:
+        for a in [dt, rate] + list((channels or {}).values()):
+            if a is not None:
+                a[rng.random(a.shape[0]) < nan_fraction] = np.nan
+    return channels, rate, dt

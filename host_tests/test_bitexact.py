@@ -212,16 +212,26 @@ def test_set_only_readings_bit_identical(built):
         t = (cs.sensors[s.name]["t_min_C"], cs.sensors[s.name]["t_max_C"])
         raw, temp, coil = random_inputs(rng, s, 20_000, len(cs.spec.coils), t)
         pair = host.correct(s.name, raw, temp, coil)
-        stored = pair["offset_counts"]
-        assert np.isnan(stored).any() and np.isfinite(stored).any()
+        py_pair = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw,
+                                   temp, coil)
+        assert_bit_identical(pair, py_pair, f"{label}/{s.name} pair")
+        stored = pair["offset_counts"].copy()
+        # the state keeps the last unsaturated pair's offset
+        own = (pair["status"] & (chain.STATUS_SATURATED | chain.STATUS_NONFINITE)) == 0
+        assert 0 < own.sum() < own.size
+        stored[rng.random(stored.shape[0]) < 0.05] = np.nan      # no offset stored yet
         c_out = host.correct_set(s.name, raw[:, :3], temp, stored, coil)
         py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
                                   raw[:, :3], temp, coil, set_only=True, offset_counts=stored)
         assert_bit_identical(c_out, py_out, f"{label}/{s.name} set-only")
-        fresh = np.all(np.isfinite(stored), axis=1)
+        fresh = own & np.all(np.isfinite(stored), axis=1)
         np.testing.assert_array_equal(bits(c_out["field_body_nT"][fresh]),
                                       bits(pair["field_body_nT"][fresh]))
-        assert np.all(c_out["status"][~fresh] & chain.STATUS_NO_OFFSET | ~np.isfinite(temp[~fresh]))
+        missing = ~np.all(np.isfinite(stored), axis=1) & np.isfinite(temp)
+        if coil is not None:
+            missing &= np.all(np.isfinite(coil), axis=1)
+        assert missing.any() and np.all(c_out["status"][missing] & chain.STATUS_NO_OFFSET)
+        assert np.all(c_out["field_body_nT"][missing] == 0)
         # an offset kept from another pair (the satellite turned): C == Python still
         shifted = np.roll(stored, 1, axis=0)
         c2 = host.correct_set(s.name, raw[:, :3], temp, shifted, coil)
@@ -266,3 +276,52 @@ def test_select_bit_identical_and_sensible(built):
     one = host.select(f, np.zeros((1, len(cs.unit.sensors)), np.uint16))
     assert one["status"][0, order[0]] & chain.STATUS_DISAGREE
     assert one["sensor"][0] == order[1] and one["reason"][0] == chain.SELECT_CONFIRMED
+
+
+def test_optional_stages_bit_identical():
+    """The flight forms of traced effects (channel coupling, thermal lag, cubic
+    nonlinearity, SET/RESET rate compensation, degree 5): C == Python, pair, SET-only
+    and the lag recursion over a sequence of calls."""
+    from chain_fixtures import random_aux, with_options
+    from generator.chain import SensorOptions
+
+    rng = np.random.default_rng(21)
+    base = random_coeffs(rng, samsat_unit("optsat"), coils=COILS)
+    cs = with_options(rng, base, {
+        "mmc1": SensorOptions(channels=("heater_A",), thermal_lag=True, sr_compensation=True),
+        "mpu1": SensorOptions(nonlinear=True),
+        "mmc2": SensorOptions(channels=("sa_current_A", "heater_A"), nonlinear=True,
+                              sr_compensation=True),
+        "mpu3": SensorOptions(thermal_lag=True),
+    }, poly_degree=5)
+    host = HostUnit(cs)
+    n = 30_000
+    for s in cs.unit.sensors:
+        t = (cs.sensors[s.name]["t_min_C"], cs.sensors[s.name]["t_max_C"])
+        raw, temp, coil = random_inputs(rng, s, n, len(COILS), t)
+        temp[rng.random(n) < 0.01] = np.nan
+        channels, rate, dt = random_aux(rng, cs.spec, n, nan_fraction=0.01)
+        kw = dict(channels=channels, rate_dps=rate, dt_s=dt)
+        c_out = host.correct(s.name, raw, temp, coil, **kw)
+        py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw,
+                                  temp, coil, **kw)
+        assert_bit_identical(c_out, py_out, f"options/{s.name}")
+        assert np.mean(c_out["status"] == 0) > 0.05
+        if s.set_reset:
+            c_set = host.correct_set(s.name, raw[:, :3], temp, c_out["offset_counts"], coil, **kw)
+            py_set = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
+                                      raw[:, :3], temp, coil, set_only=True,
+                                      offset_counts=c_out["offset_counts"], **kw)
+            assert_bit_identical(c_set, py_set, f"options/{s.name} set-only")
+        # a null aux is zeros everywhere: still identical
+        c0 = host.correct(s.name, raw[:1000], temp[:1000])
+        p0 = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw[:1000],
+                              temp[:1000])
+        assert_bit_identical(c0, p0, f"options/{s.name} null aux")
+    # the stages change the output (the test is not vacuous): lag on vs off
+    s = cs.unit.sensor("mpu3")
+    raw, temp, _ = random_inputs(rng, s, 2000, 0, (-20, 55))
+    _, _, dt = random_aux(rng, cs.spec, 2000)
+    lag = host.correct(s.name, raw, temp, dt_s=dt)["field_body_nT"]
+    nolag = HostUnit(base).correct(s.name, raw, temp)["field_body_nT"]
+    assert np.mean(bits(lag) != bits(nolag)) > 0.5

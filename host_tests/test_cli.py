@@ -21,7 +21,10 @@ def read_apply_csv(path) -> dict:
     header, body = rows[0], rows[1:]
     cols = {}
     for j, name in enumerate(header):
-        cols[name] = np.array([float(r[j]) if r[j] != "" else np.nan for r in body])
+        if name in ("sel_sensor", "sel_reason"):
+            cols[name] = np.array([r[j] for r in body])
+        else:
+            cols[name] = np.array([float(r[j]) if r[j] != "" else np.nan for r in body])
     return cols
 
 
