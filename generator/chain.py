@@ -15,21 +15,28 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     SET/RESET   field_s = (set - reset) * 0.5 * lsb       offset_s = ((set + reset) * 0.5 - zero) * lsb
     or plain    field_s = (count - zero) * lsb
     axes        field_f[k] = sign[k] * field_s[idx[k]]                      (eq. 1, structural)
-    temperature T = clamp(temp_C, t_min, t_max),  dT = T - t_ref             (clamp in the wrapper)
-    offset      b_i(T)  = ((b3_i dT + b2_i) dT + b1_i) dT + b0_i             (Horner, eq. 7)
-    matrix      m_ij(T) = ((m3_ij dT + m2_ij) dT + m1_ij) dT + m0_ij
-    coils       x_i = field_f_i - b_i(T) - (K_i0 i_0 + K_i1 i_1 + ...)       (when coils are in the chain)
+    lag         T_el += dt / (tau + dt) (T - T_el), state between calls      (option: thermal_lag)
+    temperature T = clamp(T_el or temp_C, t_min, t_max),  dT = T - t_ref     (clamp in the wrapper)
+    b(T)        b_i(T)  = ((b3_i dT + b2_i) dT + b1_i) dT + b0_i             (Horner, eq. 7)
+    M(T)        m_ij(T) = ((m3_ij dT + m2_ij) dT + m1_ij) dT + m0_ij
+    offset      x_i = field_f_i - b_i(T)
+    coils       x_i -= K_i0 i_0 + K_i1 i_1 + ...                             (when coils are in the chain)
+    channels    x_i -= C_i0 ch_0 + C_i1 ch_1 + ...                           (option: channels)
+    cubic       x_i -= n_i x_i x_i x_i                                      (option: nonlinear)
+    SET/RESET   x += c (w x x), w the body rate in the frame                 (option: sr_compensation)
     calibrate   B_i = m_i0 x_0 + m_i1 x_1 + m_i2 x_2                        (eq. 5)
     boom        B_body_i = H_i0 B_0 + H_i1 B_1 + H_i2 B_2                    (boom sensors, eq. 2-3)
+    band        B.B - field_min^2 and field_max^2 - B.B, both >= 0 when plausible
 
-The kernels use only + - * (and the wrapper only comparisons), so float32 results are
+The kernels use only + - * / (and the wrappers only comparisons), so float32 results are
 reproducible bit for bit on any IEEE-754 machine that rounds each operation to nearest
 (C built without FMA contraction: -ffp-contract=off).
 
 Status bits (the wrapper, C and Python alike): a sample with a non-finite temperature or
 current gets zeros and STATUS_NONFINITE; a count at a rail of the part's range gets
 STATUS_SATURATED; a temperature outside the calibrated range is clamped and gets
-STATUS_TEMP_CLAMPED. ``valid`` is ``status == 0``.
+STATUS_TEMP_CLAMPED; |B| outside the band gets STATUS_IMPLAUSIBLE; `select` adds
+STATUS_DISAGREE. ``valid`` is ``status == 0``.
 """
 
 from __future__ import annotations
