@@ -11,6 +11,7 @@ Output is deterministic: same coefficients, same bytes.
 
 from __future__ import annotations
 
+import re
 import tempfile
 from pathlib import Path
 
@@ -87,8 +88,11 @@ def build_agreement_kernel(spec: ChainSpec) -> ca.Function:
                        ["field_body_nT", "agree_nT"], ["margin_nT2"])
 
 
-def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
-    """(kernels.c text, kernels.h text, {sensor: Function}) from CasADi's CodeGenerator."""
+def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
+    """(kernels text, {kernel: (sz_arg, sz_res)}, {key: Function}) from CasADi's
+    CodeGenerator. The text is included by `<unit>_magcal.c` (one translation unit, so
+    the compiler sees that no kernel argument is ever null and inlines the kernels);
+    every kernel must run in registers and locals only (no iw/w work arrays)."""
     name = f"{spec.unit.id}_kernels"
     real = "float" if spec.unit.float_type == "float32" else "double"
     cg = ca.CodeGenerator(name, {"casadi_real": real, "casadi_int": "int",
@@ -109,7 +113,15 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, str, dict]:
         cg.generate(d + "/")
         c_text = (Path(d) / f"{name}.c").read_text()
         h_text = (Path(d) / f"{name}.h").read_text()
-    return c_text, h_text, funcs
+    sizes = {}
+    for f in funcs.values():
+        k = f.name()
+        got = {m: int(re.search(rf"#define {k}_SZ_{m} (\d+)", h_text).group(1))
+               for m in ("ARG", "RES", "IW", "W")}
+        if got["IW"] or got["W"]:
+            raise RuntimeError(f"{k} needs CasADi work arrays {got}: the wrappers pass none")
+        sizes[k] = (got["ARG"], got["RES"])
+    return c_text, sizes, funcs
 
 
 def c_literal(value: float, float_type: str) -> str:
@@ -199,7 +211,10 @@ def template_context(cs: CoefficientSet) -> dict:
                         "size": b.size, "unit": b.unit, "doc": b.doc,
                         "lines": _lines([c_literal(v, ft) for v in flat_u[k:k + b.size]])})
         k += b.size
+    kernels_text, sizes, _ = casadi_sources(spec)
     return {
+        "kernels_text": kernels_text,
+        "sz": sizes,
         "unit": unit.id,
         "UNIT": unit.id.upper(),
         "real": "float" if ft == "float32" else "double",
@@ -236,10 +251,8 @@ def render(cs: CoefficientSet) -> dict:
     files = {}
     for tpl, pattern in TEMPLATES:
         files[pattern.format(unit=ctx["unit"])] = env.get_template(tpl).render(**ctx)
-    c_text, h_text, _ = casadi_sources(cs.spec)
     pre = PREAMBLE.format(unit=ctx["unit"], layout_hash=ctx["layout_hash"], **ctx["versions"])
-    files[f"{ctx['unit']}_kernels.c"] = pre + c_text
-    files[f"{ctx['unit']}_kernels.h"] = pre + h_text
+    files[f"{ctx['unit']}_kernels.inc"] = pre + ctx["kernels_text"]
     return dict(sorted(files.items()))
 
 

@@ -28,9 +28,6 @@ from .coeffs import CoefficientSet
 CC = os.environ.get("CC", "gcc")
 FP_FLAGS = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math"]
 STRICT_FLAGS = ["-Wall", "-Wextra", "-Werror", "-pedantic"]
-# CasADi's generated file: its boilerplate has unused parameters (iw, w, mem); everything
-# else of -Wall -Wextra -pedantic applies.
-KERNEL_FLAGS = ["-Wall", "-Wextra", "-Werror", "-pedantic", "-Wno-unused-parameter"]
 
 
 def cache_dir() -> Path:
@@ -74,7 +71,7 @@ class HostUnit:
         key = hashlib.sha256()
         for name in sorted(files):
             key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
-        key.update(" ".join(FP_FLAGS + STRICT_FLAGS + KERNEL_FLAGS).encode())
+        key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
         key.update(compiler_id().encode())
         key.update(sys.version.encode())
         self.key = key.hexdigest()[:16]
@@ -101,12 +98,11 @@ class HostUnit:
         src.mkdir()
         for name, text in files.items():
             (src / name).write_text(text)
-        unit = self.spec.unit.id
         objs = []
         for name in sorted(files):
             if not name.endswith(".c"):
                 continue
-            flags = KERNEL_FLAGS if name == f"{unit}_kernels.c" else STRICT_FLAGS
+            flags = STRICT_FLAGS
             objs.append(str(_compile(src / name, tmp / (name[:-2] + ".o"), flags, src)))
         ffi = cffi.FFI()
         ffi.cdef(files["host_shim.h"])

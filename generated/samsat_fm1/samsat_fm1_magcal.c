@@ -10,7 +10,19 @@
  */
 #include <math.h>
 #include "samsat_fm1_magcal.h"
-#include "samsat_fm1_kernels.h"
+
+/* The CasADi kernels, in this translation unit and static: the compiler sees that their
+ * arguments are never null and inlines them; nothing of them is exported. CasADi's
+ * signature has work-array parameters the kernels do not use. */
+#define CASADI_SYMBOL_EXPORT static inline
+#if defined(__GNUC__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-parameter"
+#endif
+#include "samsat_fm1_kernels.inc"
+#if defined(__GNUC__)
+#pragma GCC diagnostic pop
+#endif
 
 uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_mmc1_raw_t *raw,
@@ -18,12 +30,15 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mmc1;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mmc1_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mmc1_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[4];
     uint16_t status = 0u;
     int i;
 
@@ -76,12 +91,14 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     res[2] = out->chip_offset_nT;
     res[3] = offset_counts;
     (void)samsat_fm1_mmc1_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
     if (state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u) {
         for (i = 0; i < 3; ++i) {
+            /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
             state->offset_counts[i] = offset_counts[i];
         }
         state->have_offset = 1u;
@@ -96,12 +113,15 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mmc1;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mmc1_set_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mmc1_set_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[2];
     uint16_t status = 0u;
     int i;
 
@@ -160,6 +180,7 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mmc1_set_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
@@ -173,12 +194,15 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu1;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mpu1;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mpu1_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mpu1_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[2];
     uint16_t status = 0u;
     int i;
 
@@ -225,6 +249,7 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu1_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
@@ -238,12 +263,15 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu2;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mpu2;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mpu2_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mpu2_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[2];
     uint16_t status = 0u;
     int i;
 
@@ -290,6 +318,7 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu2_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
@@ -304,12 +333,15 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc2;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mmc2_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mmc2_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[4];
     uint16_t status = 0u;
     int i;
 
@@ -362,12 +394,14 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     res[2] = out->chip_offset_nT;
     res[3] = offset_counts;
     (void)samsat_fm1_mmc2_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
     if (state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u) {
         for (i = 0; i < 3; ++i) {
+            /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
             state->offset_counts[i] = offset_counts[i];
         }
         state->have_offset = 1u;
@@ -382,12 +416,15 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc2;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mmc2_set_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mmc2_set_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[2];
     uint16_t status = 0u;
     int i;
 
@@ -446,6 +483,7 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mmc2_set_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
@@ -459,12 +497,15 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu3_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu3;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mpu3;
+    const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t band_margin_nT2[2];
-    const samsat_fm1_real_t *arg[samsat_fm1_mpu3_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_mpu3_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[5];
+    samsat_fm1_real_t *res[2];
     uint16_t status = 0u;
     int i;
 
@@ -511,6 +552,7 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu3_kernel(arg, res, 0, 0, 0);
+    /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
@@ -530,8 +572,8 @@ uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_real_t fields[3 * SAMSAT_FM1_N_SENSORS];
     samsat_fm1_real_t agree_nT[SAMSAT_FM1_N_SENSORS];
     samsat_fm1_real_t margin_nT2[10];
-    const samsat_fm1_real_t *arg[samsat_fm1_agree_kernel_SZ_ARG];
-    samsat_fm1_real_t *res[samsat_fm1_agree_kernel_SZ_RES];
+    const samsat_fm1_real_t *arg[2];
+    samsat_fm1_real_t *res[1];
     uint8_t valid[SAMSAT_FM1_N_SENSORS];
     uint8_t n_cmp[SAMSAT_FM1_N_SENSORS];
     uint8_t n_agree[SAMSAT_FM1_N_SENSORS];
@@ -558,6 +600,7 @@ uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
         if (valid[pair_i[k]] && valid[pair_j[k]]) {
             n_cmp[pair_i[k]]++;
             n_cmp[pair_j[k]]++;
+            /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
             if (margin_nT2[k] >= 0) {
                 n_agree[pair_i[k]]++;
                 n_agree[pair_j[k]]++;
