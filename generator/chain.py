@@ -14,7 +14,7 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
 
     SET/RESET   field_s = (set - reset) * 0.5 * lsb       offset_s = ((set + reset) * 0.5 - zero) * lsb
     or plain    field_s = (count - zero) * lsb
-    axes        field_f[k] = sign[k] * field_s[idx[k]]                      (eq. 1, structural)
+    axes        field_f[k] = sign[k] * field_s[idx[k]]   (eq. 1; a sign swaps the subtraction)
     lag         T_el += dt / (tau + dt) (T - T_el), state between calls      (option: thermal_lag)
     temperature T = clamp(T_el or temp_C, t_min, t_max),  dT = T - t_ref     (clamp in the wrapper)
     b(T)        b_i(T)  = ((b3_i dT + b2_i) dT + b1_i) dT + b0_i             (Horner, eq. 7)
@@ -387,20 +387,27 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     zero = c.scalar("zero_count")
     out = {}
     # counts -> nT, sensor axes (seed 000 eq. 4 for SET/RESET)
+    # axis mapping to the board frame (seed 000 eq. 1): frame axis k is sensor axis idx[k]
+    # with sign[k]; a negative sign swaps the operands of the first subtraction, which is
+    # the exact negation (a - b = -(b - a)) without an instruction of its own.
+    idx, sign = sensor.axis_map()
+
+    def diff(a, b, k):
+        return a - b if sign[k] > 0 else b - a
+
     if set_only:
         s, o = raw[0:3], raw[3:6]
-        field_s = [(s[i] - o[i]) * lsb for i in range(3)]
+        field_f = [diff(s[idx[k]], o[idx[k]], k) * lsb for k in range(3)]
     elif sensor.set_reset:
         s, r = raw[0:3], raw[3:6]
-        field_s = [(s[i] - r[i]) * half * lsb for i in range(3)]
+        # (d * 0.5) * lsb == d * (lsb * 0.5) bit for bit: both halvings are exact
+        half_lsb = lsb * half
+        field_f = [diff(s[idx[k]], r[idx[k]], k) * half_lsb for k in range(3)]
         offset_counts = [(s[i] + r[i]) * half for i in range(3)]
         out["chip_offset_nT"] = [(offset_counts[i] - zero) * lsb for i in range(3)]
         out["offset_counts"] = offset_counts
     else:
-        field_s = [(raw[i] - zero) * lsb for i in range(3)]
-    # axis mapping to the board frame (seed 000 eq. 1): structural, signs are exact
-    idx, sign = sensor.axis_map()
-    field_f = [field_s[idx[k]] if sign[k] > 0 else -field_s[idx[k]] for k in range(3)]
+        field_f = [diff(raw[idx[k]], zero, k) * lsb for k in range(3)]
     # temperature polynomials by Horner (eq. 7)
     dT = temp_C - c.scalar("t_ref_C")
     b_poly = c.get("b_poly_nT")           # [k][i]

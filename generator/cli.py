@@ -1,11 +1,16 @@
 """`magcal`: the one console command (ICD section 3).
 
 Exit status 0 on success, 2 on bad input (one line on stderr), 1 otherwise.
+Every verb takes -q/--quiet (no progress lines) and --json (a JSON result on stdout, for
+scripts; progress and human output go to stderr). A verb returns its exit status, or
+(status, JSON-able result).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import sys
 from pathlib import Path
 
@@ -42,16 +47,20 @@ def cmd_fit(args):
     cs.save(out / "coefficients.json")
     report = write_fit_report(cs, out, data_paths=args.data, progress=progress)
     progress(f"wrote {out / 'coefficients.json'} and {report}")
-    return 0
+    from .report import fit_summary
+    return 0, fit_summary(cs, out / "coefficients.json", report)
 
 
 def _args_fit(p):
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
     p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2)")
     p.add_argument("-o", "--output", required=True, help="output folder")
-    p.add_argument("--method", default="auto", choices=["auto"],
-                   help="fit method (auto: reference vectors where the data carry them, "
-                        "else the ellipsoid fit)")
+    p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
+                   help="auto: reference vectors where the data carry them (joint or "
+                        "per-level cubic, chosen on held-out data), else the ellipsoid fit; "
+                        "analytic: seed 001 known vectors, h = Q P R B + b per temperature "
+                        "level (needs ref_x/y/z_nT, else falls back to auto); ellipsoid: "
+                        "seed 000, magnitudes only (M known up to a rotation)")
 
 
 @verb("apply", "correct telemetry through the compiled flight C")
@@ -101,6 +110,11 @@ def _args_generate(p):
 def cmd_demo(args):
     from .demo import run_demo
 
+    if getattr(args, "json", False):   # stdout carries the JSON only
+        with contextlib.redirect_stdout(sys.stderr):
+            rc = run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
+        return rc, {"output": str(Path(args.output)),
+                    "report": str(Path(args.output) / "report.html"), "exit": rc}
     return run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
 
 
@@ -109,7 +123,73 @@ def _args_demo(p):
     p.add_argument("--seed", type=int, default=1, help="simulator seed")
 
 
-ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo}
+@verb("plan", "write the ground-test program of a unit (positions, temperature profile)")
+def cmd_plan(args):
+    from .plan import run_plan
+    return run_plan(args, _progress(args))
+
+
+def _args_plan(p):
+    from . import plan as P
+    p.add_argument("unit", help="unit file (TOML, ICD section 1)")
+    p.add_argument("-o", "--output", required=True,
+                   help="output folder: plan.md, plan.html, plan.json, figures")
+    p.add_argument("--lab-field-nT", type=float, default=None,
+                   help="lab field magnitude, nT (default: the unit's lab_field_nT)")
+    p.add_argument("--inclination-deg", type=float, default=P.DEFAULT_INCLINATION_DEG,
+                   help=f"lab field inclination, deg (default {P.DEFAULT_INCLINATION_DEG:g})")
+    p.add_argument("--levels", type=float, nargs="+", default=list(P.DEFAULT_LEVELS_C),
+                   metavar="DEGC", help="chamber temperature levels in order, degC (default "
+                   + " ".join(f"{v:g}" for v in P.DEFAULT_LEVELS_C) + ")")
+    p.add_argument("--board-tau-min", type=float, default=P.DEFAULT_BOARD_TAU_MIN,
+                   help=f"thermal time constant of the boards, min (default "
+                        f"{P.DEFAULT_BOARD_TAU_MIN:g}: an assumption; measure it)")
+    p.add_argument("--settle-tol-C", type=float, default=P.DEFAULT_SETTLE_TOL_C,
+                   help=f"settled: within this of the level, degC (default "
+                        f"{P.DEFAULT_SETTLE_TOL_C:g})")
+    p.add_argument("--ramp-C-per-min", type=float, default=P.DEFAULT_RAMP_C_PER_MIN,
+                   help=f"chamber ramp rate, degC/min (default {P.DEFAULT_RAMP_C_PER_MIN:g})")
+    p.add_argument("--sample-period-s", type=float, default=P.DEFAULT_SAMPLE_PERIOD_S,
+                   help=f"sample period, s (default {P.DEFAULT_SAMPLE_PERIOD_S:g})")
+    p.add_argument("--samples-per-segment", type=int, default=P.DEFAULT_SAMPLES_PER_SEGMENT,
+                   help=f"samples recorded per position and level (default "
+                        f"{P.DEFAULT_SAMPLES_PER_SEGMENT})")
+    p.add_argument("--room-C", type=float, default=P.DEFAULT_ROOM_C,
+                   help=f"room temperature where the jig is turned, degC (default "
+                        f"{P.DEFAULT_ROOM_C:g})")
+    p.add_argument("--reposition-min", type=float, default=P.DEFAULT_REPOSITION_MIN,
+                   help=f"time to turn the jig, min (default {P.DEFAULT_REPOSITION_MIN:g})")
+
+
+@verb("check", "does a recorded campaign cover the test program? (exit 2 with the gaps)")
+def cmd_check(args):
+    from .check import run_check
+    return run_check(args, _progress(args))
+
+
+def _args_check(p):
+    from . import check as C
+    p.add_argument("unit", help="unit file (TOML, ICD section 1)")
+    p.add_argument("data", nargs="+", help="telemetry CSV files of the campaign")
+    p.add_argument("--plan", default=None, metavar="PLAN.json",
+                   help="the program to check against (magcal plan's plan.json); default: "
+                        "magcal plan's default program, applied to static-position files")
+    p.add_argument("--noise-nT", type=float, default=None,
+                   help="reading noise per axis for the prediction, nT (default: each "
+                        "sensor's noise_nT)")
+    p.add_argument("--limit-b-nT", type=float, default=C.LIMIT_B_nT,
+                   help=f"largest acceptable predicted 1-sigma of an offset, nT (default "
+                        f"{C.LIMIT_B_nT:g})")
+    p.add_argument("--limit-m", type=float, default=C.LIMIT_M,
+                   help=f"largest acceptable predicted 1-sigma of a matrix entry (default "
+                        f"{C.LIMIT_M:g})")
+    p.add_argument("--min-samples", type=int, default=None,
+                   help="settled samples a position and level need (default: the plan's "
+                        f"samples per segment, or {C.MIN_SEGMENT_SAMPLES} without --plan)")
+
+
+ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
+        "plan": _args_plan, "check": _args_check}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -121,6 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         ARGS[name](p)
         p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+        p.add_argument("--json", action="store_true",
+                       help="print a JSON result on stdout (for scripts)")
         p.set_defaults(func=fn)
     return parser
 
@@ -131,14 +213,29 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    want_json = getattr(args, "json", False)
     try:
-        return int(args.func(args) or 0)
+        result = args.func(args)
     except InputError as e:
         print(f"magcal {args.verb}: {e}", file=sys.stderr)
+        if want_json:
+            _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
     except KeyboardInterrupt:
         print("magcal: interrupted", file=sys.stderr)
         return 1
+    payload = None
+    if isinstance(result, tuple):
+        result, payload = result
+    rc = int(result or 0)
+    if want_json:
+        _print_json(payload if payload is not None else {"verb": args.verb, "exit": rc})
+    return rc
+
+
+def _print_json(obj):
+    from .pipeline import _default
+    print(json.dumps(obj, indent=1, default=_default))
 
 
 if __name__ == "__main__":

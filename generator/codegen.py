@@ -204,6 +204,13 @@ def template_context(cs: CoefficientSet) -> dict:
             "channel_idx": [spec.aux_channels.index(ch) for ch in spec.opts(s).channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
         })
+    # A sensor block that ends more than 1020 bytes into the coefficient struct is read
+    # through its own base pointer (Cortex-M VLDR offsets reach +-1020 bytes).
+    real_size = 4 if ft == "float32" else 8
+    start = 0
+    for s_ctx in sensors:
+        s_ctx["own_base"] = (start + s_ctx["n_coeffs"]) * real_size > 1020
+        start += s_ctx["n_coeffs"]
     ublocks, k = [], 0
     flat_u = cs.flat_unit()
     for b in spec.unit_blocks():

@@ -29,9 +29,20 @@ figures and the choice go into SensorCalibration.stats.
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
 
-Public API: fit_unit(unit, telemetries, progress) -> {name: SensorCalibration};
-fit_sensor(name, [FitData], degree=3); reference_fit(...); find_segments(...),
-group_levels(...), temperature_quantum(...), temperature_noise(...).
+The above is method "auto". Two more methods (`fit_unit(..., method=)`, FIT_METHODS):
+
+* "analytic" (seed 001): per constant-temperature level the known-vector model with a
+  rotation, h = Q P R B + b (generator.fit_analytic.fit_analytic_rotated), M = (Q P R)^-1;
+  then the weighted polynomial over the levels as in "segments". Per level, stats keep
+  k, e, R, b with 1-sigma and the residual of seed 001's model without R. Without
+  reference vectors the sensor falls back to "auto" (stats say so);
+* "ellipsoid" (seed 000): per level an ellipsoid fit of the magnitudes only, even where
+  vectors exist (M symmetric, up to a rotation); the polynomial over the levels.
+
+Public API: fit_unit(unit, telemetries, progress, method="auto") -> {name:
+SensorCalibration}; fit_sensor(name, [FitData], degree=3, method="auto"); FIT_METHODS;
+reference_fit(...); rotated_fit_M(...); find_segments(...), group_levels(...),
+temperature_quantum(...), temperature_noise(...).
 """
 
 from __future__ import annotations
@@ -43,8 +54,12 @@ from scipy.ndimage import median_filter
 
 from .calibration import POLY_DEGREE, SensorCalibration
 from .errors import InputError
+from .fit_analytic import _dP_de, fit_analytic, fit_analytic_rotated
 from .fit_ellipsoid import (SYM_INDEX, _sym_grad, coverage, covariance, distinct_rows,
                             ellipsoid_fit, lm_solve, sym_from6, sym_to6)
+
+#: The fit methods of fit_unit / fit_sensor (the CLI's `magcal fit --method`).
+FIT_METHODS = ("auto", "analytic", "ellipsoid")
 
 T_REF_C = 25.0
 DEGREE_STEP_C = 5.0        # one polynomial degree per 5 degC of temperature span
@@ -379,10 +394,12 @@ class _Samples:
     is_vec: np.ndarray       # (N,) bool
     group: np.ndarray        # (N,) int: cross-validation group
     segments: list = field(default_factory=list)   # Segment with index into these arrays
+    time_s: np.ndarray | None = None                 # (N,) sample time in its file
 
     def subset(self, mask):
         return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
-                        self.is_vec[mask], self.group[mask])
+                        self.is_vec[mask], self.group[mask],
+                        time_s=None if self.time_s is None else self.time_s[mask])
 
     @property
     def n(self):
@@ -390,7 +407,7 @@ class _Samples:
 
 
 def _gather(name, datas, notes, per_file):
-    xs, Ts, refs, norms, vecs, groups, segs = [], [], [], [], [], [], []
+    xs, Ts, refs, norms, vecs, groups, segs, times = [], [], [], [], [], [], [], []
     offset = 0
     gbase = 0
     for d in datas:
@@ -443,6 +460,7 @@ def _gather(name, datas, notes, per_file):
             segs.append(s)
         xs.append(d.field_frame_nT[keep])
         Ts.append(d.temp_C[keep])
+        times.append(np.asarray(d.time_s, float)[keep])
         refs.append(ref[keep])
         norms.append(norm[keep])
         vecs.append(has_vec[keep])
@@ -454,7 +472,8 @@ def _gather(name, datas, notes, per_file):
                          f"sensor '{name}': no usable sample with a field reference "
                          "(reference vectors, ref_norm_nT or the unit's lab_field_nT)")
     return _Samples(np.concatenate(xs), np.concatenate(Ts), np.concatenate(refs),
-                    np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs)
+                    np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs,
+                    time_s=np.concatenate(times))
 
 
 # =======================================================================================
@@ -709,21 +728,313 @@ def _score(S: _Samples, cal):
 
 
 # =======================================================================================
+# Seed-001 known-vector method and seed-000 ellipsoid method, per temperature level
+# =======================================================================================
+def _floats(a):
+    """JSON-able nested lists of float."""
+    return np.asarray(a, float).tolist()
+
+
+def _level_windows(S: _Samples, idx, file_offsets):
+    """Where a level's samples come from: [file number, first time_s, last time_s] per
+    run of consecutive used samples (file number: 0-based position in stats["files"]).
+    The level holds exactly the samples in these windows that the fit used (usable, with
+    a reference, no coil current)."""
+    idx = np.sort(np.asarray(idx))
+    if len(idx) == 0 or S.time_s is None:
+        return []
+    file_no = np.searchsorted(file_offsets, idx, side="right")
+    cuts = np.nonzero((np.diff(idx) != 1) | (np.diff(file_no) != 0))[0] + 1
+    return [[int(file_no[run[0]]), float(S.time_s[idx[run[0]]]), float(S.time_s[idx[run[-1]]])]
+            for run in np.split(np.arange(len(idx)), cuts)]
+
+
+def _subset_with_segments(S: _Samples, mask):
+    """S restricted to mask, its segments re-indexed (samples outside mask dropped)."""
+    new_index = np.cumsum(mask) - 1
+    sub = S.subset(mask)
+    for seg in S.segments:
+        keep = seg.index[mask[seg.index]]
+        if len(keep):
+            sub.segments.append(Segment(index=new_index[keep], temp_C=seg.temp_C,
+                                        temp_range_C=seg.temp_range_C,
+                                        t_start_s=seg.t_start_s, t_stop_s=seg.t_stop_s,
+                                        position=seg.position))
+    return sub
+
+
+def rotated_fit_M(fit):
+    """M = W^-1 = (Q P R)^-1 of a RotatedFit and its 1-sigma (3, 3), propagated to first
+    order from fit.cov (order k, e, delta, b): dM = -M dW M with dW/dk_i = E_ii P R,
+    dW/de_j = Q dP/de_j R, dW/ddelta_j = Q P R [u_j]x (R_true = R exp([delta]x))."""
+    M = np.linalg.inv(fit.W)
+    PR = fit.P @ fit.R
+    dW = []
+    for i in range(3):
+        E = np.zeros((3, 3))
+        E[i, i] = 1.0
+        dW.append(E @ PR)
+    dW += [fit.Q @ dP @ fit.R for dP in _dP_de(fit.e_rad)]
+    for j in range(3):
+        u = np.zeros(3)
+        u[j] = 1.0
+        dW.append(fit.W @ np.cross(np.eye(3), u))      # W [u]x: row i of [u]x is e_i x u
+    J = np.zeros((9, 12))
+    for c, d in enumerate(dW):
+        J[:, c] = (-M @ d @ M).ravel()
+    var = np.einsum("ic,cd,id->i", J, fit.cov, J)
+    return M, np.sqrt(np.maximum(var, 0.0)).reshape(3, 3)
+
+
+def _analytic_level(x_nT, ref_nT):
+    """Seed 001 at one temperature: the plain model h = Q P B + b (for its residual) and
+    the rotated one h = Q P R B + b. Returns (rotated fit, plain fit, M, M_sigma)."""
+    plain = fit_analytic(x_nT, ref_nT)
+    rot = fit_analytic_rotated(x_nT, ref_nT, analytic=plain)
+    M, M_sig = rotated_fit_M(rot)
+    return rot, plain, M, M_sig
+
+
+def _analytic_level_stats(rot, plain):
+    deg = np.degrees
+    return {
+        "k": _floats(rot.k), "k_sigma": _floats(rot.sigma_k),
+        "e_deg": _floats(deg(rot.e_rad)), "e_sigma_deg": _floats(deg(rot.sigma_e_rad)),
+        "R_rotvec_deg": _floats(deg(rot.rotvec_rad)),
+        "R_rotvec_sigma_deg": _floats(deg(rot.sigma_rot_rad)),
+        "R_angle_deg": float(deg(np.linalg.norm(rot.rotvec_rad))),
+        "b_nT": _floats(rot.b_nT), "b_sigma_nT": _floats(rot.sigma_b_nT),
+        "residual_rms_nT": float(rot.residual_rms_nT),
+        "residual_rms_axis_nT": _floats(rot.residual_rms_axis_nT),
+        "residual_rms_seed001_nT": float(plain.residual_rms_nT),
+        "residual_rms_axis_seed001_nT": _floats(plain.residual_rms_axis_nT),
+        "seed001_k": _floats(plain.k), "seed001_e_deg": _floats(deg(plain.e_rad)),
+        "seed001_b_nT": _floats(plain.b_nT),
+    }
+
+
+def _file_offsets(per_file):
+    return np.cumsum([f["used"] for f in per_file])
+
+
+def _fit_sensor_analytic(name, S_all, datas, degree, say, notes, per_file, source):
+    """The "analytic" method (see fit_sensor). Returns (cal, None), or (None, why) when
+    it cannot be used and the caller falls back to auto."""
+    S = _subset_with_segments(S_all, S_all.is_vec)
+    my_notes = []
+    no_vec = [f["source"] for f in per_file if f["used"] and "ref vectors" not in f["reference"]]
+    if (~S_all.is_vec).any():
+        my_notes.append(f"{int((~S_all.is_vec).sum())} magnitude-only samples not used by the "
+                        "known-vector method" + (f" (files {', '.join(no_vec)})" if no_vec else ""))
+    t_lo, t_hi = float(S.T.min()), float(S.T.max())
+    span = t_hi - t_lo
+    deg = min(degree, _degree_for_span(span))
+    stats = {"files": per_file, "samples_used": int(S.n), "samples_vector": int(S.n),
+             "samples_magnitude": 0, "temperature_range_C": [t_lo, t_hi],
+             "degree": int(deg), "notes": notes,
+             "model": "h = Q P R B + b per temperature level (seed 001 with a rotation R); "
+                      "M = (Q P R)^-1; b, M polynomial over the levels, weighted by 1/sigma"}
+    say(f"{name}: analytic known-vector method, {S.n} samples with reference vectors, "
+        f"{t_lo:.1f}..{t_hi:.1f} degC")
+    offsets = _file_offsets(per_file)
+    if deg == 0:
+        idx_all = np.arange(S.n)
+        levels, stats["segments"] = [], {"found": len(S.segments), "levels": []}
+        groups = [(None, idx_all)]
+    else:
+        levels, stats["segments"] = _temperature_levels(S, datas, deg)
+        groups = [(lev, np.concatenate([s.index for s in lev])) for lev in levels]
+    vec_index = np.nonzero(S_all.is_vec)[0]          # S index -> S_all index (for windows)
+    fits, level_stats, dropped = [], [], []
+    for lev, idx in groups:
+        temp = float(np.mean(S.T[idx]))
+        try:
+            rot, plain, M, M_sig = _analytic_level(S.x[idx], S.ref[idx])
+        except InputError as e:
+            dropped.append(f"level {temp:.1f} degC: {e.message}")
+            continue
+        fits.append((temp, rot.b_nT, M, rot.sigma_b_nT, M_sig, len(idx)))
+        entry = {"temp_C": temp, "samples": int(len(idx)),
+                 "positions": sorted({int(s.position) for s in
+                                      (lev if lev is not None else S.segments)}),
+                 "windows_s": _level_windows(S_all, vec_index[idx], offsets)}
+        entry.update(_analytic_level_stats(rot, plain))
+        level_stats.append(entry)
+    if dropped:
+        my_notes.extend(dropped)
+    if deg == 0:
+        if not fits:
+            return None, f"the known-vector fit failed: {'; '.join(dropped)}"
+        _, b0, M0, b0_sig, M0_sig, _ = fits[0]
+        b_sig, M_sig = _pad(b0_sig[None], M0_sig[None])
+        cal = SensorCalibration.constant(name, b0, M0, T_REF_C, t_lo, t_hi, body_frame=True,
+                                         method="analytic known-vector (seed 001 + R), constant",
+                                         b_poly_sigma_nT=b_sig, M_poly_sigma=M_sig)
+        stats["why"] = ("degree 0 requested" if degree == 0 else
+                        f"reported temperature spans {span:.1f} degC: one constant fit of "
+                        "all samples")
+    else:
+        if len(fits) < 2:
+            return None, (f"{len(fits)} calibratable constant-temperature level(s) for a "
+                          f"temperature span of {span:.1f} degC; the polynomial over levels "
+                          "needs 2 or more" + (f" ({'; '.join(dropped)})" if dropped else ""))
+        dl = min(deg, len(fits) - 1)
+        b, M, bs, Ms = _poly_over_levels(fits, dl, t_lo, t_hi)
+        cal = _make_cal(name, b, M, t_lo, t_hi, True,
+                        f"analytic known-vector (seed 001 + R) per temperature level, degree "
+                        f"{dl} over {len(fits)} levels", bs, Ms)
+        stats["degree"] = int(dl)
+    notes.extend(my_notes)
+    stats["segments"]["level_fits"] = level_stats
+    stats["fit"] = _score(S_all, cal)
+    say(f"{name}: {cal.method}")
+    cal.stats = stats
+    return cal, None
+
+
+def _fit_sensor_ellipsoid(name, S_all, datas, degree, say, notes, per_file, source):
+    """The "ellipsoid" method (see fit_sensor): magnitudes only, per level."""
+    n = S_all.n
+    S = _Samples(S_all.x, S_all.T, np.full((n, 3), np.nan), S_all.norm, np.zeros(n, bool),
+                 S_all.group, list(S_all.segments), time_s=S_all.time_s)
+    t_lo, t_hi = float(S.T.min()), float(S.T.max())
+    span = t_hi - t_lo
+    deg = min(degree, _degree_for_span(span))
+    stats = {"files": per_file, "samples_used": int(n), "samples_vector": 0,
+             "samples_magnitude": int(n), "temperature_range_C": [t_lo, t_hi],
+             "degree": int(deg), "notes": notes,
+             "model": "|M (B~ - b)| = |B| per temperature level (seed 000 ellipsoid, M "
+                      "symmetric: known up to a rotation); b, M polynomial over the levels"}
+    if S_all.is_vec.any():
+        notes.append(f"ellipsoid method: the reference vectors of {int(S_all.is_vec.sum())} "
+                     "samples are used only through their magnitude")
+    say(f"{name}: ellipsoid method, {n} samples, {t_lo:.1f}..{t_hi:.1f} degC")
+    levels, stats["segments"] = _temperature_levels(S, datas, deg)
+    offsets = _file_offsets(per_file)
+    fits, level_stats, dropped = [], [], []
+    for lev in levels:
+        idx = np.concatenate([s.index for s in lev])
+        temp = float(np.mean(S.T[idx]))
+        try:
+            b, M, info = ellipsoid_fit(S.x[idx], S.norm[idx], source=source)
+        except InputError as e:
+            dropped.append(f"level {temp:.1f} degC: {e.message}")
+            continue
+        fits.append((temp, b, M, info["b_sigma_nT"], info["M_sigma"], len(idx)))
+        resid = np.linalg.norm((S.x[idx] - b) @ M.T, axis=1) - S.norm[idx]
+        level_stats.append({
+            "temp_C": temp, "samples": int(len(idx)),
+            "positions": sorted({int(s.position) for s in lev}),
+            "windows_s": _level_windows(S, idx, offsets),
+            "b_nT": _floats(b), "b_sigma_nT": _floats(info["b_sigma_nT"]),
+            "M": _floats(M), "M_sigma": _floats(info["M_sigma"]),
+            "residual_rms_norm_nT": _rms(resid)})
+    if dropped:
+        notes.extend(dropped)
+    if deg > 0 and len(fits) >= 2:
+        dl = min(deg, len(fits) - 1)
+        b, M, bs, Ms = _poly_over_levels(fits, dl, t_lo, t_hi)
+        cal = _make_cal(name, b, M, t_lo, t_hi, False,
+                        f"ellipsoid (magnitudes only) per temperature level, degree {dl} over "
+                        f"{len(fits)} levels", bs, Ms)
+        stats["degree"] = int(dl)
+    else:
+        if deg > 0:
+            notes.append(f"ellipsoid method: {len(fits)} calibratable constant-temperature "
+                         "level(s), the polynomial over levels needs 2; joint ellipsoid fit "
+                         "of all samples instead")
+        cal = _fit_joint(name, S, False, deg, t_lo, t_hi, source)
+    stats["segments"]["level_fits"] = level_stats
+    stats["fit"] = _score(S, cal)
+    say(f"{name}: {cal.method}")
+    cal.stats = stats
+    return cal
+
+
+# =======================================================================================
 # Entry points
 # =======================================================================================
-def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalibration:
+def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
+               method="auto") -> SensorCalibration:
     """Temperature calibration of one sensor from all its files (list of FitData).
 
     degree: highest polynomial degree in temperature; the degree used is also limited to
     one per DEGREE_STEP_C of covered temperature span (a single temperature gives a
-    constant calibration). Returns a SensorCalibration padded to POLY_DEGREE, with
-    stats: files and exclusions, segments and levels found, the held-out comparison of
-    the "joint" and "segments" methods, the method chosen and why, and the fit RMS.
+    constant calibration). Returns a SensorCalibration padded to POLY_DEGREE.
+
+    method (FIT_METHODS):
+
+    * "auto": reference vectors where the files carry them (held-out choice between the
+      "joint" and "segments" temperature models), else magnitudes (ellipsoid). stats:
+      files and exclusions, segments and levels found, the held-out comparison, the
+      model chosen and why, and the fit RMS.
+    * "analytic": seed 001 on the samples with reference vectors: per constant-
+      temperature level the known-vector model with a rotation, h = Q P R B + b
+      (fit_analytic_rotated), M = (Q P R)^-1 in the frame of the vectors; then a
+      weighted polynomial of b and M over the levels. stats["segments"]["level_fits"]
+      holds k, e, R, b with 1-sigma and the residual with and without R per level.
+      Falls back to "auto" (stats["method_fallback"] says why) when no sample has a
+      reference vector, or when a temperature-dependent fit finds fewer than 2 levels.
+    * "ellipsoid": seed 000 from magnitudes only (|reference vector| where there is one),
+      even where vectors exist: per level an ellipsoid fit, M symmetric (known only up to
+      a rotation), then the polynomial over the levels.
+
+    stats["method"] is the method used, stats["method_requested"] the one asked for.
     """
+    if method not in FIT_METHODS:
+        raise InputError(datas[0].source if datas else None,
+                         f"fit: unknown method {method!r} (choose from "
+                         f"{', '.join(FIT_METHODS)})")
     say = progress or (lambda msg: None)
     notes, per_file = [], []
     source = datas[0].source if datas else None
     S = _gather(name, datas, notes, per_file)
+    fallback = None
+    if method == "analytic":
+        if S.is_vec.any():
+            cal, fallback = _fit_sensor_analytic(name, S, datas, degree, say, notes,
+                                                 per_file, source)
+            if cal is not None:
+                return _with_method(cal, "analytic", "analytic")
+        else:
+            fallback = ("no file carries reference vectors for this sensor: the known-vector "
+                        "method needs them; fitted with auto")
+        notes.append(f"analytic method not used: {fallback}")
+        say(f"{name}: analytic method not used ({fallback})")
+    elif method == "ellipsoid":
+        cal = _fit_sensor_ellipsoid(name, S, datas, degree, say, notes, per_file, source)
+        return _with_method(cal, "ellipsoid", "ellipsoid")
+    cal = _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source)
+    if fallback:
+        cal.stats["method_fallback"] = fallback
+    return _with_method(cal, method, "auto")
+
+
+def _with_method(cal, requested, used):
+    cal.stats["method_requested"] = requested
+    cal.stats["method"] = used
+    return cal
+
+
+def _temperature_levels(S: _Samples, datas, deg):
+    """Constant-temperature levels of the segments found in S (none for degree 0), and
+    their description for stats."""
+    quantum = max([temperature_quantum(d.temp_C) for d in datas] + [0.0])
+    tol = max(2.0, 3.0 * quantum, DEGREE_STEP_C / 2)
+    segs = S.segments
+    levels = group_levels(segs, tol) if deg > 0 else []
+    desc = {
+        "found": len(segs),
+        "levels": [{"temp_C": float(np.mean([s.temp_C for s in lev])),
+                    "segments": len(lev),
+                    "samples": int(sum(len(s.index) for s in lev)),
+                    "positions": sorted({int(s.position) for s in lev})} for lev in levels],
+    }
+    return levels, desc
+
+
+def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
+    """The "auto" method (see fit_sensor)."""
     body_frame = bool(S.is_vec.any())
     t_lo, t_hi = float(S.T.min()), float(S.T.max())
     span = t_hi - t_lo
@@ -739,17 +1050,7 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalib
         f"{'reference vectors' if body_frame else 'magnitude only'}")
 
     # ---- temperature levels for the segments method
-    quantum = max([temperature_quantum(d.temp_C) for d in datas] + [0.0])
-    tol = max(2.0, 3.0 * quantum, DEGREE_STEP_C / 2)
-    segs = S.segments
-    levels = group_levels(segs, tol) if deg > 0 else []
-    stats["segments"] = {
-        "found": len(segs),
-        "levels": [{"temp_C": float(np.mean([s.temp_C for s in lev])),
-                    "segments": len(lev),
-                    "samples": int(sum(len(s.index) for s in lev)),
-                    "positions": sorted({int(s.position) for s in lev})} for lev in levels],
-    }
+    levels, stats["segments"] = _temperature_levels(S, datas, deg)
 
     if deg == 0:
         cal = _fit_joint(name, S, body_frame, 0, t_lo, t_hi, source)
@@ -835,14 +1136,18 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None) -> SensorCalib
     return cal
 
 
-def fit_unit(unit, telemetries, progress=None) -> dict:
+def fit_unit(unit, telemetries, progress=None, method="auto") -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
-    else ref_norm_nT (or the unit's lab_field_nT) -> magnitude rows. Returns
-    {sensor name: SensorCalibration}. Raises InputError when a sensor cannot be fitted.
+    else ref_norm_nT (or the unit's lab_field_nT) -> magnitude rows. method: one of
+    FIT_METHODS, see fit_sensor. Returns {sensor name: SensorCalibration}. Raises
+    InputError when a sensor cannot be fitted or the method is unknown.
     """
     from . import telemetry as _telemetry
+    if method not in FIT_METHODS:
+        raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
+                                    f"{', '.join(FIT_METHODS)})")
     if not telemetries:
         raise InputError(unit.path, "fit: no telemetry files given")
     pre = [(_telemetry.preprocess(tel, unit), tel) for tel in telemetries]
@@ -851,5 +1156,5 @@ def fit_unit(unit, telemetries, progress=None) -> dict:
         datas = [fit_data_from(tel, data[s.name], unit) for data, tel in pre if s.name in data]
         if not datas:
             raise InputError(telemetries[0].path, f"fit: no file has data of sensor '{s.name}'")
-        out[s.name] = fit_sensor(s.name, datas, progress=progress)
+        out[s.name] = fit_sensor(s.name, datas, progress=progress, method=method)
     return out

@@ -109,7 +109,7 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
         tels.append(tel)
-    cals = fit_unit(unit, tels, progress=progress)
+    cals = fit_unit(unit, tels, progress=progress, method=method)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": []}
 

@@ -126,3 +126,13 @@ def test_demo_runs_and_checks_bit_exactness(tmp_path, capsys):
     assert "identical" in out and "DIFFERENT" not in out
     assert (tmp_path / "demo" / "report.html").exists()
     assert (tmp_path / "demo" / "flight_c" / "demo_sat_magcal.c").exists()
+
+
+def test_fit_method_analytic_is_reachable_from_the_command(fm1_dir, tmp_path):
+    import json
+
+    assert main(["fit", str(fm1_dir / "unit.toml"), str(fm1_dir / "thermal_12pos.csv"),
+                 "--method", "analytic", "-o", str(tmp_path), "-q"]) == 0
+    d = json.loads((tmp_path / "coefficients.json").read_text())
+    for s in d["fit"]["sensors"].values():
+        assert s["stats"]["method"] == "analytic", s["method"]

@@ -30,49 +30,67 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc1;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mmc1;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
-    samsat_fm1_real_t offset_counts[3];
+    samsat_fm1_real_t offset_scratch[3];
+    int store_offset;
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->set_counts[i];
-        counts[3 + i] = (samsat_fm1_real_t)raw->reset_counts[i];
-        if (raw->set_counts[i] <= 0 || raw->set_counts[i] >= 65535 ||
-            raw->reset_counts[i] <= 0 || raw->reset_counts[i] >= 65535) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->set_counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->set_counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->set_counts[2];
+    if (raw->set_counts[0] <= 0 || raw->set_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->set_counts[1] <= 0 || raw->set_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->set_counts[2] <= 0 || raw->set_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    counts[3] = (samsat_fm1_real_t)raw->reset_counts[0];
+    counts[4] = (samsat_fm1_real_t)raw->reset_counts[1];
+    counts[5] = (samsat_fm1_real_t)raw->reset_counts[2];
+    if (raw->reset_counts[0] <= 0 || raw->reset_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+    if (raw->reset_counts[1] <= 0 || raw->reset_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+    if (raw->reset_counts[2] <= 0 || raw->reset_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
+    }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
+
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->chip_offset_nT[0] = 0;
+        out->chip_offset_nT[1] = 0;
+        out->chip_offset_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
+
     }
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-            out->chip_offset_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
-
-    }
-
+    store_offset = state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u;
     if (temp_C < c[SAMSAT_FM1_MMC1_T_MIN_C]) {
         temp_C = c[SAMSAT_FM1_MMC1_T_MIN_C];
         status |= SAMSAT_FM1_STATUS_TEMP_CLAMPED;
@@ -89,22 +107,19 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     res[2] = out->chip_offset_nT;
-    res[3] = offset_counts;
+    /* (SET + RESET) / 2 goes straight into the state when the pair may refresh it */
+    res[3] = store_offset ? state->offset_counts : offset_scratch;
     (void)samsat_fm1_mmc1_kernel(arg, res, 0, 0, 0);
     /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    if (state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u) {
-        for (i = 0; i < 3; ++i) {
-            /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
-            state->offset_counts[i] = offset_counts[i];
-        }
+    if (store_offset) {
         state->have_offset = 1u;
     }
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
@@ -113,57 +128,60 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc1;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mmc1;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->set_counts[i];
-        if (raw->set_counts[i] <= 0 || raw->set_counts[i] >= 65535) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->set_counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->set_counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->set_counts[2];
+    if (raw->set_counts[0] <= 0 || raw->set_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->set_counts[1] <= 0 || raw->set_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->set_counts[2] <= 0 || raw->set_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
     }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
 
     if (state == 0 || state->have_offset == 0u) {
         status |= SAMSAT_FM1_STATUS_NO_OFFSET;
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
-    for (i = 0; i < 3; ++i) {
-        counts[3 + i] = state->offset_counts[i];
-    }
+    counts[3] = state->offset_counts[0];
+    counts[4] = state->offset_counts[1];
+    counts[5] = state->offset_counts[2];
     if (temp_C < c[SAMSAT_FM1_MMC1_T_MIN_C]) {
         temp_C = c[SAMSAT_FM1_MMC1_T_MIN_C];
         status |= SAMSAT_FM1_STATUS_TEMP_CLAMPED;
@@ -185,8 +203,8 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
@@ -194,42 +212,45 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mpu1;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mpu1;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->counts[i];
-        if (raw->counts[i] <= -32760 || raw->counts[i] >= 32760) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->counts[2];
+    if (raw->counts[0] <= -32760 || raw->counts[0] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->counts[1] <= -32760 || raw->counts[1] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->counts[2] <= -32760 || raw->counts[2] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
     }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
 
@@ -254,8 +275,8 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
@@ -263,42 +284,45 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mpu2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mpu2;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->counts[i];
-        if (raw->counts[i] <= -32760 || raw->counts[i] >= 32760) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->counts[2];
+    if (raw->counts[0] <= -32760 || raw->counts[0] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->counts[1] <= -32760 || raw->counts[1] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->counts[2] <= -32760 || raw->counts[2] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
     }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
 
@@ -323,8 +347,8 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
@@ -333,49 +357,67 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mmc2;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
-    samsat_fm1_real_t offset_counts[3];
+    samsat_fm1_real_t offset_scratch[3];
+    int store_offset;
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->set_counts[i];
-        counts[3 + i] = (samsat_fm1_real_t)raw->reset_counts[i];
-        if (raw->set_counts[i] <= 0 || raw->set_counts[i] >= 65535 ||
-            raw->reset_counts[i] <= 0 || raw->reset_counts[i] >= 65535) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->set_counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->set_counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->set_counts[2];
+    if (raw->set_counts[0] <= 0 || raw->set_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->set_counts[1] <= 0 || raw->set_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->set_counts[2] <= 0 || raw->set_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    counts[3] = (samsat_fm1_real_t)raw->reset_counts[0];
+    counts[4] = (samsat_fm1_real_t)raw->reset_counts[1];
+    counts[5] = (samsat_fm1_real_t)raw->reset_counts[2];
+    if (raw->reset_counts[0] <= 0 || raw->reset_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+    if (raw->reset_counts[1] <= 0 || raw->reset_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+    if (raw->reset_counts[2] <= 0 || raw->reset_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
+    }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
+
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->chip_offset_nT[0] = 0;
+        out->chip_offset_nT[1] = 0;
+        out->chip_offset_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
+
     }
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-            out->chip_offset_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
-
-    }
-
+    store_offset = state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u;
     if (temp_C < c[SAMSAT_FM1_MMC2_T_MIN_C]) {
         temp_C = c[SAMSAT_FM1_MMC2_T_MIN_C];
         status |= SAMSAT_FM1_STATUS_TEMP_CLAMPED;
@@ -392,22 +434,19 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     res[0] = out->field_body_nT;
     res[1] = band_margin_nT2;
     res[2] = out->chip_offset_nT;
-    res[3] = offset_counts;
+    /* (SET + RESET) / 2 goes straight into the state when the pair may refresh it */
+    res[3] = store_offset ? state->offset_counts : offset_scratch;
     (void)samsat_fm1_mmc2_kernel(arg, res, 0, 0, 0);
     /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
     if (!(band_margin_nT2[0] >= 0 && band_margin_nT2[1] >= 0)) {
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    if (state != 0 && (status & SAMSAT_FM1_STATUS_SATURATED) == 0u) {
-        for (i = 0; i < 3; ++i) {
-            /* cppcheck-suppress uninitvar ; written by the kernel through res[] */
-            state->offset_counts[i] = offset_counts[i];
-        }
+    if (store_offset) {
         state->have_offset = 1u;
     }
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
@@ -416,57 +455,60 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    /* read through a volatile so the compiler addresses the sensor's block from its own
-     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_real_t *c = coeffs->mmc2;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->set_counts[i];
-        if (raw->set_counts[i] <= 0 || raw->set_counts[i] >= 65535) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->set_counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->set_counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->set_counts[2];
+    if (raw->set_counts[0] <= 0 || raw->set_counts[0] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->set_counts[1] <= 0 || raw->set_counts[1] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->set_counts[2] <= 0 || raw->set_counts[2] >= 65535) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
     }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
 
     if (state == 0 || state->have_offset == 0u) {
         status |= SAMSAT_FM1_STATUS_NO_OFFSET;
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
-    for (i = 0; i < 3; ++i) {
-        counts[3 + i] = state->offset_counts[i];
-    }
+    counts[3] = state->offset_counts[0];
+    counts[4] = state->offset_counts[1];
+    counts[5] = state->offset_counts[2];
     if (temp_C < c[SAMSAT_FM1_MMC2_T_MIN_C]) {
         temp_C = c[SAMSAT_FM1_MMC2_T_MIN_C];
         status |= SAMSAT_FM1_STATUS_TEMP_CLAMPED;
@@ -488,8 +530,8 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
@@ -503,36 +545,42 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_real_t *c = c_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
+    samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
-    uint16_t status = 0u;
-    int i;
+    unsigned int status = 0u;
 
 
-    for (i = 0; i < 3; ++i) {
-        counts[i] = (samsat_fm1_real_t)raw->counts[i];
-        if (raw->counts[i] <= -32760 || raw->counts[i] >= 32760) {
-            status |= SAMSAT_FM1_STATUS_SATURATED;
-        }
+    counts[0] = (samsat_fm1_real_t)raw->counts[0];
+    counts[1] = (samsat_fm1_real_t)raw->counts[1];
+    counts[2] = (samsat_fm1_real_t)raw->counts[2];
+    if (raw->counts[0] <= -32760 || raw->counts[0] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
-    if (!isfinite(temp_C)) {
-        status |= SAMSAT_FM1_STATUS_NONFINITE;
+    if (raw->counts[1] <= -32760 || raw->counts[1] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
     }
+    if (raw->counts[2] <= -32760 || raw->counts[2] >= 32760) {
+        status |= SAMSAT_FM1_STATUS_SATURATED;
+    }
+
+    /* x - x is exactly 0 for every finite x and NaN for +-inf and NaN (IEEE 754), so one
+     * comparison tests every real-valued input of the sample */
+    finite_probe = temp_C - temp_C;
     if (aux != 0) {
-        for (i = 0; i < SAMSAT_FM1_N_COILS; ++i) {
-            if (!isfinite(aux->coil_A[i])) {
-                status |= SAMSAT_FM1_STATUS_NONFINITE;
-            }
-        }
+        finite_probe += aux->coil_A[0] - aux->coil_A[0];
+        finite_probe += aux->coil_A[1] - aux->coil_A[1];
+        finite_probe += aux->coil_A[2] - aux->coil_A[2];
     }
+    if (!(finite_probe == 0)) {
+        status |= SAMSAT_FM1_STATUS_NONFINITE;
 
-    if ((status & SAMSAT_FM1_STATUS_NONFINITE) != 0u) {
-        for (i = 0; i < 3; ++i) {
-            out->field_body_nT[i] = 0;
-        }
-        out->status = status;
-        return status;
+        out->field_body_nT[0] = 0;
+        out->field_body_nT[1] = 0;
+        out->field_body_nT[2] = 0;
+        out->status = (uint16_t)status;
+        return (uint16_t)status;
 
     }
 
@@ -557,8 +605,8 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
         status |= SAMSAT_FM1_STATUS_IMPLAUSIBLE;
     }
 
-    out->status = status;
-    return status;
+    out->status = (uint16_t)status;
+    return (uint16_t)status;
 }
 
 uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
