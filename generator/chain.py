@@ -362,6 +362,17 @@ def _horner(poly, dT):
     return acc
 
 
+def _couple(matrix, values):
+    """Field of linear couplings, per axis: matrix[i][0] v0 + matrix[i][1] v1 + ..."""
+    out = []
+    for row in matrix:
+        acc = row[0] * values[0]
+        for j in range(1, len(values)):
+            acc = acc + row[j] * values[j]
+        out.append(acc)
+    return out
+
+
 def _dot3(row, v):
     return row[0] * v[0] + row[1] * v[1] + row[2] * v[2]
 
@@ -418,23 +429,11 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     # offset and magnetorquer interference
     x = [field_f[i] - b[i] for i in range(3)]
     if spec.coils:
-        K = c.get("K_nT_per_A")
-        coil_nT = []
-        for i in range(3):
-            acc = K[i][0] * coil_A[0]
-            for j in range(1, len(spec.coils)):
-                acc = acc + K[i][j] * coil_A[j]
-            coil_nT.append(acc)
+        coil_nT = _couple(c.get("K_nT_per_A"), coil_A)
         x = [x[i] - coil_nT[i] for i in range(3)]
     o = spec.opts(sensor)
     if o.channels:   # linear coupling of other telemetry channels (traced effects)
-        C = c.get("C_nT_per_unit")
-        ch_nT = []
-        for i in range(3):
-            acc = C[i][0] * channels[0]
-            for j in range(1, len(o.channels)):
-                acc = acc + C[i][j] * channels[j]
-            ch_nT.append(acc)
+        ch_nT = _couple(c.get("C_nT_per_unit"), channels)
         x = [x[i] - ch_nT[i] for i in range(3)]
     if o.nonlinear:  # per-axis cubic of the reading
         n3 = c.get("cubic_per_nT2")
