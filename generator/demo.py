@@ -19,7 +19,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     from . import codegen, pipeline, simulate
     from . import truth as truth_mod
     from .host import HostUnit
-    from .report import Report, Section, Table, fit_sections
+    from .report import Report, Section, Table, fit_report
     from .telemetry import preprocess, read_telemetry
 
     progress = progress or pipeline.Progress()
@@ -67,6 +67,8 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
         rows.append([s.name, int(ok.sum()), "identical" if same else "DIFFERENT",
                      raw, ours, best, ours / best])
 
+    progress("writing the report (figures)")
+    fit_rep = fit_report(cs, out, data_paths=[campaign], progress=progress)
     rep = Report(f"magcal demo: simulated unit {cs.unit.id} (seed {seed})")
     rep.add(Section("What ran", [
         "The project's simulator made the unit, its truth and its campaigns; magcal fitted the "
@@ -75,8 +77,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     rep.add(Section("Result on the thermal campaign", [], [Table(
         ["sensor", "valid samples", "C vs Python", "|B| RMS raw nT", "|B| RMS calibrated nT",
          "|B| RMS true parameters nT", "ratio to truth"], rows)]))
-    for sec in fit_sections(cs):
-        rep.add(sec)
+    rep.extend(fit_rep.sections)      # inputs, fit, |B| RMS, temperature dependence
     report = rep.write(out)
 
     print(f"\nmagcal demo: unit {cs.unit.id}, {tel.n} samples of {campaign.name}")

@@ -1,12 +1,30 @@
 """The human report of a run: Markdown and the same in HTML, figures as PNG beside them.
 
-Sections are plain data (title, paragraphs, tables, figures) so every verb adds its own
-and every number shown in a figure is also in a table.
+Sections are plain data (title, paragraphs, tables, figures) so every verb adds its own.
+The rule: every number drawn in a figure is also in a table of the same section. A
+figure names the tables that carry its numbers (by default all the section's tables);
+the writers number tables and figures and print the link ("Numbers: Table 4"), the HTML
+carries it as data-tables on the <figure>, and Report.problems() lists any figure
+without a table or whose file is missing.
+
+Building blocks for the verbs:
+
+* fit_sections(cs): summary and coefficients (tables only; no data needed);
+* CampaignAnalysis(cs, data_paths): the numbers the figures need, computed once from the
+  telemetry with the fit's own public functions (segments, levels, per-level fits,
+  coefficient covariance from generator.check.poly_covariance);
+* temperature_section(...), rms_section(...): seed 000 fig. 24-25 and 27-29;
+* hooks taking plain arrays, for numbers other modules produce: alignment_section
+  (fig. 10), setreset_section (fig. 12-13), coil_distance_section (fig. 5-6),
+  residual_causes_section (residuals against their traced causes);
+* write_fit_report(cs, out_dir, data_paths): the whole `magcal fit` report.
 """
 
 from __future__ import annotations
 
 import html
+import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +45,15 @@ class Section:
     title: str
     paragraphs: list = field(default_factory=list)
     tables: list = field(default_factory=list)
-    figures: list = field(default_factory=list)   # (relative png path, caption)
+    # (relative png path, caption) or (path, caption, [indices into this section's tables])
+    figures: list = field(default_factory=list)
+
+
+def _fig_parts(fig, section):
+    path, caption = fig[0], fig[1]
+    refs = list(fig[2]) if len(fig) > 2 and fig[2] is not None else list(
+        range(len(section.tables)))
+    return str(path), caption, refs
 
 
 @dataclass
@@ -39,62 +65,133 @@ class Report:
         self.sections.append(section)
         return section
 
+    def extend(self, sections) -> None:
+        for s in sections:
+            self.add(s)
+
+    # ---- numbering ---------------------------------------------------------------------
+    def _numbers(self):
+        """[(section, [table numbers], [(figure number, path, caption, [table numbers])])]."""
+        out, nt, nf = [], 0, 0
+        for s in self.sections:
+            tnums = []
+            for _ in s.tables:
+                nt += 1
+                tnums.append(nt)
+            figs = []
+            for f in s.figures:
+                nf += 1
+                path, caption, refs = _fig_parts(f, s)
+                figs.append((nf, path, caption, [tnums[i] for i in refs if 0 <= i < len(tnums)]))
+            out.append((s, tnums, figs))
+        return out
+
+    def problems(self, out_dir=None) -> list:
+        """Figures without a table of their numbers, and (given out_dir) missing files."""
+        probs = []
+        for s, tnums, figs in self._numbers():
+            for nf, path, caption, refs in figs:
+                if not refs:
+                    probs.append(f"section '{s.title}': figure {nf} ({path}) has no table "
+                                 "with its numbers")
+                if out_dir is not None:
+                    p = Path(out_dir) / path
+                    if not p.is_file() or p.stat().st_size == 0:
+                        probs.append(f"section '{s.title}': figure file {p} missing or empty")
+        return probs
+
     # ---- writers -----------------------------------------------------------------------
     def markdown(self) -> str:
         out = [f"# {self.title}", "", f"_magcal {__version__}_", ""]
-        for s in self.sections:
+        for s, tnums, figs in self._numbers():
             out += [f"## {s.title}", ""]
             for p in s.paragraphs:
                 out += [p, ""]
-            for t in s.tables:
-                if t.caption:
-                    out += [f"**{t.caption}**", ""]
-                out.append("| " + " | ".join(map(str, t.header)) + " |")
+            for nf, path, caption, refs in figs:
+                link = _refs_text(refs, caption)
+                out += [f"![Figure {nf}]({path})", "", f"_Figure {nf}. {caption}{link}_", ""]
+            for t, n in zip(s.tables, tnums):
+                out += [f"**Table {n}.{(' ' + t.caption) if t.caption else ''}**", ""]
+                out.append("| " + " | ".join(_md(h) for h in t.header) + " |")
                 out.append("|" + "---|" * len(t.header))
                 for r in t.rows:
-                    out.append("| " + " | ".join(_cell(v) for v in r) + " |")
+                    out.append("| " + " | ".join(_md(_cell(v)) for v in r) + " |")
                 out.append("")
-            for path, caption in s.figures:
-                out += [f"![{caption}]({path})", "", f"_{caption}_", ""]
         return "\n".join(out) + "\n"
 
     def html(self) -> str:
         e = html.escape
         out = ["<!DOCTYPE html>", "<html lang=\"en\"><head><meta charset=\"utf-8\">",
                f"<title>{e(self.title)}</title>",
-               "<style>body{font-family:sans-serif;max-width:70em;margin:2em auto;padding:0 1em}"
-               "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;"
-               "padding:2px 8px;text-align:right}th{background:#eee}caption{font-weight:bold;"
-               "text-align:left}img{max-width:100%}figure{margin:1em 0}</style></head><body>",
+               "<style>body{font-family:sans-serif;max-width:78em;margin:2em auto;padding:0 1em;"
+               "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
+               "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
+               "th{background:#eee}td:first-child,th:first-child{text-align:left}caption{font-weight:bold;text-align:left;padding:2px 0}"
+               "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
+               "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"
+               "margin-top:2em}nav li{margin:0.1em 0}</style></head><body>",
                f"<h1>{e(self.title)}</h1><p><em>magcal {e(__version__)}</em></p>"]
-        for s in self.sections:
-            out.append(f"<h2>{e(s.title)}</h2>")
+        numbered = self._numbers()
+        if len(numbered) > 3:
+            out.append("<nav><ul>" + "".join(
+                f"<li><a href=\"#sec-{k + 1}\">{e(s.title)}</a></li>"
+                for k, (s, _, _) in enumerate(numbered)) + "</ul></nav>")
+        for k, (s, tnums, figs) in enumerate(numbered):
+            out.append(f"<h2 id=\"sec-{k + 1}\">{e(s.title)}</h2>")
             for p in s.paragraphs:
-                out.append(f"<p>{e(p)}</p>")
-            for t in s.tables:
-                out.append("<table>")
-                if t.caption:
-                    out.append(f"<caption>{e(t.caption)}</caption>")
+                out.append(f"<p>{_inline_html(p)}</p>")
+            for nf, path, caption, refs in figs:
+                data = " ".join(f"table-{n}" for n in refs)
+                out.append(f"<figure id=\"figure-{nf}\" data-tables=\"{data}\">"
+                           f"<a href=\"{e(path)}\"><img src=\"{e(path)}\" "
+                           f"alt=\"Figure {nf}: {e(caption)}\"></a><figcaption>Figure {nf}. "
+                           f"{e(caption)}{e(_refs_text(refs, caption))}</figcaption></figure>")
+            for t, n in zip(s.tables, tnums):
+                out.append(f"<table id=\"table-{n}\">")
+                out.append(f"<caption>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
+                           "</caption>")
                 out.append("<tr>" + "".join(f"<th>{e(str(h))}</th>" for h in t.header) + "</tr>")
                 for r in t.rows:
                     out.append("<tr>" + "".join(f"<td>{e(_cell(v))}</td>" for v in r) + "</tr>")
                 out.append("</table>")
-            for path, caption in s.figures:
-                out.append(f"<figure><img src=\"{e(path)}\" alt=\"{e(caption)}\">"
-                           f"<figcaption>{e(caption)}</figcaption></figure>")
         out.append("</body></html>")
         return "\n".join(out) + "\n"
 
     def write(self, out_dir, stem="report") -> Path:
+        """Write <stem>.md and <stem>.html into out_dir (figures must already be there);
+        returns the HTML path. Warns about figures without tables or files."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / f"{stem}.md").write_text(self.markdown())
+        for p in self.problems(out_dir):
+            warnings.warn(f"report {self.title!r}: {p}", stacklevel=2)
+        (out_dir / f"{stem}.md").write_text(self.markdown(), encoding="utf-8")
         path = out_dir / f"{stem}.html"
-        path.write_text(self.html())
+        path.write_text(self.html(), encoding="utf-8")
         return path
 
 
+def _refs_text(refs, caption="") -> str:
+    if not refs:
+        return ""
+    lead = " " if caption.rstrip().endswith((".", "!", "?")) else ". "
+    return lead + ("Numbers: Table " if len(refs) == 1 else "Numbers: Tables ") + \
+        ", ".join(str(n) for n in refs) + "."
+
+
+def _md(s) -> str:
+    return str(s).replace("|", "\\|")
+
+
+def _inline_html(p) -> str:
+    """Escape, then `code` -> <code>."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(p))
+
+
 def _cell(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
     if isinstance(v, (float, np.floating)):
         if not np.isfinite(v):
             return "-"
@@ -102,10 +199,32 @@ def _cell(v) -> str:
         if a != 0 and (a < 1e-3 or a >= 1e6):
             return f"{float(v):.4g}"
         return f"{float(v):.4g}" if a < 10 else f"{float(v):.1f}"
+    if isinstance(v, (np.integer,)):
+        return str(int(v))
     return str(v)
 
 
-# ---- the fit report ------------------------------------------------------------------------
+def pm(value, sigma, digits=None) -> str:
+    """'value ± sigma' with the value rounded to the sigma's first significant digits."""
+    v = float(value)
+    s = float(sigma) if sigma is not None else float("nan")
+    if not np.isfinite(v):
+        return "-"
+    if not np.isfinite(s) or s <= 0:
+        return f"{v:.6g}" + (" ± inf" if s == np.inf else "")
+    if digits is None:
+        digits = max(0, 1 - int(np.floor(np.log10(s))))
+    if digits > 12 or abs(v) >= 1e7 or (abs(v) < 1e-4 and v != 0):
+        return f"{v:.4g} ± {s:.2g}"
+    return f"{v:.{digits}f} ± {s:.{digits}f}"
+
+
+# =======================================================================================
+# Fit summary (tables only)
+# =======================================================================================
+COEF_NAMES = ("b_x", "b_y", "b_z", "m_xx", "m_xy", "m_xz", "m_yx", "m_yy", "m_yz",
+              "m_zx", "m_zy", "m_zz")
+COEF_UNITS = ("nT", "nT", "nT") + ("",) * 9
 
 
 def fit_sections(cs) -> list:
@@ -115,19 +234,30 @@ def fit_sections(cs) -> list:
     for s in cs.unit.sensors:
         v = cs.sensors[s.name]
         st = info.get(s.name, {}).get("stats", {}) or {}
+        fitst = st.get("fit", {}) or {}
+        held = st.get("holdout", {}) or {}
+        chosen = st.get("chosen")
+        held_rms = None
+        if chosen in held and isinstance(held[chosen], dict):
+            held_rms = held[chosen].get("rms_vector_nT") or held[chosen].get("rms_norm_nT")
         rows.append([
             s.name, s.part, s.frame, info.get(s.name, {}).get("method", ""),
             f"{float(v['t_min_C']):.1f} .. {float(v['t_max_C']):.1f}",
-            st.get("n_samples", st.get("samples", "")),
-            _first(st, "rms_norm_nT", "rms_nT", "fit_rms_nT"),
-            _first(st, "heldout_rms_nT", "holdout_rms_nT"),
+            st.get("samples_used", st.get("n_samples", "")),
+            _first(fitst, "rms_vector_nT") if fitst else _first(st, "rms_vector_nT"),
+            _first(fitst, "rms_norm_nT") if fitst else _first(st, "rms_norm_nT"),
+            held_rms,
         ])
     summary = Section("Fit summary", [
-        "Calibration B = M(T)(B~ - b(T)) per sensor, cubic in temperature (seed 000, eq. 5-7). "
-        "Temperatures outside the calibrated range are clamped and flagged by the flight code."],
+        "Calibration B = M(T)(B~ - b(T)) per sensor, polynomial (up to cubic) in temperature "
+        "(seed 000, eq. 5-7). Temperatures outside the calibrated range are clamped and "
+        "flagged by the flight code. Residual RMS: vector residual per axis where reference "
+        "vectors exist, and of |B|; held-out: of the method chosen."],
         [Table(["sensor", "part", "frame", "method", "calibrated range degC", "samples",
-                "residual RMS nT", "held-out RMS nT"], rows)])
-    coef = Section("Coefficients at the reference temperature")
+                "vector residual RMS nT/axis", "|B| residual RMS nT", "held-out RMS nT"],
+               rows, "Fit per sensor")])
+    coef = Section("Coefficients at the reference temperature", [
+        "1-sigma from the fit's covariance (coefficients.json, uncertainty_1sigma)."])
     for s in cs.unit.sensors:
         v = cs.sensors[s.name]
         u = cs.uncertainty.get(s.name, {})
@@ -135,8 +265,7 @@ def fit_sections(cs) -> list:
         M0 = np.asarray(v["M_poly"])[0]
         bs = np.asarray(u["b_poly_nT"])[0] if "b_poly_nT" in u else np.full(3, np.nan)
         Ms = np.asarray(u["M_poly"])[0] if "M_poly" in u else np.full((3, 3), np.nan)
-        rows = [[ax, f"{b0[i]:.1f} ± {bs[i]:.1f}"] + [f"{M0[i, j]:.5f} ± {Ms[i, j]:.5f}"
-                                                      for j in range(3)]
+        rows = [[ax, pm(b0[i], bs[i])] + [pm(M0[i, j], Ms[i, j]) for j in range(3)]
                 for i, ax in enumerate("xyz")]
         coef.tables.append(Table(["axis", "b nT", "M x", "M y", "M z"], rows,
                                  f"{s.name} at {float(v['t_ref_C']):.1f} degC (1-sigma)"))
@@ -150,9 +279,570 @@ def _first(d, *keys):
     return ""
 
 
-def write_fit_report(cs, out_dir, data_paths=(), progress=None) -> Path:
+def method_section(cs) -> Section | None:
+    """The held-out comparison of the temperature models (fit_thermal stats)."""
+    rows = []
+    for s in cs.unit.sensors:
+        st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
+        h = st.get("holdout")
+        if not h:
+            if st.get("why"):
+                rows.append([s.name, "-", None, None, st.get("chosen", ""), st.get("why")])
+            continue
+
+        def score(m):
+            e = h.get(m)
+            if not isinstance(e, dict):
+                return None
+            return e.get("rms_vector_nT") or e.get("rms_norm_nT")
+        rows.append([s.name, h.get("scheme", ""), score("joint"), score("segments"),
+                     st.get("chosen", ""), st.get("why", "")])
+    if not rows:
+        return None
+    return Section("Temperature model: held-out choice", [
+        "Two ways to fit the temperature dependence (seed 000 sec. 5): 'segments' calibrates "
+        "each constant-temperature level and fits a polynomial through the levels; 'joint' "
+        "fits the polynomial model to all samples, ramps included. The one with the smaller "
+        "error on held-out data is kept."],
+        [Table(["sensor", "held-out scheme", "joint RMS nT", "segments RMS nT", "chosen",
+                "why"], rows, "Held-out comparison")])
+
+
+def polynomial_table(cs, name) -> Table:
+    """All polynomial coefficients of one sensor with their 1-sigma."""
+    v = cs.sensors[name]
+    u = cs.uncertainty.get(name, {})
+    b = np.asarray(v["b_poly_nT"], float)
+    M = np.asarray(v["M_poly"], float)
+    K = b.shape[0]
+    bs = np.asarray(u.get("b_poly_nT", np.full_like(b, np.nan)), float)
+    Ms = np.asarray(u.get("M_poly", np.full_like(M, np.nan)), float)
+    rows = []
+    for c, nm in enumerate(COEF_NAMES):
+        if c < 3:
+            vals = [pm(b[k, c], bs[k, c]) for k in range(K)]
+        else:
+            i, j = divmod(c - 3, 3)
+            vals = [pm(M[k, i, j], Ms[k, i, j]) for k in range(K)]
+        rows.append([nm] + vals)
+    header = ["coefficient"] + ["A0"] + [f"A{k} per degC" + (f"^{k}" if k > 1 else "")
+                                         for k in range(1, K)]
+    return Table(header, rows, f"{name}: polynomial coefficients A_k of dT^k, dT = T - "
+                               f"{float(v['t_ref_C']):g} degC, with 1-sigma (b in nT/degC^k, "
+                               "m in 1/degC^k)")
+
+
+# =======================================================================================
+# Numbers from the campaign (computed once)
+# =======================================================================================
+MAX_COV_ROWS = 8000     # samples entering the band's covariance (every k-th; see check)
+
+
+class CampaignAnalysis:
+    """The telemetry as the fit used it, and what the report's figures need.
+
+    Per sensor: the samples (generator.check.gather_samples), temperature levels and
+    per-level constant calibrations (reference-vector fit where vectors exist, else the
+    ellipsoid fit: the seed's per-segment b_i, m_ij), the covariance of the fitted
+    polynomial (its 1-sigma band), and the |B| RMS before / after per level and position.
+    """
+
+    def __init__(self, cs, data_paths, progress=None):
+        from .check import gather_samples
+        from .telemetry import preprocess, read_telemetry
+
+        say = progress or (lambda m: None)
+        self.cs = cs
+        self.unit = cs.unit
+        self.paths = [str(p) for p in data_paths]
+        self.tels = [read_telemetry(p, cs.unit) for p in data_paths]
+        self.pres = [preprocess(t, cs.unit) for t in self.tels]
+        self.samples = gather_samples(cs.unit, self.tels, self.pres)
+        say(f"report: read {len(self.tels)} file(s) again for the figures")
+        self.levels = {}
+        self.level_fits = {}
+        self.dropped = {}
+        for s in cs.unit.sensors:
+            self._levels(s.name)
+
+    # ---- levels and per-level fits ------------------------------------------------------
+    def _levels(self, name):
+        from .check import level_tolerance_C
+        from .errors import InputError
+        from .fit_ellipsoid import ellipsoid_fit
+        from .fit_thermal import group_levels, reference_fit
+
+        S = self.samples[name]
+        segs = [g for g in S.segments if len(g.index)]
+        levels = group_levels(segs, level_tolerance_C(S.T)) if segs else []
+        self.levels[name] = levels
+        fits, dropped = [], []
+        for lev in levels:
+            idx = np.concatenate([g.index for g in lev])
+            temp = float(np.mean(S.T[idx]))
+            iv = idx[S.is_vec[idx]]
+            try:
+                if len(iv):
+                    b, M, inf = reference_fit(S.x[iv], S.ref[iv], None)
+                    fits.append({"temp_C": temp, "n": int(len(iv)), "b": b[0], "M": M[0],
+                                 "b_sig": inf["b_poly_sigma_nT"][0],
+                                 "M_sig": inf["M_poly_sigma"][0], "kind": "reference vectors",
+                                 "positions": sorted({int(g.position) for g in lev})})
+                else:
+                    b, M, inf = ellipsoid_fit(S.x[idx], S.norm[idx])
+                    fits.append({"temp_C": temp, "n": int(len(idx)), "b": b, "M": M,
+                                 "b_sig": inf["b_sigma_nT"], "M_sig": inf["M_sigma"],
+                                 "kind": "ellipsoid",
+                                 "positions": sorted({int(g.position) for g in lev})})
+            except InputError as e:
+                dropped.append(f"level {temp:.1f} degC: {e.message}")
+        self.level_fits[name] = fits
+        self.dropped[name] = dropped
+
+    # ---- fitted polynomial and its band ------------------------------------------------
+    def degree(self, name) -> int:
+        st = self.cs.fit_info.get("sensors", {}).get(name, {}).get("stats", {}) or {}
+        if "degree" in st:
+            return int(st["degree"])
+        b = np.asarray(self.cs.sensors[name]["b_poly_nT"])
+        M = np.asarray(self.cs.sensors[name]["M_poly"])
+        nz = [k for k in range(len(b)) if np.any(b[k] != 0) or np.any(M[k] != 0)]
+        return max(nz) if nz else 0
+
+    def body_frame(self, name) -> bool:
+        info = self.cs.fit_info.get("sensors", {}).get(name, {})
+        if "body_frame" in info:
+            return bool(info["body_frame"])
+        return bool(self.samples[name].is_vec.any())
+
+    def covariance(self, name):
+        """PolyCovariance of the fitted coefficients (residual scatter), or None."""
+        from .check import poly_covariance
+        S = self.samples[name]
+        if S.n == 0:
+            return None
+        v = self.cs.sensors[name]
+        deg = self.degree(name)
+        return poly_covariance(S.x, S.T, S.ref, S.norm, degree=deg,
+                               t_range_C=(float(v["t_min_C"]), float(v["t_max_C"])),
+                               b_poly=np.asarray(v["b_poly_nT"])[:deg + 1],
+                               M_poly=np.asarray(v["M_poly"])[:deg + 1],
+                               body_frame=self.body_frame(name),
+                               t_ref_C=float(v["t_ref_C"]), max_rows=MAX_COV_ROWS)
+
+    # ---- |B| RMS before / after ---------------------------------------------------------
+    def rms_groups(self, name):
+        """{"temperature": [(label, n, before, after)], "position": [...]}: RMS of
+        |B~| - |B| (raw) and |M(T)(B~ - b(T))| - |B| (calibrated), nT."""
+        S = self.samples[name]
+        if S.n == 0:
+            return {"temperature": [], "position": []}
+        cal = self.cs.calibration(name)
+        before = np.linalg.norm(S.x, axis=1) - S.norm
+        after = np.linalg.norm(cal.apply64(S.x, S.T), axis=1) - S.norm
+
+        def rms(m):
+            return (int(m.sum()), float(np.sqrt(np.mean(before[m] ** 2))),
+                    float(np.sqrt(np.mean(after[m] ** 2))))
+        temp = []
+        in_level = np.zeros(S.n, bool)
+        for lev in self.levels[name]:
+            idx = np.concatenate([g.index for g in lev])
+            m = np.zeros(S.n, bool)
+            m[idx] = True
+            in_level |= m
+            temp.append((f"{np.mean(S.T[idx]):.1f} degC", *rms(m)))
+        if not temp:      # no constant-temperature levels: 10 degC bins
+            edges = np.arange(np.floor(S.T.min() / 10) * 10, S.T.max() + 10, 10)
+            for a, b in zip(edges[:-1], edges[1:]):
+                m = (S.T >= a) & (S.T < b)
+                if m.any():
+                    temp.append((f"{a:g}..{b:g} degC", *rms(m)))
+        elif (~in_level).any():
+            temp.append(("ramps", *rms(~in_level)))
+        temp.append(("all", *rms(np.ones(S.n, bool))))
+        pos = []
+        for q in np.unique(S.position):
+            m = S.position == q
+            pos.append((f"{q}" if q > 0 else "moving", *rms(m)))
+        return {"temperature": temp, "position": pos if len(pos) > 1 or
+                (len(pos) == 1 and pos[0][0] != "moving") else []}
+
+
+# =======================================================================================
+# Sections with figures (fit report)
+# =======================================================================================
+def temperature_section(cs, analysis: CampaignAnalysis, name, out_dir) -> Section:
+    """Temperature dependence of every offset and matrix coefficient of one sensor
+    (seed 000 fig. 24-25); see temperature_sections."""
+    return temperature_sections(cs, analysis, out_dir, [name])[0]
+
+
+def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) -> list:
+    """One section per sensor (seed 000 fig. 24-25): per-level estimates with 1-sigma error
+    bars, the fitted polynomial with its 1-sigma band from the coefficient covariance, and
+    the tables of both; the figures are drawn together (generator.figures.coefficient_grids)."""
+    from . import figures
+
+    names = names or [s.name for s in cs.unit.sensors]
+    jobs, sections = [], []
+    for name in names:
+        v = cs.sensors[name]
+        cal = cs.calibration(name)
+        t_lo, t_hi = float(v["t_min_C"]), float(v["t_max_C"])
+        fits = analysis.level_fits[name]
+        LT = np.array([f["temp_C"] for f in fits])
+        Lval = np.array([np.concatenate([f["b"], np.ravel(f["M"])]) for f in fits]
+                        ).reshape(-1, 12)
+        Lsig = np.array([np.concatenate([f["b_sig"], np.ravel(f["M_sig"])]) for f in fits]
+                        ).reshape(-1, 12)
+        grid = np.linspace(t_lo, t_hi, 61) if t_hi > t_lo else np.array([t_lo])
+
+        def curve(T, cal=cal):
+            T = np.atleast_1d(np.asarray(T, float))
+            return np.hstack([cal.b_at(T), cal.M_at(T).reshape(len(T), 9)])
+        pc = analysis.covariance(name)
+        band = pc.sigma_at(grid) if pc is not None else np.full((len(grid), 12), np.nan)
+        png = Path(out_dir) / f"temperature_{name}.png"
+        jobs.append(dict(path=png, title=f"{name}: calibration coefficients against temperature "
+                                         f"(calibrated range {t_lo:.1f}..{t_hi:.1f} °C)",
+                         names=COEF_NAMES, units=COEF_UNITS, level_T=LT, level_val=Lval,
+                         level_sig=Lsig, curve_T=grid, curve_val=curve(grid), curve_band=band,
+                         t_range=(t_lo, t_hi)))
+        kinds = sorted({f["kind"] for f in fits})
+        sec = Section(f"Temperature dependence: {name}", [
+            f"Points: b and M of each constant-temperature level calibrated on its own ("
+            f"{' and '.join(kinds) + ' fit' if kinds else 'no level could be calibrated'}; "
+            f"the seed's per-segment b_i, m_ij) with 1-sigma. Line: the fitted polynomial "
+            f"(degree {analysis.degree(name)}; {cal_method(cs, name)}); band: its 1-sigma from "
+            "the covariance of the polynomial coefficients (the fit's design over all samples, "
+            "scaled by the residual scatter). b in nT in frame axes; m dimensionless."])
+        rows = []
+        for f in fits:
+            vals = np.concatenate([f["b"], np.ravel(f["M"])])
+            sigs = np.concatenate([f["b_sig"], np.ravel(f["M_sig"])])
+            rows.append([f"{f['temp_C']:.2f}", f["n"], len(f["positions"])]
+                        + [pm(a, b) for a, b in zip(vals, sigs)])
+        hdr = ["level degC", "samples", "positions"] + [f"{n} {u}".strip() for n, u in
+                                                        zip(COEF_NAMES, COEF_UNITS)]
+        sec.tables.append(Table(hdr, rows, f"{name}: per-level estimates (points, 1-sigma)"))
+        Tc = np.unique(np.clip(np.concatenate([[t_lo], LT, [t_hi]]), t_lo, t_hi))
+        cv = curve(Tc)
+        cb = pc.sigma_at(Tc) if pc is not None else np.full((len(Tc), 12), np.nan)
+        rows = [[f"{T:.2f}"] + [pm(cv[k, c], cb[k, c]) for c in range(12)]
+                for k, T in enumerate(Tc)]
+        sec.tables.append(Table(["T degC"] + hdr[3:], rows,
+                                f"{name}: fitted polynomial ± 1-sigma band (line and band) at "
+                                "the levels and the ends of the calibrated range"))
+        sec.figures.append((png.name, f"{name}: temperature dependence of b and M", [0, 1]))
+        sec.tables.append(polynomial_table(cs, name))
+        if len(fits) < 2:
+            sec.paragraphs.append(
+                f"{len(fits)} constant-temperature level(s) found (the segment finder needs "
+                "10 min of steady temperature): the points cannot show the temperature "
+                "dependence; the line is the fit of all samples.")
+        if analysis.dropped[name]:
+            sec.paragraphs.append("Levels without an estimate: "
+                                  + "; ".join(analysis.dropped[name]))
+        sections.append(sec)
+    figures.coefficient_grids(jobs)
+    return sections
+
+
+def cal_method(cs, name) -> str:
+    return cs.fit_info.get("sensors", {}).get(name, {}).get("method", "") or "fit"
+
+
+def rms_section(cs, analysis: CampaignAnalysis, out_dir) -> Section:
+    """|B| RMS before and after calibration per temperature level and per position
+    (seed 000 fig. 27-29), one row of bar charts per sensor, and the table."""
+    from . import figures
+
+    rows_fig, rows_tab = [], []
+    for s in cs.unit.sensors:
+        g = analysis.rms_groups(s.name)
+        panels = []
+        for kind, title, xl in (("temperature", "per temperature", "level, °C"),
+                                ("position", "per position", "position")):
+            if not g[kind]:
+                continue
+            panels.append({"title": title, "xlabel": xl,
+                           "labels": [x[0].replace(" degC", "") for x in g[kind]],
+                           "before": [x[2] for x in g[kind]], "after": [x[3] for x in g[kind]]})
+            for label, n, b, a in g[kind]:
+                rows_tab.append([s.name, kind, label, n, b, a,
+                                 (b / a) if a > 0 else None])
+        if panels:
+            rows_fig.append((s.name, panels))
+    sec = Section("|B| RMS before and after calibration", [
+        "RMS of |B~| - |B| (raw readings after SET/RESET and axis mapping: 'before') and of "
+        "|M(T)(B~ - b(T))| - |B| ('after'), |B| the reference magnitude, per constant-"
+        "temperature level ('ramps': samples between levels) and per static position "
+        "(seed 000 fig. 27-29). Samples with magnetorquer current are left out (as in the "
+        "fit)."],
+        [Table(["sensor", "group", "label", "samples", "before nT", "after nT",
+                "improvement x"], rows_tab, "|B| RMS per sensor, level and position")])
+    if rows_fig:
+        png = figures.rms_bars(Path(out_dir) / "rms_before_after.png",
+                               "|B| RMS error before and after calibration (log scale)",
+                               rows_fig)
+        sec.figures.append((png.name, "|B| RMS before (grey) and after (blue) calibration, "
+                                      "per temperature and per position"))
+    return sec
+
+
+# =======================================================================================
+# Hooks: other modules' numbers -> figure + table
+# =======================================================================================
+def _slug(s) -> str:
+    return re.sub(r"[^a-z0-9]+", "_", str(s).lower()).strip("_") or "x"
+
+
+def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/mmc2",
+                      time_s=None, H=None, sigma_angle_deg=None, seed_after_deg=0.07,
+                      title=None, stem=None) -> Section:
+    """Angle between the two magnetometers' vectors before (H = I) and after the alignment
+    H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out."""
+    from . import figures
+
+    b = np.asarray(angle_before_deg, float)
+    a = np.asarray(angle_after_deg, float)
+
+    def stats(x):
+        return [float(np.mean(x)), float(np.sqrt(np.mean(x ** 2))),
+                float(np.percentile(x, 95)), float(np.max(x))] if x.size else [None] * 4
+    rows = [["before (H = I)", len(b)] + stats(b), ["after H", len(a)] + stats(a)]
+    png = figures.angle_before_after(
+        Path(out_dir) / f"{stem or 'alignment_' + _slug(pair)}.png",
+        f"{pair}: angle between the vectors before and after H", b, a,
+        x=time_s, xlabel="time, s" if time_s is not None else "sample")
+    paras = [f"Angle between the calibrated vectors of {pair.replace('/', ' and ')} "
+             f"(boom sensor rotated by H), per sample; seed 000: <= {seed_after_deg:g} deg "
+             "after the agreement algorithm."]
+    tables = [Table(["", "samples", "mean deg", "RMS deg", "95 % deg", "max deg"], rows,
+                    f"{pair}: angle statistics")]
+    if H is not None:
+        Hm = np.asarray(H, float)
+        tables.append(Table(["row", "x", "y", "z"],
+                            [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)]
+                             for i, ax in enumerate("xyz")],
+                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.4f} deg"
+                                                  if sigma_angle_deg is not None else "")))
+    return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
+                   [(png.name, f"{pair}: angle between the vectors before and after H", [0])])
+
+
+def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_nT=None,
+                     title="SET/RESET offset error while turning",
+                     stem="setreset_error_maps") -> Section:
+    """SET/RESET offset error maps (seed 000 fig. 12-13): error_nT (K, R, Th) for K
+    measurement times t_TM_ms, rates rate_dps (R) and field-to-axis angles theta_deg (Th)
+    (e.g. generator.setreset.offset_error_maps()["error_abs_nT"][..., 0])."""
+    from . import figures
+
+    E = np.abs(np.asarray(error_nT, float))
+    rate = np.asarray(rate_dps, float)
+    theta = np.asarray(theta_deg, float)
+    tTM = np.atleast_1d(np.asarray(t_TM_ms, float))
+    png = figures.error_maps(Path(out_dir) / f"{stem}.png", title, rate, theta,
+                             [E[k] for k in range(len(tTM))],
+                             [f"t_TM = {t:g} ms" for t in tTM],
+                             unit="|offset error|, nT")
+    tables = []
+    for k, t in enumerate(tTM):
+        rows = [[f"{r:g}"] + [float(E[k, i, j]) for j in range(len(theta))]
+                for i, r in enumerate(rate)]
+        tables.append(Table(["rate deg/s \\ theta deg"] + [f"{x:g}" for x in theta], rows,
+                            f"|offset error| nT, t_TM = {t:g} ms"))
+    worst = [[f"{t:g}", float(E[k].max()),
+              (100.0 * float(E[k].max()) / field_nT) if field_nT else None]
+             for k, t in enumerate(tTM)]
+    tables.append(Table(["t_TM ms", "largest error nT", "% of |B|"], worst,
+                        "Largest error on the grid"))
+    return Section(title, [
+        "The RESET reading is taken t_delay after the SET one; a body turning meanwhile "
+        "leaves (B - B')/2 in the offset (seed 000 eq. 4, generalised to any geometry)."],
+        tables, [(png.name, "Offset error maps: rate against angle between field and axis",
+                  list(range(len(tTM))))])
+
+
+def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
+                          title="Magnetorquer interference against distance",
+                          stem="coil_distance") -> Section:
+    """Coil interference by distance (seed 000 fig. 5-6): series_nT {label: (D,) nT at
+    distance_cm (NaN where not measured)}."""
+    from . import figures
+
+    d = np.asarray(distance_cm, float)
+    png = figures.coil_distance(Path(out_dir) / f"{stem}.png", title, d, series_nT,
+                                current_A=current_A)
+    rows = [[label] + [float(x) for x in np.asarray(v, float)] for label, v in series_nT.items()]
+    return Section(title, [
+        "Field of a magnetorquer coil at the magnetometer; a dipole falls off as 1/r^3."
+        + (f" Coil current {current_A:g} A." if current_A else "")],
+        [Table(["series"] + [f"{x:g} cm nT" for x in d], rows, "Interference |dB| in nT")],
+        [(png.name, "Coil interference against distance (log-log)")])
+
+
+def residual_causes_section(out_dir, effects, *, title="Residuals and their traced causes",
+                            stem="residual_causes") -> Section:
+    """Residuals against the quantity that explains them (trace). effects: list of dicts
+    {"sensor", "effect", "explained_by" (str), "x" (N,), "residual_before_nT" (N,),
+    "residual_after_nT" (N,) or None, "rms_before_nT", "rms_after_nT", "evidence"}."""
+    from . import figures
+
+    rows, panels = [], []
+    for e in effects:
+        before = np.asarray(e["residual_before_nT"], float)
+        after = None if e.get("residual_after_nT") is None else \
+            np.asarray(e["residual_after_nT"], float)
+        rb = e.get("rms_before_nT", float(np.sqrt(np.mean(before ** 2))) if before.size else None)
+        ra = e.get("rms_after_nT", float(np.sqrt(np.mean(after ** 2)))
+                   if after is not None and after.size else None)
+        rows.append([e.get("sensor", ""), e.get("effect", ""), e.get("explained_by", ""),
+                     len(before), rb, ra, e.get("evidence", "")])
+        panels.append({"title": f"{e.get('sensor', '')}: {e.get('effect', '')}",
+                       "xlabel": e.get("explained_by", ""), "x": e["x"], "before": before,
+                       "after": after})
+    sec = Section(title, ["Each panel: the residual against the quantity that explains it, "
+                          "before and after the model gained the effect."],
+                  [Table(["sensor", "effect", "explained by", "samples", "RMS before nT",
+                          "RMS after nT", "evidence"], rows, "Effects found")])
+    if panels:
+        png = figures.residual_causes(Path(out_dir) / f"{stem}.png", title, panels)
+        sec.figures.append((png.name, "Residuals against their traced causes"))
+    else:
+        sec.paragraphs.append("No effect found: nothing significant is left in the residual.")
+    return sec
+
+
+# =======================================================================================
+# The fit report
+# =======================================================================================
+def inputs_section(cs, analysis: CampaignAnalysis | None, data_paths) -> Section:
+    if analysis is None:
+        return Section("Inputs", [f"Telemetry: {', '.join(str(p) for p in data_paths)}."])
+    rows = []
+    for t in analysis.tels:
+        dt = np.diff(t.time_s)
+        pos = t.get("position")
+        rows.append([str(t.path), t.n, float(t.time_s[-1] - t.time_s[0]) / 3600.0 if t.n else 0.0,
+                     float(np.median(dt[dt > 0])) if np.any(dt > 0) else None,
+                     "static positions" if pos is not None and np.any(np.nan_to_num(pos) > 0)
+                     else "moving",
+                     "vectors" if t.has("ref_x_nT", "ref_y_nT", "ref_z_nT") else
+                     "ref_norm_nT" if t.has("ref_norm_nT") else "lab_field_nT"])
+    exc = [[s.name, S.n] + [S.excluded.get(k, 0) for k in ("missing", "saturated", "coil current",
+                                                          "no reference")]
+           for s in cs.unit.sensors for S in [analysis.samples[s.name]]]
+    return Section("Inputs", [f"Unit {cs.unit.id} ({cs.fit_info.get('unit_file', '')})."], [
+        Table(["file", "samples", "duration h", "sample period s", "kind", "reference"], rows,
+              "Telemetry files"),
+        Table(["sensor", "used", "missing", "saturated", "coil current", "no reference"], exc,
+              "Samples per sensor: used and left out")])
+
+
+def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
+    """Coil coupling and boom alignment, where the fit found them."""
+    out = []
+    info = cs.fit_info
+    coils = info.get("coils")
+    if coils and cs.spec.coils:
+        rows = []
+        for s in cs.unit.sensors:
+            K = np.asarray(cs.sensors[s.name].get("K_nT_per_A", np.zeros((3, 0))), float)
+            for i, ax in enumerate("xyz"):
+                rows.append([s.name, ax] + [float(K[i, j]) for j in range(K.shape[1])])
+        out.append(Section("Magnetorquer coupling K", [
+            f"dB = K i, nT per A, one column per coil ({', '.join(cs.spec.coils)}), fitted "
+            "from the coil-step campaign (seed 000 sec. 1)."],
+            [Table(["sensor", "axis"] + [f"{c} nT/A" for c in cs.spec.coils], rows, "K")]))
+    al = info.get("alignment")
+    if al and analysis is not None:
+        try:
+            out.append(_alignment_from_fit(cs, analysis, al, out_dir))
+        except Exception as e:    # the report must not lose the fit over a figure
+            out.append(Section("Agreement of the two magnetometers",
+                               [f"Angle figure not drawn: {e}"]))
+    return out
+
+
+def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
+    from .fit_alignment import angle_between_deg, calibrated_fields
+
+    src = al.get("source")
+    k = next(i for i, p in enumerate(analysis.paths) if p == src)
+    tel = analysis.tels[k]
+    cals = {s.name: cs.calibration(s.name) for s in cs.unit.sensors}
+    K = None
+    if cs.spec.coils:
+        K = {s.name: np.asarray(cs.sensors[s.name]["K_nT_per_A"]) for s in cs.unit.sensors}
+    fields, mask = calibrated_fields(cs.unit, tel, cals, K, analysis.pres[k])
+    ref = cs.unit.boom_reference
+    boom = next((s.name for s in cs.unit.sensors if s.frame == "boom"
+                 and s.part == cs.unit.sensor(ref).part), None) or \
+        next(s.name for s in cs.unit.sensors if s.frame == "boom")
+    H = np.asarray(cs.unit_values["H_boom_to_body"], float)
+    B1, B2 = fields[ref][mask], fields[boom][mask]
+    res = al.get("result", al)
+    return alignment_section(out_dir, angle_between_deg(B1, B2), angle_between_deg(B1, B2 @ H.T),
+                             pair=f"{ref}/{boom}", time_s=tel.time_s[mask], H=H,
+                             sigma_angle_deg=res.get("sigma_angle_deg"))
+
+
+def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
+    """The report of a fit, figures written into out_dir."""
+    say = progress or (lambda m: None)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    analysis = CampaignAnalysis(cs, data_paths, progress) if data_paths else None
     rep = Report(f"magcal fit: unit {cs.unit.id}")
-    rep.add(Section("Inputs", [f"Telemetry: {', '.join(str(p) for p in data_paths)}."]))
-    for s in fit_sections(cs):
-        rep.add(s)
+    rep.add(inputs_section(cs, analysis, data_paths))
+    rep.extend(fit_sections(cs))
+    m = method_section(cs)
+    if m:
+        rep.add(m)
+    if analysis is not None:
+        say("report: drawing the figures")
+        rep.add(rms_section(cs, analysis, out_dir))
+        rep.extend(temperature_sections(cs, analysis, out_dir))
+        say(f"report: {len(cs.unit.sensors) + 1} figures drawn")
+    else:
+        for s in cs.unit.sensors:
+            rep.add(Section(f"Coefficients: {s.name}", [], [polynomial_table(cs, s.name)]))
+    rep.extend(extras_sections(cs, analysis, out_dir))
+    notes = [n for n in cs.fit_info.get("notes", [])]
+    for s in cs.unit.sensors:
+        st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
+        notes += [f"{s.name}: {n}" for n in st.get("notes", [])]
+    if notes:
+        rep.add(Section("Notes", notes))
+    return rep
+
+
+def write_fit_report(cs, out_dir, data_paths=(), progress=None) -> Path:
+    """report.html and report.md (with the PNG figures) in out_dir; returns the HTML path."""
+    rep = fit_report(cs, out_dir, data_paths, progress)
     return rep.write(out_dir)
+
+
+def fit_summary(cs, coefficients_path, report_path) -> dict:
+    """JSON summary of a fit (magcal fit --json)."""
+    sensors = {}
+    for s in cs.unit.sensors:
+        v = cs.sensors[s.name]
+        info = cs.fit_info.get("sensors", {}).get(s.name, {})
+        st = info.get("stats", {}) or {}
+        fitst = st.get("fit", {}) or {}
+        sensors[s.name] = {
+            "method": info.get("method"), "chosen": st.get("chosen"),
+            "degree": st.get("degree"),
+            "calibrated_range_C": [float(v["t_min_C"]), float(v["t_max_C"])],
+            "samples_used": st.get("samples_used"),
+            "rms_vector_nT": fitst.get("rms_vector_nT"),
+            "rms_norm_nT": fitst.get("rms_norm_nT"),
+        }
+    return {"unit": cs.unit.id, "coefficients": str(coefficients_path),
+            "report": str(report_path), "sensors": sensors,
+            "coil_coupling": bool(cs.spec.coils),
+            "alignment": "alignment" in cs.fit_info}

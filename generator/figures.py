@@ -1,0 +1,420 @@
+"""The report's figures (matplotlib, Agg backend, no pyplot state): plain arrays in, PNG out.
+
+Each function writes one PNG and returns its path. The numbers drawn always come from
+the caller, who puts the same numbers in a table beside the figure (generator.report).
+Figures are kept few and cheap: one figure per sensor with a grid of subplots, modest dpi.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+DPI = 90
+_AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")     # X red, Y green, Z blue
+_BEFORE, _AFTER = "#bbbbbb", "#1f77b4"
+
+
+def _figure(w_in, h_in):
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w_in, h_in), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _title(ax, text, fontsize=9):
+    """Axes title as plain text (set_title re-measures every axis on each draw: slow)."""
+    ax.text(0.5, 1.02, text, transform=ax.transAxes, ha="center", va="bottom",
+            fontsize=fontsize)
+
+
+def _lean_ticks(ax, nx=5, ny=4, log_y=False):
+    """Few ticks: tick objects are most of the drawing time."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullLocator
+    ax.xaxis.set_major_locator(MaxNLocator(nx))
+    if log_y:
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    else:
+        ax.yaxis.set_major_locator(MaxNLocator(ny))
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_minor_locator(NullLocator())
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+# =======================================================================================
+# Calibration report
+# =======================================================================================
+def coefficient_grid(path, title, names, units, level_T, level_val, level_sig, curve_T,
+                     curve_val, curve_band, t_range=None) -> Path:
+    """Temperature dependence of the 12 calibration coefficients (seed 000 fig. 24-25).
+
+    names/units: 12 labels (b_x, b_y, b_z, m_xx .. m_zz); level_T (L,), level_val and
+    level_sig (L, 12): per-level estimates with 1-sigma (points with error bars);
+    curve_T (G,), curve_val (G, 12): the fitted polynomial; curve_band (G, 12) its 1-sigma
+    (shaded; inf/NaN: not drawn). Layout: column 1 the offsets, columns 2-4 the matrix.
+    """
+    return coefficient_grids([dict(path=path, title=title, names=names, units=units,
+                                   level_T=level_T, level_val=level_val, level_sig=level_sig,
+                                   curve_T=curve_T, curve_val=curve_val, curve_band=curve_band,
+                                   t_range=t_range)])[0]
+
+
+def coefficient_grids(jobs) -> list:
+    """Several coefficient_grid figures (one per sensor) drawn on one reused figure: the
+    axes and their ticks are built once, which halves the cost of every further sensor.
+    jobs: list of dicts with coefficient_grid's arguments. Returns the paths."""
+    fig = _figure(13.0, 7.2)
+    axes = fig.subplots(3, 4, sharex=True)
+    order = [axes[c, 0] for c in range(3)] + [axes[i, j + 1] for i in range(3) for j in range(3)]
+    titles = []
+    for ax in order:
+        titles.append(ax.text(0.5, 1.02, "", transform=ax.transAxes, ha="center",
+                              va="bottom", fontsize=9))
+        _lean_ticks(ax)
+        ax.tick_params(labelsize=7)
+        ax.yaxis.get_major_formatter().set_useOffset(False)
+        ax.grid(alpha=0.3, lw=0.5)
+    for ax in axes[-1]:
+        ax.set_xlabel("sensor temperature, °C", fontsize=8)
+    sup = fig.suptitle("", fontsize=11)
+    fig.subplots_adjust(left=0.06, right=0.99, top=0.91, bottom=0.08, wspace=0.32, hspace=0.32)
+    paths = []
+    for job in jobs:
+        level_T = np.asarray(job["level_T"], float).reshape(-1)
+        level_val = np.asarray(job["level_val"], float).reshape(len(level_T), 12)
+        level_sig = np.asarray(job["level_sig"], float).reshape(len(level_T), 12)
+        curve_T = np.asarray(job["curve_T"], float)
+        curve_val = np.asarray(job["curve_val"], float).reshape(len(curve_T), 12)
+        curve_band = np.asarray(job["curve_band"], float).reshape(len(curve_T), 12)
+        t_range = job.get("t_range")
+        for c, ax in enumerate(order):
+            for a in list(ax.lines) + list(ax.collections) + list(ax.patches):
+                a.remove()
+            ax.containers.clear()
+            band = curve_band[:, c]
+            ok = np.isfinite(band)
+            lo_hi = [curve_val[:, c]]
+            if ok.any():
+                ax.fill_between(curve_T[ok], curve_val[ok, c] - band[ok],
+                                curve_val[ok, c] + band[ok], color="#1f77b4", alpha=0.25, lw=0,
+                                label="polynomial ±1σ")
+                lo_hi += [curve_val[ok, c] - band[ok], curve_val[ok, c] + band[ok]]
+            ax.plot(curve_T, curve_val[:, c], "-", color="#1f77b4", lw=1.3,
+                    label="fitted polynomial")
+            if len(level_T):
+                sig = np.where(np.isfinite(level_sig[:, c]), level_sig[:, c], 0.0)
+                ax.errorbar(level_T, level_val[:, c], yerr=sig, fmt="o", ms=3.5,
+                            color="#d62728", ecolor="#d62728", capsize=2, lw=1,
+                            label="per-level estimate ±1σ")
+                lo_hi += [level_val[:, c] - sig, level_val[:, c] + sig]
+            if t_range is not None:
+                ax.axvspan(*t_range, color="#2ca02c", alpha=0.04, lw=0)
+            y = np.concatenate([np.ravel(v) for v in lo_hi])
+            y = y[np.isfinite(y)]
+            if y.size:
+                lo, hi = float(y.min()), float(y.max())
+                pad = 0.08 * (hi - lo) if hi > lo else max(abs(hi) * 1e-3, 1e-9)
+                ax.set_ylim(lo - pad, hi + pad)
+            xs = np.concatenate([curve_T, level_T])
+            if xs.size:
+                span = float(xs.max() - xs.min()) or 1.0
+                ax.set_xlim(float(xs.min()) - 0.04 * span, float(xs.max()) + 0.04 * span)
+            names, units = job["names"], job["units"]
+            titles[c].set_text(f"{names[c]} ({units[c]})" if units[c] else names[c])
+        leg = order[0].get_legend()
+        if leg is not None:
+            leg.remove()
+        order[0].legend(fontsize=6, loc="best")
+        sup.set_text(job["title"])
+        paths.append(_save(fig, job["path"]))
+    return paths
+
+
+def rms_bars(path, title, rows) -> Path:
+    """|B| RMS before and after calibration (seed 000 fig. 27-29), log scale.
+
+    rows: list of (row title, [panel, ...]) with panel = {"title", "labels", "before",
+    "after", optional "xlabel"} (before/after: RMS in nT per label). One row of panels
+    per sensor.
+    """
+    ncol = max(len(p) for _, p in rows)
+    fig = _figure(5.2 * ncol, 2.3 * len(rows) + 0.6)
+    axes = np.atleast_2d(fig.subplots(len(rows), ncol, squeeze=False))
+    for r, (rt, panels) in enumerate(rows):
+        for c in range(ncol):
+            ax = axes[r, c]
+            if c >= len(panels):
+                ax.set_visible(False)
+                continue
+            p = panels[c]
+            x = np.arange(len(p["labels"]))
+            before = np.asarray(p["before"], float)
+            after = np.asarray(p["after"], float)
+            ok = np.concatenate([before, after])
+            ok = ok[np.isfinite(ok) & (ok > 0)]
+            lo = float(ok.min()) / 2 if ok.size else 0.1
+            hi = float(ok.max()) * 2 if ok.size else 1.0
+            ax.bar(x - 0.2, before, 0.4, color=_BEFORE, label="before", bottom=0)
+            ax.bar(x + 0.2, after, 0.4, color=_AFTER, label="after", bottom=0)
+            ax.set_yscale("log")
+            ax.set_ylim(lo, hi)
+            _lean_ticks(ax, log_y=True)
+            ax.set_xticks(x)
+            ax.set_xticklabels(p["labels"], fontsize=7, rotation=0 if len(x) <= 14 else 60)
+            if p.get("xlabel"):
+                ax.set_xlabel(p["xlabel"], fontsize=7, labelpad=1)
+            ax.tick_params(axis="y", labelsize=7)
+            _title(ax, f"{rt}: {p['title']}")
+            ax.set_ylabel("nT", fontsize=7)
+            ax.grid(axis="y", alpha=0.3, lw=0.5)
+    hnd, lab = axes[0, 0].get_legend_handles_labels()
+    fig.legend(hnd, lab, loc="upper right", ncol=2, fontsize=7, frameon=False)
+    h = 2.3 * len(rows) + 0.6
+    fig.suptitle(title, fontsize=11, y=1 - 0.12 / h)
+    fig.subplots_adjust(left=0.07, right=0.99, top=1 - 0.75 / h, bottom=0.45 / h,
+                        wspace=0.15, hspace=0.55)
+    return _save(fig, path)
+
+
+def angle_before_after(path, title, before_deg, after_deg, x=None, xlabel="sample") -> Path:
+    """Angle between two magnetometers' vectors before and after the alignment H
+    (seed 000 fig. 10): against time (or sample), and as histograms."""
+    before = np.asarray(before_deg, float)
+    after = np.asarray(after_deg, float)
+    x = np.arange(len(before)) if x is None else np.asarray(x, float)
+    fig = _figure(11.0, 3.6)
+    a1, a2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2, 1]})
+    a1.plot(x, before, ".", ms=1.5, color="#888888", label="before (H = I)")
+    a1.plot(x, after, ".", ms=1.5, color=_AFTER, label="after H")
+    a1.set_yscale("log")
+    a1.set_xlabel(xlabel, fontsize=8)
+    a1.set_ylabel("angle between vectors, deg", fontsize=8)
+    a1.legend(fontsize=7, markerscale=5)
+    a1.grid(alpha=0.3, lw=0.5)
+    hi = max(float(np.nanmax(before)) if before.size else 1.0, 1e-3)
+    bins = np.linspace(0, hi, 41)
+    a2.hist(before, bins=bins, color="#888888", alpha=0.7, label="before")
+    a2.hist(after, bins=bins, color=_AFTER, alpha=0.8, label="after")
+    a2.set_xlabel("angle, deg", fontsize=8)
+    a2.set_ylabel("samples", fontsize=8)
+    a2.legend(fontsize=7)
+    for a in (a1, a2):
+        a.tick_params(labelsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0.07, right=0.99, top=0.88, bottom=0.15, wspace=0.25)
+    return _save(fig, path)
+
+
+def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") -> Path:
+    """SET/RESET offset error maps (seed 000 fig. 12-13): one heatmap per measurement
+    time, rate (rows) x angle between field and axis (columns)."""
+    maps = [np.asarray(m, float) for m in maps]
+    n = len(maps)
+    ncol = min(n, 2)
+    nrow = (n + ncol - 1) // ncol
+    fig = _figure(6.0 * ncol, 3.2 * nrow + 0.4)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    vmax = max(float(np.nanmax(m)) for m in maps) or 1.0
+    im = None
+    for k, ax in enumerate(axes):
+        if k >= n:
+            ax.set_visible(False)
+            continue
+        im = ax.imshow(maps[k], origin="lower", aspect="auto", cmap="viridis", vmin=0,
+                       vmax=vmax)
+        ax.set_xticks(range(len(theta_deg)))
+        ax.set_xticklabels([f"{t:g}" for t in theta_deg], fontsize=6)
+        ax.set_yticks(range(len(rate_dps)))
+        ax.set_yticklabels([f"{r:g}" for r in rate_dps], fontsize=6)
+        ax.set_xlabel("angle between field and axis, deg", fontsize=7)
+        ax.set_ylabel("rate, deg/s", fontsize=7)
+        ax.set_title(map_titles[k], fontsize=8)
+    if im is not None:
+        fig.colorbar(im, ax=list(axes[:n]), label=unit, shrink=0.9)
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def coil_distance(path, title, distance_cm, series, current_A=None) -> Path:
+    """Coil interference against distance (seed 000 fig. 5-6), log-log; series:
+    {label: values in nT at distance_cm} (NaN: not measured)."""
+    d = np.asarray(distance_cm, float)
+    fig = _figure(6.5, 4.2)
+    ax = fig.subplots()
+    for k, (label, v) in enumerate(series.items()):
+        v = np.asarray(v, float)
+        ok = np.isfinite(v) & (v > 0)
+        ax.loglog(d[ok], v[ok], "o-", ms=4, lw=1, label=label, color=f"C{k}")
+    from matplotlib.ticker import NullFormatter
+    ax.set_xticks(d)
+    ax.set_xticklabels([f"{x:g}" for x in d])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel("distance coil - magnetometer, cm", fontsize=8)
+    ax.set_ylabel("interference |dB|, nT" + (f" at {current_A:g} A" if current_A else ""),
+                  fontsize=8)
+    ax.grid(alpha=0.3, lw=0.5, which="both")
+    ax.legend(fontsize=6)
+    ax.tick_params(labelsize=7)
+    ax.set_title(title, fontsize=10)
+    fig.subplots_adjust(left=0.13, right=0.98, top=0.9, bottom=0.13)
+    return _save(fig, path)
+
+
+def residual_causes(path, title, panels) -> Path:
+    """Residual against its traced cause: one panel per effect, residual before (grey)
+    and after (blue) the model gained the effect, against the explaining quantity.
+    panels: [{"title", "xlabel", "x", "before", "after"}]."""
+    n = len(panels)
+    ncol = min(n, 3)
+    nrow = (n + ncol - 1) // ncol
+    fig = _figure(4.6 * ncol, 3.1 * nrow + 0.4)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    for k, ax in enumerate(axes):
+        if k >= n:
+            ax.set_visible(False)
+            continue
+        p = panels[k]
+        x = np.asarray(p["x"], float)
+        step = max(1, len(x) // 4000)             # thin very long series for speed
+        ax.plot(x[::step], np.asarray(p["before"], float)[::step], ".", ms=1.5,
+                color="#999999", label="before")
+        if p.get("after") is not None:
+            ax.plot(x[::step], np.asarray(p["after"], float)[::step], ".", ms=1.5,
+                    color=_AFTER, label="after")
+        ax.set_xlabel(p.get("xlabel", ""), fontsize=7)
+        ax.set_ylabel("residual, nT", fontsize=7)
+        ax.set_title(p["title"], fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3, lw=0.5)
+        ax.legend(fontsize=6, markerscale=4)
+    fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0.08, right=0.99, top=1 - 0.5 / (3.1 * nrow + 0.4),
+                        bottom=0.12 / nrow + 0.04, wspace=0.3, hspace=0.55)
+    return _save(fig, path)
+
+
+# =======================================================================================
+# Test plan
+# =======================================================================================
+def _to_plot(v_ned):
+    """North-east-down -> plot axes (east, north, up), so that up is up on the page."""
+    v = np.asarray(v_ned, float)
+    return np.array([v[..., 1], v[..., 0], -v[..., 2]]).T if v.ndim > 1 else \
+        np.array([v[1], v[0], -v[2]])
+
+
+def positions_sheet(path, plan) -> Path:
+    """One sheet, a drawing per position: the body cube in the lab with its axes, which is
+    up, magnetic north on the floor, and the field vector; the expected body-axis field in
+    the caption of each drawing."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from .plan import lab_field_ned
+
+    fig = _figure(12.5, 10.5)
+    b_lab = _to_plot(lab_field_ned(1.0, plan.inclination_deg))
+    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5)
+                        for z in (-0.5, 0.5)]) * 0.9
+    faces = [(0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4),
+             (1, 3, 7, 5)]
+    # which body axis each face is normal to (+ side), for colouring
+    face_axis = [(0, -1), (0, +1), (1, -1), (1, +1), (2, -1), (2, +1)]
+    for k, p in enumerate(plan.positions):
+        ax = fig.add_subplot(3, 4, k + 1, projection="3d")
+        R = np.asarray(p.R_body_to_ned, float)
+        pc = _to_plot((R @ corners.T).T)
+        polys, cols = [], []
+        for f, (axis, sign) in zip(faces, face_axis):
+            polys.append(pc[list(f)])
+            base = np.array(matplotlib_color(_AXIS_COLORS[axis]))
+            cols.append(tuple(base * 0.55 + 0.45) + ((0.55,) if sign > 0 else (0.12,)))
+        ax.add_collection3d(Poly3DCollection(polys, facecolors=cols, edgecolors="#555555",
+                                             linewidths=0.4))
+        for a in range(3):
+            v = _to_plot(R[:, a]) * 1.05
+            ax.quiver(0, 0, 0, *v, color=_AXIS_COLORS[a], lw=2, arrow_length_ratio=0.15)
+            ax.text(*(v * 1.18), "+" + "XYZ"[a], color=_AXIS_COLORS[a], fontsize=9,
+                    fontweight="bold", ha="center", va="center")
+        # magnetic north on the floor, up arrow, field
+        ax.quiver(-0.9, -1.2, -1.1, 0, 0.9, 0, color="#777777", lw=1.5, arrow_length_ratio=0.2)
+        ax.text(-0.9, -0.15, -1.1, "N", color="#555555", fontsize=8)
+        ax.quiver(0, 0, 0, *(b_lab * 1.35), color="#9467bd", lw=1.6, linestyle="--",
+                  arrow_length_ratio=0.1)
+        ax.text(*(b_lab * 1.5), "B", color="#9467bd", fontsize=9, fontweight="bold")
+        ax.set_xlim(-1.2, 1.2)
+        ax.set_ylim(-1.2, 1.2)
+        ax.set_zlim(-1.2, 1.2)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=22, azim=-60)
+        ax.set_axis_off()
+        b = p.expected_field_body_nT
+        ax.set_title(f"{p.number}: {p.up} up, {p.north} north\n"
+                     f"B = ({b[0]:.0f}, {b[1]:.0f}, {b[2]:.0f}) nT", fontsize=8.5, pad=0)
+    fig.suptitle(f"Unit {plan.unit_id}: twelve positions (lab field {plan.lab_field_nT:.0f} nT, "
+                 f"inclination {plan.inclination_deg:g}°)\nUp is up on the page; N: magnetic north on the "
+                 "floor; B: the lab field; body axes X red, Y green, Z blue, positive faces "
+                 "shaded darker", fontsize=10)
+    fig.subplots_adjust(left=0.0, right=1.0, top=0.91, bottom=0.0, wspace=0.0, hspace=0.12)
+    return _save(fig, path)
+
+
+def matplotlib_color(c):
+    from matplotlib.colors import to_rgb
+    return to_rgb(c)
+
+
+def profile_figure(path, plan) -> Path:
+    """Chamber set-point and predicted board temperature over one position's cycle, with
+    the recording windows shaded and the tolerance band; below, the whole program."""
+    from .plan import predicted_board_temperature
+
+    t = np.arange(0.0, plan.position_duration_s + plan.sample_period_s, plan.sample_period_s)
+    setpoint, board = predicted_board_temperature(plan, t)
+    fig = _figure(11.0, 6.0)
+    a1, a2 = fig.subplots(2, 1, gridspec_kw={"height_ratios": [3, 1]})
+    h = t / 3600.0
+    a1.plot(h, setpoint, "-", color="#444444", lw=1.2, label="chamber set-point")
+    a1.plot(h, board, "-", color="#d62728", lw=1.2,
+            label=f"board (first-order lag, τ = {plan.board_tau_s / 60:g} min)")
+    first = plan.positions[0].number
+    for it in plan.chamber_program():
+        if it["position"] != first or it["action"] != "hold":
+            continue
+        a1.axvspan(it["record_from_s"] / 3600, it["record_to_s"] / 3600, color="#2ca02c",
+                   alpha=0.18, lw=0)
+        a1.text((it["record_from_s"] + it["record_to_s"]) / 7200, it["setpoint_C"] + 2.5,
+                f"{it['setpoint_C']:g}°C\nhold {it['duration_s'] / 60:.0f} min",
+                ha="center", fontsize=6.5)
+    a1.plot([], [], color="#2ca02c", alpha=0.4, lw=6, label="recording window")
+    a1.set_ylabel("temperature, °C", fontsize=8)
+    a1.set_xlabel("time in one position's cycle, h", fontsize=8)
+    a1.legend(fontsize=7, loc="lower right")
+    a1.grid(alpha=0.3, lw=0.5)
+    lo, hi = min(plan.levels_C + [plan.room_C]), max(plan.levels_C + [plan.room_C])
+    a1.set_ylim(lo - 8, hi + 10)
+    # whole program: one bar per position
+    per = plan.position_duration_s / 3600
+    for k, p in enumerate(plan.positions):
+        a2.barh(0, per, left=k * per, color=f"C{k % 10}", alpha=0.6, edgecolor="white")
+        a2.text((k + 0.5) * per, 0, str(p.number), ha="center", va="center", fontsize=7)
+    a2.set_yticks([])
+    a2.set_xlim(0, len(plan.positions) * per)
+    a2.set_xlabel(f"whole program, h (positions 1-{len(plan.positions)}; total "
+                  f"{plan.total_duration_s / 3600:.1f} h)", fontsize=8)
+    for a in (a1, a2):
+        a.tick_params(labelsize=7)
+    fig.suptitle(f"Unit {plan.unit_id}: temperature profile", fontsize=10)
+    fig.subplots_adjust(left=0.07, right=0.99, top=0.93, bottom=0.09, hspace=0.45)
+    return _save(fig, path)

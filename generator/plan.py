@@ -1,0 +1,544 @@
+"""`magcal plan`: the ground-test program of a unit (seed 000 sec. 5, docs/methods.md).
+
+The jig holding the flight computer and the stowed boom board is put in twelve static
+positions; in each the climatic chamber steps through the temperature levels, holding each
+until the boards have settled and the segment's samples are recorded. This module computes
+the program and writes it as a printable document (Markdown and HTML with figures) and a
+machine-readable profile (`plan.json`, read back by `magcal check --plan`).
+
+Positions. Position p turns the body so that one body axis points up and another points
+to magnetic north: each of +-X, +-Y, +-Z up, at headings 0 and 90 deg of the next body axis
+(X up: Y north, then Y east; Y up: Z north / east; Z up: X north / east). R_p maps body axes
+to the lab's north-east-down axes; the expected field in body axes is R_p^T B_lab with
+B_lab = F (cos I, 0, sin I) (F the lab field magnitude, I the inclination, north along
+magnetic north, i.e. declination already removed). generator.simulate uses the same twelve.
+
+Holds. A board follows the chamber as a first-order lag with time constant tau. After a
+step of size S (from the board's last settled temperature to the new set-point), the
+board is within the tolerance e of the set-point after tau ln(S / e) (measured from the
+moment the chamber reaches the level: a conservative bound, since the board has already
+followed part of the way during the ramp). The hold is that settling time plus the
+recording time of the segment (samples x sample period), rounded up to whole minutes:
+
+    hold >= tau ln(S / e) + N_samples T_sample
+
+The first level of each position is entered from wherever the board was left: between room
+temperature (where the jig is turned) and the last level, so S_1 = max(|L_1 - room|,
+|L_1 - L_last|), which holds whatever time the repositioning takes.
+
+Default assumptions (all overridable on the command line):
+* board time constant 20 min: the flight computer and boom board sit in the jig inside the
+  structure, whose thermal mass dominates; boards of this size in the example campaigns
+  show 10-20 min. Measure yours on the first step (the time the reported temperature takes
+  to cover 63 % of the step) and re-plan with --board-tau-min;
+* settling tolerance 0.5 degC: below the MMC5883MA's 0.7 degC temperature step, and an
+  offset drift of a few tens of nT/degC then moves b by well under the reading noise;
+* ramp 1 degC/min: gentle on the boards and the connectors, avoids condensation;
+* 120 samples per segment at 5 s (10 min): the segment finder of the fit needs 10 min of
+  steady temperature (generator.fit_thermal.find_segments), and 120 samples per position
+  and level make the per-level calibration's noise negligible against the cubic's;
+* levels -20, -5, 10, 25, 40, 55 degC (the example unit's ground test), room 25 degC,
+  15 min to turn the jig.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+FORMAT = "magcal-test-plan"
+FORMAT_VERSION = 1
+
+DEFAULT_LEVELS_C = (-20.0, -5.0, 10.0, 25.0, 40.0, 55.0)
+DEFAULT_INCLINATION_DEG = 70.0
+DEFAULT_BOARD_TAU_MIN = 20.0
+DEFAULT_SETTLE_TOL_C = 0.5
+DEFAULT_RAMP_C_PER_MIN = 1.0
+DEFAULT_SAMPLE_PERIOD_S = 5.0
+DEFAULT_SAMPLES_PER_SEGMENT = 120
+DEFAULT_ROOM_C = 25.0
+DEFAULT_REPOSITION_MIN = 15.0
+
+_AX = "XYZ"
+_NED_UP = np.array([0.0, 0.0, -1.0])
+_NED_NORTH = np.array([1.0, 0.0, 0.0])
+_NED_EAST = np.array([0.0, 1.0, 0.0])
+
+
+# =======================================================================================
+# Positions
+# =======================================================================================
+def twelve_positions() -> list:
+    """Body -> lab (north-east-down) rotation matrices of the twelve positions, in order:
+    for each body axis X, Y, Z: axis up with the next axis north, then east; axis down with
+    the next axis north, then east."""
+    out = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            for heading_deg in (0.0, 90.0):
+                u = sign * np.eye(3)[axis]                 # body axis that points up
+                v = np.eye(3)[(axis + 1) % 3]              # body axis at the heading
+                h = math.radians(heading_deg)
+                lab_v = np.array([math.cos(h), math.sin(h), 0.0])
+                body = np.column_stack([u, v, np.cross(u, v)])
+                lab = np.column_stack([_NED_UP, lab_v, np.cross(_NED_UP, lab_v)])
+                out.append(lab @ body.T)
+    return out
+
+
+def lab_field_ned(field_nT: float, inclination_deg: float) -> np.ndarray:
+    """Lab field in north-east-down axes (magnetic north, so no east component)."""
+    inc = math.radians(inclination_deg)
+    return float(field_nT) * np.array([math.cos(inc), 0.0, math.sin(inc)])
+
+
+def _body_axis_name(v) -> str:
+    """Name of the signed body axis closest to v, e.g. '+X'."""
+    k = int(np.argmax(np.abs(v)))
+    return ("+" if v[k] > 0 else "-") + _AX[k]
+
+
+@dataclass
+class Position:
+    number: int
+    up: str                        # body axis pointing up, e.g. "+X"
+    north: str                     # body axis pointing to magnetic north
+    east: str
+    R_body_to_ned: list            # 3x3
+    expected_field_body_nT: list   # (3,)
+
+    @property
+    def label(self) -> str:
+        return f"{self.up} up, {self.north} north"
+
+
+def positions(field_nT: float, inclination_deg: float) -> list:
+    b_lab = lab_field_ned(field_nT, inclination_deg)
+    out = []
+    for i, R in enumerate(twelve_positions()):
+        out.append(Position(
+            number=i + 1, up=_body_axis_name(R.T @ _NED_UP),
+            north=_body_axis_name(R.T @ _NED_NORTH), east=_body_axis_name(R.T @ _NED_EAST),
+            R_body_to_ned=np.round(R, 12).tolist(),
+            expected_field_body_nT=[float(v) for v in R.T @ b_lab]))
+    return out
+
+
+# =======================================================================================
+# Temperature profile
+# =======================================================================================
+@dataclass
+class Step:
+    level_C: float
+    from_C: float                  # set-point the board may still be at (see module doc)
+    step_C: float
+    ramp_s: float                  # chamber ramp from the previous set-point
+    settle_s: float                # tau ln(step / tolerance)
+    record_s: float                # samples x period
+    hold_s: float                  # settle + record, rounded up to whole minutes
+
+
+@dataclass
+class TestPlan:
+    unit_id: str
+    lab_field_nT: float
+    inclination_deg: float
+    positions: list                # of Position
+    levels_C: list
+    room_C: float
+    board_tau_s: float
+    settle_tolerance_C: float
+    ramp_C_per_min: float
+    sample_period_s: float
+    samples_per_segment: int
+    reposition_s: float
+    steps: list                    # of Step, one position's cycle (the same in each)
+    return_ramp_s: float
+    assumptions: list = field(default_factory=list)
+
+    # ---- derived -----------------------------------------------------------------------
+    @property
+    def position_duration_s(self) -> float:
+        return (self.reposition_s + sum(s.ramp_s + s.hold_s for s in self.steps)
+                + self.return_ramp_s)
+
+    @property
+    def total_duration_s(self) -> float:
+        return len(self.positions) * self.position_duration_s
+
+    @property
+    def settle_total_s(self) -> float:
+        return len(self.positions) * sum(s.settle_s for s in self.steps)
+
+    @property
+    def samples_total(self) -> int:
+        """Samples recorded over the whole program at the plan's rate (ramps included)."""
+        return int(self.total_duration_s // self.sample_period_s)
+
+    def chamber_program(self) -> list:
+        """The whole program as timed items: position, action (reposition / ramp / hold /
+        return), start_s, duration_s, set-point at the end, and for holds the recording
+        window (record_from_s, record_to_s) in program time."""
+        out, t = [], 0.0
+        for p in self.positions:
+            out.append({"position": p.number, "action": "reposition", "start_s": t,
+                        "duration_s": self.reposition_s, "setpoint_C": self.room_C,
+                        "note": f"turn the jig: {p.label}"})
+            t += self.reposition_s
+            for s in self.steps:
+                out.append({"position": p.number, "action": "ramp", "start_s": t,
+                            "duration_s": s.ramp_s, "setpoint_C": s.level_C})
+                t += s.ramp_s
+                out.append({"position": p.number, "action": "hold", "start_s": t,
+                            "duration_s": s.hold_s, "setpoint_C": s.level_C,
+                            "record_from_s": t + s.hold_s - s.record_s,
+                            "record_to_s": t + s.hold_s})
+                t += s.hold_s
+            out.append({"position": p.number, "action": "return", "start_s": t,
+                        "duration_s": self.return_ramp_s, "setpoint_C": self.room_C})
+            t += self.return_ramp_s
+        return out
+
+    def setpoint_profile(self, one_position=True):
+        """(time_s, chamber set-point) corner points of one position's cycle (or all)."""
+        t, T = [0.0], [self.room_C]
+        items = self.chamber_program()
+        if one_position:
+            items = [i for i in items if i["position"] == self.positions[0].number]
+        for it in items:
+            t.append(it["start_s"] + it["duration_s"])
+            T.append(it["setpoint_C"])
+        return np.array(t), np.array(T)
+
+    def to_json_dict(self) -> dict:
+        return {
+            "format": FORMAT, "format_version": FORMAT_VERSION,
+            "unit": self.unit_id,
+            "lab_field_nT": self.lab_field_nT, "inclination_deg": self.inclination_deg,
+            "heading_reference": "magnetic north (lab axes north-east-down)",
+            "positions": [asdict(p) | {"label": p.label} for p in self.positions],
+            "levels_C": list(self.levels_C), "room_C": self.room_C,
+            "board_tau_s": self.board_tau_s, "settle_tolerance_C": self.settle_tolerance_C,
+            "ramp_C_per_min": self.ramp_C_per_min, "sample_period_s": self.sample_period_s,
+            "samples_per_segment": self.samples_per_segment,
+            "reposition_s": self.reposition_s, "return_ramp_s": self.return_ramp_s,
+            "steps": [asdict(s) for s in self.steps],
+            "position_duration_s": self.position_duration_s,
+            "total_duration_s": self.total_duration_s,
+            "samples_total": self.samples_total,
+            "chamber_program": self.chamber_program(),
+            "assumptions": list(self.assumptions),
+        }
+
+
+def _ceil_minute(seconds: float) -> float:
+    return 60.0 * math.ceil(seconds / 60.0 - 1e-9)
+
+
+def settle_time_s(step_C: float, board_tau_s: float, tolerance_C: float) -> float:
+    """Time for a first-order lag to come within tolerance of a step: tau ln(step/tol)."""
+    step = abs(float(step_C))
+    if step <= tolerance_C:
+        return 0.0
+    return float(board_tau_s) * math.log(step / tolerance_C)
+
+
+def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DEG,
+              levels_C=DEFAULT_LEVELS_C, board_tau_min=DEFAULT_BOARD_TAU_MIN,
+              settle_tol_C=DEFAULT_SETTLE_TOL_C, ramp_C_per_min=DEFAULT_RAMP_C_PER_MIN,
+              sample_period_s=DEFAULT_SAMPLE_PERIOD_S,
+              samples_per_segment=DEFAULT_SAMPLES_PER_SEGMENT, room_C=DEFAULT_ROOM_C,
+              reposition_min=DEFAULT_REPOSITION_MIN) -> TestPlan:
+    """The twelve-position thermal program for a unit (see the module docstring)."""
+    src = getattr(unit, "path", None)
+    F = lab_field_nT if lab_field_nT is not None else unit.lab_field_nT
+    if F is None:
+        raise InputError(src, "plan: the unit file has no lab_field_nT; give --lab-field-nT")
+    checks = [("lab field", F, 1000.0, 1e6), ("inclination", inclination_deg, -90.0, 90.0),
+              ("board time constant (min)", board_tau_min, 1e-3, 1e4),
+              ("settling tolerance (degC)", settle_tol_C, 1e-3, 50.0),
+              ("ramp rate (degC/min)", ramp_C_per_min, 1e-3, 100.0),
+              ("sample period (s)", sample_period_s, 1e-3, 3600.0),
+              ("samples per segment", samples_per_segment, 1, 1e6),
+              ("repositioning time (min)", reposition_min, 0.0, 1e4),
+              ("room temperature (degC)", room_C, -60.0, 60.0)]
+    for name, v, lo, hi in checks:
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise InputError(src, f"plan: {name} {v!r} is outside [{lo:g}, {hi:g}]")
+    levels = [float(v) for v in levels_C]
+    if not levels:
+        raise InputError(src, "plan: no temperature levels")
+    if any(not math.isfinite(v) or not -150.0 <= v <= 200.0 for v in levels):
+        raise InputError(src, f"plan: temperature levels must be in -150..200 degC: {levels}")
+    if len(set(levels)) != len(levels):
+        raise InputError(src, f"plan: repeated temperature level in {levels}")
+    tau_s = 60.0 * float(board_tau_min)
+    record_s = int(samples_per_segment) * float(sample_period_s)
+    rate = float(ramp_C_per_min) / 60.0
+    steps = []
+    prev = room_C
+    for i, L in enumerate(levels):
+        if i == 0:
+            frm = max((room_C, levels[-1]), key=lambda v: abs(L - v))
+            ramp = abs(L - room_C) / rate
+        else:
+            frm = prev
+            ramp = abs(L - prev) / rate
+        step = abs(L - frm)
+        settle = settle_time_s(step, tau_s, settle_tol_C)
+        steps.append(Step(level_C=L, from_C=float(frm), step_C=float(step), ramp_s=float(ramp),
+                          settle_s=float(settle), record_s=float(record_s),
+                          hold_s=_ceil_minute(settle + record_s)))
+        prev = L
+    assumptions = [
+        f"board thermal time constant {board_tau_min:g} min"
+        + (" (default: the boards sit in the jig inside the structure; the example "
+           "campaigns show 10-20 min; measure yours on the first step and re-plan)"
+           if board_tau_min == DEFAULT_BOARD_TAU_MIN else ""),
+        f"settled: within {settle_tol_C:g} degC of the set-point; hold = tau ln(step / "
+        f"{settle_tol_C:g} degC) + {int(samples_per_segment)} samples x {sample_period_s:g} s, "
+        "counted from the end of the ramp (conservative: the boards follow part of the way "
+        "during the ramp)",
+        "the first level of each position is entered from between room temperature and the "
+        "last level: its step is the larger of the two",
+        f"chamber ramp {ramp_C_per_min:g} degC/min; the jig is turned at room temperature "
+        f"({room_C:g} degC) in {reposition_min:g} min",
+        f"lab field {F:.1f} nT, inclination {inclination_deg:g} deg, headings magnetic; the "
+        "jig's reference edge is aligned with magnetic north to within a few degrees",
+    ]
+    return TestPlan(unit_id=unit.id, lab_field_nT=float(F), inclination_deg=float(inclination_deg),
+                    positions=positions(F, inclination_deg), levels_C=levels, room_C=float(room_C),
+                    board_tau_s=tau_s, settle_tolerance_C=float(settle_tol_C),
+                    ramp_C_per_min=float(ramp_C_per_min), sample_period_s=float(sample_period_s),
+                    samples_per_segment=int(samples_per_segment),
+                    reposition_s=60.0 * float(reposition_min), steps=steps,
+                    return_ramp_s=abs(levels[-1] - room_C) / rate, assumptions=assumptions)
+
+
+# =======================================================================================
+# Reading a profile back (magcal check --plan)
+# =======================================================================================
+@dataclass
+class PlanProfile:
+    """What `check` needs from a plan: positions with expected field, levels, samples."""
+    source: str
+    positions: list                # [{"number": int, "expected_field_body_nT": [3], "label"}]
+    levels_C: list
+    samples_per_segment: int
+    sample_period_s: float
+    settle_tolerance_C: float
+
+    @staticmethod
+    def from_plan(plan: TestPlan, source="default test program (magcal plan defaults)"):
+        return PlanProfile(source=source,
+                           positions=[{"number": p.number, "label": p.label, "up": p.up,
+                                       "expected_field_body_nT": p.expected_field_body_nT}
+                                      for p in plan.positions],
+                           levels_C=list(plan.levels_C),
+                           samples_per_segment=plan.samples_per_segment,
+                           sample_period_s=plan.sample_period_s,
+                           settle_tolerance_C=plan.settle_tolerance_C)
+
+
+def load_profile(path) -> PlanProfile:
+    """Read a plan.json written by `magcal plan` (InputError on anything malformed)."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise InputError(path, f"not a JSON test plan: {e}") from None
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
+    if d.get("format_version") != FORMAT_VERSION:
+        raise InputError(path, f"format_version {d.get('format_version')!r} is not supported "
+                               f"(this is {FORMAT_VERSION})")
+    try:
+        pos = []
+        for p in d["positions"]:
+            v = [float(x) for x in p["expected_field_body_nT"]]
+            if len(v) != 3 or not all(math.isfinite(x) for x in v):
+                raise ValueError(f"position {p.get('number')}: expected_field_body_nT")
+            up = p.get("up")
+            if up is not None and up not in {f"{s}{a}" for s in "+-" for a in "XYZ"}:
+                raise ValueError(f"position {p.get('number')}: up {up!r}")
+            pos.append({"number": int(p["number"]), "label": str(p.get("label", "")),
+                        "up": up, "expected_field_body_nT": v})
+        levels = [float(v) for v in d["levels_C"]]
+        prof = PlanProfile(source=str(path), positions=pos, levels_C=levels,
+                           samples_per_segment=int(d["samples_per_segment"]),
+                           sample_period_s=float(d["sample_period_s"]),
+                           settle_tolerance_C=float(d.get("settle_tolerance_C",
+                                                          DEFAULT_SETTLE_TOL_C)))
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(path, f"bad test plan: {e}") from None
+    if not levels or not pos:
+        raise InputError(path, "bad test plan: no positions or no levels")
+    return prof
+
+
+# =======================================================================================
+# The document
+# =======================================================================================
+def _hms(seconds: float) -> str:
+    m = int(round(seconds / 60.0))
+    return f"{m // 60} h {m % 60:02d} min" if m >= 60 else f"{m} min"
+
+
+def predicted_board_temperature(plan: TestPlan, time_s, one_position=True):
+    """Board temperature (first-order lag of the chamber set-point, ramps linear) on a time
+    grid, starting settled at room temperature."""
+    from .simulate import first_order_lag
+    tc, Tc = plan.setpoint_profile(one_position)
+    setpoint = np.interp(time_s, tc, Tc)
+    return setpoint, first_order_lag(np.asarray(time_s, float), setpoint, plan.board_tau_s,
+                                     initial=plan.room_C)
+
+
+def window_check(plan: TestPlan, step_s=10.0) -> dict:
+    """Board temperature predicted over the whole program (first-order lag of the chamber
+    set-point, starting settled at room temperature): per level, the largest distance from
+    the level inside any position's recording window, and the window in a cycle (min)."""
+    t = np.arange(0.0, plan.total_duration_s + step_s, step_s)
+    _, board = predicted_board_temperature(plan, t, one_position=False)
+    out = {}
+    t0 = {p.number: None for p in plan.positions}
+    for it in plan.chamber_program():
+        if it["action"] == "reposition":
+            t0[it["position"]] = it["start_s"]
+        if it["action"] != "hold":
+            continue
+        w = (t >= it["record_from_s"]) & (t <= it["record_to_s"])
+        dev = float(np.max(np.abs(board[w] - it["setpoint_C"]))) if w.any() else float("nan")
+        L = it["setpoint_C"]
+        cur = out.get(L)
+        if cur is None or dev > cur["max_dev_C"]:
+            out[L] = {"max_dev_C": dev, "worst_position": it["position"],
+                      "from_min": (it["record_from_s"] - t0[it["position"]]) / 60.0,
+                      "to_min": (it["record_to_s"] - t0[it["position"]]) / 60.0}
+    return out
+
+
+def plan_report(plan: TestPlan, out_dir):
+    """Report (title, sections, figures written into out_dir) of a test plan."""
+    from . import figures
+    from .report import Report, Section, Table
+
+    out_dir = Path(out_dir)
+    rep = Report(f"Ground test program: unit {plan.unit_id}")
+    rep.add(Section("Summary", [
+        f"Twelve static positions of the jig; in each the chamber steps through "
+        f"{len(plan.levels_C)} temperature levels ({', '.join(f'{v:g}' for v in plan.levels_C)}"
+        f" degC) and holds each until the boards have settled to within "
+        f"{plan.settle_tolerance_C:g} degC, then {plan.samples_per_segment} samples are "
+        f"recorded every {plan.sample_period_s:g} s. Total {_hms(plan.total_duration_s)} "
+        f"({plan.total_duration_s / 86400:.1f} days), of which settling "
+        f"{_hms(plan.settle_total_s)}. Record continuously (ramps too: the joint fit uses "
+        f"them), with the position number in the `position` column (0 while moving) and the "
+        f"reference field vector in `ref_x/y/z_nT` where the lab knows it (ICD section 2)."],
+        [Table(["item", "value"], [
+            ["unit", plan.unit_id], ["lab field |B| nT", plan.lab_field_nT],
+            ["inclination deg", plan.inclination_deg],
+            ["positions", len(plan.positions)], ["temperature levels", len(plan.levels_C)],
+            ["board time constant min", plan.board_tau_s / 60.0],
+            ["settling tolerance degC", plan.settle_tolerance_C],
+            ["ramp degC/min", plan.ramp_C_per_min],
+            ["sample period s", plan.sample_period_s],
+            ["samples per segment", plan.samples_per_segment],
+            ["one position", _hms(plan.position_duration_s)],
+            ["whole program", _hms(plan.total_duration_s)],
+            ["samples over the program", plan.samples_total]], "Program at a glance")]))
+
+    # positions: sheet + table
+    fig_pos = figures.positions_sheet(out_dir / "plan_positions.png", plan)
+    rows = []
+    for p in plan.positions:
+        b = p.expected_field_body_nT
+        rows.append([p.number, p.up, p.north, p.east, f"{b[0]:.1f}", f"{b[1]:.1f}",
+                     f"{b[2]:.1f}", f"{np.linalg.norm(b):.1f}"])
+    rep.add(Section("The twelve positions", [
+        "Each drawing shows the body (the jig) in the lab: which body axis points up, which "
+        "to magnetic north, and the lab field B. Axes: X red, Y green, Z blue; the grey arrow "
+        "on the floor is magnetic north. The table gives the field each position should "
+        "read in body axes (ICD ref_x/y/z_nT)."],
+        [Table(["position", "up", "north", "east", "B_x nT", "B_y nT", "B_z nT", "|B| nT"],
+               rows, "Positions and expected field in body axes")],
+        [(fig_pos.name, "The twelve positions: body axes in the lab, up, north and the "
+                        "expected field")]))
+
+    # temperature profile: figure + step table
+    fig_prof = figures.profile_figure(out_dir / "plan_profile.png", plan)
+    rows = [[f"{s.level_C:g}", f"{s.from_C:g}", f"{s.step_C:g}", f"{s.ramp_s / 60:.1f}",
+             f"{s.settle_s / 60:.1f}", f"{s.record_s / 60:.1f}", f"{s.hold_s / 60:.0f}"]
+            for s in plan.steps]
+    chk = window_check(plan)
+    rows_chk = [[f"{L:g}", f"{v['from_min']:.0f}", f"{v['to_min']:.0f}",
+                 f"{v['max_dev_C']:.3f}", v["worst_position"],
+                 "yes" if v["max_dev_C"] <= plan.settle_tolerance_C else "NO"]
+                for L, v in chk.items()]
+    rep.add(Section("Temperature profile (the same in every position)", [
+        f"hold = tau ln(step / {plan.settle_tolerance_C:g} degC) + recording, tau = "
+        f"{plan.board_tau_s / 60:g} min, rounded up to whole minutes; the hold starts when the "
+        f"chamber reaches the level. After the last level the chamber returns to "
+        f"{plan.room_C:g} degC ({plan.return_ramp_s / 60:.0f} min) and the jig is turned to the "
+        f"next position ({plan.reposition_s / 60:g} min). The second table is the board "
+        f"temperature predicted by the same first-order model: its largest distance from "
+        f"the level during each recording window."],
+        [Table(["level degC", "from degC", "step degC", "ramp min", "settle min",
+                "record min", "hold min"], rows, "One position's cycle"),
+         Table(["level degC", "record from min", "record to min",
+                "max |board - level| degC", "worst position", "settled"], rows_chk,
+               "Predicted board temperature in the recording windows (record times in a "
+               "position's cycle)")],
+        [(fig_prof.name, "Chamber set-point and predicted board temperature over one "
+                         "position's cycle; recording windows shaded")]))
+
+    rep.add(Section("Sampling and recording", [
+        f"Sample every {plan.sample_period_s:g} s throughout ({plan.samples_total} rows in "
+        f"all). Per position and level {plan.samples_per_segment} samples fall in the "
+        f"recording window. Check the recording with `magcal check UNIT.toml DATA.csv --plan "
+        f"plan.json` before the jig leaves the chamber: it lists the positions and levels "
+        f"that are missing or not settled and the coefficients the data would leave poorly "
+        f"determined."]))
+    rep.add(Section("Assumptions", [a[0].upper() + a[1:] + "." for a in plan.assumptions]))
+    return rep
+
+
+def write_plan(plan: TestPlan, out_dir) -> dict:
+    """plan.md, plan.html (with the figures) and plan.json in out_dir; returns the paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rep = plan_report(plan, out_dir)
+    html = rep.write(out_dir, stem="plan")
+    js = out_dir / "plan.json"
+    js.write_text(json.dumps(plan.to_json_dict(), indent=1) + "\n", encoding="utf-8")
+    return {"html": html, "markdown": out_dir / "plan.md", "json": js,
+            "figures": [out_dir / "plan_positions.png", out_dir / "plan_profile.png"]}
+
+
+def run_plan(args, progress) -> tuple:
+    """`magcal plan`: exit status and the JSON result (the profile and the paths)."""
+    from .unit import load_unit
+
+    unit = load_unit(args.unit)
+    plan = make_plan(unit, lab_field_nT=args.lab_field_nT, inclination_deg=args.inclination_deg,
+                     levels_C=args.levels, board_tau_min=args.board_tau_min,
+                     settle_tol_C=args.settle_tol_C, ramp_C_per_min=args.ramp_C_per_min,
+                     sample_period_s=args.sample_period_s,
+                     samples_per_segment=args.samples_per_segment, room_C=args.room_C,
+                     reposition_min=args.reposition_min)
+    progress(f"unit {unit.id}: {len(plan.positions)} positions x {len(plan.levels_C)} levels, "
+             f"{_hms(plan.total_duration_s)} in all")
+    paths = write_plan(plan, args.output)
+    progress(f"wrote {paths['html']}, {paths['markdown']} and {paths['json']}")
+    result = plan.to_json_dict()
+    result["files"] = {k: ([str(p) for p in v] if isinstance(v, list) else str(v))
+                       for k, v in paths.items()}
+    return 0, result
