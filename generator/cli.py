@@ -142,8 +142,9 @@ def _args_plan(p):
                    metavar="DEGC", help="chamber temperature levels in order, degC (default "
                    + " ".join(f"{v:g}" for v in P.DEFAULT_LEVELS_C) + ")")
     p.add_argument("--board-tau-min", type=float, default=P.DEFAULT_BOARD_TAU_MIN,
-                   help=f"thermal time constant of the boards, min (default "
-                        f"{P.DEFAULT_BOARD_TAU_MIN:g}: an assumption; measure it)")
+                   help=f"thermal time constant of the slowest board (flight computer, "
+                        f"boom board), min (default {P.DEFAULT_BOARD_TAU_MIN:g}: an "
+                        f"assumption, see generator/plan.py; measure it on the first step)")
     p.add_argument("--settle-tol-C", type=float, default=P.DEFAULT_SETTLE_TOL_C,
                    help=f"settled: within this of the level, degC (default "
                         f"{P.DEFAULT_SETTLE_TOL_C:g})")
@@ -188,8 +189,21 @@ def _args_check(p):
                         f"samples per segment, or {C.MIN_SEGMENT_SAMPLES} without --plan)")
 
 
+@verb("table", "write, decode, diff, split or check an uplink coefficient table")
+def cmd_table(args):
+    from .tables import cmd_table as run
+
+    return run(args)
+
+
+def _args_table(p):
+    from .tables import add_table_args
+
+    add_table_args(p)
+
+
 ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
-        "plan": _args_plan, "check": _args_check}
+        "plan": _args_plan, "check": _args_check, "table": _args_table}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -46,6 +46,73 @@ def _lean_ticks(ax, nx=5, ny=4, log_y=False):
     ax.yaxis.set_minor_locator(NullLocator())
 
 
+# ---- drawing several figures at once -----------------------------------------------------
+# Inside `with parallel():` the figure functions decorated with @_deferrable only record
+# their call and return the path(s) they will write; leaving the block draws them all, in
+# forked worker processes (one per core), since drawing is most of a report's time.
+_DEFERRED = None
+
+
+def _deferrable(paths_of):
+    def deco(fn):
+        def wrapper(*args, **kwargs):
+            if _DEFERRED is None:
+                return fn(*args, **kwargs)
+            _DEFERRED.append((fn, args, kwargs))
+            return paths_of(*args, **kwargs)
+        wrapper.__name__, wrapper.__doc__ = fn.__name__, fn.__doc__
+        wrapper.draw_now = fn
+        return wrapper
+    return deco
+
+
+def _warm_up():
+    fig = _figure(1.0, 1.0)
+    fig.text(0.5, 0.5, "0.5 °C")
+    fig.canvas.draw()
+
+
+def _run_deferred(k):
+    fn, args, kwargs = _DEFERRED[k]
+    fn(*args, **kwargs)
+    return k
+
+
+class parallel:
+    """Draw the figures requested inside the block together, on up to `workers` cores."""
+
+    def __init__(self, workers=None):
+        import os
+        self.workers = workers or min(2, os.cpu_count() or 1)
+
+    def __enter__(self):
+        global _DEFERRED
+        _DEFERRED = []
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        global _DEFERRED
+        calls = _DEFERRED
+        try:
+            if exc_type is not None or not calls:
+                return False
+            import multiprocessing as mp
+            try:
+                ctx = mp.get_context("fork")
+            except ValueError:
+                ctx = None
+            if ctx is None or self.workers < 2 or len(calls) < 2:
+                for fn, args, kwargs in calls:
+                    fn(*args, **kwargs)
+            else:
+                _warm_up()   # load matplotlib and its fonts once, before the workers fork
+                with ctx.Pool(min(self.workers, len(calls))) as pool:
+                    pool.map(_run_deferred, range(len(calls)), chunksize=1)
+        finally:
+            _DEFERRED = None
+        return False
+
+
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -72,6 +139,15 @@ def coefficient_grid(path, title, names, units, level_T, level_val, level_sig, c
 
 
 def coefficient_grids(jobs) -> list:
+    """Several coefficient_grid figures; inside `parallel()`, split over the workers."""
+    if _DEFERRED is None or len(jobs) < 2:
+        return _coefficient_grids(jobs)
+    for half in (jobs[0::2], jobs[1::2]):
+        _DEFERRED.append((_coefficient_grids, (half,), {}))
+    return [Path(j["path"]) for j in jobs]
+
+
+def _coefficient_grids(jobs) -> list:
     """Several coefficient_grid figures (one per sensor) drawn on one reused figure: the
     axes and their ticks are built once, which halves the cost of every further sensor.
     jobs: list of dicts with coefficient_grid's arguments. Returns the paths."""
@@ -142,6 +218,7 @@ def coefficient_grids(jobs) -> list:
     return paths
 
 
+@_deferrable(lambda path, *a, **k: Path(path))
 def rms_bars(path, title, rows) -> Path:
     """|B| RMS before and after calibration (seed 000 fig. 27-29), log scale.
 

@@ -803,9 +803,12 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
     if m:
         rep.add(m)
     if analysis is not None:
+        from .figures import parallel
+
         say("report: drawing the figures")
-        rep.add(rms_section(cs, analysis, out_dir))
-        rep.extend(temperature_sections(cs, analysis, out_dir))
+        with parallel():
+            rep.add(rms_section(cs, analysis, out_dir))
+            rep.extend(temperature_sections(cs, analysis, out_dir))
         say(f"report: {len(cs.unit.sensors) + 1} figures drawn")
     else:
         for s in cs.unit.sensors:

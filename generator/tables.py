@@ -1,0 +1,1699 @@
+"""Uplink coefficient tables: the format, the ground tools, the flight C's context.
+
+After launch the ground recalibrates and sends coefficients up a slow, lossy link. A
+table that is corrupt, cut short, meant for another unit or another build of the chain
+must never reach the correction code, and the table in use must stay in use. The design
+follows NASA cFS table services in spirit: a table file header, a validation function
+run on the inactive buffer, a double buffer switched only after validation.
+
+Everything that knows the table format reads it from this module, from ONE definition:
+
+* ``HEADER_FIELDS`` / ``PART_FIELDS`` (the header layouts), ``ERRORS`` (the status codes,
+  in the order the checks run), ``PLAUSIBLE_RANGES`` (per Block.kind, per polynomial
+  order) and the chain's blocks (``ChainSpec``, chain.py);
+* the encoder (:func:`encode_table`), the ground validator/decoder (:func:`check_table`,
+  :func:`decode_table`) and the reassembler (:class:`Reassembler`);
+* the flight C: ``templates/table.h.j2`` and ``table.c.j2`` are rendered with
+  :func:`table_context` (offsets, sizes, codes, ranges, the default table's bytes);
+* the docs: ``docs/table_format.md`` is :func:`format_doc` (a test keeps them equal).
+
+Layout of a table (all little-endian): header (72 bytes), payload (the coefficients as
+IEEE float32 or float64 per unit.float_type, in layout order: exactly the flat
+``<unit>_coeffs_t`` contents), CRC-32 (IEEE 802.3, ``zlib.crc32``) of everything before it.
+"""
+
+from __future__ import annotations
+
+import datetime
+import enum
+import functools
+import hashlib
+import importlib.util
+import os
+import shutil
+import struct
+import sys
+import tempfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .chain import Block, ChainSpec, np_dtype
+from .coeffs import CoefficientSet
+from .errors import InputError
+
+REPO = Path(__file__).resolve().parent.parent
+DOC_PATH = REPO / "docs" / "table_format.md"
+
+MAGIC = b"MGCT"            # a magcal coefficient table
+PART_MAGIC = b"mgcp"       # one part of a chunked table (5 bits away from MAGIC)
+FORMAT_VERSION = 1         # bump when the meaning of a header field changes
+UNIT_ID_FIELD_BYTES = 32   # unit id, ASCII, NUL-padded (at most 31 characters)
+CRC_BYTES = 4
+NO_INDEX = 0xFFFFFFFF      # "no coefficient" in bad_value_index
+MAX_U16 = 0xFFFF
+
+# Table files for the flight build; same shape as codegen.TEMPLATES entries.
+TABLE_TEMPLATES = (
+    ("table.h.j2", "{unit}_table.h"),
+    ("table.c.j2", "{unit}_table.c"),
+)
+
+
+# ---- the header layouts ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Field:
+    """One header field. code: its struct code (little-endian, no padding)."""
+
+    name: str
+    code: str
+    doc: str
+    check: str | None = None   # status of the check on this field that runs BEFORE the CRC
+
+    @property
+    def size(self) -> int:
+        return struct.calcsize("<" + self.code)
+
+    @property
+    def type_name(self) -> str:
+        return {"H": "uint16", "I": "uint32", "Q": "uint64", "f": "float32"}.get(
+            self.code, f"uint8[{self.size}]")
+
+
+HEADER_FIELDS = (
+    Field("magic", "4s", 'the bytes "MGCT"', "BAD_MAGIC"),
+    Field("format_version", "H", f"table format version ({FORMAT_VERSION})", "BAD_VERSION"),
+    Field("value_bytes", "H", "bytes per coefficient: 4 (float32) or 8 (float64), "
+                              "the unit's float type", "BAD_VALUE_BYTES"),
+    Field("unit_id_hash", "I", "first 4 bytes, little-endian, of SHA-256 of the unit id",
+          "WRONG_UNIT"),
+    Field("unit_id", f"{UNIT_ID_FIELD_BYTES}s", "unit id, ASCII, padded with NUL bytes",
+          "WRONG_UNIT"),
+    Field("layout_hash", "I", "ChainSpec.layout_hash(): the chain structure it is for",
+          "WRONG_LAYOUT"),
+    Field("payload_bytes", "I", "bytes of coefficients that follow the header",
+          "BAD_PAYLOAD_LENGTH"),
+    Field("table_serial", "I", "serial number given by the ground (0: compiled-in default)"),
+    Field("created_s", "Q", "creation time, s since 1970-01-01 UTC, given explicitly "
+                            "(0: not given)"),
+    Field("t_min_C", "f", "lowest calibrated temperature, degC: min over sensors of t_min_C"),
+    Field("t_max_C", "f", "highest calibrated temperature, degC: max over sensors of t_max_C"),
+)
+
+PART_FIELDS = (
+    Field("magic", "4s", 'the bytes "mgcp"', "PART_BAD_MAGIC"),
+    Field("table_serial", "I", "table_serial of the table this part belongs to"),
+    Field("table_bytes", "I", "length of the whole table (header + payload + CRC)"),
+    Field("part_index", "H", "0 .. part_count - 1"),
+    Field("part_count", "H", "number of parts: ceil(table_bytes / chunk_bytes)"),
+    Field("chunk_bytes", "H", "table bytes in every part but the last; this part's bytes "
+                              "go at offset part_index * chunk_bytes"),
+    Field("part_bytes", "H", "table bytes in this part (before its CRC)", "PART_BAD_LENGTH"),
+)
+
+
+def _offsets(fields) -> dict:
+    out, k = {}, 0
+    for f in fields:
+        out[f.name] = k
+        k += f.size
+    return out
+
+
+HEADER_STRUCT = struct.Struct("<" + "".join(f.code for f in HEADER_FIELDS))
+PART_STRUCT = struct.Struct("<" + "".join(f.code for f in PART_FIELDS))
+HEADER_BYTES = HEADER_STRUCT.size
+PART_HEADER_BYTES = PART_STRUCT.size
+HEADER_OFFSETS = _offsets(HEADER_FIELDS)
+PART_OFFSETS = _offsets(PART_FIELDS)
+PART_OVERHEAD = PART_HEADER_BYTES + CRC_BYTES
+
+
+# ---- status codes: the order of the checks -----------------------------------------------
+
+# (name, reason), value = position. The table checks run in this order, the first that
+# fails decides the status; identity and length checks of the header come before the CRC
+# (so a table for another unit says so), the content checks after it.
+ERRORS = (
+    ("OK", "accepted"),
+    ("NULL_ARGUMENT", "a pointer argument is NULL"),
+    ("TRUNCATED", "shorter than the header, or than header + payload + CRC"),
+    ("BAD_MAGIC", "not a magcal coefficient table (magic)"),
+    ("BAD_VERSION", "table format version not supported by this build"),
+    ("BAD_VALUE_BYTES", "coefficient width (float32/float64) differs from this build"),
+    ("WRONG_UNIT", "table is for another unit (unit id)"),
+    ("WRONG_LAYOUT", "table is for another chain structure (layout hash)"),
+    ("BAD_PAYLOAD_LENGTH", "payload length differs from this build's coefficient layout"),
+    ("TOO_LONG", "longer than header + payload + CRC"),
+    ("BAD_CRC", "CRC-32 does not match: table corrupted"),
+    ("BAD_TEMP_RANGE", "header temperature range not inside the plausible range, or empty"),
+    ("NONFINITE_VALUE", "a coefficient is NaN or infinite"),
+    ("VALUE_OUT_OF_RANGE", "a coefficient is outside its plausible range"),
+    ("EMPTY_RANGE", "a lower limit is not below its upper limit (t_min_C, t_max_C; "
+                    "field_min_nT, field_max_nT)"),
+    ("TEMP_RANGE_MISMATCH", "header temperature range is not the sensors' range"),
+    # one part (receive_part), in check order
+    ("PART_TRUNCATED", "part shorter than its header + CRC"),
+    ("PART_BAD_MAGIC", "not a part of a magcal coefficient table (magic)"),
+    ("PART_BAD_LENGTH", "part length differs from header + part_bytes + CRC"),
+    ("PART_BAD_CRC", "part CRC-32 does not match: part corrupted"),
+    ("PART_TABLE_SIZE", "part of a table whose length differs from this build's tables"),
+    ("PART_NUMBERING", "part index, part count and chunk size do not fit together"),
+    ("PART_SIZE", "part_bytes differs from what its index and the chunk size imply"),
+    ("PART_FOREIGN_SERIAL", "part of another table while a transfer is in progress"),
+    ("PART_COUNT_CHANGED", "part count or chunk size differs from the transfer in progress"),
+    ("PART_REPEATED", "part already received (identical; nothing stored)"),
+    ("PART_CONFLICT", "part already received with other contents (nothing stored)"),
+    # commit
+    ("NOTHING_STAGED", "commit without a transfer in progress"),
+    ("PARTS_MISSING", "commit before every part has arrived"),
+    ("SERIAL_MISMATCH", "reassembled table's serial differs from its parts' serial"),
+)
+
+TableStatus = enum.IntEnum("TableStatus", [(n, i) for i, (n, _) in enumerate(ERRORS)],
+                           module=__name__)
+REASONS = {TableStatus[n]: r for n, r in ERRORS}
+
+
+class TableError(InputError):
+    """A table or part the flight code would reject; .status is the flight status code."""
+
+    def __init__(self, status, detail="", path=None, bad_value_index=None):
+        self.status = TableStatus(status)
+        self.detail = detail
+        self.bad_value_index = bad_value_index
+        text = f"error {int(self.status)} {self.status.name}: {REASONS[self.status]}"
+        super().__init__(path, text + (f" ({detail})" if detail else ""))
+
+    def at(self, path) -> "TableError":
+        return TableError(self.status, self.detail, path, self.bad_value_index)
+
+
+def _fail(name, detail="", bad_value_index=None):
+    raise TableError(TableStatus[name], detail, bad_value_index=bad_value_index)
+
+
+# ---- plausible ranges, per kind of coefficient -------------------------------------------
+
+
+@dataclass(frozen=True)
+class KindRange:
+    """Plausible values of one kind of coefficient (Block.kind).
+
+    poly_span_C: a polynomial block (first axis = order k): the order-k coefficients are
+    bounded by [lo, hi] / poly_span_C**k, i.e. every term c_k dT^k stays within [lo, hi]
+    for |dT| <= poly_span_C. part_counts: the range is the sensor part's raw output range.
+    """
+
+    kind: str
+    lo: float | None
+    hi: float | None
+    why: str
+    poly_span_C: float | None = None
+    part_counts: bool = False
+
+    def bounds(self, sensor=None, order=0) -> tuple:
+        if self.part_counts:
+            return float(sensor.count_min), float(sensor.count_max)
+        if self.poly_span_C is not None:
+            scale = self.poly_span_C ** order
+            return self.lo / scale, self.hi / scale
+        return self.lo, self.hi
+
+
+PLAUSIBLE_RANGES = {r.kind: r for r in (
+    KindRange("lsb", 1e-3, 1e4, "nT per count, positive (the parts: 25 and 150)"),
+    KindRange("zero_count", None, None, "count at zero field: inside the part's raw range",
+              part_counts=True),
+    KindRange("temp", -100.0, 150.0, "degC, beyond any qualification range of the parts"),
+    KindRange("offset_poly", -2e5, 2e5, "nT: each term b_k dT^k within 4x the Earth's field",
+              poly_span_C=50.0),
+    KindRange("matrix_poly", -3.0, 3.0, "each term M_k dT^k within +-3 (scale factors ~1)",
+              poly_span_C=50.0),
+    KindRange("coupling", -1e6, 1e6, "nT per A of magnetorquer current, or per unit of a "
+                                      "telemetry channel"),
+    KindRange("rotation", -1.001, 1.001, "elements of an orthogonal matrix, rounding margin"),
+    KindRange("tolerance", 0.1, 1e5, "nT, positive: expected scatter between sensors"),
+    KindRange("field_band", 0.0, 2e5, "nT: limits of a plausible |B| (LEO: 18 000-55 000)"),
+    KindRange("time_constant", 1e-3, 1e5, "s, positive (so dt / (tau + dt) is defined at "
+                                          "dt = 0), at most about a day"),
+    KindRange("nonlinearity", -1e-10, 1e-10, "1/nT^2: the cubic n x^3 stays below the "
+                                             "reading x up to 100 000 nT"),
+    KindRange("sr_delay", -0.01, 0.01, "s rad/deg: a SET->RESET delay of at most ~1 s"),
+)}
+
+# Lower and upper limits that must be strictly ordered, by block name, wherever both
+# are blocks of the same sensor (or of the unit).
+ORDERED_PAIRS = (("t_min_C", "t_max_C"), ("field_min_nT", "field_max_nT"))
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Consecutive payload values that share one plausible range."""
+
+    first: int
+    count: int
+    lo: float
+    hi: float
+    owner: str         # sensor name or "unit"
+    block: Block
+    order: int | None  # polynomial order k, or None
+
+
+@dataclass(frozen=True)
+class ValueInfo:
+    """What one payload value is."""
+
+    index: int
+    owner: str
+    block: Block
+    element: tuple
+
+    @property
+    def label(self) -> str:
+        return f"{self.owner} {self.block.name}" + "".join(f"[{i}]" for i in self.element)
+
+    @property
+    def unit(self) -> str:
+        """Physical unit with the polynomial order filled in: nT/degC^k, k=1 -> nT/degC."""
+        u = self.block.unit
+        if "^k" in u:
+            k = self.element[0]
+            u = u.replace("/degC^k", "") if k == 0 else \
+                u.replace("degC^k", "degC" if k == 1 else f"degC^{k}")
+        return "" if u == "1" else u
+
+
+def _per_spec(fn):
+    """Memoise a function of a ChainSpec by identity (hashing a spec walks the whole unit,
+    which the validator would otherwise do on every call)."""
+    memo = {}
+
+    @functools.wraps(fn)
+    def wrapper(spec):
+        hit = memo.get(id(spec))
+        if hit is not None and hit[0] is spec:
+            return hit[1]
+        value = fn(spec)
+        if len(memo) >= 256:
+            memo.clear()
+        memo[id(spec)] = (spec, value)
+        return value
+    return wrapper
+
+
+def _kind_range(block: Block) -> KindRange:
+    try:
+        return PLAUSIBLE_RANGES[block.kind]
+    except KeyError:
+        raise KeyError(f"no plausible range for coefficient kind {block.kind!r} (block "
+                       f"{block.name}): add it to tables.PLAUSIBLE_RANGES") from None
+
+
+def _owners(spec: ChainSpec):
+    """(owner name, sensor or None, blocks) in payload order."""
+    for s in spec.unit.sensors:
+        yield s.name, s, spec.sensor_blocks(s)
+    if spec.unit_blocks():
+        yield "unit", None, spec.unit_blocks()
+
+
+@_per_spec
+def segments(spec: ChainSpec) -> tuple:
+    out, k = [], 0
+    for owner, sensor, blocks in _owners(spec):
+        for b in blocks:
+            r = _kind_range(b)
+            if r.poly_span_C is not None:
+                step = b.size // b.shape[0]
+                for order in range(b.shape[0]):
+                    lo, hi = r.bounds(sensor, order)
+                    out.append(Segment(k, step, lo, hi, owner, b, order))
+                    k += step
+            else:
+                lo, hi = r.bounds(sensor)
+                out.append(Segment(k, b.size, lo, hi, owner, b, None))
+                k += b.size
+    return tuple(out)
+
+
+@_per_spec
+def value_layout(spec: ChainSpec) -> tuple:
+    """ValueInfo of every payload value, in payload order."""
+    out = []
+    for owner, _, blocks in _owners(spec):
+        for b in blocks:
+            for element in np.ndindex(*b.shape) if b.shape else [()]:
+                out.append(ValueInfo(len(out), owner, b, tuple(int(i) for i in element)))
+    return tuple(out)
+
+
+@_per_spec
+def n_values(spec: ChainSpec) -> int:
+    return sum(spec.n_sensor_coeffs(s) for s in spec.unit.sensors) + spec.n_unit_coeffs()
+
+
+@_per_spec
+def layout_hash(spec: ChainSpec) -> int:
+    """spec.layout_hash(), cached (it serialises the whole structure)."""
+    return spec.layout_hash()
+
+
+def value_dtype(spec_or_bytes) -> np.dtype:
+    vb = spec_or_bytes if isinstance(spec_or_bytes, int) else \
+        np.dtype(np_dtype(spec_or_bytes.unit)).itemsize
+    return np.dtype("<f4" if vb == 4 else "<f8")
+
+
+def table_bytes(spec: ChainSpec) -> int:
+    return HEADER_BYTES + n_values(spec) * value_dtype(spec).itemsize + CRC_BYTES
+
+
+@_per_spec
+def _ordered_pairs(spec: ChainSpec) -> tuple:
+    """(lower index, upper index) of every ORDERED_PAIRS pair in the payload."""
+    out, base = [], 0
+    for _, _, blocks in _owners(spec):
+        off = spec.offsets(blocks)
+        for lo, hi in ORDERED_PAIRS:
+            if lo in off and hi in off:
+                out.append((base + off[lo], base + off[hi]))
+        base += sum(b.size for b in blocks)
+    return tuple(out)
+
+
+@_per_spec
+def _temp_indices(spec: ChainSpec) -> tuple:
+    """(t_min index, t_max index) of every sensor in the payload."""
+    out, base = [], 0
+    for s in spec.unit.sensors:
+        off = spec.offsets(spec.sensor_blocks(s))
+        out.append((base + off["t_min_C"], base + off["t_max_C"]))
+        base += spec.n_sensor_coeffs(s)
+    return tuple(out)
+
+
+@_per_spec
+def _bound_arrays(spec: ChainSpec) -> tuple:
+    """Plausible [lo, hi] of every value, rounded to the flight type as the C literals are."""
+    dt = value_dtype(spec)
+    lo = np.empty(n_values(spec), dtype=dt)
+    hi = np.empty_like(lo)
+    for seg in segments(spec):
+        lo[seg.first:seg.first + seg.count] = seg.lo
+        hi[seg.first:seg.first + seg.count] = seg.hi
+    return lo, hi
+
+
+# ---- identity ----------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=256)
+def unit_id_hash(unit_id: str) -> int:
+    return int.from_bytes(hashlib.sha256(unit_id.encode("utf-8")).digest()[:4], "little")
+
+
+@functools.lru_cache(maxsize=256)
+def unit_id_field(unit_id: str) -> bytes:
+    raw = unit_id.encode("ascii", errors="replace")
+    if len(raw) >= UNIT_ID_FIELD_BYTES:
+        raise InputError(None, f"unit id {unit_id!r} is too long for the table header "
+                               f"(at most {UNIT_ID_FIELD_BYTES - 1} characters)")
+    return raw.ljust(UNIT_ID_FIELD_BYTES, b"\0")
+
+
+def crc32(data) -> int:
+    return zlib.crc32(bytes(data)) & 0xFFFFFFFF
+
+
+def reseal(table) -> bytes:
+    """The table with its CRC recomputed: for tests and tools that edit a table on purpose."""
+    body = bytes(table[:-CRC_BYTES])
+    return body + struct.pack("<I", crc32(body))
+
+
+def unpack_header(data) -> dict:
+    vals = HEADER_STRUCT.unpack_from(bytes(data[:HEADER_BYTES]))
+    h = {f.name: v for f, v in zip(HEADER_FIELDS, vals)}
+    h["unit_id_text"] = h["unit_id"].rstrip(b"\0").decode("ascii", errors="replace")
+    return h
+
+
+def pack_header(h: dict) -> bytes:
+    return HEADER_STRUCT.pack(*(h[f.name] for f in HEADER_FIELDS))
+
+
+# ---- encoder -----------------------------------------------------------------------------
+
+
+def flat_values(cs: CoefficientSet) -> np.ndarray:
+    """The payload values in float64: sensor by sensor in unit order, then the unit blocks."""
+    parts = [cs.flat_sensor(s.name) for s in cs.unit.sensors] + [cs.flat_unit()]
+    return np.concatenate(parts)
+
+
+def _temp_range(spec: ChainSpec, values) -> tuple:
+    """Header range from the flight-type values, computed as the flight C does."""
+    idx = _temp_indices(spec)
+    lo, hi = values[idx[0][0]], values[idx[0][1]]
+    for i_min, i_max in idx[1:]:
+        if values[i_min] < lo:
+            lo = values[i_min]
+        if values[i_max] > hi:
+            hi = values[i_max]
+    return np.float32(lo), np.float32(hi)
+
+
+def _uint(name, value, bits):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+            or not 0 <= int(value) < 2 ** bits:
+        raise InputError(None, f"{name} must be an integer in 0 .. 2^{bits}-1, not {value!r}")
+    return int(value)
+
+
+def encode_table(cs: CoefficientSet, serial: int, created_s: int, *, check=True) -> bytes:
+    """The uplink table of a coefficient set.
+
+    serial: table serial (u32; 0 is the compiled-in default); created_s: creation time in
+    seconds (u64), given explicitly so the output is reproducible. With check (default)
+    the table is run through the ground validator, which applies the flight checks, and
+    a table the flight code would reject raises TableError.
+    """
+    spec = cs.spec
+    serial = _uint("serial", serial, 32)
+    created_s = _uint("created_s", created_s, 64)
+    dt = value_dtype(spec)
+    with np.errstate(over="ignore", invalid="ignore"):
+        values = flat_values(cs).astype(dt)
+    t_min, t_max = _temp_range(spec, values)
+    header = pack_header({
+        "magic": MAGIC, "format_version": FORMAT_VERSION, "value_bytes": dt.itemsize,
+        "unit_id_hash": unit_id_hash(spec.unit.id), "unit_id": unit_id_field(spec.unit.id),
+        "layout_hash": spec.layout_hash(), "payload_bytes": values.nbytes,
+        "table_serial": serial, "created_s": created_s, "t_min_C": t_min, "t_max_C": t_max,
+    })
+    body = header + values.tobytes()
+    table = body + struct.pack("<I", crc32(body))
+    if check:
+        check_table(table, spec)
+    return table
+
+
+# ---- ground validator and decoder: the flight checks, in the flight order ----------------
+
+
+def check_table(data, spec: ChainSpec | None = None) -> tuple:
+    """Validate a table as the flight code does; returns (header dict, values ndarray).
+
+    With spec: every flight check, in the flight order (the status codes of ERRORS).
+    Without: what the table alone allows (format, length, CRC, header temperature range,
+    finite values). Raises TableError with the flight status code.
+    """
+    if isinstance(spec, CoefficientSet):
+        spec = spec.spec
+    data = bytes(data)
+    n = len(data)
+    if n < HEADER_BYTES + CRC_BYTES:
+        _fail("TRUNCATED", f"{n} bytes; header and CRC alone take {HEADER_BYTES + CRC_BYTES}")
+    h = unpack_header(data)
+    if h["magic"] != MAGIC:
+        _fail("BAD_MAGIC", f"{h['magic']!r}, expected {MAGIC!r}")
+    if h["format_version"] != FORMAT_VERSION:
+        _fail("BAD_VERSION", f"version {h['format_version']}, this is {FORMAT_VERSION}")
+    if spec is not None:
+        vb = value_dtype(spec).itemsize
+        if h["value_bytes"] != vb:
+            _fail("BAD_VALUE_BYTES", f"{h['value_bytes']}-byte values, this build has {vb}")
+        uid = spec.unit.id
+        if h["unit_id_hash"] != unit_id_hash(uid) or h["unit_id"] != unit_id_field(uid):
+            _fail("WRONG_UNIT", f"table for {h['unit_id_text']!r} "
+                                f"(hash 0x{h['unit_id_hash']:08x}), this is {uid!r}")
+        if h["layout_hash"] != layout_hash(spec):
+            _fail("WRONG_LAYOUT", f"table layout 0x{h['layout_hash']:08x}, this build "
+                                  f"0x{layout_hash(spec):08x}")
+        if h["payload_bytes"] != n_values(spec) * vb:
+            _fail("BAD_PAYLOAD_LENGTH", f"{h['payload_bytes']} bytes, this build "
+                                        f"{n_values(spec) * vb}")
+    else:
+        vb = h["value_bytes"]
+        if vb not in (4, 8):
+            _fail("BAD_VALUE_BYTES", f"{vb}-byte values")
+        if h["payload_bytes"] % vb:
+            _fail("BAD_PAYLOAD_LENGTH", f"{h['payload_bytes']} bytes is not a whole number "
+                                        f"of {vb}-byte values")
+    total = HEADER_BYTES + h["payload_bytes"] + CRC_BYTES
+    if n < total:
+        _fail("TRUNCATED", f"{n} bytes of {total}")
+    if n > total:
+        _fail("TOO_LONG", f"{n} bytes, expected {total}")
+    stored = struct.unpack_from("<I", data, total - CRC_BYTES)[0]
+    h["crc32"] = stored
+    if crc32(data[:total - CRC_BYTES]) != stored:
+        _fail("BAD_CRC", f"stored 0x{stored:08x}, computed "
+                         f"0x{crc32(data[:total - CRC_BYTES]):08x}")
+    t_lo, t_hi = (np.float32(v) for v in PLAUSIBLE_RANGES["temp"].bounds())
+    a, b = np.float32(h["t_min_C"]), np.float32(h["t_max_C"])
+    if not (a >= t_lo and a <= t_hi and b >= t_lo and b <= t_hi and a < b):
+        _fail("BAD_TEMP_RANGE", f"[{a}, {b}] degC, plausible within [{t_lo}, {t_hi}]")
+    dt = value_dtype(vb)
+    values = np.frombuffer(data, dtype=dt, count=h["payload_bytes"] // vb, offset=HEADER_BYTES)
+    names = value_layout(spec) if spec is not None else None
+
+    def label(i):
+        return names[i].label if names else f"value[{i}]"
+
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        i = int(bad[0])
+        _fail("NONFINITE_VALUE", f"{label(i)} = {values[i]}", i)
+    if spec is None:
+        return h, values
+    lo, hi = _bound_arrays(spec)
+    bad = np.flatnonzero(~((values >= lo) & (values <= hi)))
+    if bad.size:
+        i = int(bad[0])
+        _fail("VALUE_OUT_OF_RANGE", f"{label(i)} = {values[i]} {names[i].unit}, plausible "
+                                    f"within [{lo[i]}, {hi[i]}]", i)
+    for i_lo, i_hi in _ordered_pairs(spec):
+        if not values[i_lo] < values[i_hi]:
+            _fail("EMPTY_RANGE", f"{label(i_lo)} = {values[i_lo]}, "
+                                 f"{label(i_hi)} = {values[i_hi]}", i_lo)
+    t_min, t_max = _temp_range(spec, values)
+    if t_min != a or t_max != b:
+        _fail("TEMP_RANGE_MISMATCH", f"header [{a}, {b}] degC, sensors [{t_min}, {t_max}]")
+    return h, values
+
+
+def _spec_of(spec):
+    return spec.spec if isinstance(spec, CoefficientSet) else spec
+
+
+def coefficient_set(spec: ChainSpec, values, header=None) -> CoefficientSet:
+    """A CoefficientSet (float64) holding the flight-type payload values."""
+    vals = np.asarray(values, dtype=np.float64)
+    sensors, unit_values, k = {}, {}, 0
+    for owner, _, blocks in _owners(spec):
+        d = unit_values if owner == "unit" else sensors.setdefault(owner, {})
+        for b in blocks:
+            d[b.name] = vals[k:k + b.size].reshape(b.shape).copy()
+            k += b.size
+    info = {}
+    if header is not None:
+        info["table"] = {"serial": header["table_serial"], "created_s": header["created_s"]}
+    return CoefficientSet(spec, sensors, unit_values, {}, info)
+
+
+def decode_table(data, spec=None) -> tuple:
+    """(header dict, CoefficientSet) with spec (ChainSpec or CoefficientSet), else
+    (header dict, flat values ndarray). Raises TableError as check_table does."""
+    spec = _spec_of(spec)
+    h, values = check_table(data, spec)
+    if spec is None:
+        return h, values
+    return h, coefficient_set(spec, values, h)
+
+
+# ---- diff --------------------------------------------------------------------------------
+
+
+def _fmt(v, dtype) -> str:
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return str(np.dtype(dtype).type(v)) if np.dtype(dtype) == np.float32 else repr(float(v))
+
+
+@dataclass(frozen=True)
+class Change:
+    """One difference between two tables, in physical terms."""
+
+    name: str          # "mmc1 b_poly_nT[0][1]" or "header table_serial"
+    old: object
+    new: object
+    unit: str = ""
+    dtype: str = "float32"
+    block: str | None = None
+    index: int | None = None   # flat payload index
+
+    def __str__(self) -> str:
+        u = f" {self.unit}" if self.unit else ""
+        if not isinstance(self.old, (float, np.floating)):     # serial, time, id, hashes
+            return f"{self.name}: {self.old} -> {self.new}{u}"
+        delta = float(self.new) - float(self.old)
+        return (f"{self.name}: {_fmt(self.old, self.dtype)} -> {_fmt(self.new, self.dtype)}"
+                f"{u} ({delta:+.6g}{u})")
+
+
+def _as_table(x, spec):
+    if isinstance(x, CoefficientSet):
+        return encode_table(x, 0, 0, check=False), x.spec
+    return bytes(x), spec
+
+
+def diff_tables(a, b, spec=None) -> list:
+    """Changes from table a to table b: header fields, then coefficients by name.
+
+    a, b: table bytes or CoefficientSets (rounded to the flight type first: what changes
+    on board). spec (ChainSpec or CoefficientSet) names the values when a and b are bytes;
+    without it values are named value[i]. Both must decode (TableError otherwise).
+    """
+    spec = _spec_of(spec)
+    ta, spec_a = _as_table(a, spec)
+    tb, spec_b = _as_table(b, spec)
+    spec = spec_a or spec_b
+    ha, va = check_table(ta, None)
+    hb, vb = check_table(tb, None)
+    changes = []
+    for f in HEADER_FIELDS:
+        if f.name in ("magic",):
+            continue
+        if ha[f.name] != hb[f.name]:
+            old, new = ha[f.name], hb[f.name]
+            if f.name == "unit_id":
+                old, new = ha["unit_id_text"], hb["unit_id_text"]
+            elif f.code == "f":
+                old, new = np.float32(old), np.float32(new)
+            elif f.name.endswith("hash"):
+                old, new = f"0x{old:08x}", f"0x{new:08x}"
+            unit = "degC" if f.code == "f" else ("s" if f.name == "created_s" else "")
+            changes.append(Change(f"header {f.name}", old, new, unit))
+    if ha["layout_hash"] != hb["layout_hash"] or ha["value_bytes"] != hb["value_bytes"] \
+            or va.size != vb.size:
+        return changes      # different structures: the values do not correspond
+    names = None
+    if spec is not None:
+        check_table(ta, spec)    # the names are only right for the chain they are for
+        check_table(tb, spec)
+        names = value_layout(spec)
+    differ = np.flatnonzero(va.view(f"<u{va.itemsize}") != vb.view(f"<u{vb.itemsize}"))
+    dt = "float32" if va.dtype == np.float32 else "float64"
+    for i in differ:
+        i = int(i)
+        if names:
+            info = names[i]
+            changes.append(Change(info.label, va[i], vb[i], info.unit, dt, info.block.name, i))
+        else:
+            changes.append(Change(f"value[{i}]", va[i], vb[i], "", dt, None, i))
+    return changes
+
+
+# ---- parts -------------------------------------------------------------------------------
+
+
+def chunk_table(data, max_bytes: int) -> list:
+    """Split a table into numbered parts of at most max_bytes each (part header, a run
+    of table bytes, the part's own CRC-32). Parts may be sent in any order."""
+    data = bytes(data)
+    if len(data) < HEADER_BYTES + CRC_BYTES or data[:4] != MAGIC:
+        raise InputError(None, "not a table: nothing to chunk")
+    if len(data) > MAX_U16:
+        raise InputError(None, f"table of {len(data)} bytes: parts address at most {MAX_U16}")
+    chunk = min(int(max_bytes) - PART_OVERHEAD, len(data), MAX_U16)
+    if chunk < 1:
+        raise InputError(None, f"parts of {max_bytes} bytes cannot hold any table bytes "
+                               f"(part header and CRC take {PART_OVERHEAD})")
+    serial = unpack_header(data)["table_serial"]
+    count = -(-len(data) // chunk)
+    parts = []
+    for i in range(count):
+        piece = data[i * chunk:(i + 1) * chunk]
+        head = PART_STRUCT.pack(PART_MAGIC, serial, len(data), i, count, chunk, len(piece))
+        parts.append(head + piece + struct.pack("<I", crc32(head + piece)))
+    return parts
+
+
+def unpack_part(part) -> dict:
+    return dict(zip((f.name for f in PART_FIELDS),
+                    PART_STRUCT.unpack_from(bytes(part[:PART_HEADER_BYTES]))))
+
+
+class Reassembler:
+    """The flight reassembly and commit, in Python (the same checks, codes and order as
+    `<unit>_table_receive_part` / `_commit`): ground tooling and the differential tests."""
+
+    def __init__(self, spec: ChainSpec):
+        self.spec = _spec_of(spec)
+        self.table_bytes = table_bytes(self.spec)
+        self.staging = bytearray(self.table_bytes)
+        self.abort()
+
+    def abort(self):
+        self.open = False
+        self.serial = self.count = self.chunk = 0
+        self.seen = set()
+
+    def receive(self, part) -> TableStatus:
+        part = bytes(part)
+        S = TableStatus
+        if len(part) < PART_OVERHEAD:
+            return S.PART_TRUNCATED
+        if part[:4] != PART_MAGIC:
+            return S.PART_BAD_MAGIC
+        p = unpack_part(part)
+        if len(part) != PART_OVERHEAD + p["part_bytes"]:
+            return S.PART_BAD_LENGTH
+        if crc32(part[:-CRC_BYTES]) != struct.unpack_from("<I", part, len(part) - 4)[0]:
+            return S.PART_BAD_CRC
+        if p["table_bytes"] != self.table_bytes:
+            return S.PART_TABLE_SIZE
+        chunk, count, index = p["chunk_bytes"], p["part_count"], p["part_index"]
+        if chunk == 0 or count != -(-self.table_bytes // chunk) or index >= count:
+            return S.PART_NUMBERING
+        offset = index * chunk
+        if p["part_bytes"] != min(chunk, self.table_bytes - offset):
+            return S.PART_SIZE
+        piece = part[PART_HEADER_BYTES:-CRC_BYTES]
+        if self.open:
+            if p["table_serial"] != self.serial:
+                return S.PART_FOREIGN_SERIAL
+            if count != self.count or chunk != self.chunk:
+                return S.PART_COUNT_CHANGED
+            if index in self.seen:
+                same = self.staging[offset:offset + len(piece)] == piece
+                return S.PART_REPEATED if same else S.PART_CONFLICT
+        else:
+            self.open, self.serial, self.count, self.chunk = True, p["table_serial"], count, chunk
+            self.seen = set()
+        self.staging[offset:offset + len(piece)] = piece
+        self.seen.add(index)
+        return S.OK
+
+    def commit(self) -> tuple:
+        """(status, table bytes or None)."""
+        S = TableStatus
+        if not self.open:
+            return S.NOTHING_STAGED, None
+        if len(self.seen) != self.count:
+            return S.PARTS_MISSING, None
+        table = bytes(self.staging)
+        self.open = False
+        try:
+            h, _ = check_table(table, self.spec)
+        except TableError as e:
+            return e.status, None
+        if h["table_serial"] != self.serial:
+            return S.SERIAL_MISMATCH, None
+        return S.OK, table
+
+
+def join_parts(parts, spec: ChainSpec) -> bytes:
+    """Reassemble parts (any order) into the table, or raise TableError."""
+    r = Reassembler(spec)
+    for i, p in enumerate(parts):
+        st = r.receive(p)
+        if st != TableStatus.OK:
+            raise TableError(st, f"part #{i} of the list")
+    st, table = r.commit()
+    if st != TableStatus.OK:
+        raise TableError(st)
+    return table
+
+
+# ---- readable dump -----------------------------------------------------------------------
+
+
+def _time_text(s: int) -> str:
+    if s == 0:
+        return "0 (not given)"
+    try:
+        t = datetime.datetime.fromtimestamp(s, tz=datetime.timezone.utc)
+        return f"{s} ({t.strftime('%Y-%m-%dT%H:%M:%SZ')})"
+    except (OverflowError, OSError, ValueError):
+        return str(s)
+
+
+def dump_table(data, spec=None, title="table") -> str:
+    """Readable text of a table: header fields, then every coefficient with its unit."""
+    spec = _spec_of(spec)
+    h, values = check_table(data, spec)
+    dt = "float32" if values.dtype == np.float32 else "float64"
+    lines = [f"magcal coefficient table {title}: {len(bytes(data))} bytes, "
+             f"format version {h['format_version']}"]
+    shown = {
+        "magic": h["magic"].decode("ascii", "replace"),
+        "value_bytes": f"{h['value_bytes']} ({dt})",
+        "unit_id_hash": f"0x{h['unit_id_hash']:08x}",
+        "unit_id": h["unit_id_text"],
+        "layout_hash": f"0x{h['layout_hash']:08x}",
+        "payload_bytes": f"{h['payload_bytes']} ({values.size} values)",
+        "created_s": _time_text(h["created_s"]),
+        "t_min_C": f"{np.float32(h['t_min_C'])} degC",
+        "t_max_C": f"{np.float32(h['t_max_C'])} degC",
+    }
+    for f in HEADER_FIELDS:
+        lines.append(f"  {f.name:<16} {shown.get(f.name, h[f.name])}")
+    lines.append(f"  {'crc32':<16} 0x{h['crc32']:08x}")
+    names = value_layout(spec) if spec is not None else None
+    owner = None
+    for i, v in enumerate(values):
+        if names:
+            info = names[i]
+            if info.owner != owner:
+                owner = info.owner
+                lines.append(owner)
+            name = info.block.name + "".join(f"[{j}]" for j in info.element)
+            lines.append(f"  {name:<24} {_fmt(v, dt):>24}  {info.unit}".rstrip())
+        else:
+            lines.append(f"  value[{i}]{'':<14} {_fmt(v, dt):>24}")
+    return "\n".join(lines) + "\n"
+
+
+# ---- the flight C: context for templates/table.*.j2 --------------------------------------
+
+
+def _byte_lines(data: bytes, per_line=12) -> list:
+    return [", ".join(f"0x{b:02x}" for b in data[i:i + per_line]) + ","
+            for i in range(0, len(data), per_line)]
+
+
+CRC_POLY_REFLECTED = 0xEDB88320   # IEEE 802.3, as zlib.crc32
+
+
+def _crc_byte_table() -> list:
+    """CRC of each byte value (reflected, one byte at a time)."""
+    out = []
+    for i in range(256):
+        c = i
+        for _ in range(8):
+            c = (c >> 1) ^ (CRC_POLY_REFLECTED if c & 1 else 0)
+        out.append(c)
+    return out
+
+
+def table_context(cs: CoefficientSet) -> dict:
+    """Everything table.h.j2 / table.c.j2 need beyond codegen.template_context(cs)."""
+    from .codegen import c_literal
+
+    spec = cs.spec
+    ft = spec.unit.float_type
+    dt = value_dtype(spec)
+    nv = n_values(spec)
+    tb = table_bytes(spec)
+    if tb > MAX_U16:
+        raise InputError(None, f"a table of {tb} bytes is too long for 16-bit part numbering")
+
+    def fields(fs, offsets):
+        return [{"name": f.name, "NAME": f.name.upper(), "offset": offsets[f.name],
+                 "size": f.size, "type": f.type_name, "doc": f.doc} for f in fs]
+
+    t_lo, t_hi = PLAUSIBLE_RANGES["temp"].bounds()
+    default = encode_table(cs, serial=0, created_s=0, check=False)
+    return {
+        "magic": list(MAGIC), "magic_text": MAGIC.decode(),
+        "part_magic": list(PART_MAGIC), "part_magic_text": PART_MAGIC.decode(),
+        "format_version": FORMAT_VERSION,
+        "header_bytes": HEADER_BYTES, "header_fields": fields(HEADER_FIELDS, HEADER_OFFSETS),
+        "part_header_bytes": PART_HEADER_BYTES,
+        "part_fields": fields(PART_FIELDS, PART_OFFSETS),
+        "crc_bytes": CRC_BYTES,
+        "value_bytes": dt.itemsize, "n_values": nv, "payload_bytes": nv * dt.itemsize,
+        "table_bytes": tb,
+        "unit_id_hash": f"0x{unit_id_hash(spec.unit.id):08x}",
+        "unit_id_field": list(unit_id_field(spec.unit.id)),
+        "errors": [{"name": n, "value": i, "reason": r} for i, (n, r) in enumerate(ERRORS)],
+        "segments": [{"first": s.first, "count": s.count, "lo": c_literal(s.lo, ft),
+                      "hi": c_literal(s.hi, ft),
+                      "what": f"{s.owner} {s.block.name}"
+                              + (f"[{s.order}]" if s.order is not None else "")}
+                     for s in segments(spec)],
+        "temp_index": [{"sensor": s.name, "t_min": i, "t_max": j}
+                       for s, (i, j) in zip(spec.unit.sensors, _temp_indices(spec))],
+        "ordered_pairs": [{"lo": i, "hi": j, "what": f"{value_layout(spec)[i].label} < "
+                                                       f"{value_layout(spec)[j].label}"}
+                          for i, j in _ordered_pairs(spec)],
+        "header_temp_lo": c_literal(t_lo, "float32"),
+        "header_temp_hi": c_literal(t_hi, "float32"),
+        "crc_lines": [", ".join(f"0x{c:08x}u" for c in _crc_byte_table()[i:i + 6]) + ","
+                      for i in range(0, 256, 6)],
+        "default_lines": _byte_lines(default),
+        "default_crc": f"0x{struct.unpack_from('<I', default, len(default) - 4)[0]:08x}",
+    }
+
+
+def flight_sources(cs: CoefficientSet) -> dict:
+    """{file name: text}: codegen.render(cs) plus the table files, rendered with the
+    table context whether or not codegen renders them itself already."""
+    from .codegen import _env, render
+
+    files = render(cs)
+    ctx = _table_ctx(cs)
+    env = _env()
+    for tpl, pattern in TABLE_TEMPLATES:
+        name = pattern.format(unit=cs.unit.id)
+        if name not in files:
+            files[name] = env.get_template(tpl).render(**ctx)
+    return dict(sorted(files.items()))
+
+
+# ---- host build: the flight table code through cffi --------------------------------------
+
+# HOST ONLY (not flight code): copy-out and a batch loop over the flight table API, so the
+# tests push large numbers of inputs through it quickly; the sanitizer driver uses it too.
+HOST_CDEF = """\
+typedef enum {
+{% for e in table.errors %}
+    {{ UNIT }}_TABLE_{{ e.name }} = {{ e.value }},
+{% endfor %}
+    {{ UNIT }}_TABLE_N_STATUS = {{ table.errors | length }}
+} {{ unit }}_table_status_t;
+typedef struct {
+    uint32_t active_serial;
+    uint8_t active_buffer;
+    uint8_t transfer_open;
+    uint16_t parts_received;
+    uint16_t part_count;
+    uint32_t transfer_serial;
+    {{ unit }}_table_status_t last_status;
+    uint32_t last_bad_value;
+} {{ unit }}_table_info_t;
+typedef struct { ...; } {{ unit }}_table_mgr_t;
+typedef struct { ...; } {{ unit }}_coeffs_t;
+extern const uint8_t {{ unit }}_table_default[{{ table.table_bytes }}];
+uint32_t {{ unit }}_table_crc32(const uint8_t *buf, uint32_t len);
+{{ unit }}_table_status_t {{ unit }}_table_validate(const uint8_t *buf, uint32_t len);
+{{ unit }}_table_status_t {{ unit }}_table_validate_detail(const uint8_t *buf, uint32_t len, uint32_t *bad_value_index);
+const char *{{ unit }}_table_strerror(int status);
+{{ unit }}_table_status_t {{ unit }}_table_init({{ unit }}_table_mgr_t *mgr, const {{ unit }}_coeffs_t *defaults);
+{{ unit }}_table_status_t {{ unit }}_table_receive_part({{ unit }}_table_mgr_t *mgr, const uint8_t *part, uint32_t len);
+{{ unit }}_table_status_t {{ unit }}_table_commit({{ unit }}_table_mgr_t *mgr);
+{{ unit }}_table_status_t {{ unit }}_table_load({{ unit }}_table_mgr_t *mgr, const uint8_t *table, uint32_t len);
+void {{ unit }}_table_abort({{ unit }}_table_mgr_t *mgr);
+const {{ unit }}_coeffs_t *{{ unit }}_table_active(const {{ unit }}_table_mgr_t *mgr);
+void {{ unit }}_table_info(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_table_info_t *info);
+const {{ unit }}_coeffs_t *host_table_defaults(void);
+void host_table_flat(const {{ unit }}_coeffs_t *co, {{ real }} *flat);
+long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets, const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+"""
+
+HOST_HELPER_H = """\
+/* HOST ONLY: test helpers around the flight table code of {{ unit }}. */
+#include <stdint.h>
+#include "{{ unit }}_magcal.h"
+#include "{{ unit }}_table.h"
+
+const {{ unit }}_coeffs_t *host_table_defaults(void);
+void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat);
+#define HOST_ABORT_BEFORE 1u   /* actions: {{ unit }}_table_abort before the input */
+#define HOST_COMMIT_AFTER 2u   /* actions: {{ unit }}_table_commit after the input */
+long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
+    const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+"""
+
+HOST_HELPER_C = """\
+/* HOST ONLY (not flight code): helpers for the tests of {{ unit }}_table.c. */
+#include <string.h>
+#include "table_host.h"
+
+const {{ unit }}_coeffs_t *host_table_defaults(void)
+{
+    return &{{ unit }}_coeffs_default;
+}
+
+void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
+{
+    size_t k = 0;
+{% for s in sensors %}
+    memcpy(flat + k, co->{{ s.name }}, sizeof co->{{ s.name }});
+    k += {{ UNIT }}_{{ s.NAME }}_N_COEFFS;
+{% endfor %}
+{% if n_unit_coeffs %}
+    memcpy(flat + k, co->unit, sizeof co->unit);
+{% else %}
+    (void)k;
+{% endif %}
+}
+
+/* Each input goes through validate_detail, load and receive_part, with an abort before it
+ * and a commit after it as actions[i] says. codes[4 i ..]: validate, load, receive,
+ * commit (-1: not run). Returns the number of switches to a new table, or -(i + 1) when
+ * input i broke an invariant: the active table changed without an accepted load or
+ * commit, load and validate disagreed, or a code is not a status code. */
+long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
+    const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes)
+{
+    {{ unit }}_coeffs_t before;
+    {{ unit }}_table_info_t info;
+    uint32_t serial_before;
+    const int32_t n_status = (int32_t){{ UNIT }}_TABLE_N_STATUS;
+    long i, switches = 0;
+    for (i = 0; i < n; ++i) {
+        const uint8_t *in = blob + offsets[i];
+        uint32_t bad = 0u;
+        int32_t v, l, r, c = -1;
+        memcpy(&before, {{ unit }}_table_active(mgr), sizeof before);
+        {{ unit }}_table_info(mgr, &info);
+        serial_before = info.active_serial;
+        if ((actions[i] & HOST_ABORT_BEFORE) != 0u) {
+            {{ unit }}_table_abort(mgr);
+        }
+        v = (int32_t){{ unit }}_table_validate_detail(in, lens[i], &bad);
+        l = (int32_t){{ unit }}_table_load(mgr, in, lens[i]);
+        r = (int32_t){{ unit }}_table_receive_part(mgr, in, lens[i]);
+        if ((actions[i] & HOST_COMMIT_AFTER) != 0u) {
+            c = (int32_t){{ unit }}_table_commit(mgr);
+        }
+        codes[4 * i] = v;
+        codes[4 * i + 1] = l;
+        codes[4 * i + 2] = r;
+        codes[4 * i + 3] = c;
+        if (v != l || v < 0 || v >= n_status || r < 0 || r >= n_status || c < -1 ||
+            c >= n_status) {
+            return -(i + 1);
+        }
+        switches += (l == 0) + (c == 0);
+        if (l != 0 && c != 0) {
+            {{ unit }}_table_info(mgr, &info);
+            if (memcmp(&before, {{ unit }}_table_active(mgr), sizeof before) != 0 ||
+                info.active_serial != serial_before) {
+                return -(i + 1);
+            }
+        }
+    }
+    return switches;
+}
+"""
+
+# Standalone driver for the sanitizer build: every input of a file, each in its own
+# exact-size heap block (so a read past its end is caught), through host_table_fuzz;
+# prints "column code count" lines (columns: validate, load, receive, commit).
+# File: u32 n, then n times (u32 length, u8 actions, bytes); all little-endian.
+SANITIZER_DRIVER_C = """\
+/* HOST ONLY: sanitizer driver for {{ unit }}_table.c (see generator/tables.py). */
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include "table_host.h"
+
+static uint32_t rd32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+static {{ unit }}_table_mgr_t mgr;
+static long hist[4][{{ table.errors | length }} + 1];
+
+int main(int argc, char **argv)
+{
+    FILE *f;
+    long size, i, n, switches = 0, one;
+    uint8_t *data;
+    uint32_t pos, len, zero = 0u;
+    uint8_t action;
+    int32_t codes[4];
+    int col, k;
+    if (argc != 2 || (f = fopen(argv[1], "rb")) == NULL) {
+        fprintf(stderr, "usage: %s INPUTS.bin\\n", argv[0]);
+        return 2;
+    }
+    fseek(f, 0, SEEK_END);
+    size = ftell(f);
+    fseek(f, 0, SEEK_SET);
+    data = (uint8_t *)malloc((size_t)size + 1u);
+    if (data == NULL || size < 4 || fread(data, 1, (size_t)size, f) != (size_t)size) {
+        fprintf(stderr, "cannot read %s\\n", argv[1]);
+        return 2;
+    }
+    fclose(f);
+    n = (long)rd32(data);
+    if ({{ unit }}_table_init(&mgr, &{{ unit }}_coeffs_default) != {{ UNIT }}_TABLE_OK) {
+        return 1;
+    }
+    pos = 4u;
+    for (i = 0; i < n; ++i) {
+        uint8_t *copy;
+        if ((long)pos + 5 > size) {
+            fprintf(stderr, "truncated input file\\n");
+            return 2;
+        }
+        len = rd32(data + pos);
+        action = data[pos + 4u];
+        pos += 5u;
+        if ((long)pos + (long)len > size) {
+            fprintf(stderr, "truncated input file\\n");
+            return 2;
+        }
+        copy = (uint8_t *)malloc(len > 0u ? len : 1u);
+        if (copy == NULL) {
+            return 2;
+        }
+        memcpy(copy, data + pos, len);
+        pos += len;
+        one = host_table_fuzz(&mgr, copy, &zero, &len, &action, 1, codes);
+        free(copy);
+        if (one < 0) {
+            printf("invariant broken at input %ld\\n", i);
+            return 1;
+        }
+        switches += one;
+        for (col = 0; col < 4; ++col) {
+            hist[col][codes[col] + 1] += 1;
+        }
+    }
+    for (col = 0; col < 4; ++col) {
+        for (k = 0; k <= {{ table.errors | length }}; ++k) {
+            if (hist[col][k] != 0) {
+                printf("%d %d %ld\\n", col, k - 1, hist[col][k]);
+            }
+        }
+    }
+    printf("inputs %ld switches %ld\\n", n, switches);
+    free(data);
+    return 0;
+}
+"""
+
+
+def _table_ctx(cs: CoefficientSet) -> dict:
+    from .codegen import template_context
+
+    ctx = template_context(cs)
+    ctx.setdefault("table", table_context(cs))
+    return ctx
+
+
+def host_sources(cs: CoefficientSet) -> dict:
+    """What the table code needs (no CasADi kernels): the unit's magcal.h and compiled-in
+    defaults, the table files, and the host helper table_host.c/.h; plus the cffi cdef
+    as "table_host.cdef"."""
+    from .codegen import TEMPLATES, _env
+
+    ctx = _table_ctx(cs)
+    env = _env()
+    unit = cs.unit.id
+    wanted = {f"{unit}_magcal.h", f"{unit}_coeffs_default.c"}
+    files = {}
+    for tpl, pattern in tuple(TEMPLATES) + TABLE_TEMPLATES:
+        name = pattern.format(unit=unit)
+        if name in wanted or (tpl, pattern) in TABLE_TEMPLATES:
+            files[name] = env.get_template(tpl).render(**ctx)
+    files["table_host.h"] = env.from_string(HOST_HELPER_H).render(**ctx)
+    files["table_host.c"] = env.from_string(HOST_HELPER_C).render(**ctx)
+    files["table_host.cdef"] = env.from_string(HOST_CDEF).render(**ctx)
+    return files
+
+
+def sanitizer_driver(cs: CoefficientSet) -> str:
+    from .codegen import _env
+
+    return _env().from_string(SANITIZER_DRIVER_C).render(**_table_ctx(cs))
+
+
+FUZZ_ABORT_BEFORE = 1   # host_table_fuzz actions
+FUZZ_COMMIT_AFTER = 2
+
+
+def fuzz_actions(n: int, commit_every: int = 0) -> np.ndarray:
+    """Actions with a commit after every commit_every-th input (0: none)."""
+    actions = np.zeros(n, dtype=np.uint8)
+    if commit_every:
+        actions[commit_every - 1::commit_every] = FUZZ_COMMIT_AFTER
+    return actions
+
+
+def write_fuzz_file(path, inputs, actions) -> None:
+    """Inputs for the sanitizer driver (format: see SANITIZER_DRIVER_C)."""
+    with open(path, "wb") as f:
+        f.write(struct.pack("<I", len(inputs)))
+        for x, a in zip(inputs, actions):
+            f.write(struct.pack("<IB", len(x), int(a)) + bytes(x))
+
+
+class TableHost:
+    """The generated flight table code of one unit, compiled with cffi (as host.py builds
+    the correction: -std=c99 -O2 -ffp-contract=off; -Wall -Wextra -Werror -pedantic)."""
+
+    def __init__(self, cs: CoefficientSet):
+        from . import host
+
+        self.cs = cs
+        self.spec = cs.spec
+        self.unit = cs.unit.id
+        self.dtype = np.dtype(np_dtype(cs.unit))
+        files = host_sources(cs)
+        key = hashlib.sha256()
+        for name in sorted(files):
+            key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
+        key.update(" ".join(host.FP_FLAGS + host.STRICT_FLAGS).encode())
+        key.update(host.compiler_id().encode())
+        key.update(sys.version.encode())
+        self.module_name = f"_magcal_table_{key.hexdigest()[:16]}"
+        self.build_dir = host.cache_dir() / self.module_name
+        self.lib, self.ffi = self._load_or_build(files)
+
+    def _load_or_build(self, files):
+        mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"), None) \
+            if self.build_dir.is_dir() else None
+        if mod_path is None:
+            self._build(files)
+            mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"))
+        spec = importlib.util.spec_from_file_location(self.module_name, mod_path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod.lib, mod.ffi
+
+    def _build(self, files):
+        import cffi
+
+        from . import host
+
+        tmp = Path(tempfile.mkdtemp(prefix=self.module_name + "-", dir=host.cache_dir()))
+        src = tmp / "src"
+        src.mkdir()
+        for name, text in files.items():
+            (src / name).write_text(text)
+        objs = [str(host._compile(src / n, tmp / (n[:-2] + ".o"), host.STRICT_FLAGS, src))
+                for n in sorted(files) if n.endswith(".c")]
+        ffi = cffi.FFI()
+        ffi.cdef(files["table_host.cdef"])
+        ffi.set_source(self.module_name, '#include "table_host.h"\n',
+                       include_dirs=[str(src)], extra_objects=objs,
+                       extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
+        ffi.compile(tmpdir=str(tmp), verbose=False)
+        built = next(tmp.glob(f"{self.module_name}*.so"))
+        final = tmp.parent / self.module_name
+        if final.exists():   # another process won the race; use theirs
+            shutil.rmtree(tmp, ignore_errors=True)
+            return
+        (tmp / "final").mkdir()
+        shutil.move(str(built), tmp / "final" / built.name)
+        try:
+            os.rename(tmp / "final", final)
+        except OSError:
+            pass
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    # ---- calls ---------------------------------------------------------------------------
+    def _fn(self, name):
+        return getattr(self.lib, f"{self.unit}_table_{name}")
+
+    @staticmethod
+    def _buf(data):
+        return bytes(data)
+
+    def crc32(self, data) -> int:
+        return int(self._fn("crc32")(self._buf(data), len(data)))
+
+    def validate(self, data) -> TableStatus:
+        return TableStatus(self._fn("validate")(self._buf(data), len(data)))
+
+    def validate_detail(self, data) -> tuple:
+        bad = self.ffi.new("uint32_t *")
+        st = self._fn("validate_detail")(self._buf(data), len(data), bad)
+        return TableStatus(st), int(bad[0])
+
+    def strerror(self, status) -> str:
+        return self.ffi.string(self._fn("strerror")(int(status))).decode()
+
+    def manager(self, defaults=None):
+        """A new table manager initialised with the compiled-in default coefficients."""
+        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        defaults = defaults if defaults is not None else self.lib.host_table_defaults()
+        st = self._fn("init")(mgr, defaults)
+        assert st == 0, st
+        return mgr
+
+    def receive_part(self, mgr, part) -> TableStatus:
+        return TableStatus(self._fn("receive_part")(mgr, self._buf(part), len(part)))
+
+    def commit(self, mgr) -> TableStatus:
+        return TableStatus(self._fn("commit")(mgr))
+
+    def load(self, mgr, table) -> TableStatus:
+        return TableStatus(self._fn("load")(mgr, self._buf(table), len(table)))
+
+    def abort(self, mgr) -> None:
+        self._fn("abort")(mgr)
+
+    def info(self, mgr) -> dict:
+        out = self.ffi.new(f"{self.unit}_table_info_t *")
+        self._fn("info")(mgr, out)
+        return {k: (TableStatus(getattr(out, k)) if k == "last_status" else
+                    int(getattr(out, k)))
+                for k in ("active_serial", "active_buffer", "transfer_open", "parts_received",
+                          "part_count", "transfer_serial", "last_status", "last_bad_value")}
+
+    def _flat(self, co_ptr) -> np.ndarray:
+        out = np.zeros(n_values(self.spec), dtype=self.dtype)
+        ct = "float" if self.dtype == np.float32 else "double"
+        self.lib.host_table_flat(co_ptr, self.ffi.cast(f"{ct} *", out.ctypes.data))
+        return out
+
+    def active_flat(self, mgr) -> np.ndarray:
+        """The active coefficients, flat in layout order (HostUnit.correct's coeffs_flat)."""
+        return self._flat(self._fn("active")(mgr))
+
+    def default_flat(self) -> np.ndarray:
+        return self._flat(self.lib.host_table_defaults())
+
+    def default_table(self) -> bytes:
+        return bytes(self.ffi.buffer(getattr(self.lib, f"{self.unit}_table_default")))
+
+    def fuzz(self, mgr, inputs, actions=0) -> tuple:
+        """(result of host_table_fuzz, codes (n, 4) int32): see HOST_HELPER_C. actions:
+        per input (FUZZ_ABORT_BEFORE | FUZZ_COMMIT_AFTER), or an int: commit after every
+        that many inputs (0: never)."""
+        if isinstance(actions, (int, np.integer)):
+            actions = fuzz_actions(len(inputs), int(actions))
+        acts = np.ascontiguousarray(actions, dtype=np.uint8)
+        assert acts.shape == (len(inputs),)
+        lens = np.array([len(x) for x in inputs], dtype=np.uint32)
+        offsets = np.zeros(len(inputs), dtype=np.uint32)
+        if len(inputs) > 1:
+            offsets[1:] = np.cumsum(lens[:-1], dtype=np.uint64).astype(np.uint32)
+        blob = np.frombuffer(b"".join(bytes(x) for x in inputs) + b"\0", dtype=np.uint8)
+        codes = np.zeros((len(inputs), 4), dtype=np.int32)
+        ffi = self.ffi
+        res = self.lib.host_table_fuzz(
+            mgr, ffi.cast("uint8_t *", blob.ctypes.data),
+            ffi.cast("uint32_t *", offsets.ctypes.data), ffi.cast("uint32_t *", lens.ctypes.data),
+            ffi.cast("uint8_t *", acts.ctypes.data), len(inputs),
+            ffi.cast("int32_t *", codes.ctypes.data))
+        return int(res), codes
+
+
+# ---- the docs page -----------------------------------------------------------------------
+
+
+def _doc_example_spec() -> ChainSpec:
+    """A chain with every block there is: coils, a boom sensor, every optional stage."""
+    from .chain import SensorOptions
+    from .unit import SensorSpec, Unit
+
+    unit = Unit("example", (
+        SensorSpec("mmc1", "MMC5883MA", "body", ("+z", "+y", "+x"), 25.0, 32768, True),
+        SensorSpec("mpu3", "MPU-9255", "boom", ("-y", "-z", "+x"), 150.0, 0, False),
+    ), float_type="float32")
+    everything = SensorOptions(channels=("heater_A",), thermal_lag=True, nonlinear=True,
+                               sr_compensation=True)
+    return ChainSpec(unit, coils=("coil_x_A", "coil_y_A", "coil_z_A"),
+                     sensor_options=(("mmc1", everything),))
+
+
+def _cell(text) -> str:
+    return str(text).replace("|", "\\|")
+
+
+def format_doc() -> str:
+    """docs/table_format.md, from the definitions above (a test keeps the file equal)."""
+    L = []
+    a = L.append
+    a("# Uplink coefficient table format")
+    a("")
+    a("<!-- DO NOT EDIT: generated from generator/tables.py by "
+      "`python -m generator.tables --write-doc`; host_tests/test_tables.py checks it. -->")
+    a("")
+    a("A table carries one unit's complete coefficient set from the ground to the flight "
+      "code. Everything is little-endian. A table is")
+    a("")
+    a(f"    header ({HEADER_BYTES} bytes) | payload (payload_bytes) | CRC-32 ({CRC_BYTES} bytes)")
+    a("")
+    a("and the flight code accepts it only if every check below passes; otherwise the "
+      "table in use stays in use (double buffer, switched by one assignment after "
+      "validation). The definitions live in `generator/tables.py` (`HEADER_FIELDS`, "
+      "`PART_FIELDS`, `ERRORS`, `PLAUSIBLE_RANGES`) and the chain's blocks in "
+      "`generator/chain.py`; the encoder, the ground decoder, the flight C "
+      "(`<unit>_table.h/.c`) and this page are all made from them.")
+    a("")
+    a("## Header")
+    a("")
+    a("| offset | bytes | type | field | meaning | checked before the CRC |")
+    a("| ---: | ---: | --- | --- | --- | --- |")
+    for f in HEADER_FIELDS:
+        a(f"| {HEADER_OFFSETS[f.name]} | {f.size} | {f.type_name} | `{f.name}` | {f.doc} | "
+          f"{('`' + f.check + '`') if f.check else '-'} |")
+    a("")
+    a(f"The payload starts at offset {HEADER_BYTES}. The CRC-32 (IEEE 802.3, as "
+      "`zlib.crc32`: reflected polynomial 0xEDB88320, initial value and final XOR "
+      "0xFFFFFFFF) covers the header and the payload and follows them as a uint32.")
+    a("")
+    a("The unit id is checked by hash and as text; either mismatch is `WRONG_UNIT`. "
+      "The compiled-in default coefficients are the same format: "
+      "`<unit>_table_default[]` (serial 0, created_s 0) is made by the same encoder.")
+    a("")
+    a("## Payload")
+    a("")
+    a("The coefficients as IEEE-754 float32 or float64 (`value_bytes`, the unit's "
+      "`float`), in the order of the chain definition: sensor by sensor in the unit "
+      "file's order, each sensor's blocks in order, every block row-major; then the "
+      "unit-wide blocks. This is exactly the flat contents of `<unit>_coeffs_t`. "
+      "With three coils and every optional stage (one channel), a sensor's blocks are:")
+    a("")
+    spec = _doc_example_spec()
+    a("| block | shape | unit | kind | meaning |")
+    a("| --- | --- | --- | --- | --- |")
+    for b in spec.sensor_blocks(spec.unit.sensors[0]):
+        a(f"| `{b.name}` | {list(b.shape) if b.shape else 'scalar'} | {_cell(b.unit)} | "
+          f"{b.kind} | {_cell(b.doc)} |")
+    a("")
+    a("and the unit-wide blocks:")
+    a("")
+    a("| block | shape | unit | kind | meaning |")
+    a("| --- | --- | --- | --- | --- |")
+    for b in spec.unit_blocks():
+        a(f"| `{b.name}` | {list(b.shape) if b.shape else 'scalar'} | {_cell(b.unit)} | "
+          f"{b.kind} | {_cell(b.doc)} |")
+    a("")
+    a("`K_nT_per_A` is there only when the chain has coils, the blocks after it up to "
+      "`agree_nT` only for the sensor's optional stages, `H_boom_to_body` only when the "
+      "unit has a boom sensor; `layout_hash` covers which blocks there are and their "
+      "shapes, so `payload_bytes` follows from the layout.")
+    a("")
+    a("## Plausible ranges")
+    a("")
+    a("Every value must lie in the closed range of its block's kind. For polynomial "
+      "blocks (first axis = order k) the range of the order-k coefficients is the "
+      "kind's range divided by span^k: every term c_k dT^k stays in the kind's range "
+      "for |dT| up to the span.")
+    a("")
+    a("| kind | range | span | why |")
+    a("| --- | --- | --- | --- |")
+    for r in PLAUSIBLE_RANGES.values():
+        rng = "part's raw count range" if r.part_counts else f"[{r.lo:g}, {r.hi:g}]"
+        span = f"{r.poly_span_C:g} degC" if r.poly_span_C else "-"
+        a(f"| {r.kind} | {rng} | {span} | {_cell(r.why)} |")
+    a("")
+    a("The bounds are rounded to the unit's float type, as the values are, in the flight "
+      "C (one range table per block and order, `<unit>_table.c`) and in the ground "
+      "decoder alike. The header temperature range must lie in the `temp` range with "
+      "t_min_C < t_max_C.")
+    a("")
+    a("## Checks, in order")
+    a("")
+    a("`<unit>_table_validate` runs these checks in this order and returns the status of "
+      "the first that fails; a flipped bit in a field checked before the CRC gives that "
+      "field's status, any other flipped bit `BAD_CRC`.")
+    a("")
+    a("| code | status | meaning |")
+    a("| ---: | --- | --- |")
+    for i, (n, r) in enumerate(ERRORS):
+        a(f"| {i} | `{n}` | {_cell(r)} |")
+    a("")
+    first_part = int(TableStatus.PART_TRUNCATED)
+    first_commit = int(TableStatus.NOTHING_STAGED)
+    a(f"Codes 1 to {first_part - 1} come from the table checks, in this order: a NULL "
+      "buffer; the length against the header; the header fields in header order (magic, "
+      "version, value width, unit id hash and text, layout hash, payload length); the "
+      "length against the payload length; the CRC; then the content: the header "
+      "temperature range, finiteness of every value, the plausible range of every value, "
+      "every lower limit below its upper limit (`ORDERED_PAIRS`: "
+      + ", ".join(f"{lo} < {hi}" for lo, hi in ORDERED_PAIRS) + "), and the header "
+      "range equal to the min/max over the sensors (in float32). "
+      f"Codes {first_part} to {first_commit - 1} come from `receive_part`, in that order; "
+      f"{first_commit} to {len(ERRORS) - 1} from `commit` (nothing staged and missing "
+      "parts before the table checks of the reassembled table, the serial after them). "
+      "`<unit>_table_strerror(code)` gives the meaning.")
+    a("")
+    a("## Parts")
+    a("")
+    a("For the link, a table is cut into parts of at most N bytes "
+      "(`magcal table ... --chunk N`), each:")
+    a("")
+    a(f"    part header ({PART_HEADER_BYTES} bytes) | part_bytes table bytes | "
+      f"CRC-32 of header and bytes ({CRC_BYTES} bytes)")
+    a("")
+    a("| offset | bytes | type | field | meaning | checked before the CRC |")
+    a("| ---: | ---: | --- | --- | --- | --- |")
+    for f in PART_FIELDS:
+        a(f"| {PART_OFFSETS[f.name]} | {f.size} | {f.type_name} | `{f.name}` | {f.doc} | "
+          f"{('`' + f.check + '`') if f.check else '-'} |")
+    a("")
+    a("The flight code collects parts into a staging buffer (bytes), never into the "
+      "coefficients in use. Parts may arrive in any order (each goes at "
+      "part_index * chunk_bytes, and the numbering must tile the table exactly); a part "
+      "already received is refused (`PART_REPEATED` if identical, `PART_CONFLICT` if "
+      "not) and changes nothing; a part of another serial while a transfer is in "
+      "progress is refused (`PART_FOREIGN_SERIAL`; `<unit>_table_abort` drops the "
+      "transfer); so is a change of part count or chunk size (`PART_COUNT_CHANGED`). "
+      "`<unit>_table_commit` refuses an incomplete transfer (`PARTS_MISSING`, the "
+      "transfer stays open for the missing parts), then validates the whole table, "
+      "checks that its serial is the parts' serial, decodes it into the inactive "
+      "buffer and switches the active index. A commit that fails validation drops "
+      "the transfer. `<unit>_table_load` does the same for a table received in one "
+      "piece.")
+    a("")
+    a("## Commands")
+    a("")
+    a("    magcal table COEFFS.json -o TABLE.bin [--serial N] [--created-s T] [--chunk N]")
+    a("    magcal table --decode TABLE.bin [--coeffs COEFFS.json]")
+    a("    magcal table --diff A.bin B.bin [--coeffs COEFFS.json]")
+    a("    magcal table --check TABLE.bin --coeffs COEFFS.json")
+    a("")
+    a("The first writes TABLE.bin, the dump TABLE.txt beside it and, with --chunk N, "
+      "TABLE.part000.bin ... of at most N bytes each. `--created-s` defaults to "
+      "SOURCE_DATE_EPOCH if set, else 0, so the output is reproducible. `--check` runs "
+      "the flight C validator, compiled on the host, and exits 0 if it accepts the "
+      "table, 2 with the status code and reason if not.")
+    return "\n".join(L) + "\n"
+
+
+def write_format_doc(path=DOC_PATH) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(format_doc())
+    return path
+
+
+# ---- command line: `magcal table` --------------------------------------------------------
+
+
+def add_table_args(p) -> None:
+    """Arguments of `magcal table` (an argparse parser)."""
+    p.add_argument("coeffs_json", nargs="?", metavar="COEFFS.json",
+                   help="coefficients.json to encode as a table")
+    p.add_argument("-o", "--output", metavar="TABLE.bin",
+                   help="table to write (the dump TABLE.txt goes beside it)")
+    p.add_argument("--serial", type=int, default=1, help="table serial, u32 (default 1)")
+    p.add_argument("--created-s", type=int, default=None,
+                   help="creation time, s since 1970 UTC (default: SOURCE_DATE_EPOCH or 0)")
+    p.add_argument("--chunk", type=int, metavar="N",
+                   help="also write TABLE.part000.bin ... of at most N bytes each")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--decode", metavar="TABLE.bin", help="print a table as text")
+    mode.add_argument("--diff", nargs=2, metavar=("A.bin", "B.bin"),
+                      help="print the changes from table A to table B")
+    mode.add_argument("--check", metavar="TABLE.bin",
+                      help="run the flight C validator (needs --coeffs): exit 0 if accepted")
+    p.add_argument("--coeffs", metavar="COEFFS.json",
+                   help="the unit's coefficients.json: its chain names the values "
+                        "(--decode, --diff) and builds the validator (--check)")
+
+
+def _read_bytes(path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror or e}") from None
+
+
+def _load_coeffs(path):
+    return CoefficientSet.load(path) if path else None
+
+
+def cmd_table(args) -> int:
+    """`magcal table`: encode, --decode, --diff or --check (see add_table_args)."""
+    quiet = getattr(args, "quiet", False)
+
+    def say(text):
+        if not quiet:
+            print(text)
+
+    cs = _load_coeffs(getattr(args, "coeffs", None))
+    spec = cs.spec if cs is not None else None
+    if args.decode or args.diff or args.check:
+        if args.coeffs_json or args.output or args.chunk:
+            raise InputError(None, "--decode, --diff and --check take no COEFFS.json, "
+                                   "-o or --chunk (give the unit's file as --coeffs)")
+    if args.decode:
+        data = _read_bytes(args.decode)
+        try:
+            print(dump_table(data, spec, title=str(args.decode)), end="")
+        except TableError as e:
+            raise e.at(args.decode) from None
+        return 0
+    if args.diff:
+        tables = []
+        for path in args.diff:
+            data = _read_bytes(path)
+            try:
+                check_table(data, spec)
+            except TableError as e:
+                raise e.at(path) from None
+            tables.append(data)
+        changes = diff_tables(tables[0], tables[1], spec)
+        for c in changes:
+            print(c)
+        if not changes:
+            print("no differences")
+        return 0
+    if args.check:
+        if cs is None:
+            raise InputError(None, "--check needs --coeffs COEFFS.json (the unit and chain "
+                                   "whose flight validator to run)")
+        data = _read_bytes(args.check)
+        host = TableHost(cs)
+        st, bad = host.validate_detail(data)
+        if st != TableStatus.OK:
+            detail = f"flight validator of {cs.unit.id}"
+            if bad != NO_INDEX and bad < n_values(cs.spec):
+                info = value_layout(cs.spec)[bad]
+                detail += f"; first bad value {info.label}"
+            raise TableError(st, detail, args.check, None if bad == NO_INDEX else bad)
+        say(f"{args.check}: accepted by the flight validator of {cs.unit.id} "
+            f"(layout 0x{cs.spec.layout_hash():08x})")
+        return 0
+    # encode
+    if not args.coeffs_json or not args.output:
+        raise InputError(None, "usage: magcal table COEFFS.json -o TABLE.bin "
+                               "(or --decode, --diff, --check)")
+    src = CoefficientSet.load(args.coeffs_json)
+    created = args.created_s
+    if created is None:
+        env = os.environ.get("SOURCE_DATE_EPOCH", "0")
+        try:
+            created = int(env)
+        except ValueError:
+            raise InputError(None, f"SOURCE_DATE_EPOCH={env!r} is not an integer") from None
+    try:
+        table = encode_table(src, args.serial, created)
+    except TableError as e:
+        raise e.at(args.coeffs_json) from None
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(table)
+    txt = out.with_suffix(".txt")
+    txt.write_text(dump_table(table, src.spec, title=out.name))
+    say(f"wrote {out} ({len(table)} bytes, serial {args.serial}) and {txt}")
+    if args.chunk is not None:
+        parts = chunk_table(table, args.chunk)
+        if join_parts(parts, src.spec) != table:   # the ground checks its own parts
+            raise RuntimeError("chunked parts do not reassemble into the table")
+        for i, part in enumerate(parts):
+            p = out.with_name(f"{out.stem}.part{i:03d}.bin")
+            p.write_bytes(part)
+        say(f"wrote {len(parts)} parts {out.stem}.part000.bin .. "
+            f"{out.stem}.part{len(parts) - 1:03d}.bin of at most {args.chunk} bytes")
+    return 0
+
+
+cli_table = cmd_table
+
+
+def main(argv=None) -> int:
+    """`python -m generator.tables --write-doc`: regenerate docs/table_format.md."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m generator.tables")
+    p.add_argument("--write-doc", action="store_true", help=f"write {DOC_PATH}")
+    args = p.parse_args(argv)
+    if args.write_doc:
+        print(f"wrote {write_format_doc()}")
+        return 0
+    p.print_help()
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
