@@ -56,6 +56,56 @@ def _compile(src: Path, obj: Path, flags, include: Path):
     return obj
 
 
+def cffi_module(prefix: str, files: dict, cdef_file: str, source: str):
+    """(lib, ffi) of a cffi module built from `files` (name -> text): every .c file compiled
+    with FP_FLAGS + STRICT_FLAGS, the module's own C is `source`, its declarations are
+    files[cdef_file]. Cached under cache_dir() by the hash of sources, flags, compiler and
+    Python; concurrent builders race safely (the first rename wins)."""
+    key = hashlib.sha256()
+    for name in sorted(files):
+        key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
+    key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
+    key.update(compiler_id().encode())
+    key.update(sys.version.encode())
+    module_name = f"{prefix}_{key.hexdigest()[:16]}"
+    build_dir = cache_dir() / module_name
+    mod_path = next(build_dir.glob(f"{module_name}*.so"), None) if build_dir.is_dir() else None
+    if mod_path is None:
+        _build_cffi(module_name, files, cdef_file, source)
+        mod_path = next(build_dir.glob(f"{module_name}*.so"))
+    spec = importlib.util.spec_from_file_location(module_name, mod_path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.lib, mod.ffi
+
+
+def _build_cffi(module_name, files, cdef_file, source):
+    import cffi
+
+    tmp = Path(tempfile.mkdtemp(prefix=module_name + "-", dir=cache_dir()))
+    src = tmp / "src"
+    src.mkdir()
+    for name, text in files.items():
+        (src / name).write_text(text)
+    objs = [str(_compile(src / n, tmp / (n[:-2] + ".o"), STRICT_FLAGS, src))
+            for n in sorted(files) if n.endswith(".c")]
+    ffi = cffi.FFI()
+    ffi.cdef(files[cdef_file])
+    ffi.set_source(module_name, source, include_dirs=[str(src)], extra_objects=objs,
+                   extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
+    ffi.compile(tmpdir=str(tmp), verbose=False)
+    built = next(tmp.glob(f"{module_name}*.so"))
+    final = tmp.parent / module_name
+    if not final.exists():
+        (tmp / "final").mkdir()
+        shutil.move(str(built), tmp / "final" / built.name)
+        try:
+            os.rename(tmp / "final", final)
+        except OSError:
+            pass          # another process won the race; use theirs
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
 class HostUnit:
     """The compiled flight C of one unit, callable from Python."""
 
@@ -68,60 +118,9 @@ class HostUnit:
         env = _env()
         files["host_shim.c"] = env.get_template("host_shim.c.j2").render(**ctx)
         files["host_shim.h"] = env.get_template("host_shim.h.j2").render(**ctx)
-        key = hashlib.sha256()
-        for name in sorted(files):
-            key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
-        key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
-        key.update(compiler_id().encode())
-        key.update(sys.version.encode())
-        self.key = key.hexdigest()[:16]
-        self.module_name = f"_magcal_host_{self.key}"
-        self.build_dir = cache_dir() / self.module_name
-        self._lib, self._ffi = self._load_or_build(files)
-
-    def _load_or_build(self, files):
-        mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"), None) \
-            if self.build_dir.is_dir() else None
-        if mod_path is None:
-            self._build(files)
-            mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"))
-        spec = importlib.util.spec_from_file_location(self.module_name, mod_path)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod.lib, mod.ffi
-
-    def _build(self, files):
-        import cffi
-
-        tmp = Path(tempfile.mkdtemp(prefix=self.module_name + "-", dir=cache_dir()))
-        src = tmp / "src"
-        src.mkdir()
-        for name, text in files.items():
-            (src / name).write_text(text)
-        objs = []
-        for name in sorted(files):
-            if not name.endswith(".c"):
-                continue
-            flags = STRICT_FLAGS
-            objs.append(str(_compile(src / name, tmp / (name[:-2] + ".o"), flags, src)))
-        ffi = cffi.FFI()
-        ffi.cdef(files["host_shim.h"])
-        ffi.set_source(self.module_name, '#include <stdint.h>\n#include "host_shim.h"\n',
-                       include_dirs=[str(src)], extra_objects=objs,
-                       extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
-        ffi.compile(tmpdir=str(tmp), verbose=False)
-        built = next(tmp.glob(f"{self.module_name}*.so"))
-        final = tmp.parent / self.module_name
-        if final.exists():  # another process won the race; use theirs
-            shutil.rmtree(tmp, ignore_errors=True)
-            return
-        (tmp / "final").mkdir()
-        shutil.move(str(built), tmp / "final" / built.name)
-        try:
-            os.rename(tmp / "final", final)
-        except OSError:
-            pass
-        shutil.rmtree(tmp, ignore_errors=True)
+        self._lib, self._ffi = cffi_module(
+            "_magcal_host", files, "host_shim.h",
+            '#include <stdint.h>\n#include "host_shim.h"\n')
 
     # ---- calls -------------------------------------------------------------------------
     def flat_coeffs(self, cs: CoefficientSet | None = None) -> np.ndarray:

@@ -28,12 +28,9 @@ import datetime
 import enum
 import functools
 import hashlib
-import importlib.util
 import os
-import shutil
 import struct
 import sys
-import tempfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -1233,59 +1230,9 @@ class TableHost:
         self.unit = cs.unit.id
         self.dtype = np.dtype(np_dtype(cs.unit))
         files = host_sources(cs)
-        key = hashlib.sha256()
-        for name in sorted(files):
-            key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
-        key.update(" ".join(host.FP_FLAGS + host.STRICT_FLAGS).encode())
-        key.update(host.compiler_id().encode())
-        key.update(sys.version.encode())
-        self.module_name = f"_magcal_table_{key.hexdigest()[:16]}"
-        self.build_dir = host.cache_dir() / self.module_name
-        self.lib, self.ffi = self._load_or_build(files)
+        self.lib, self.ffi = host.cffi_module("_magcal_table", files, "table_host.cdef",
+                                              '#include "table_host.h"\n')
 
-    def _load_or_build(self, files):
-        mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"), None) \
-            if self.build_dir.is_dir() else None
-        if mod_path is None:
-            self._build(files)
-            mod_path = next(self.build_dir.glob(f"{self.module_name}*.so"))
-        spec = importlib.util.spec_from_file_location(self.module_name, mod_path)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod.lib, mod.ffi
-
-    def _build(self, files):
-        import cffi
-
-        from . import host
-
-        tmp = Path(tempfile.mkdtemp(prefix=self.module_name + "-", dir=host.cache_dir()))
-        src = tmp / "src"
-        src.mkdir()
-        for name, text in files.items():
-            (src / name).write_text(text)
-        objs = [str(host._compile(src / n, tmp / (n[:-2] + ".o"), host.STRICT_FLAGS, src))
-                for n in sorted(files) if n.endswith(".c")]
-        ffi = cffi.FFI()
-        ffi.cdef(files["table_host.cdef"])
-        ffi.set_source(self.module_name, '#include "table_host.h"\n',
-                       include_dirs=[str(src)], extra_objects=objs,
-                       extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
-        ffi.compile(tmpdir=str(tmp), verbose=False)
-        built = next(tmp.glob(f"{self.module_name}*.so"))
-        final = tmp.parent / self.module_name
-        if final.exists():   # another process won the race; use theirs
-            shutil.rmtree(tmp, ignore_errors=True)
-            return
-        (tmp / "final").mkdir()
-        shutil.move(str(built), tmp / "final" / built.name)
-        try:
-            os.rename(tmp / "final", final)
-        except OSError:
-            pass
-        shutil.rmtree(tmp, ignore_errors=True)
-
-    # ---- calls ---------------------------------------------------------------------------
     def _fn(self, name):
         return getattr(self.lib, f"{self.unit}_table_{name}")
 
