@@ -1,8 +1,10 @@
 """`magcal demo`: the whole chain on a simulated example unit, with no arguments.
 
-The project's own simulator (generator/simulate.py) makes a unit and its campaigns; then
-fit -> generate -> compile -> bit-exact check of the flight C against the Python
-reference on every sample -> accuracy against the simulator's truth -> report.
+The project's own simulator (generator/simulate.py) makes a unit, its truth and its
+ground and orbit campaigns; then fit (temperature model, coil coupling, boom alignment)
+-> generate -> compile -> every sample through the flight C and the Python reference,
+bit for bit -> accuracy against the simulator's truth on the ground and in orbit ->
+uplink table through the flight validator -> report.
 """
 
 from __future__ import annotations
@@ -15,22 +17,68 @@ from .chain import reference_sensor
 from .coeffs import CoefficientSet
 
 
+def _same_bits(a: dict, b: dict) -> bool:
+    return all(np.array_equal(np.ascontiguousarray(a[k]).view(np.uint8),
+                              np.ascontiguousarray(b[k]).view(np.uint8)) for k in a)
+
+
+def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
+    """Per sensor: valid samples, C == Python, |B| RMS raw / calibrated / true parameters,
+    and the angle to the true field (calibrated and true parameters)."""
+    from . import pipeline
+    from . import truth as truth_mod
+    from .telemetry import preprocess, read_telemetry
+
+    tel = read_telemetry(csv_path, cs.unit)
+    data = preprocess(tel, cs.unit)
+    b_true = np.load(truth_npz)["b_body_nT"]
+    H_true = np.asarray(truth["H_boom_to_body"], float)
+    coil = np.stack([tel.columns.get(c, np.zeros(tel.n)) for c in
+                     ("coil_x_A", "coil_y_A", "coil_z_A")], axis=1)
+    rows, identical = [], True
+    for s in cs.unit.sensors:
+        inp = pipeline.chain_inputs(tel, cs.spec, s.name)
+        aux = dict(channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+        c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
+        py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
+                                  inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
+        same = _same_bits(c_out, py_out)
+        identical &= same
+        ok = inp["present"] & (c_out["status"] == 0)
+        raw_B = data[s.name].field_frame_nT
+        B_tp = truth_mod.true_calibrated_frame(truth, s.name, raw_B, data[s.name].temp_C,
+                                               coil_A=coil)
+        if s.frame == "boom" and deployed:
+            B_tp = B_tp @ H_true.T
+        ours = truth_mod.rms_norm_error(c_out["field_body_nT"][ok], b_true[ok])
+        best = truth_mod.rms_norm_error(B_tp[ok], b_true[ok])
+        rows.append([s.name, int(ok.sum()), "identical" if same else "DIFFERENT",
+                     truth_mod.rms_norm_error(raw_B[ok], b_true[ok]), ours, best, ours / best,
+                     _rms_angle_deg(c_out["field_body_nT"][ok], b_true[ok]),
+                     _rms_angle_deg(B_tp[ok], b_true[ok])])
+    return tel, rows, identical
+
+
+def _rms_angle_deg(B, B_true) -> float:
+    cos = np.sum(B * B_true, axis=1) / np.linalg.norm(B, axis=1) / np.linalg.norm(B_true, axis=1)
+    return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2))))
+
+
 def run_demo(out: Path, seed: int = 1, progress=None) -> int:
-    from . import codegen, pipeline, simulate
+    from . import codegen, pipeline, simulate, tables
     from . import truth as truth_mod
     from .host import HostUnit
     from .report import Report, Section, Table, fit_report
-    from .telemetry import preprocess, read_telemetry
 
     progress = progress or pipeline.Progress()
     out = Path(out)
     data_dir = out / "data"
     progress(f"simulating the example unit (seed {seed}) into {data_dir}")
     paths = simulate.make_example(data_dir, seed=seed)
-    campaign = Path(paths["thermal_12pos"])
+    ground = [Path(paths[k]) for k in ("thermal_12pos", "rotation", "coils")]
 
-    progress("fitting the thermal twelve-position campaign")
-    cs = pipeline.fit(paths["unit"], [campaign], progress=progress)
+    progress("fitting the ground campaigns: thermal twelve positions, rotation, coils")
+    cs = pipeline.fit(paths["unit"], ground, progress=progress)
     fit_dir = out / "fit"
     fit_dir.mkdir(parents=True, exist_ok=True)
     cs.save(fit_dir / "coefficients.json")
@@ -42,50 +90,61 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     host = HostUnit(cs)
     progress("compiled on the host: -std=c99 -O2 -ffp-contract=off -Wall -Wextra -Werror")
 
-    tel = read_telemetry(campaign, cs.unit)
-    data = preprocess(tel, cs.unit)
     truth = truth_mod.load_truth(paths["truth"])
-    b_true = np.load(paths["thermal_12pos_truth"])["b_body_nT"]
-    rows = []
-    all_identical = True
-    for s in cs.unit.sensors:
-        inp = pipeline.chain_inputs(tel, cs.spec, s.name)
-        aux = dict(channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
-        c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
-        py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
-                                  inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
-        same = all(np.array_equal(np.ascontiguousarray(c_out[k]).view(np.uint8),
-                                  np.ascontiguousarray(py_out[k]).view(np.uint8))
-                   for k in c_out)
-        all_identical &= same
-        ok = inp["present"] & (c_out["status"] == 0)
-        raw_B = data[s.name].field_frame_nT
-        ours = truth_mod.rms_norm_error(c_out["field_body_nT"][ok], b_true[ok])
-        raw = truth_mod.rms_norm_error(raw_B[ok], b_true[ok])
-        true_cal = truth_mod.true_calibrated_frame(truth, s.name, raw_B, data[s.name].temp_C)
-        best = truth_mod.rms_norm_error(true_cal[ok], b_true[ok])
-        rows.append([s.name, int(ok.sum()), "identical" if same else "DIFFERENT",
-                     raw, ours, best, ours / best])
+    stowed = cs.with_boom_stowed()      # the jig campaign: H not applied
+    thermal_tel, thermal_rows, ok_thermal = _campaign_rows(
+        stowed, HostUnit(stowed), paths["thermal_12pos"],
+        paths["thermal_12pos_truth"], truth, deployed=False)
+    flight_tel, flight_rows, ok_flight = _campaign_rows(
+        cs, host, paths["flight"], paths["flight_truth"], truth, deployed=True)
+    all_identical = ok_thermal and ok_flight
+
+    progress("uplink table: encode, flight validator, one flipped bit")
+    table = tables.encode_table(cs, serial=1, created_s=0)
+    (out / "table.bin").write_bytes(table)
+    th = tables.TableHost(cs)
+    accepted = th.validate(table)
+    flipped = bytearray(table)
+    flipped[len(flipped) // 2] ^= 0x10
+    rejected = th.validate(bytes(flipped))
+    table_ok = accepted == 0 and rejected != 0
 
     progress("writing the report (figures)")
-    fit_rep = fit_report(cs, out, data_paths=[campaign], progress=progress)
+    fit_rep = fit_report(cs, out, data_paths=[ground[0]], progress=progress)
     rep = Report(f"magcal demo: simulated unit {cs.unit.id} (seed {seed})")
     rep.add(Section("What ran", [
-        "The project's simulator made the unit, its truth and its campaigns; magcal fitted the "
-        "thermal twelve-position campaign, generated and compiled the flight C, and ran every "
-        "sample through it and through the Python reference."]))
-    rep.add(Section("Result on the thermal campaign", [], [Table(
-        ["sensor", "valid samples", "C vs Python", "|B| RMS raw nT", "|B| RMS calibrated nT",
-         "|B| RMS true parameters nT", "ratio to truth"], rows)]))
-    rep.extend(fit_rep.sections)      # inputs, fit, |B| RMS, temperature dependence
+        "The project's simulator made the unit, its truth and its campaigns. magcal fitted the "
+        "ground campaigns (temperature model from the thermal twelve positions, coil coupling "
+        "from the coil steps, boom alignment H from the rotation), generated and compiled the "
+        "flight C, and ran every sample of the thermal and the orbit campaign through it and "
+        "through the Python reference; the table below compares them bit for bit and against "
+        "the simulator's truth."]))
+    header = ["sensor", "valid samples", "C vs Python", "|B| RMS raw nT",
+              "|B| RMS calibrated nT", "|B| RMS true parameters nT", "ratio to truth",
+              "angle calibrated deg", "angle true parameters deg"]
+    rep.add(Section("Result on the thermal campaign", [
+        "Jig data, boom stowed (H not applied)."], [Table(header, thermal_rows)]))
+    rep.add(Section("Result in orbit (flight campaign)", [
+        "Orbit telemetry with the boom deployed and the magnetorquers switching: the chain "
+        "applies the coil coupling and H."], [Table(header, flight_rows)]))
+    rep.add(Section("Uplink table", [
+        f"table.bin: {len(table)} bytes; the flight validator accepts it (code {accepted}) "
+        f"and rejects it with one bit flipped (code {int(rejected)}: {th.strerror(rejected)})."]))
+    rep.extend(fit_rep.sections)      # inputs, fit, |B| RMS, temperature dependence, H, K
     report = rep.write(out)
 
-    print(f"\nmagcal demo: unit {cs.unit.id}, {tel.n} samples of {campaign.name}")
-    print(f"{'sensor':8s} {'C == Python':>12s} {'raw nT':>10s} {'calibrated':>11s} "
-          f"{'truth':>8s} {'ratio':>6s}")
-    for r in rows:
-        print(f"{r[0]:8s} {r[2]:>12s} {r[3]:10.1f} {r[4]:11.1f} {r[5]:8.1f} {r[6]:6.3f}")
+    print(f"\nmagcal demo: unit {cs.unit.id} (seed {seed})")
+    for title, tel, rows in (("thermal campaign", thermal_tel, thermal_rows),
+                             ("orbit campaign", flight_tel, flight_rows)):
+        print(f"\n{title}, {tel.n} samples")
+        print(f"{'sensor':8s} {'C == Python':>12s} {'raw nT':>10s} {'calibrated':>11s} "
+              f"{'truth':>8s} {'ratio':>6s} {'angle deg':>10s}")
+        for r in rows:
+            print(f"{r[0]:8s} {r[2]:>12s} {r[3]:10.1f} {r[4]:11.1f} {r[5]:8.1f} {r[6]:6.3f} "
+                  f"{r[7]:10.3f}")
+    print(f"\nuplink table: {len(table)} bytes, accepted by the flight validator; "
+          f"one flipped bit rejected ({th.strerror(rejected)})")
     print(f"coefficients: {fit_dir / 'coefficients.json'}")
     print(f"flight C:     {c_dir}")
     print(f"report:       {report}")
-    return 0 if all_identical else 1
+    return 0 if all_identical and table_ok else 1
