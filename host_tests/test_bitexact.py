@@ -150,7 +150,9 @@ def test_property_any_single_sample(data):
     """Hypothesis: any counts in range, any float32 temperature (inf/nan included), any
     currents: C and Python agree bit for bit."""
     label, cs = CASES[-2]   # random coefficient set with coils, float32
-    host = _HOSTS.setdefault(label, HostUnit(cs))
+    if label not in _HOSTS:
+        _HOSTS[label] = HostUnit(cs)
+    host = _HOSTS[label]
     s = data.draw(st.sampled_from(cs.unit.sensors))
     k = 6 if s.set_reset else 3
     raw = np.array([data.draw(st.lists(st.integers(s.count_min, s.count_max), min_size=k,
