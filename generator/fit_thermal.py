@@ -431,7 +431,7 @@ def _gather(name, datas, notes, per_file):
                          "coil_current_excluded": n_coil, "no_reference": n_noref})
         if n_coil:
             notes.append(f"{d.source}: {n_coil} samples with non-zero coil current left out "
-                         "(coil coupling is not part of this fit)")
+                         "from the temperature fit (the coil coupling K is fitted from them separately)")
         if n_noref:
             notes.append(f"{d.source}: {n_noref} samples without any field reference unused")
         keep = np.nonzero(use)[0]

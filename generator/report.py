@@ -767,6 +767,119 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
     return out
 
 
+def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
+    """The measurement-chain results of seed 000 beside the seed's own figures: agreement
+    of the two magnetometers (H), magnetorquer interference by distance and the |B|
+    error with and without the coil term, SET/RESET offset error while turning."""
+    out = []
+    al = cs.fit_info.get("alignment")
+    if al:
+        seed = al.get("seed", {})
+        rows = []
+        for when in ("before", "after"):
+            f = al[when]
+            rows.append([when + (" (H = I)" if when == "before" else " H"), f["n"]]
+                        + [float(x) for x in f["proj_diff_mean_pct"]]
+                        + [float(max(f["proj_diff_max_pct"])), float(f["angle_mean_deg"]),
+                           float(f["angle_max_deg"])])
+        rows.append(["seed 000, after", "-", "-", "-", "-",
+                     float(seed.get("proj_diff_max_pct", 0.5)), "-",
+                     float(seed.get("angle_max_deg", 0.07))])
+        out.append(Section("Agreement of the two magnetometers: figures of merit", [
+            f"H (boom -> body) from {al.get('source')}: {al['angle_deg']:.4f} ± "
+            f"{al['sigma_angle_deg']:.4f} deg (1-sigma). Difference of the normalised "
+            "projections per axis and angle between the reference and the boom vectors, before "
+            "and after H (seed 000 eq. 2-3). Noise alone gives a mean angle of "
+            f"{al.get('noise_floor_angle_mean_deg', float('nan')):.4f} deg."],
+            [Table(["", "samples", "proj. diff x mean %", "y mean %", "z mean %",
+                    "proj. diff max %", "angle mean deg", "angle max deg"], rows,
+                   "Before and after H, beside the seed's figures")]))
+    if cs.spec.coils and analysis is not None:
+        try:
+            out.extend(_coil_sections(cs, analysis, out_dir))
+        except Exception as e:     # the report must not lose the fit over a figure
+            out.append(Section("Magnetorquer interference", [f"Not computed: {e}"]))
+    if any(s.set_reset for s in cs.unit.sensors):
+        out.extend(_setreset_sections(cs, out_dir))
+    return out
+
+
+def _coil_sections(cs, analysis, out_dir) -> list:
+    from .fit_coils import (SEED_POINTS_CM, correction_table, fit_coils,
+                            interference_table)
+    from .pipeline import _has_coil_steps
+
+    k = next((i for i, t in enumerate(analysis.tels) if _has_coil_steps(t)), None)
+    if k is None:
+        return []
+    tel = analysis.tels[k]
+    cf = fit_coils(cs.unit, [tel])
+    rows = interference_table(cs.unit, cf, current_A=0.1)
+    pts = [float(r) for r in SEED_POINTS_CM]
+    table = [[r["sensor"], r["coil"], r["K_col_nT_per_A"], r["interference_nT"],
+              r["pct_of_lab_field"], r["distance_cm"]] + [r["at_cm"][p] for p in pts]
+             for r in rows]
+    seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
+    table.append(["seed 000", "no panel", "-", seed_np[30.0], 100 * seed_np[30.0] / 51540.0,
+                  30.0] + [seed_np[p] for p in pts])
+    table.append(["seed 000", "with panel", "-", seed_p[30.0], 100 * seed_p[30.0] / 51540.0,
+                  30.0] + [seed_p[p] for p in pts])
+    sec = Section("Magnetorquer interference at 0.1 A", [
+        f"|K column| x 0.1 A per sensor and coil from {tel.path}; scaled as 1/r^3 from the "
+        "sensor's assumed distance to the coil (boom sensors 30 cm, the boom's length; body "
+        "sensors an assumed 10 cm) to the seed's points 5, 15 and 30 cm. The seed measured "
+        "167.87 nT without and 307.57 nT with the solar panel at 30 cm and 0.1 A."],
+        [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
+                "assumed r cm"] + [f"at {p:g} cm nT" for p in pts], table,
+               "Interference by sensor and coil")])
+    series = {f"{r['sensor']} {r['coil']}": [r["at_cm"][p] for p in pts] for r in rows
+              if r["frame"] == "boom"}
+    series["seed 000, no panel"] = [seed_np[p] for p in pts]
+    series["seed 000, with panel"] = [seed_p[p] for p in pts]
+    dist = coil_distance_section(out_dir, pts, series, current_A=0.1)
+    cals = {s.name: cs.calibration(s.name) for s in cs.unit.sensors}
+    corr = correction_table(cs.unit, tel, cals, cf)
+    crow = [[n, r["rms_norm_nT"]["without"], r["rms_norm_nT"]["with"],
+             (r.get("rms_norm_on_nT") or {}).get("without"),
+             (r.get("rms_norm_on_nT") or {}).get("with")] for n, r in corr.items()]
+    sec.tables.append(Table(["sensor", "|B| RMS without K nT", "with K nT",
+                             "current on: without nT", "with nT"], crow,
+                            "The coil term in the chain: |B| error before and after"))
+    return [sec, dist]
+
+
+def _setreset_sections(cs, out_dir) -> list:
+    from . import setreset
+
+    field = float(cs.unit.lab_field_nT or setreset.DEFAULT_FIELD_NT)
+    maps = setreset.offset_error_maps(field_nT=field)
+    sec = setreset_section(out_dir, maps["rate_dps"], maps["theta_deg"],
+                           maps["error_abs_nT"][..., 0], maps["t_TM_ms"], field_nT=field)
+    rows = [[r["t_TM_ms"], r["t_delay_ms"], r["rate_dps"], r["seed_plane_nT"],
+             r["seed_plane_pct"], r["worst_nT"], r["worst_pct"], r["worst_over_seed"],
+             "yes" if r["seed_bound_holds_general"] else "no"]
+            for r in maps["worst_case"]]
+    sec.tables.append(Table(["t_TM ms", "t_delay ms", "rate deg/s", "seed case (field on the "
+                             "axis) nT", "%", "any geometry, worst nT", "%", "x seed case",
+                             "< 0.001 %"], rows,
+                            "The seed's plane rotation against the general case"))
+    gain = setreset.compensation_gain(field_nT=field, n_trials=1000)
+    grow = []
+    for i, r in enumerate(gain["rate_dps"]):
+        for k, tTM in enumerate(gain["t_TM_ms"]):
+            grow.append([float(r), float(tTM)] + [100.0 * float(gain["removed"][i, k, j])
+                                                  for j in range(len(gain["gyro_noise_dps"]))])
+    sec.tables.append(Table(["rate deg/s", "t_TM ms"] + [f"removed % (gyro noise {g:g} deg/s)"
+                                                        for g in gain["gyro_noise_dps"]], grow,
+                            "Gyro compensation: share of the offset error it removes"))
+    sec.paragraphs.append(
+        f"Field {field:.0f} nT. The seed treats the field along the axis, where the error is "
+        "second order in the angle turned (B (1 - cos phi) / 2); for any other direction the "
+        "projection changes to first order (B sin theta phi), hence the general worst case. "
+        "The chain can compensate it with the gyro rate (SensorOptions.sr_compensation).")
+    return [sec]
+
+
 def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     from .fit_alignment import angle_between_deg, calibrated_fields
 
@@ -814,6 +927,7 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
         for s in cs.unit.sensors:
             rep.add(Section(f"Coefficients: {s.name}", [], [polynomial_table(cs, s.name)]))
     rep.extend(extras_sections(cs, analysis, out_dir))
+    rep.extend(seed000_sections(cs, analysis, out_dir))
     notes = [n for n in cs.fit_info.get("notes", [])]
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}

@@ -97,3 +97,18 @@ def test_without_the_coil_coupling_flight_is_worse(ground_fit, fm1_dir, tmp_path
         B = np.stack([got[f"mmc1_{a}_nT"] for a in "xyz"], axis=1)
         errs[name] = truth_mod.rms_norm_error(B, b_true)
     assert errs["without K"] > 1.5 * errs["with K"], errs
+
+
+def test_fit_report_has_the_seed_000_chain_results(ground_fit):
+    """Issue 3: the before/after tables of H and the coils, the coil interference by
+    distance beside the seed's figures and the SET/RESET error maps are in the report."""
+    out = ground_fit.parent
+    md = (out / "report.md").read_text()
+    for title in ("Agreement of the two magnetometers: figures of merit",
+                  "Magnetorquer interference at 0.1 A",
+                  "Magnetorquer interference against distance",
+                  "SET/RESET offset error while turning"):
+        assert f"## {title}" in md, title
+    assert "seed 000, after" in md and "167.9" in md and "307.6" in md
+    for png in ("coil_distance.png", "setreset_error_maps.png"):
+        assert (out / png).stat().st_size > 10_000, png
