@@ -344,6 +344,48 @@ def _geo_resid_jac(params, x, R, w):
     return r, np.hstack([Jb, Jm])
 
 
+def _normalised_resid_jac(params, x, R, w):
+    """Noise-normalised residuals s_i = (|M (x_i - b)| - R_i) / |M^T u_i| and their
+    Jacobian (N, 9), times the weights w.
+
+    A reading noise of sigma per axis moves |M (x - b)| by sigma |M^T u| (u the unit
+    calibrated vector), so every s_i has the same variance sigma^2: least squares on s is
+    the first-order maximum likelihood. The plain geometric residual (|M (x - b)| - R) is
+    not: its cost can fall by shrinking M along the directions the data's normals point,
+    which cancels on a full sphere but biases the offset along the axis of a cap of
+    orientations (bench/peers: 21.6x the Cramer-Rao bound at a 60 deg cap, 0.84x with s).
+    rho = |z|, z = M y, y = x - b, u = z / rho, v = M u (M symmetric), g = |v|;
+    ds = drho / g - r dg / g^2, drho = u.dz, du = (I - u u^T) dz / rho, dv = dM u + M du,
+    dg = v.dv / g; dz = -M e_j for b_j, E_k y for the symmetric entry m_k."""
+    b, M = params[:3], sym_from6(params[3:])
+    y = x - b
+    z = y @ M.T
+    rho = np.linalg.norm(z, axis=1)
+    u = z / rho[:, None]
+    v = u @ M
+    g = np.linalg.norm(v, axis=1)
+    r = rho - R
+    s = r / g
+    J = np.empty((len(x), 9))
+    for j in range(9):
+        if j < 3:
+            dz = np.broadcast_to(-M[:, j], z.shape)
+            dMu = 0.0
+        else:
+            E = sym_from6(np.eye(6)[j - 3])
+            dz = y @ E.T
+            dMu = u @ E.T
+        drho = np.sum(u * dz, axis=1)
+        du = (dz - u * drho[:, None]) / rho[:, None]
+        dv = dMu + du @ M.T
+        dg = np.sum(v * dv, axis=1) / g
+        J[:, j] = drho / g - r * dg / g ** 2
+    return s * w, J * w[:, None]
+
+
+RESIDUALS = {"normalised": _normalised_resid_jac, "geometric": _geo_resid_jac}
+
+
 def _undetermined_message(cond, R_mean, b_sig, M_sig, x):
     what = []
     bad_b = b_sig > MAX_OFFSET_SIGMA_REL * R_mean
@@ -358,12 +400,15 @@ def _undetermined_message(cond, R_mean, b_sig, M_sig, x):
             + " and ".join(what) + ": " + _plane_hint(x))
 
 
-def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=None):
+def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=None,
+                  residual="normalised"):
     """Fit b (offset, nT) and symmetric M with |M (B~ - b)| = |B| (seed 000 eq. 5-6).
 
     field_nT: (N, 3) uncalibrated readings in frame axes (usable samples only).
     ref_norm_nT: scalar or (N,) reference field magnitude.
-    refine: follow the algebraic fit by the geometric least-squares refinement.
+    refine: follow the algebraic fit by the least-squares refinement, on the
+    noise-normalised residuals ("normalised", the maximum-likelihood one, efficient on
+    partial coverage too) or the plain geometric ones ("geometric", for comparison).
     weights: optional (N,) residual weights (1/sigma).
     Returns (b_nT (3,), M (3, 3) symmetric, info) where info holds both stages:
     info["algebraic"] / info["geometric"] = {"b_nT", "M", "rms_nT"}, the 1-sigma
@@ -380,7 +425,10 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
     info = {"n": int(len(x)), "algebraic": {"b_nT": b_a, "M": M_a, "rms_nT": rms(b_a, M_a),
                                             **det}}
     p0 = np.concatenate([b_a, sym_to6(M_a)])
-    model = residual_model(lambda q: _geo_resid_jac(q, x, R, w))
+    if residual not in RESIDUALS:
+        raise ValueError(f"residual must be one of {sorted(RESIDUALS)}")
+    resid_jac = RESIDUALS[residual]
+    model = residual_model(lambda q: resid_jac(q, x, R, w))
     if refine:
         p, cost, JTJ, lm = lm_solve(model, p0)
         info["lm"] = lm
@@ -401,7 +449,8 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
         M_sig[i, j] = M_sig[j, i] = m_sig[k]
     z = (x - b) @ M.T
     u = z / np.linalg.norm(z, axis=1)[:, None]
-    info["geometric" if refine else "final"] = {"b_nT": b, "M": M, "rms_nT": rms(b, M)}
+    info["geometric" if refine else "final"] = {"b_nT": b, "M": M, "rms_nT": rms(b, M),
+                                                "residual": residual}
     info.update({"b_sigma_nT": b_sig, "M_sigma": M_sig, "cov": cov, "cond": cond,
                  "residual_sigma_nT": float(np.sqrt(s2)), "coverage": coverage(u)})
     R_mean = float(R.mean())

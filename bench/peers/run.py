@@ -55,7 +55,7 @@ from generator.errors import InputError                  # noqa: E402
 from generator.truth import true_calibrated_frame        # noqa: E402
 
 OURS = "ours (ellipsoid_fit)"
-VARIANT = "ours + normalised residuals (variant)"
+VARIANT = "ours, plain geometric refinement (before)"
 
 
 @dataclass
@@ -81,13 +81,15 @@ class Method:
 METHODS = [
     Method(OURS, fit=variants.ours_fit,
            note="generator.fit_ellipsoid.ellipsoid_fit: algebraic Li-Griffiths start in "
-                "normalised coordinates, geometric Levenberg-Marquardt refinement, refuses "
-                "fits the data do not determine"),
+                "normalised coordinates, Levenberg-Marquardt refinement of the "
+                "noise-normalised residuals (|M(x-b)|-R)/|M^T u|, refuses fits the data do "
+                "not determine"),
     Method("ours, algebraic stage only", fit=variants.ours_algebraic,
            note="generator.fit_ellipsoid.algebraic_ellipsoid alone"),
-    Method(VARIANT, fit=variants.normalised_fit,
-           note="same start; refinement of (|M(x-b)|-R)/|M^T u| (generator.crb), "
-                "bench/peers/variants.py; not in the pipeline"),
+    Method(VARIANT, fit=variants.geometric_fit,
+           note="same start; refinement of the plain |M(x-b)|-R (ellipsoid_fit("
+                "residual='geometric')), the pipeline's default until the peer comparison "
+                "showed its bias on caps"),
     Method("Li & Griffiths 2004 (bench reimplementation)", adapter="peer_li_griffiths.py",
            scale_free=True, note="paper's k=4 ellipsoid-specific fit on raw uT readings, "
                                  "bench/peers/adapters/peer_li_griffiths.py"),
@@ -211,7 +213,7 @@ def collect_peer_results(run: Run):
 # ---------------------------------------------------------------------------------------
 def efficiency_monte_carlo(run: Run):
     estimators = [(OURS, variants.ours_fit),
-                  (VARIANT, variants.normalised_fit)]
+                  (VARIANT, variants.geometric_fit)]
     seed = run.args.seeds[0]
     for cap in [180.0] + list(run.args.caps):
         draws = run.args.mc_draws if cap >= 180 else run.args.mc_draws_cap

@@ -5,8 +5,9 @@ comparison. Nothing here changes the pipeline; these are what the table compares
   Li-Griffiths start in normalised coordinates + geometric Levenberg-Marquardt refinement,
   with its refusal checks).
 * `ours_algebraic`: its algebraic stage alone.
-* `normalised_fit`: the same algebraic start, then Levenberg-Marquardt (the pipeline's
-  lm_solve) on the NOISE-NORMALISED residuals (|M (x - b)| - R) / |M^T u| of generator.crb,
+* `geometric_fit`: the pipeline's fit with the plain geometric refinement, as it was
+  before the noise-normalised residuals became the default. The default refines the
+  NOISE-NORMALISED residuals (|M (x - b)| - R) / |M^T u| of generator.crb,
   whose variance is the same for every sample: the first-order maximum likelihood. The
   plain geometric cost sum (|M (x - b)| - R)^2 can lower itself by shrinking M along the
   directions where the data's normals point (the residual of the same reading noise is
@@ -24,8 +25,8 @@ import numpy as np
 from generator.calibration import POLY_DEGREE, SensorCalibration
 from generator.crb import normalised_residuals
 from generator.errors import InputError
-from generator.fit_ellipsoid import (algebraic_ellipsoid, ellipsoid_fit, lm_solve,
-                                     residual_model, sym_from6, sym_to6)
+from generator.fit_ellipsoid import (_normalised_resid_jac, algebraic_ellipsoid,
+                                     ellipsoid_fit, sym_from6, sym_to6)
 from generator.fit_thermal import T_REF_C, _gather, _powers
 
 
@@ -39,47 +40,10 @@ def ours_algebraic(x_nT, R_nT):
     return b, M
 
 
-def _normalised_resid_jac(p, x, R):
-    """Residuals s_i = (rho_i - R) / g_i and their analytic Jacobian (N, 9):
-    rho = |z|, z = M y, y = x - b, u = z / rho, v = M u (M symmetric), g = |v|;
-    ds = drho / g - r dg / g^2, drho = u.dz, du = (I - u u^T) dz / rho,
-    dv = dM u + M du, dg = v.dv / g; dz = -M e_j for b_j, E_k y for m_k."""
-    b, M = p[:3], sym_from6(p[3:])
-    y = x - b
-    z = y @ M.T
-    rho = np.linalg.norm(z, axis=1)
-    u = z / rho[:, None]
-    v = u @ M
-    g = np.linalg.norm(v, axis=1)
-    r = rho - R
-    s = r / g
-    J = np.empty((len(x), 9))
-    E = np.zeros((6, 3, 3))
-    for k, row in enumerate(np.eye(6)):
-        E[k] = sym_from6(row)
-    for j in range(9):
-        if j < 3:
-            dz = np.broadcast_to(-M[:, j], z.shape)
-            dMu = 0.0
-        else:
-            dz = y @ E[j - 3].T
-            dMu = u @ E[j - 3].T
-        drho = np.sum(u * dz, axis=1)
-        du = (dz - u * drho[:, None]) / rho[:, None]
-        dv = dMu + du @ M.T
-        dg = np.sum(v * dv, axis=1) / g
-        J[:, j] = drho / g - r * dg / g ** 2
-    return s, J
-
-
-def normalised_fit(x_nT, R_nT):
-    x = np.asarray(x_nT, float)
-    b0, M0, _ = algebraic_ellipsoid(x, R_nT)
-    p, _, _, info = lm_solve(residual_model(lambda q: _normalised_resid_jac(q, x, R_nT)),
-                             np.concatenate([b0, sym_to6(M0)]))
-    b, M = p[:3], sym_from6(p[3:])
-    if np.linalg.eigvalsh(M)[0] <= 0:
-        raise InputError(None, "normalised fit: matrix not positive definite")
+def geometric_fit(x_nT, R_nT):
+    """The pipeline's fit with the plain geometric refinement (as before the noise-
+    normalised residuals became the default): kept for the comparison."""
+    b, M, _ = ellipsoid_fit(x_nT, R_nT, residual="geometric")
     return b, M
 
 
@@ -89,11 +53,12 @@ def check_normalised_jacobian(rng=None) -> float:
     x = rng.normal(size=(50, 3)) * 5e4 + 1e3
     A = rng.normal(size=(3, 3))
     p = np.concatenate([[900.0, -400.0, 1200.0], sym_to6(np.eye(3) + 0.05 * (A + A.T))])
-    s, J = _normalised_resid_jac(p, x, 5e4)
+    s, J = _normalised_resid_jac(p, x, 5e4, np.ones(len(x)))
     assert np.allclose(s, normalised_residuals(p[:3], sym_from6(p[3:]), x, 5e4))
     h = np.concatenate([np.full(3, 1e-3), np.full(6, 1e-9)])
-    Jn = np.stack([(_normalised_resid_jac(p + h[j] * np.eye(9)[j], x, 5e4)[0] -
-                    _normalised_resid_jac(p - h[j] * np.eye(9)[j], x, 5e4)[0]) / (2 * h[j])
+    one = np.ones(len(x))
+    Jn = np.stack([(_normalised_resid_jac(p + h[j] * np.eye(9)[j], x, 5e4, one)[0] -
+                    _normalised_resid_jac(p - h[j] * np.eye(9)[j], x, 5e4, one)[0]) / (2 * h[j])
                    for j in range(9)], axis=1)
     return float(np.max(np.abs(Jn - J)) / np.max(np.abs(J)))
 
