@@ -23,8 +23,8 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     coils       x_i -= K_i0 i_0 + K_i1 i_1 + ...                             (when coils are in the chain)
     channels    x_i -= C_i0 ch_0 + C_i1 ch_1 + ...                           (option: channels)
     cubic       x_i -= n_i x_i x_i x_i                                      (option: nonlinear)
-    SET/RESET   x += c (w x x), w the body rate in the frame                 (option: sr_compensation)
     calibrate   B_i = m_i0 x_0 + m_i1 x_1 + m_i2 x_2                        (eq. 5)
+    SET/RESET   B += c (w x B), w the body rate in the board frame          (option: sr_compensation)
     boom        B_body_i = H_i0 B_0 + H_i1 B_1 + H_i2 B_2                    (boom sensors, eq. 2-3)
     band        B.B - field_min^2 and field_max^2 - B.B, both >= 0 when plausible
 
@@ -107,8 +107,8 @@ class SensorOptions:
     thermal_lag: the element temperature follows the reported one through a first-order
         filter, T_el += dt / (tau + dt) (T - T_el), kept in the sensor's state;
     nonlinear: per-axis cubic of the reading, x_i -= n_i x_i^3 after the offsets;
-    sr_compensation: SET/RESET rotation error, x += c (w x x), w the body rate in the
-        sensor's frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg).
+    sr_compensation: SET/RESET rotation error, B += c (w x B) after M, w the body rate in
+        the board frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg).
     """
 
     channels: tuple = ()
@@ -220,7 +220,7 @@ class ChainSpec:
                                 "per-axis cubic of the reading, x -= n x^3"))
         if o.sr_compensation:
             blocks.append(Block("sr_comp_s_per_deg", (), "s rad/deg", "sr_delay",
-                                "SET->RESET delay / 2 * pi/180: x += c (w x x)"))
+                                "SET->RESET delay / 2 * pi/180: B += c (w x B)"))
         blocks.append(Block("agree_nT", (), "nT", "tolerance",
                             "expected scatter for the cross-sensor agreement check"))
         return tuple(blocks)
@@ -438,17 +438,20 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     if o.nonlinear:  # per-axis cubic of the reading
         n3 = c.get("cubic_per_nT2")
         x = [x[i] - n3[i] * x[i] * x[i] * x[i] for i in range(3)]
-    if o.sr_compensation:   # SET/RESET rotation error: x += c (w x x), w in the frame
+    # calibration (eq. 5)
+    B = [_dot3(M[i], x) for i in range(3)]
+    if o.sr_compensation:
+        # SET/RESET rotation error: the RESET reading sees the field turned by -w dt, so
+        # the pair gives W (B - (w x B) dt / 2): after M it is B - c (w x B), c = dt / 2,
+        # exactly; undo it with the body rate in the board frame (boom: H^T w).
         k = c.scalar("sr_comp_s_per_deg")
         w = list(rate_dps)
-        if sensor.frame == "boom":   # w_boom = H^T w_body
+        if sensor.frame == "boom":
             H = u.get("H_boom_to_body")
             w = [H[0][i] * rate_dps[0] + H[1][i] * rate_dps[1] + H[2][i] * rate_dps[2]
                  for i in range(3)]
-        wx = [w[1] * x[2] - w[2] * x[1], w[2] * x[0] - w[0] * x[2], w[0] * x[1] - w[1] * x[0]]
-        x = [x[i] + k * wx[i] for i in range(3)]
-    # calibration (eq. 5)
-    B = [_dot3(M[i], x) for i in range(3)]
+        wB = [w[1] * B[2] - w[2] * B[1], w[2] * B[0] - w[0] * B[2], w[0] * B[1] - w[1] * B[0]]
+        B = [B[i] + k * wB[i] for i in range(3)]
     # boom -> body (eq. 2-3)
     if sensor.frame == "boom":
         H = u.get("H_boom_to_body")

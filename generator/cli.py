@@ -202,8 +202,23 @@ def _args_table(p):
     add_table_args(p)
 
 
+@verb("trace", "trace structure left in the residual to an effect the model lacks, "
+               "add it, report before and after")
+def cmd_trace(args):
+    from .trace import cmd_trace as run
+
+    return run(args)
+
+
+def _args_trace(p):
+    from .trace import add_trace_args
+
+    add_trace_args(p)
+
+
 ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
-        "plan": _args_plan, "check": _args_check, "table": _args_table}
+        "plan": _args_plan, "check": _args_check, "table": _args_table,
+        "trace": _args_trace}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -79,8 +79,15 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
 
 
 def _has_coil_steps(tel: Telemetry) -> bool:
+    """A coil campaign: magnetorquer currents that step while the unit stands in static
+    positions (a `position` column > 0). Orbit telemetry with B-dot currents is not one:
+    its field turns with the satellite, which a per-position constant cannot absorb."""
     cols = [c for c in tel.columns if c.startswith("coil_") and c.endswith("_A")]
-    return bool(cols) and any(np.nanmax(np.abs(tel.columns[c])) > 0 for c in cols)
+    if not cols or "position" not in tel.columns:
+        return False
+    static = tel.columns["position"] > 0
+    return bool(static.any()) and any(np.nanmax(np.abs(tel.columns[c][static])) > 0
+                                      for c in cols)
 
 
 def _has_ref_vectors(tel: Telemetry) -> bool:

@@ -1,0 +1,745 @@
+"""Catalogue of candidate effects for `magcal trace` (issue 6).
+
+Each entry is one class: what the effect is (`physics`), what it is made of in the data
+(`candidates` builds one instance per applicable column or quantity, `explained_by`
+names them), its parameters (a few internal, well-scaled numbers, `describe` gives them
+in physical units), where it acts in the float64 model of the chain (a *hook*, below) and
+its FLIGHT FORM, i.e. how it enters the flight chain's coefficient set (`to_flight`;
+`in_chain = False` for effects the flight chain does not carry).
+
+The float64 model of the extended chain (generator.trace.SensorModel) runs, per sample,
+in the order of generator.chain.sensor_kernel:
+
+    field_f                         raw field, frame axes (SET/RESET, axis map)
+    T_el   <- hook "temperature"    (ThermalLag: first-order filter of the reported T)
+    clamp, dT, b(T), M(T)           base polynomials of the baseline degree
+    x = field_f - b(T) - K i_coil
+    x -= hook "offset"              (TemperaturePolynomial extra b rows, ChannelBias C ch,
+                                     BiasStep)
+    x  = hook "transform" (order)   (CubicNonlinearity x_i -= n_i x_i^3, then
+                                     SetResetRotation B += c (w_f x B))
+    B = M(T) x
+    reference <- hook "reference"   (TimeOffset: B_ref + dt dB_ref/dt)
+
+Hooks are batched: p has shape (Bt, n_params) (a batch of parameter vectors, used for the
+finite-difference Jacobian), the samples S are shared, arrays returned are (Bt, n, ...).
+
+Adding an effect: write one subclass (see docs/effects.md) and append it to CATALOGUE.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .chain import MAX_POLY_DEGREE
+
+FIELD_SCALE_nT = 50000.0          # the cubic's internal parameter: nT at 50 uT on the axis
+
+
+class Effect:
+    """Base class of a catalogue entry. Subclasses set the class attributes and override
+    `candidates`, the hook of their stage and `describe` / `to_flight`."""
+
+    name = ""                 # short name, used in trace.json "effect"
+    title = ""                # a few words for the report
+    physics = ""              # one sentence: the mechanism
+    flight_form = ""          # one sentence: how the flight chain carries it
+    in_chain = True           # False: no flight-chain form (see flight_form)
+    stage = ""     # "temperature" | "offset" | "transform" | "calibrated" | "reference"
+    order = 0                 # order among effects of the "transform" stage
+    repeatable = False        # more than one instance per sensor (another channel, step)
+    n_params = 0              # continuous parameters (internal units, fitted jointly)
+    n_hyper = 0               # scanned parameters (a change time, a time constant)
+    fd_in_scoring = True      # score with the Jacobian columns of the parameters
+    prior = 0                 # tie-break between statistically equivalent explanations:
+    #                           the higher wins (a mechanism the part is known to have)
+
+    def __init__(self):
+        self.hyper = None
+
+    # ---- identity ---------------------------------------------------------------------
+    def key(self) -> str:
+        return self.name
+
+    def explained_by(self) -> list:
+        return []
+
+    @property
+    def n_dof(self) -> int:
+        """Parameter count used by the significance rule (continuous + scanned)."""
+        return self.n_params + self.n_hyper
+
+    # ---- candidates -------------------------------------------------------------------
+    @classmethod
+    def candidates(cls, ctx) -> tuple:
+        """(list of instances applicable to this sensor's data, reason when none)."""
+        return [], "not implemented"
+
+    # ---- scanning -----------------------------------------------------------------------
+    def scan_grid(self, S) -> list:
+        return [None]
+
+    def set_hyper(self, h):
+        self.hyper = h
+
+    def init_params(self) -> np.ndarray:
+        return np.zeros(self.n_params)
+
+    def refine_grid(self, S, best) -> list:
+        """A finer grid around the best coarse value (for the final fit); [] for none."""
+        return []
+
+    def hyper_after_fit(self, p):
+        """The scanned value that a fit with parameters p amounts to (see ThermalLag)."""
+        return self.hyper
+
+    # ---- hooks (override the one of `stage`) -------------------------------------------
+    def temperature(self, p, S, T):
+        return T
+
+    def offset(self, p, S, st):
+        return 0.0
+
+    def transform(self, p, S, x, st):
+        return x
+
+    def calibrated(self, p, S, B, st):
+        return B
+
+    def reference_shift(self, p, S):
+        return 0.0
+
+    # ---- output -----------------------------------------------------------------------
+    def describe(self, p, model=None) -> dict:
+        """Physical parameters (JSON-able, names with units)."""
+        return {}
+
+    def to_flight(self, p, values: dict, options: dict, model) -> None:
+        """Write the flight form into the sensor's block values / chain options."""
+
+    @classmethod
+    def from_flight(cls, sensor_values: dict, options, S, model_info) -> list:
+        """Instances (with parameters) for a supplied coefficient set that already carries
+        this effect's flight form: [(effect, internal params)]."""
+        return []
+
+    def label(self) -> str:
+        by = ", ".join(self.explained_by())
+        return f"{self.name}({by})" if by else self.name
+
+
+# ---------------------------------------------------------------------------------------
+# Helpers over the sensor samples (S: generator.trace.SensorSamples)
+# ---------------------------------------------------------------------------------------
+
+def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
+    """The flight chain's element temperature: T_el[0] = T[0], then
+    T_el[k] = T_el[k-1] + dt/(tau + dt) (T[k] - T_el[k-1]) (generator.chain.lag_kernel)."""
+    t = np.asarray(time_s, float)
+    T = np.asarray(temp_C, float)
+    out = np.empty_like(T)
+    if len(T) == 0:
+        return out
+    if tau_s <= 0:
+        return T.copy()
+    dt = np.diff(t)
+    a = dt / (tau_s + dt)
+    if len(dt) and np.ptp(dt) <= 1e-9 * max(abs(dt[0]), 1e-12):
+        from scipy.signal import lfilter
+        a0 = a[0]
+        y, _ = lfilter([a0], [1.0, -(1.0 - a0)], T[1:], zi=[(1.0 - a0) * T[0]])
+        out[0] = T[0]
+        out[1:] = y
+        return out
+    el = T[0]
+    out[0] = el
+    Tl = T.tolist()
+    al = a.tolist()
+    for k in range(1, len(Tl)):
+        el = el + al[k - 1] * (Tl[k] - el)
+        out[k] = el
+    return out
+
+
+def element_temperature(series, tau_s) -> np.ndarray:
+    """lag_filter of one file's temperature series, kept on the series (one recursion per
+    time constant; the cache lives and dies with the series)."""
+    cache = series.__dict__.setdefault("_lag_cache", {})
+    key = round(float(tau_s), 12)
+    v = cache.get(key)
+    if v is None:
+        if len(cache) > 64:
+            cache.clear()
+        v = cache[key] = lag_filter(series.time_s, series.temp_C, tau_s)
+    return v
+
+
+def _rms(a) -> float:
+    a = np.asarray(a, float)
+    return float(np.sqrt(np.mean(a * a))) if a.size else 0.0
+
+
+# ---------------------------------------------------------------------------------------
+# The catalogue
+# ---------------------------------------------------------------------------------------
+
+class ChannelBias(Effect):
+    """A bias linear in a telemetry channel: a heater current, a solar-array or bus
+    current, a voltage, a flag, a magnetorquer current the model does not carry, a body
+    rate. Every numeric column that is not a sensor, reference, time or position column
+    is a candidate; one instance per column. Parameter: C (3, nT per unit of the column,
+    frame axes). Flight form: the `channels` option, block C_nT_per_unit, x -= C ch."""
+
+    name = "channel_bias"
+    title = "bias linear in a telemetry channel"
+    physics = ("a current or a switched load near the sensor adds a field proportional to "
+               "a telemetry channel")
+    flight_form = "channels option: block C_nT_per_unit (3 x nch), x -= C ch after the coils"
+    stage = "offset"
+    repeatable = True
+    n_params = 3
+
+    def __init__(self, channel, scale, present=None):
+        super().__init__()
+        self.channel = channel
+        self.scale = float(scale)        # internal parameter = nT per `scale` units
+        # a channel that only some files carry: an offset of its own for those files, so
+        # that only its variation counts (its mean would otherwise stand for "this file")
+        self.partial = present is not None
+        self.n_params = 6 if self.partial else 3
+
+    def key(self):
+        return f"{self.name}:{self.channel}"
+
+    def explained_by(self):
+        return [self.channel]
+
+    @classmethod
+    def candidates(cls, ctx):
+        S = ctx.samples
+        have = {e.channel for e in ctx.effects if isinstance(e, ChannelBias)}
+        out = []
+        for name, v in S.channels.items():
+            if name in have:
+                continue
+            present = S.channel_present.get(name)
+            partial = present is not None and not present.all()
+            v = np.asarray(v, float)
+            vv = v[present] if partial else v
+            sd = float(np.std(vv)) if len(vv) else 0.0
+            if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(vv)))):
+                continue
+            out.append(cls(name, sd, present if partial else None))
+        return out, ("" if out else "no varying telemetry channel besides the modelled ones")
+
+    def offset(self, p, S, st):
+        ch = S.channels[self.channel] / self.scale
+        out = p[:, None, :3] * ch[None, :, None]
+        if self.partial:
+            has = S.channel_present[self.channel].astype(float)
+            out = out + p[:, None, 3:6] * has[None, :, None]
+        return out
+
+    def C_nT_per_unit(self, p):
+        return np.asarray(p, float)[:3] / self.scale
+
+    def describe(self, p, model=None):
+        out = {"C_nT_per_unit": self.C_nT_per_unit(p).tolist(), "channel_std": self.scale}
+        if self.partial:
+            out["offset_where_present_nT"] = np.asarray(p, float)[3:6].tolist()
+        return out
+
+    def to_flight(self, p, values, options, model):
+        options.setdefault("channels", []).append(self.channel)
+        C = values.get("C_nT_per_unit")
+        col = self.C_nT_per_unit(p).reshape(3, 1)
+        values["C_nT_per_unit"] = col if C is None else np.hstack([C, col])
+        if self.partial:   # the files that carry the channel are the operating condition
+            values["b_poly_nT"][0] = values["b_poly_nT"][0] + np.asarray(p, float)[3:6]
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        out = []
+        C = np.asarray(sv.get("C_nT_per_unit", np.zeros((3, 0))), float)
+        for j, ch in enumerate(options.channels):
+            v = S.channels.get(ch)
+            sd = float(np.std(v)) if v is not None and len(v) else 1.0
+            sd = sd if sd > 0 else 1.0
+            e = cls(ch, sd)
+            out.append((e, C[:, j] * sd))
+        return out
+
+
+class ThermalLag(Effect):
+    """The sensing element lags the reported (board) temperature: the polynomials b(T),
+    M(T) see T_el, the reported T through the chain's first-order filter
+    T_el += dt/(tau + dt) (T - T_el). Parameter: tau_s (scanned on a log grid, then
+    fitted with everything else). Flight form: the `thermal_lag` option, block lag_tau_s."""
+
+    name = "thermal_lag"
+    title = "thermal lag of the sensing element"
+    physics = ("the sensing element follows the reported board temperature with a time "
+               "constant, so the temperature model is wrong while the temperature changes")
+    flight_form = "thermal_lag option: block lag_tau_s; the polynomials use T_el"
+    stage = "temperature"
+    n_params = 1
+    n_hyper = 0
+    fd_in_scoring = True      # each grid value refined by the tau column (log tau)
+    relinearise = True        # scored again from a nonlinear fit (see trace._rescore_refitted)
+    GRID = 14
+
+    def __init__(self):
+        super().__init__()
+        self.hyper = 1.0
+
+    def explained_by(self):
+        return ["temperature rate (reported temperature through a first-order lag)"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        if any(isinstance(e, ThermalLag) for e in ctx.effects):
+            return [], "already in the model"
+        if ctx.degree < 1:
+            return [], "the model has no temperature dependence for the element to lag"
+        S = ctx.samples
+        if np.ptp(S.temp_C) < max(0.5, 3 * ctx.temp_quantum):
+            return [], "the temperature hardly changes"
+        return [cls()], ""
+
+    def scan_grid(self, S):
+        dts = [np.median(np.diff(f.time_s)) for f in S.files if len(f.time_s) > 1]
+        spans = [np.ptp(f.time_s) for f in S.files if len(f.time_s) > 1]
+        lo = max(0.5 * float(np.min(dts)) if dts else 1.0, 0.05)
+        hi = max(0.5 * float(np.max(spans)) if spans else 10 * lo, 4 * lo)
+        return list(np.exp(np.linspace(math.log(lo), math.log(hi), self.GRID)))
+
+    def refine_grid(self, S, best):
+        return list(best * np.exp(np.linspace(-0.3, 0.3, 7)))
+
+    def tau_s(self, p):
+        return float(self.hyper * math.exp(float(np.asarray(p).reshape(-1)[0])))
+
+    def hyper_after_fit(self, p):
+        return self.tau_s(p)
+
+    def temperature(self, p, S, T):
+        taus = self.hyper * np.exp(np.asarray(p)[:, 0])
+        out = np.empty((len(taus), S.n))
+        uniq, inv = np.unique(np.round(taus, 12), return_inverse=True)
+        for u_i, tau in enumerate(uniq):
+            T_el = np.empty(S.n)
+            for fi, series in enumerate(S.files):
+                sel = S.file_index == fi
+                if sel.any():
+                    T_el[sel] = element_temperature(series, tau)[S.file_row[sel]]
+            out[inv == u_i] = T_el
+        return out
+
+    def describe(self, p, model=None):
+        return {"lag_tau_s": self.tau_s(p)}
+
+    def to_flight(self, p, values, options, model):
+        options["thermal_lag"] = True
+        values["lag_tau_s"] = np.array(self.tau_s(p))
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        if not options.thermal_lag:
+            return []
+        e = cls()
+        e.hyper = max(float(sv["lag_tau_s"]), 1e-6)
+        return [(e, np.zeros(1))]
+
+
+class TemperaturePolynomial(Effect):
+    """One more degree of the offset polynomial b(T) (a quartic or quintic term): the
+    offset's temperature curve bends more than the baseline degree allows. Parameter:
+    b_{d+1} (3, nT/degC^(d+1)). Flight form: poly_degree d+1 (unit-wide), the new row of
+    b_poly_nT; M_poly's new row is zero (the scale's curve keeps its degree)."""
+
+    name = "temperature_polynomial"
+    title = "higher polynomial degree of b(T)"
+    physics = ("the offset's temperature curve has a higher-order term than the "
+               "calibration polynomial")
+    flight_form = ("poly_degree raised (unit-wide): one more row of b_poly_nT, the new "
+                   "row of M_poly zero")
+    stage = "offset"
+    repeatable = True
+    n_params = 3
+
+    def __init__(self, degree):
+        super().__init__()
+        self.degree = int(degree)
+
+    def key(self):
+        return f"{self.name}:{self.degree}"
+
+    def explained_by(self):
+        return [f"temperature^{self.degree}"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        d = ctx.degree
+        if d >= MAX_POLY_DEGREE:
+            return [], f"degree {d} is the chain's highest"
+        S = ctx.samples
+        n_levels = len(np.unique(np.round(S.temp_C / max(ctx.temp_quantum, 1e-3))))
+        if n_levels < d + 3 or np.ptp(S.temp_C) < max(0.5, 3 * ctx.temp_quantum):
+            return [], "too few distinct temperatures for another degree"
+        return [cls(d + 1)], ""
+
+    def offset(self, p, S, st):
+        return p[:, None, :] * (st.s ** self.degree)[:, :, None]
+
+    def b_row(self, p, model):
+        return np.asarray(p, float) / model.t_scale_C ** self.degree
+
+    def describe(self, p, model=None):
+        out = {"degree": self.degree}
+        if model is not None:
+            out[f"b{self.degree}_nT_per_C{self.degree}"] = self.b_row(p, model).tolist()
+        return out
+
+    def to_flight(self, p, values, options, model):
+        b = values["b_poly_nT"]
+        if b.shape[0] < self.degree + 1:
+            b = np.vstack([b, np.zeros((self.degree + 1 - b.shape[0], 3))])
+            M = values["M_poly"]
+            values["M_poly"] = np.concatenate(
+                [M, np.zeros((self.degree + 1 - M.shape[0], 3, 3))])
+        b[self.degree] = b[self.degree] + self.b_row(p, model)
+        values["b_poly_nT"] = b
+
+
+class CubicNonlinearity(Effect):
+    """A per-axis cubic of the reading (the bridge's transfer curve bends at high field):
+    after the offsets, x_i -= n_i x_i^3. Needs readings in several field directions (the
+    cubic of one constant reading is only noise). Parameter: n (3, 1/nT^2). Flight form:
+    the `nonlinear` option, block cubic_per_nT2."""
+
+    name = "cubic_nonlinearity"
+    title = "per-axis cubic of the reading"
+    physics = "the sensor's transfer curve bends: each axis reads a cubic of its field"
+    flight_form = "nonlinear option: block cubic_per_nT2, x_i -= n_i x_i^3 after the offsets"
+    stage = "transform"
+    order = 1
+    n_params = 3
+
+    def explained_by(self):
+        return ["reading^3 per axis"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        if any(isinstance(e, CubicNonlinearity) for e in ctx.effects):
+            return [], "already in the model"
+        S = ctx.samples
+        absolute = S.kind != 2
+        if not absolute.any():
+            # without an absolute reference any contraction of the readings toward the
+            # position constants shrinks the noise: the scale, and a cubic, are not defined
+            return [], "no field reference (positions only): the scale of the reading is free"
+        v = np.where((S.kind == 0)[:, None], S.ref, S.x)[absolute]
+        u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
+        from .fit_ellipsoid import distinct_rows
+        if distinct_rows(u, 0.1, at_most=6) < 6:
+            return [], ("the field takes fewer than 6 directions: a cubic is not separable "
+                        "from noise")
+        return [cls()], ""
+
+    def transform(self, p, S, x, st):
+        n = p / FIELD_SCALE_nT ** 3
+        return x - n[:, None, :] * x ** 3
+
+    def describe(self, p, model=None):
+        return {"cubic_per_nT2": (np.asarray(p, float) / FIELD_SCALE_nT ** 3).tolist(),
+                "nT_at_50uT": np.asarray(p, float).tolist()}
+
+    def to_flight(self, p, values, options, model):
+        options["nonlinear"] = True
+        values["cubic_per_nT2"] = np.asarray(p, float) / FIELD_SCALE_nT ** 3
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        if not options.nonlinear:
+            return []
+        return [(cls(), np.asarray(sv["cubic_per_nT2"], float) * FIELD_SCALE_nT ** 3)]
+
+
+class BiasStep(Effect):
+    """A step of the offset at an unknown time (a magnetisation event: a current surge,
+    a magnet nearby, a SET pulse that failed). The change point is scanned over the data
+    in time order (files in the order given, holdout files after them). Parameters: the
+    step (3, nT, frame axes) and its time. Flight form: none in the chain; the offset
+    after the event is the new b0 (uplink a new table after the event)."""
+
+    name = "bias_step"
+    title = "offset step at an unknown time"
+    physics = "a magnetisation event shifted the sensor's offset from one moment on"
+    flight_form = ("no chain stage: the offset after the event is written into b_poly_nT[0] "
+                   "(a new uplink table after the event)")
+    in_chain = False
+    stage = "offset"
+    repeatable = True
+    n_params = 3
+    n_hyper = 1
+    GRID = 48
+
+    def __init__(self):
+        super().__init__()
+        self.where = None          # (file, time_s) of the first sample after the step
+
+    def explained_by(self):
+        if self.where is None:
+            return ["time (change point)"]
+        f, after, before = self.where
+        span = f"{before:.6g}..{after:.6g} s" if before is not None else f"<= {after:.6g} s"
+        return [f"time (change at {span} in {Path(f).name})"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        if ctx.samples.n < 20:
+            return [], "too few samples"
+        return [cls()], ""
+
+    def scan_grid(self, S):
+        q = np.unique(np.quantile(S.order, np.linspace(0.03, 0.97, self.GRID)).round())
+        return [int(v) for v in q]
+
+    def refine_grid(self, S, best):
+        o = np.unique(S.order)
+        i = int(np.searchsorted(o, best))
+        step = max(1, len(o) // self.GRID)
+        lo, hi = max(0, i - step), min(len(o) - 1, i + step)
+        cand = o[lo:hi + 1]
+        if len(cand) > 40:
+            cand = cand[np.linspace(0, len(cand) - 1, 40).round().astype(int)]
+        return [int(v) for v in cand]
+
+    def settle(self, S):
+        """Put the change point half way between the last sample before it and the first
+        after it (the samples of S say nothing about where in between it happened)."""
+        before = S.order[S.order < self.hyper]
+        if len(before):
+            prev = int(before.max())
+            self.hyper = prev + 1 + (int(self.hyper) - prev - 1) // 2
+
+    def mask(self, S):
+        """1 from the change point on (hyper None: everywhere)."""
+        if self.hyper is None:
+            return np.ones(S.n)
+        return (S.order >= self.hyper).astype(float)
+
+    def offset(self, p, S, st):
+        return p[:, None, :] * self.mask(S)[None, :, None]
+
+    def locate(self, S):
+        """Where the change point lies: (file, time of the first sample after it, time
+        of the last sample before it or None)."""
+        i = np.nonzero(S.order >= self.hyper)[0]
+        j = np.nonzero(S.order < self.hyper)[0]
+        if len(i):
+            k = i[np.argmin(S.order[i])]
+            before = None
+            if len(j):
+                kb = j[np.argmax(S.order[j])]
+                if S.file_index[kb] == S.file_index[k]:
+                    before = float(S.time_s[kb])
+            self.where = (S.file_names[S.file_index[k]], float(S.time_s[k]), before)
+
+    def describe(self, p, model=None):
+        out = {"step_nT": np.asarray(p, float).tolist()}
+        if self.where is not None:
+            out.update({"file": self.where[0], "first_sample_after_s": self.where[1],
+                        "last_sample_before_s": self.where[2]})
+        return out
+
+    def to_flight(self, p, values, options, model):
+        b = values["b_poly_nT"]
+        b[0] = b[0] + np.asarray(p, float)
+        values["b_poly_nT"] = b
+
+
+class TimeDrift(Effect):
+    """A bias drifting linearly in time within each file (creep, ageing, a slow warm-up
+    that no telemetry channel follows). The competitor of every slow explanation: where
+    temperature rises monotonically, a temperature term and a time drift look alike, and
+    only the shape of the curve tells them apart. Parameter: the drift (3, nT/s, frame
+    axes). Flight form: none; a drift in time is not predictable in flight (re-estimate
+    the offset, or find the channel that drives it)."""
+
+    name = "time_drift"
+    title = "bias drifting linearly in time"
+    physics = "the offset creeps with time itself, not with any telemetry channel"
+    flight_form = "no chain stage: the offset drifts in time; re-estimate it in flight"
+    in_chain = False
+    stage = "offset"
+    n_params = 3
+
+    def __init__(self, scale):
+        super().__init__()
+        self.scale = float(scale)      # internal parameter = nT at `scale` seconds
+
+    def explained_by(self):
+        return ["time since the start of the file"]
+
+    @staticmethod
+    def elapsed(S):
+        t0 = np.array([f.time_s[0] if len(f.time_s) else 0.0 for f in S.files])
+        return S.time_s - t0[S.file_index]
+
+    @classmethod
+    def candidates(cls, ctx):
+        if any(isinstance(e, TimeDrift) for e in ctx.effects):
+            return [], "already in the model"
+        S = ctx.samples
+        el = cls.elapsed(S)
+        sd = float(np.std(el))
+        if sd <= 0:
+            return [], "no time span"
+        return [cls(sd)], ""
+
+    def offset(self, p, S, st):
+        return p[:, None, :] * (self.elapsed(S) / self.scale)[None, :, None]
+
+    def describe(self, p, model=None):
+        return {"drift_nT_per_s": (np.asarray(p, float) / self.scale).tolist()}
+
+
+class SetResetRotation(Effect):
+    """SET/RESET rotation error: the RESET reading is taken a few ms after the SET one;
+    if the body turns meanwhile, (SET - RESET)/2 is the field turned by half that angle,
+    an error W (w x B) (delay/2) in the reading, i.e. exactly -c (w x B) after M. Regressor:
+    w_f x B from the gyro (rate_*_dps; the boom sensor's rate is H^T w). Parameter:
+    c = delay/2 * pi/180 (s rad/deg). Flight form: the `sr_compensation` option, block
+    sr_comp_s_per_deg, B += c (w_f x B) after M."""
+
+    name = "set_reset_rotation"
+    title = "SET/RESET rotation error (rate x field)"
+    physics = ("the RESET reading comes a few ms after the SET one, so a turning body "
+               "rotates the SET/RESET field by half the turn in that time")
+    flight_form = "sr_compensation option: block sr_comp_s_per_deg, B += c (w_f x B) after M"
+    stage = "calibrated"
+    order = 2
+    n_params = 1
+    prior = 1       # every SET/RESET part has a delay; a time offset is only a hypothesis
+
+    def __init__(self, scale):
+        super().__init__()
+        self.scale = float(scale)      # internal parameter = nT at rms rate and field
+
+    def explained_by(self):
+        return ["rate_x_dps, rate_y_dps, rate_z_dps x field"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        S = ctx.samples
+        if any(isinstance(e, SetResetRotation) for e in ctx.effects):
+            return [], "already in the model"
+        if not S.spec.set_reset:
+            return [], "not a SET/RESET sensor"
+        if S.rate_frame_dps is None:
+            return [], "no rate_x/y/z_dps columns"
+        w_rms = _rms(np.linalg.norm(S.rate_frame_dps, axis=1))
+        if w_rms < 0.05:
+            return [], "the body hardly turns"
+        x_rms = _rms(np.linalg.norm(S.x, axis=1))
+        return [cls(1.0 / max(w_rms * x_rms, 1e-9))], ""
+
+    def calibrated(self, p, S, B, st):
+        if S.rate_frame_dps is None:      # no gyro in the file: the chain takes w = 0
+            return B
+        c = p[:, 0] * self.scale
+        w = S.rate_frame_dps[None, :, :]
+        return B + c[:, None, None] * np.cross(w, B)
+
+    def c_s_per_deg(self, p):
+        return float(np.asarray(p).reshape(-1)[0] * self.scale)
+
+    def describe(self, p, model=None):
+        c = self.c_s_per_deg(p)
+        return {"sr_comp_s_per_deg": c, "set_reset_delay_ms": 2 * c * 180 / math.pi * 1e3}
+
+    def to_flight(self, p, values, options, model):
+        options["sr_compensation"] = True
+        values["sr_comp_s_per_deg"] = np.array(self.c_s_per_deg(p))
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        if not options.sr_compensation:
+            return []
+        w = S.rate_frame_dps
+        w_rms = _rms(np.linalg.norm(w, axis=1)) if w is not None else 1.0
+        x_rms = _rms(np.linalg.norm(S.x, axis=1))
+        scale = 1.0 / max(w_rms * x_rms, 1e-9)
+        return [(cls(scale), np.array([float(sv["sr_comp_s_per_deg"]) / scale]))]
+
+
+class TimeOffset(Effect):
+    """A time offset between the magnetometer and the reference: the sensor samples the
+    field dt after its time stamp, so B_cal is compared with the reference linearly
+    interpolated dt later (ref + dt * slope to the next reference sample, or from the
+    previous one for dt < 0; per file, where the field moves; static positions give
+    nothing). Parameter: dt (s). Flight form: none; it is an alignment of the ground data
+    (shift the time stamps). With an inertially fixed field it looks like the SET/RESET
+    rotation error (both are w x B); that one is preferred where both fit equally."""
+
+    name = "time_offset"
+    title = "time offset between magnetometer and reference"
+    physics = ("the magnetometer's time stamps are off against the reference's, so a "
+               "moving field is compared with the reference of another moment")
+    flight_form = ("no chain stage: a ground-data alignment (shift the magnetometer or "
+                   "reference time stamps by dt)")
+    in_chain = False
+    stage = "reference"
+    n_params = 1
+
+    def __init__(self, scale):
+        super().__init__()
+        self.scale = float(scale)      # internal parameter = nT at the rms field rate
+        self.hyper = 1.0
+
+    def explained_by(self):
+        return ["reference field rate (reference interpolated dt later)"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        S = ctx.samples
+        if any(isinstance(e, TimeOffset) for e in ctx.effects):
+            return [], "already in the model"
+        vec = S.kind == 0
+        if vec.sum() < 10:
+            return [], "no reference vectors"
+        r = _rms(np.linalg.norm(S.ref_rate[vec, 0], axis=1))
+        if r <= 0:
+            return [], "the reference field does not move"
+        return [cls(1.0 / r)], ""
+
+    def scan_grid(self, S):
+        return [1.0, -1.0]        # dt > 0 (forward slopes) or dt < 0 (backward slopes)
+
+    def init_params(self):
+        return np.array([2 * 1e-3 * np.sign(self.hyper or 1.0)])
+
+    def reference_shift(self, p, S):
+        dt = p[:, 0] * self.scale
+        slope = np.where((dt >= 0)[:, None, None, None], S.ref_rate[None, :, 0:1, :],
+                         S.ref_rate[None, :, 1:2, :])[:, :, 0, :]
+        return dt[:, None, None] * slope
+
+    def dt_s(self, p):
+        return float(np.asarray(p).reshape(-1)[0] * self.scale)
+
+    def describe(self, p, model=None):
+        return {"time_offset_s": self.dt_s(p)}
+
+
+CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,
+             TimeDrift, SetResetRotation, TimeOffset]
+
+
+def catalogue_table() -> list:
+    """(name, physics, flight form) of every catalogue entry, for docs and reports."""
+    return [(c.name, c.physics, c.flight_form) for c in CATALOGUE]
