@@ -265,6 +265,7 @@ def rms_bars(path, title, rows) -> Path:
     return _save(fig, path)
 
 
+@_deferrable(lambda path, *a, **k: Path(path))
 def angle_before_after(path, title, before_deg, after_deg, x=None, xlabel="sample") -> Path:
     """Angle between two magnetometers' vectors before and after the alignment H
     (seed 000 fig. 10): against time (or sample), and as histograms."""
@@ -294,6 +295,7 @@ def angle_before_after(path, title, before_deg, after_deg, x=None, xlabel="sampl
     return _save(fig, path)
 
 
+@_deferrable(lambda path, *a, **k: Path(path))
 def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") -> Path:
     """SET/RESET offset error maps (seed 000 fig. 12-13): one heatmap per measurement
     time, rate (rows) x angle between field and axis (columns)."""
@@ -324,6 +326,7 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") ->
     return _save(fig, path)
 
 
+@_deferrable(lambda path, *a, **k: Path(path))
 def coil_distance(path, title, distance_cm, series, current_A=None) -> Path:
     """Coil interference against distance (seed 000 fig. 5-6), log-log; series:
     {label: values in nT at distance_cm} (NaN: not measured)."""
@@ -349,6 +352,7 @@ def coil_distance(path, title, distance_cm, series, current_A=None) -> Path:
     return _save(fig, path)
 
 
+@_deferrable(lambda path, *a, **k: Path(path))
 def residual_causes(path, title, panels) -> Path:
     """Residual against its traced cause: one panel per effect, residual before (grey)
     and after (blue) the model gained the effect, against the explaining quantity.

@@ -50,11 +50,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 from .calibration import POLY_DEGREE, SensorCalibration
 from .errors import InputError
-from .fit_analytic import _dP_de, fit_analytic, fit_analytic_rotated
 from .fit_ellipsoid import (SYM_INDEX, _sym_grad, coverage, covariance, distinct_rows,
                             ellipsoid_fit, lm_solve, sym_from6, sym_to6)
 
@@ -285,6 +283,8 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
     n_w = max(3, int(round(window_s / dt_med)))
     if len(idx) < n_w:
         return []
+    from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
+
     Tf = median_filter(T[idx], size=5, mode="nearest") if len(idx) >= 5 else T[idx]
     win = np.lib.stride_tricks.sliding_window_view(Tf, n_w)
     quiet = (win.max(axis=1) - win.min(axis=1)) <= band_C
@@ -774,6 +774,8 @@ def rotated_fit_M(fit):
         E = np.zeros((3, 3))
         E[i, i] = 1.0
         dW.append(E @ PR)
+    from .fit_analytic import _dP_de   # only the analytic method needs it (and scipy.optimize)
+
     dW += [fit.Q @ dP @ fit.R for dP in _dP_de(fit.e_rad)]
     for j in range(3):
         u = np.zeros(3)
@@ -789,6 +791,8 @@ def rotated_fit_M(fit):
 def _analytic_level(x_nT, ref_nT):
     """Seed 001 at one temperature: the plain model h = Q P B + b (for its residual) and
     the rotated one h = Q P R B + b. Returns (rotated fit, plain fit, M, M_sigma)."""
+    from .fit_analytic import fit_analytic, fit_analytic_rotated
+
     plain = fit_analytic(x_nT, ref_nT)
     rot = fit_analytic_rotated(x_nT, ref_nT, analytic=plain)
     M, M_sig = rotated_fit_M(rot)

@@ -922,12 +922,14 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
         with parallel():
             rep.add(rms_section(cs, analysis, out_dir))
             rep.extend(temperature_sections(cs, analysis, out_dir))
-        say(f"report: {len(cs.unit.sensors) + 1} figures drawn")
+            rep.extend(extras_sections(cs, analysis, out_dir))
+            rep.extend(seed000_sections(cs, analysis, out_dir))
+        say("report: figures drawn")
     else:
         for s in cs.unit.sensors:
             rep.add(Section(f"Coefficients: {s.name}", [], [polynomial_table(cs, s.name)]))
-    rep.extend(extras_sections(cs, analysis, out_dir))
-    rep.extend(seed000_sections(cs, analysis, out_dir))
+        rep.extend(extras_sections(cs, analysis, out_dir))
+        rep.extend(seed000_sections(cs, analysis, out_dir))
     notes = [n for n in cs.fit_info.get("notes", [])]
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
