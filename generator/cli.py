@@ -45,7 +45,21 @@ def cmd_fit(args):
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     cs.save(out / "coefficients.json")
-    report = write_fit_report(cs, out, data_paths=args.data, progress=progress)
+    extra = []
+    if args.compare_methods:
+        from . import fit_compare
+        from .telemetry import read_telemetry
+        from .unit import load_unit
+
+        unit = load_unit(args.unit)
+        tels = [read_telemetry(p, unit) for p in args.data]
+        progress("comparing the fit methods on the same data (ellipsoid, analytic, auto)")
+        extra = fit_compare.sections(fit_compare.compare_methods(
+            unit, [t for t in tels if t.has("ref_x_nT", "ref_y_nT", "ref_z_nT")] or tels,
+            truth=args.truth, evaluate=[t for t in tels if not t.has("ref_x_nT")],
+            progress=progress))
+    report = write_fit_report(cs, out, data_paths=args.data, progress=progress,
+                              extra_sections=extra)
     progress(f"wrote {out / 'coefficients.json'} and {report}")
     from .report import fit_summary
     return 0, fit_summary(cs, out / "coefficients.json", report)
@@ -55,6 +69,11 @@ def _args_fit(p):
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
     p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2)")
     p.add_argument("-o", "--output", required=True, help="output folder")
+    p.add_argument("--compare-methods", action="store_true",
+                   help="also fit with every method (seed 000 ellipsoid, seed 001 analytic, "
+                        "auto) and compare them in the report")
+    p.add_argument("--truth", default=None,
+                   help="truth.json of a simulated unit: the comparison adds errors against it")
     p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
                    help="auto: reference vectors where the data carry them (joint or "
                         "per-level cubic, chosen on held-out data), else the ellipsoid fit; "

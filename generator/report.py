@@ -939,9 +939,15 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
     return rep
 
 
-def write_fit_report(cs, out_dir, data_paths=(), progress=None) -> Path:
-    """report.html and report.md (with the PNG figures) in out_dir; returns the HTML path."""
+def write_fit_report(cs, out_dir, data_paths=(), progress=None, extra_sections=()) -> Path:
+    """report.html and report.md (with the PNG figures) in out_dir; returns the HTML path.
+    extra_sections: further Sections (e.g. the method comparison), placed before the notes."""
     rep = fit_report(cs, out_dir, data_paths, progress)
+    if extra_sections:
+        notes = [s for s in rep.sections if s.title == "Notes"]
+        rep.sections = [s for s in rep.sections if s.title != "Notes"]
+        rep.extend(extra_sections)
+        rep.sections += notes
     return rep.write(out_dir)
 
 

@@ -392,3 +392,16 @@ def test_compare_sections_render(comparison):
     table = secs[0].tables[0]
     assert len(table.rows) == 5 * 6 and all(len(r) == len(table.header) for r in table.rows)
     assert len(secs[1].tables) == 5
+
+
+def test_fit_command_puts_the_method_comparison_in_the_report(fm1_dir, tmp_path):
+    """Issue 4: the seed-001 method is listed in the fit report beside the ellipsoid fit on
+    the same twelve-position data (magcal fit --compare-methods)."""
+    from generator.cli import main
+
+    assert main(["fit", str(fm1_dir / "unit.toml"), str(fm1_dir / "thermal_12pos.csv"),
+                 "--compare-methods", "--truth", str(fm1_dir / "truth.json"),
+                 "-o", str(tmp_path), "-q"]) == 0
+    md = (tmp_path / "report.md").read_text()
+    assert "## Fit methods compared: do known vectors close the gap?" in md
+    assert "1985.77" in md and "analytic" in md and "ellipsoid" in md
