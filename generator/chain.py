@@ -579,8 +579,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         tau = c.scalar("lag_tau_s")
         el = None
         t_el = t.copy()
+        dts = cols["dt_s"][0]
+        dts = np.where(dts >= 0, dts, ft(0)).astype(ft)   # a step back in time holds the filter
         for k in np.nonzero(~nonfinite)[0]:
-            el = t[k] if el is None else lag_kernel(t[k], el, cols["dt_s"][0][k], tau)
+            el = t[k] if el is None else lag_kernel(t[k], el, dts[k], tau)
             t_el[k] = el
         t = t_el
     raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]

@@ -139,6 +139,12 @@ def c_literal(value: float, float_type: str) -> str:
     return text + suffix
 
 
+def _internal_helpers_static(c_text: str) -> str:
+    """CasADi defines its small helpers (casadi_sq, casadi_fabs, ...) with external linkage;
+    in the wrapper's translation unit they must be static like everything else of it."""
+    return re.sub(r"^(casadi_real casadi_\w+\()", r"static \1", c_text, flags=re.M)
+
+
 def _macro(name: str) -> str:
     return "".join(ch if ch.isalnum() else "_" for ch in name).upper()
 
@@ -264,7 +270,7 @@ def render(cs: CoefficientSet) -> dict:
     for tpl, pattern in TEMPLATES:
         files[pattern.format(unit=ctx["unit"])] = env.get_template(tpl).render(**ctx)
     pre = PREAMBLE.format(unit=ctx["unit"], layout_hash=ctx["layout_hash"], **ctx["versions"])
-    files[f"{ctx['unit']}_kernels.inc"] = pre + ctx["kernels_text"]
+    files[f"{ctx['unit']}_kernels.inc"] = pre + _internal_helpers_static(ctx["kernels_text"])
     return dict(sorted(files.items()))
 
 

@@ -131,7 +131,13 @@ def random_aux(rng, spec, n, nan_fraction=0.0):
     """Channels {name: (n,)}, rate_dps (n, 3), dt_s (n,) for a spec's optional stages."""
     channels = {c: rng.normal(0, 1, n) for c in spec.aux_channels} or None
     rate = rng.normal(0, 5, (n, 3)) if spec.needs_rate else None
-    dt = rng.uniform(0.05, 20, n) if spec.needs_dt else None
+    dt = None
+    if spec.needs_dt:   # mostly forward steps; some zero, negative (clock steps) and huge
+        dt = rng.uniform(0.05, 20, n)
+        odd = rng.random(n)
+        dt[odd < 0.03] = 0.0
+        dt[(odd >= 0.03) & (odd < 0.06)] = -rng.uniform(0.01, 1000, ((odd >= 0.03) & (odd < 0.06)).sum())
+        dt[(odd >= 0.06) & (odd < 0.07)] = 1e7
     if nan_fraction:
         for a in [dt, rate] + list((channels or {}).values()):
             if a is not None:

@@ -23,5 +23,8 @@ REALDATA = SHARED / "realdata"
 @pytest.fixture(scope="session")
 def fm1_dir() -> Path:
     if not FM1.is_dir():
-        pytest.skip(f"shared example unit not found at {FM1}")
+        msg = f"shared example unit not found at {FM1}"
+        if os.environ.get("CI"):
+            pytest.fail(msg + " (CI must have ../shared beside the checkout)")
+        pytest.skip(msg)
     return FM1

@@ -243,14 +243,14 @@ def test_set_only_readings_bit_identical(built):
 
 
 def _select_inputs(rng, cs, n):
-    """Sensor fields around one true field, with outliers, invalid sensors and ties."""
+    """Sensor fields around one true field, with outliers and invalid sensors (the exact
+    ties are test_select_ties_are_agreement)."""
     S = len(cs.unit.sensors)
     truth = rng.normal(0, 30000, (n, 1, 3))
     agree = np.array([cs.sensors[s.name]["agree_nT"] for s in cs.unit.sensors])
     fields = truth + rng.normal(0, 1, (n, S, 3)) * agree[None, :, None] / 8
     outlier = rng.random((n, S)) < 0.15
     fields[outlier] += rng.normal(0, 1, (outlier.sum(), 3)) * 5 * agree.max()
-    # exactly at the tolerance for some pairs: equality must be decided the same way
     statuses = np.where(rng.random((n, S)) < 0.15, rng.integers(1, 64, (n, S)), 0)
     return fields, statuses.astype(np.uint16)
 
@@ -327,3 +327,42 @@ def test_optional_stages_bit_identical():
     lag = host.correct(s.name, raw, temp, dt_s=dt)["field_body_nT"]
     nolag = HostUnit(base).correct(s.name, raw, temp)["field_body_nT"]
     assert np.mean(bits(lag) != bits(nolag)) > 0.5
+
+
+def test_select_ties_are_agreement(built):
+    """Two sensors exactly agree_i + agree_j apart (margin exactly 0) agree, in C and in
+    Python alike; one float step further they do not. Tolerances set to exact values."""
+    label, cs, host = built
+    spec = cs.spec
+    S = len(cs.unit.sensors)
+    flat = host.flat_coeffs().copy()
+    k0, agree = 0, []
+    for s in cs.unit.sensors:
+        off = spec.offsets(spec.sensor_blocks(s))["agree_nT"]
+        flat[k0 + off] = 40.0 if s.part == "MMC5883MA" else 250.0
+        agree.append(flat[k0 + off])
+        k0 += spec.n_sensor_coeffs(s)
+    order = spec.fallback_order()
+    a, b = order[0], order[1]
+    rows = []
+    tie = np.float32(1000.0) + np.float32(agree[a] + agree[b])      # exact in float32
+    for x_b in (tie, np.nextafter(tie, np.float32(np.inf))):
+        f = np.zeros((S, 3), np.float32)
+        f[:, 2] = 30000.0
+        f[a, 0] = 1000.0
+        f[b, 0] = x_b
+        rows.append(f)
+    fields = np.array(rows)
+    statuses = np.zeros((2, S), np.uint16)
+    statuses[:, [i for i in range(S) if i not in (a, b)]] = 1     # only a and b valid
+    c_out = host.select(fields, statuses, coeffs_flat=flat)
+    flat_by = {}
+    k0 = 0
+    for s in cs.unit.sensors:
+        n = spec.n_sensor_coeffs(s)
+        flat_by[s.name] = flat[k0:k0 + n]
+        k0 += n
+    py_out = chain.reference_select(spec, flat_by, fields, statuses)
+    for key in ("status", "sensor", "rank", "reason"):
+        np.testing.assert_array_equal(c_out[key], py_out[key], err_msg=key)
+    assert list(c_out["reason"]) == [chain.SELECT_CONFIRMED, chain.SELECT_UNCONFIRMED]

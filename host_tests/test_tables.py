@@ -23,7 +23,6 @@ import functools
 import os
 import struct
 import subprocess
-import time
 
 import numpy as np
 import pytest
@@ -725,7 +724,6 @@ def test_random_and_mutated_inputs_agree_and_never_touch_the_active_table():
     only on an accepted load or commit, and ends as the Python side says."""
     total = {"inputs": 0, "switches": 0}
     seen = set()
-    started = time.monotonic()
     examples = N_FUZZ_TOTAL // FUZZ_BATCH + 4
 
     @settings(max_examples=examples, derandomize=True, deadline=None, database=None,
@@ -760,7 +758,6 @@ def test_random_and_mutated_inputs_agree_and_never_touch_the_active_table():
     unseen = set(range(len(tables.ERRORS))) - seen
     assert unseen <= {S.NULL_ARGUMENT}, sorted(S(c).name for c in unseen)
     assert total["switches"] > 0
-    assert time.monotonic() - started < 60
 
 
 @settings(max_examples=300, deadline=None, derandomize=True, database=None)

@@ -8,8 +8,19 @@
  * same logic, in the same order, is the Python reference in generator/chain.py
  * (reference_sensor, reference_select); the host tests compare them bit for bit.
  */
+#include <float.h>
 #include <math.h>
 #include "samsat_fm1_magcal.h"
+
+/* Bit-exactness with the Python reference needs IEEE operations rounded one by one:
+ * no fast-math (it would also fold the finiteness probe below), no wider evaluation.
+ * Build with -ffp-contract=off (no fused multiply-add). */
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+#error "magcal flight code must not be built with -ffast-math / -ffinite-math-only"
+#endif
+#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD != 0
+#error "magcal flight code needs FLT_EVAL_METHOD == 0 (each operation rounded to its type)"
+#endif
 
 /* The CasADi kernels, in this translation unit and static: the compiler sees that their
  * arguments are never null and inlines them; nothing of them is exported. CasADi's

@@ -12,6 +12,11 @@
 #include "samsat_fm1_magcal.h"
 #include "samsat_fm1_table.h"
 
+/* The range checks reject NaN through comparisons that -ffinite-math-only would fold. */
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+#error "magcal table code must not be built with -ffast-math / -ffinite-math-only"
+#endif
+
 /* Compile-time checks: IEEE sizes, and magcal.h agrees with the table layout. */
 typedef char samsat_fm1_table_float_is_4_bytes[(sizeof(float) == 4u) ? 1 : -1];
 typedef char samsat_fm1_table_value_bytes[(sizeof(samsat_fm1_real_t) == SAMSAT_FM1_TABLE_VALUE_BYTES) ? 1 : -1];
