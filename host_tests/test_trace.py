@@ -455,6 +455,15 @@ def test_traced_coefficients_generate_flight_c_with_the_effects(tmp_path):
         inp = chain_inputs(tel, cs.spec, s.name)
         got = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                            channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+        # the flight C of the extended chain is the float32 reference, bit for bit ...
+        from chain_fixtures import assert_bit_identical
+        from generator.chain import reference_sensor
+        py = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
+                              inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                              channels=inp["channels"], rate_dps=inp["rate_dps"],
+                              dt_s=inp["dt_s"])
+        assert_bit_identical(got, py, f"traced chain {s.name}")
+        # ... and agrees with trace's float64 model to float32 rounding (a model check)
         rows, B64 = tr.calibrated_field64(cs, tel, s.name)
         np.testing.assert_allclose(got["field_body_nT"][rows], B64, rtol=0, atol=0.1)
 
