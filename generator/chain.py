@@ -516,9 +516,20 @@ def np_dtype(unit: Unit):
     return np.float32 if unit.float_type == "float32" else np.float64
 
 
+@dataclass
+class SensorState:
+    """What `<unit>_<sensor>_state_t` holds between calls (None: not yet set)."""
+
+    offset_counts: object = None     # (3,) stored (SET + RESET) / 2, counts
+    temp_el_C: object = None         # element temperature of the thermal-lag filter
+
+
+NULL_STATE = False   # reference_sensor(state=NULL_STATE): the C call with state == NULL
+
+
 def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
                      raw_counts, temp_C, coil_A=None, set_only=False, offset_counts=None,
-                     channels=None, rate_dps=None, dt_s=None):
+                     channels=None, rate_dps=None, dt_s=None, state=None):
     """Python reference of `<unit>_<sensor>_correct` (and `_correct_set` when set_only) over
     a sequence of samples, as successive calls on one sensor state (empty at the start).
 
@@ -531,6 +542,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     offset_counts: set_only, (N, 3) stored offset per sample, NaN rows meaning none.
     Returns {output: (N, k) array, 'status': (N,) uint16}; pair mode also 'offset_counts',
     the state's stored offset after each call (NaN until the first unsaturated pair).
+    state: the SensorState the calls start from and update in place (None: a fresh one),
+    or NULL_STATE for calls with state == NULL (no filter,
+    nothing stored, SET-only readings have no offset). set_only without offset_counts
+    uses the state's stored offset.
     Wrapper steps, in the C's order: saturation; non-finite inputs (-> zeros, state kept);
     thermal lag; missing offset (set_only -> zeros); clamp; kernel; band check; offset store.
     """
@@ -575,9 +590,12 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
             for k, v in inputs.items()}
     # thermal lag: the element temperature, a recursion over the calls
     t = np.where(nonfinite, ft(0), temp)
-    if o.thermal_lag:
+    null_state = state is NULL_STATE
+    if state is None:
+        state = SensorState()
+    if o.thermal_lag and not null_state:
         tau = c.scalar("lag_tau_s")
-        el = None
+        el = state.temp_el_C
         t_el = t.copy()
         dts = cols["dt_s"][0]
         dts = np.where(dts >= 0, dts, ft(0)).astype(ft)   # a step back in time holds the filter
@@ -585,10 +603,15 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
             el = t[k] if el is None else lag_kernel(t[k], el, dts[k], tau)
             t_el[k] = el
         t = t_el
+        state.temp_el_C = el
     raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
     if set_only:
-        off = np.full((n, 3), np.nan, dtype=ft) if offset_counts is None else \
-            np.asarray(offset_counts, dtype=ft)
+        if offset_counts is not None:
+            off = np.asarray(offset_counts, dtype=ft)
+        elif null_state or state.offset_counts is None:
+            off = np.full((n, 3), np.nan, dtype=ft)
+        else:
+            off = np.broadcast_to(np.asarray(state.offset_counts, dtype=ft), (n, 3))
         no_offset = ~np.all(np.isfinite(off), axis=1) & ~zeroed
         status[no_offset] |= STATUS_NO_OFFSET
         zeroed |= no_offset
@@ -609,11 +632,15 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         arr = np.stack([np.broadcast_to(np.asarray(v, dtype=ft), (n,)) for v in vals], axis=1)
         result[name] = np.where(zeroed[:, None], ft(0), arr).astype(ft)
     if "offset_counts" in result:   # the state's offset: refreshed by unsaturated pairs
-        stored = ~sat & ~zeroed
+        stored = ~sat & ~zeroed & (not null_state)
         last = np.maximum.accumulate(np.where(stored, np.arange(n), -1))
+        before = np.full(3, np.nan, ft) if null_state or state.offset_counts is None else \
+            np.asarray(state.offset_counts, ft)
         result["offset_counts"] = np.where(
             (last >= 0)[:, None], result["offset_counts"][np.maximum(last, 0)],
-            ft(np.nan)).astype(ft)
+            before[None, :]).astype(ft)
+        if stored.any():
+            state.offset_counts = result["offset_counts"][-1].copy()
     margin = result.pop("band_margin_nT2")
     plausible = (margin[:, 0] >= 0) & (margin[:, 1] >= 0)
     status[~plausible & ~zeroed] |= STATUS_IMPLAUSIBLE

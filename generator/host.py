@@ -209,6 +209,23 @@ class HostUnit:
             self._ptr(off), self._ptr(field), self._ptr(status, "uint16_t"))
         return {"field_body_nT": field, "status": status}
 
+    def correct_mixed(self, sensor: str, raw_counts, temp_C, mode, coil_A=None,
+                      coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:
+        """Calls of every kind on one state: mode bit 0 = SET-only (raw_counts' RESET half
+        unused), bit 1 = state NULL. Sensors that keep a state only."""
+        raw = np.ascontiguousarray(raw_counts, dtype=np.int32)
+        n = raw.shape[0]
+        temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
+        md = np.ascontiguousarray(mode, dtype=np.uint8)
+        co = self._coeffs(coeffs_flat)
+        field = np.zeros((n, 3), dtype=self.dtype)
+        status = np.zeros(n, dtype=np.uint16)
+        keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
+        getattr(self._lib, f"host_{sensor}_mixed_batch")(
+            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
+            self._ptr(md, "uint8_t"), self._ptr(field), self._ptr(status, "uint16_t"))
+        return {"field_body_nT": field, "status": status}
+
     def select(self, fields, statuses, coeffs_flat=None) -> dict:
         """Run `<unit>_select` over samples: fields (N, S, 3), statuses (N, S)."""
         f = np.ascontiguousarray(np.asarray(fields, dtype=self.dtype))

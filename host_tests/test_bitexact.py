@@ -366,3 +366,51 @@ def test_select_ties_are_agreement(built):
     for key in ("status", "sensor", "rank", "reason"):
         np.testing.assert_array_equal(c_out[key], py_out[key], err_msg=key)
     assert list(c_out["reason"]) == [chain.SELECT_CONFIRMED, chain.SELECT_UNCONFIRMED]
+
+
+def test_calls_of_every_kind_on_one_state():
+    """Pair and SET-only calls interleaved on one state, some with state NULL (no filter,
+    nothing stored, no offset for SET-only), with thermal lag: C == Python, bit for bit."""
+    from chain_fixtures import random_aux, with_options
+    from generator.chain import NULL_STATE, SensorOptions, SensorState
+
+    rng = np.random.default_rng(31)
+    base = random_coeffs(rng, samsat_unit("mixsat"), coils=COILS)
+    cs = with_options(rng, base, {"mmc1": SensorOptions(thermal_lag=True),
+                                  "mpu3": SensorOptions(thermal_lag=True)})
+    host = HostUnit(cs)
+    n = 1500
+    for name in ("mmc1", "mmc2", "mpu3"):
+        s = cs.unit.sensor(name)
+        raw, temp, coil = random_inputs(rng, s, n, len(COILS), (-20.0, 55.0))
+        if not s.set_reset:
+            raw = np.hstack([raw, np.zeros_like(raw)])
+        channels, rate, dt = random_aux(rng, cs.spec, n, nan_fraction=0.01)
+        mode = rng.integers(0, 4 if s.set_reset else 3, n).astype(np.uint8)
+        if not s.set_reset:
+            mode &= 2
+        mode[:5] = 0                    # start with pairs on the state
+        c_out = host.correct_mixed(name, raw if s.set_reset else raw[:, :3], temp, mode, coil,
+                                   channels=channels, rate_dps=rate, dt_s=dt)
+        state = SensorState()
+        field = np.zeros((n, 3), np.float32)
+        status = np.zeros(n, np.uint16)
+        for j in range(n):
+            one = slice(j, j + 1)
+            kw = dict(coil_A=coil[one], set_only=bool(mode[j] & 1),
+                      state=NULL_STATE if mode[j] & 2 else state,
+                      dt_s=None if dt is None else dt[one],
+                      rate_dps=None if rate is None else rate[one],
+                      channels=None if channels is None else
+                      {k: v[one] for k, v in channels.items()})
+            r = raw[one, :3] if mode[j] & 1 or not s.set_reset else raw[one]
+            out = reference_sensor(cs.spec, s, cs.flat_sensor(name), cs.flat_unit(), r,
+                                   temp[one], **kw)
+            field[j], status[j] = out["field_body_nT"][0], out["status"][0]
+        np.testing.assert_array_equal(c_out["status"], status)
+        np.testing.assert_array_equal(bits(c_out["field_body_nT"]), bits(field))
+        if s.set_reset:   # every kind occurred, and the NULL-state SET-only had no offset
+            assert set(np.unique(mode)) == {0, 1, 2, 3}
+            m3 = status[mode == 3]
+            assert np.all((m3 & (chain.STATUS_NO_OFFSET | chain.STATUS_NONFINITE)) != 0)
+            assert np.mean((m3 & chain.STATUS_NO_OFFSET) != 0) > 0.9
