@@ -32,8 +32,9 @@ import numpy as np
 
 from .calibration import POLY_DEGREE
 from .errors import InputError
-from .fit_ellipsoid import SYM_INDEX, coverage
-from .fit_thermal import DEGREE_STEP_C, T_REF_C, find_segments, temperature_quantum
+from .fit_ellipsoid import SYM_INDEX, _sym_grad, coverage
+from .fit_thermal import (DEGREE_STEP_C, T_REF_C, _powers, find_segments,
+                          temperature_quantum)
 
 AXES = "xyz"
 B_NAMES = tuple(f"b_{a}" for a in AXES)
@@ -57,20 +58,6 @@ MIN_SEGMENT_SAMPLES = 30
 # =======================================================================================
 # Coefficient covariance from the design of the fit
 # =======================================================================================
-def _powers(d, degree):
-    P = np.empty((len(d), degree + 1))
-    P[:, 0] = 1.0
-    for k in range(1, degree + 1):
-        P[:, k] = P[:, k - 1] * d
-    return P
-
-
-def _sym_grad(u, y):
-    """d(u^T M y)/d m_s for the six entries of a symmetric M (SYM_INDEX order), (N, 6)."""
-    return np.stack([u[:, i] * y[:, j] + (u[:, j] * y[:, i] if i != j else 0.0)
-                     for i, j in SYM_INDEX], axis=1)
-
-
 @dataclass
 class PolyCovariance:
     """Covariance of the polynomial coefficients of one sensor's calibration.

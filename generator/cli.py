@@ -282,8 +282,8 @@ def main(argv=None) -> int:
 
 
 def _print_json(obj):
-    from .pipeline import _default
-    print(json.dumps(obj, indent=1, default=_default))
+    from .coeffs import json_default
+    print(json.dumps(obj, indent=1, default=json_default))
 
 
 if __name__ == "__main__":

@@ -140,7 +140,7 @@ class CoefficientSet:
 
     def save(self, path) -> None:
         Path(path).write_text(json.dumps(self.to_json_dict(), indent=1, sort_keys=False,
-                                         default=_json_default) + "\n")
+                                         default=json_default) + "\n")
 
     @staticmethod
     def load(path) -> "CoefficientSet":
@@ -206,7 +206,8 @@ def _tolist(a):
     return a.item() if a.ndim == 0 else a.tolist()
 
 
-def _json_default(o):
+def json_default(o):
+    """json.dumps default= for numpy arrays and scalars (every JSON the tool writes)."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer, np.bool_)):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import json
 import time
 from pathlib import Path
 
@@ -237,18 +236,6 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
 def _fmt(v) -> str:
     # shortest repr that round-trips the value (float32 outputs stay exact)
     return str(v.item() if hasattr(v, "item") else v) if np.isfinite(v) else ""
-
-
-def save_json(path, obj):
-    Path(path).write_text(json.dumps(obj, indent=1, default=_default) + "\n")
-
-
-def _default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    raise TypeError(type(o))
 
 
 __all__ = ["Progress", "chain_inputs", "fit", "apply", "write_apply_csv", "InputError"]

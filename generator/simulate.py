@@ -39,6 +39,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from .plan import twelve_positions   # the jig positions of the test program
 from .unit import PARTS, SensorSpec, Unit
 
 CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")
@@ -120,24 +121,6 @@ def _lab_field_nT(field_nT, inclination_deg) -> np.ndarray:
     """Lab field in north-east-down axes."""
     inc = math.radians(inclination_deg)
     return field_nT * np.array([math.cos(inc), 0.0, math.sin(inc)])
-
-
-def twelve_positions() -> list:
-    """Body -> lab (north-east-down) rotations of the twelve static positions: each body
-    axis up and down, at headings 0 and 90 deg of the next body axis."""
-    up = np.array([0.0, 0.0, -1.0])
-    out = []
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            for heading_deg in (0.0, 90.0):
-                u = sign * np.eye(3)[axis]
-                v = np.eye(3)[(axis + 1) % 3]
-                h = math.radians(heading_deg)
-                lab_v = np.array([math.cos(h), math.sin(h), 0.0])
-                body = np.column_stack([u, v, np.cross(u, v)])
-                lab = np.column_stack([up, lab_v, np.cross(up, lab_v)])
-                out.append(lab @ body.T)
-    return out
 
 
 # ---------------------------------------------------------------------------------------
