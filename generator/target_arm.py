@@ -1259,7 +1259,7 @@ def _measure_variant(cs, files):
     calls, refs = [], []
     for s in cs.unit.sensors:
         c = cs.sensors[s.name]
-        raw, temp, coil = _random_inputs(rng, s, 2000, len(cs.spec.coils),
+        raw, temp, coil = random_inputs(rng, s, 2000, len(cs.spec.coils),
                                          (float(c["t_min_C"]), float(c["t_max_C"])))
         calls.append(("correct", s.name, raw, temp, coil))
         refs.append(reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw,
@@ -1292,9 +1292,9 @@ def _variant_rows(cs, m):
             "n_checked": sum(n for _, n in done.values())}
 
 
-def _random_inputs(rng, sensor, n, n_coils, t_range):
+def random_inputs(rng, sensor, n, n_coils=0, t_range=(-20.0, 55.0)):
     """Counts over the part's range (half near zero field), temperatures across and beyond
-    the calibrated range, currents +-0.2 A (as host_tests/chain_fixtures.random_inputs)."""
+    the calibrated range, currents +-0.2 A: the vectors of the host and the target tests."""
     k = 6 if sensor.set_reset else 3
     raw = rng.integers(sensor.count_min, sensor.count_max + 1, (n, k))
     near = rng.random(n) < 0.5

@@ -9,6 +9,7 @@ import numpy as np
 
 from generator.calibration import SensorCalibration
 from generator.coeffs import CoefficientSet
+from generator.target_arm import random_inputs  # noqa: F401  (the shared test vectors)
 from generator.unit import SensorSpec, Unit
 
 REPO = Path(__file__).resolve().parent.parent
@@ -52,22 +53,6 @@ def random_coeffs(rng, unit: Unit, coils=(), t_range=(-20.0, 55.0)) -> Coefficie
     K = {s.name: rng.normal(0, 3000, (3, len(coils))) for s in unit.sensors} if coils else None
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=random_rotation(rng),
                                             K_nT_per_A=K, coils=coils)
-
-
-def random_inputs(rng, sensor: SensorSpec, n: int, n_coils=0, t_range=(-20.0, 55.0)):
-    """Raw counts across the part's full range (rails included), temperatures across and
-    beyond the calibrated range, currents up to +-0.2 A."""
-    k = 6 if sensor.set_reset else 3
-    raw = rng.integers(sensor.count_min, sensor.count_max + 1, (n, k))
-    # half of the samples near zero field (the realistic case), half anywhere
-    near = rng.random(n) < 0.5
-    span = int(80000 / sensor.lsb_nT)
-    raw[near] = np.clip(sensor.zero_count + rng.integers(-span, span + 1, (near.sum(), k)),
-                        sensor.count_min, sensor.count_max)
-    lo, hi = t_range
-    temp = rng.uniform(lo - 20, hi + 20, n).astype(np.float32)
-    coil = rng.uniform(-0.2, 0.2, (n, n_coils)) if n_coils else None
-    return raw, temp, coil
 
 
 def with_float(cs: CoefficientSet, float_type: str) -> CoefficientSet:
