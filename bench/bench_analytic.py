@@ -19,8 +19,8 @@ import time
 import casadi as ca
 import numpy as np
 
-from generator.fit_analytic import P_from_angles, fit_analytic
-from generator.fit_analytic import _normalised, _row1, _row2, _row3, _Sums  # the bare closed form
+from generator.fit.analytic import P_from_angles, fit_analytic
+from generator.fit.analytic import _normalised, _row1, _row2, _row3, _Sums  # the bare closed form
 
 
 def random_problem(seed: int):

@@ -25,8 +25,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "host_tests"))
 
-from generator import target_arm as ta  # noqa: E402
-from generator.coeffs import CoefficientSet  # noqa: E402
+from generator.flight import target as ta
+from generator.flight.coeffs import CoefficientSet  # noqa: E402
 
 EXAMPLE = REPO / "generated" / "samsat_fm1" / "coefficients.json"
 

@@ -4,7 +4,7 @@
 
 1. compare_methods on thermal_12pos.csv (fitted), scored also on rotation.csv (not
    fitted; the seed's "rotation" row is an ellipsoid fitted to it), with truth.json:
-   the table of generator.fit_compare with the seed's figures beside ours, and the per-
+   the table of generator.report.compare with the seed's figures beside ours, and the per-
    level residuals of seed 001's model with and without the rotation R.
 2. Timing on the same problems: every constant-temperature level of every sensor that
    the analytic method fitted (its windows in stats), i.e. the readings and reference
@@ -28,11 +28,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_analytic import best_of, build_ipopt, closed_form_core  # noqa: E402
 
-from generator.fit_analytic import fit_analytic, fit_analytic_rotated  # noqa: E402
-from generator.fit_compare import compare_methods, sections  # noqa: E402
-from generator.report import Report  # noqa: E402
-from generator.telemetry import preprocess, read_telemetry  # noqa: E402
-from generator.unit import load_unit  # noqa: E402
+from generator.fit.analytic import fit_analytic, fit_analytic_rotated  # noqa: E402
+from generator.report.compare import compare_methods, sections  # noqa: E402
+from generator.report.report import Report  # noqa: E402
+from generator.io.telemetry import preprocess, read_telemetry  # noqa: E402
+from generator.io.unit import load_unit  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "samsat_fm1"
 
@@ -82,7 +82,7 @@ def main() -> None:
           + ", ".join(f"{k} {v:.2f} s" for k, v in fit_s.items()) + "\n")
 
     # ---- closed form vs IPOPT on the level problems of the analytic fit
-    from generator.fit_thermal import fit_unit
+    from generator.fit.thermal import fit_unit
     problems = level_problems(unit, thermal, fit_unit(unit, [thermal], method="analytic"))
     rows = []
     for name, temp, h, B in problems:

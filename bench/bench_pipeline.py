@@ -71,9 +71,9 @@ def main(argv=None) -> int:
     empty.write_text("int magcal_bench_empty;\n")
     cc_t, cc_m = best(["gcc", "-std=c99", "-O2", "-c", str(empty), "-o", str(work / "e.o")],
                       args.repeat)
-    imp_t, imp_m = best([py, "-c", "import generator.codegen, generator.host"], args.repeat)
+    imp_t, imp_m = best([py, "-c", "import generator.flight.codegen, generator.flight.host"], args.repeat)
     rows.append(("baseline: gcc -c empty.c", cc_t, cc_m, None, None))
-    rows.append(("baseline: python import generator.codegen, host", imp_t, imp_m, None, None))
+    rows.append(("baseline: python import generator.flight.codegen, host", imp_t, imp_m, None, None))
     coeffs = work / "fit" / "coefficients.json"
     gen_runs = []
     for i in range(args.repeat):

@@ -14,8 +14,8 @@ import json
 import sys
 from pathlib import Path
 
-from . import __version__
-from .errors import InputError
+from generator import __version__
+from generator.errors import InputError
 
 VERBS = {}
 
@@ -28,7 +28,7 @@ def verb(name, help_text):
 
 
 def _progress(args):
-    from .pipeline import Progress
+    from generator.pipeline import Progress
     return Progress(quiet=getattr(args, "quiet", False))
 
 
@@ -37,8 +37,8 @@ def _progress(args):
 
 @verb("fit", "fit the unit's calibration from telemetry files jointly")
 def cmd_fit(args):
-    from .pipeline import fit
-    from .report import write_fit_report
+    from generator.pipeline import fit
+    from generator.report.report import write_fit_report
 
     progress = _progress(args)
     cs = fit(args.unit, args.data, progress=progress, method=args.method)
@@ -47,9 +47,9 @@ def cmd_fit(args):
     cs.save(out / "coefficients.json")
     extra = []
     if args.compare_methods:
-        from . import fit_compare
-        from .telemetry import read_telemetry
-        from .unit import load_unit
+        from generator.report import compare as fit_compare
+        from generator.io.telemetry import read_telemetry
+        from generator.io.unit import load_unit
 
         unit = load_unit(args.unit)
         tels = [read_telemetry(p, unit) for p in args.data]
@@ -61,7 +61,7 @@ def cmd_fit(args):
     report = write_fit_report(cs, out, data_paths=args.data, progress=progress,
                               extra_sections=extra)
     progress(f"wrote {out / 'coefficients.json'} and {report}")
-    from .report import fit_summary
+    from generator.report.report import fit_summary
     return 0, fit_summary(cs, out / "coefficients.json", report)
 
 
@@ -84,8 +84,8 @@ def _args_fit(p):
 
 @verb("apply", "correct telemetry through the compiled flight C")
 def cmd_apply(args):
-    from .coeffs import CoefficientSet
-    from .pipeline import apply
+    from generator.flight.coeffs import CoefficientSet
+    from generator.pipeline import apply
 
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
@@ -104,8 +104,8 @@ def _args_apply(p):
 
 @verb("generate", "write the unit's flight C sources and header")
 def cmd_generate(args):
-    from .codegen import generate
-    from .coeffs import CoefficientSet
+    from generator.flight.codegen import generate
+    from generator.flight.coeffs import CoefficientSet
 
     cs = CoefficientSet.load(args.coeffs)
     paths = generate(cs, args.output)
@@ -113,7 +113,7 @@ def cmd_generate(args):
     for p in paths:
         progress(f"wrote {p}")
     if args.compile:
-        from .host import HostUnit
+        from generator.flight.host import HostUnit
         HostUnit(cs)
         progress("compiled on the host (-std=c99 -O2 -ffp-contract=off -Werror)")
     return 0
@@ -127,7 +127,7 @@ def _args_generate(p):
 
 @verb("demo", "run the whole chain on the bundled example unit")
 def cmd_demo(args):
-    from .demo import run_demo
+    from generator.demo import run_demo
 
     if getattr(args, "json", False):   # stdout carries the JSON only
         with contextlib.redirect_stdout(sys.stderr):
@@ -144,12 +144,12 @@ def _args_demo(p):
 
 @verb("plan", "write the ground-test program of a unit (positions, temperature profile)")
 def cmd_plan(args):
-    from .plan import run_plan
+    from generator.campaign.plan import run_plan
     return run_plan(args, _progress(args))
 
 
 def _args_plan(p):
-    from . import plan as P
+    from generator.campaign import plan as P
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
     p.add_argument("-o", "--output", required=True,
                    help="output folder: plan.md, plan.html, plan.json, figures")
@@ -183,12 +183,12 @@ def _args_plan(p):
 
 @verb("check", "does a recorded campaign cover the test program? (exit 2 with the gaps)")
 def cmd_check(args):
-    from .check import run_check
+    from generator.campaign.check import run_check
     return run_check(args, _progress(args))
 
 
 def _args_check(p):
-    from . import check as C
+    from generator.campaign import check as C
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
     p.add_argument("data", nargs="+", help="telemetry CSV files of the campaign")
     p.add_argument("--plan", default=None, metavar="PLAN.json",
@@ -210,13 +210,13 @@ def _args_check(p):
 
 @verb("table", "write, decode, diff, split or check an uplink coefficient table")
 def cmd_table(args):
-    from .tables import cmd_table as run
+    from generator.flight.tables import cmd_table as run
 
     return run(args)
 
 
 def _args_table(p):
-    from .tables import add_table_args
+    from generator.flight.tables import add_table_args
 
     add_table_args(p)
 
@@ -224,13 +224,13 @@ def _args_table(p):
 @verb("trace", "trace structure left in the residual to an effect the model lacks, "
                "add it, report before and after")
 def cmd_trace(args):
-    from .trace import cmd_trace as run
+    from generator.trace.tracer import cmd_trace as run
 
     return run(args)
 
 
 def _args_trace(p):
-    from .trace import add_trace_args
+    from generator.trace.tracer import add_trace_args
 
     add_trace_args(p)
 
@@ -282,7 +282,7 @@ def main(argv=None) -> int:
 
 
 def _print_json(obj):
-    from .coeffs import json_default
+    from generator.flight.coeffs import json_default
     print(json.dumps(obj, indent=1, default=json_default))
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import reference_sensor
-from .coeffs import CoefficientSet
+from generator.flight.chain import reference_sensor
+from generator.flight.coeffs import CoefficientSet
 
 
 def _same_bits(a: dict, b: dict) -> bool:
@@ -25,9 +25,9 @@ def _same_bits(a: dict, b: dict) -> bool:
 def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
     """Per sensor: valid samples, C == Python, |B| RMS raw / calibrated / true parameters,
     and the angle to the true field (calibrated and true parameters)."""
-    from . import pipeline
-    from . import truth as truth_mod
-    from .telemetry import preprocess, read_telemetry
+    from generator import pipeline
+    from generator.io import truth as truth_mod
+    from generator.io.telemetry import preprocess, read_telemetry
 
     tel = read_telemetry(csv_path, cs.unit)
     data = preprocess(tel, cs.unit)
@@ -65,10 +65,13 @@ def _rms_angle_deg(B, B_true) -> float:
 
 
 def run_demo(out: Path, seed: int = 1, progress=None) -> int:
-    from . import codegen, pipeline, simulate, tables
-    from . import truth as truth_mod
-    from .host import HostUnit
-    from .report import Report, Section, Table, fit_report
+    from generator.flight import codegen
+    from generator import pipeline
+    from generator.campaign import simulate
+    from generator.flight import tables
+    from generator.io import truth as truth_mod
+    from generator.flight.host import HostUnit
+    from generator.report.report import Report, Section, Table, fit_report
 
     progress = progress or pipeline.Progress()
     out = Path(out)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import STATUS_BITS, ChainSpec
-from .coeffs import CoefficientSet
-from .errors import InputError
-from .telemetry import Telemetry, read_telemetry
-from .unit import Unit, load_unit
+from generator.flight.chain import STATUS_BITS, ChainSpec
+from generator.flight.coeffs import CoefficientSet
+from generator.errors import InputError
+from generator.io.telemetry import Telemetry, read_telemetry
+from generator.io.unit import Unit, load_unit
 
 
 class Progress:
@@ -103,9 +103,9 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
       reference vectors (the jig campaigns carry them with the boom stowed), by Wahba
       between the reference body sensor and the boom MMC5883 (fit_alignment).
     """
-    from .fit_alignment import align_boom
-    from .fit_coils import fit_coils
-    from .fit_thermal import fit_unit
+    from generator.fit.alignment import align_boom
+    from generator.fit.coils import fit_coils
+    from generator.fit.thermal import fit_unit
 
     progress = progress or Progress(quiet=True)
     unit = load_unit(unit_path)
@@ -152,7 +152,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
 
     Returns per-sensor outputs (field_body_nT, status, valid) for callers and tests.
     """
-    from .host import HostUnit
+    from generator.flight.host import HostUnit
 
     progress = progress or Progress(quiet=True)
     tel = read_telemetry(data_path, cs.unit)
@@ -188,7 +188,7 @@ STATUS_ABSENT = 0x8000
 def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
     """ICD columns (time_s, <s>_x/y/z_nT, <s>_valid) plus, compatibly, <s>_status and the
     selected vector for the attitude system (sel_x/y/z_nT, sel_sensor, sel_reason)."""
-    from .chain import SELECT_REASONS
+    from generator.flight.chain import SELECT_REASONS
 
     header = ["time_s"]
     for s in unit.sensors:

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.calibration import SensorCalibration
-from generator.coeffs import CoefficientSet
-from generator.target_arm import random_inputs  # noqa: F401  (the shared test vectors)
-from generator.unit import SensorSpec, Unit
+from generator.fit.calibration import SensorCalibration
+from generator.flight.coeffs import CoefficientSet
+from generator.flight.target import random_inputs  # noqa: F401  (the shared test vectors)
+from generator.io.unit import SensorSpec, Unit
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE_COEFFS = REPO / "generated" / "samsat_fm1" / "coefficients.json"
@@ -84,7 +84,7 @@ def assert_bit_identical(c_out: dict, py_out: dict, context=""):
 def with_options(rng, cs: CoefficientSet, options: dict, poly_degree=None) -> CoefficientSet:
     """cs with optional stages (chain.SensorOptions per sensor name) and random plausible
     values for their blocks; a higher poly_degree pads b(T), M(T) with small terms."""
-    from generator.chain import ChainSpec
+    from generator.flight.chain import ChainSpec
 
     deg = cs.spec.poly_degree if poly_degree is None else poly_degree
     spec = ChainSpec(cs.unit, poly_degree=deg, coils=cs.spec.coils,

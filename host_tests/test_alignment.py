@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from generator.errors import InputError
-from generator.fit_alignment import (SEED_ANGLE_DEG, align_boom, angle_between_deg,
+from generator.fit.alignment import (SEED_ANGLE_DEG, align_boom, angle_between_deg,
                                      figures_of_merit, fit_H, matrix_from_rotvec,
                                      rotation_error_rad, rotvec_from_matrix, wahba_svd)
 
@@ -208,9 +208,9 @@ def test_shape_zero_vector_and_weights_rejected():
 # ---------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def _fitted(fm1_dir):
-    from generator import fit_thermal
-    from generator.telemetry import read_telemetry
-    from generator.unit import load_unit
+    from generator.fit import thermal as fit_thermal
+    from generator.io.telemetry import read_telemetry
+    from generator.io.unit import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     rot = read_telemetry(fm1_dir / "rotation.csv", unit)
@@ -219,7 +219,7 @@ def _fitted(fm1_dir):
 
 @pytest.fixture(scope="module")
 def shared(fm1_dir):
-    from generator.truth import load_truth
+    from generator.io.truth import load_truth
     unit, cals, rot = _fitted(fm1_dir)
     return unit, cals, rot, load_truth(fm1_dir / "truth.json")
 

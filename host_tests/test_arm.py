@@ -23,10 +23,10 @@ import pytest
 
 from chain_fixtures import (EXAMPLE_COEFFS, REPO, assert_bit_identical, bits, random_coeffs,
                             random_inputs, samsat_unit, with_float)
-from generator import chain
-from generator import target_arm as ta
-from generator.chain import reference_select, reference_sensor
-from generator.coeffs import CoefficientSet
+from generator.flight import chain
+from generator.flight import target as ta
+from generator.flight.chain import reference_select, reference_sensor
+from generator.flight.coeffs import CoefficientSet
 
 pytestmark = pytest.mark.arm
 
@@ -388,12 +388,12 @@ def test_flop_count_is_the_casadi_algorithm():
 
 
 def test_report_command(tmp_path, toolchain):
-    """`python -m generator.target_arm report` writes the report with measured numbers."""
+    """`python -m generator.flight.target report` writes the report with measured numbers."""
     cs = random_coeffs(np.random.default_rng(8), samsat_unit("rep"))
     src = tmp_path / "coefficients.json"
     cs.save(src)
     out = tmp_path / "flight_target.md"
-    p = subprocess.run([sys.executable, "-m", "generator.target_arm", "report", str(src), "-o",
+    p = subprocess.run([sys.executable, "-m", "generator.flight.target", "report", str(src), "-o",
                         str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert p.returncode == 0, p.stderr
     text = out.read_text()

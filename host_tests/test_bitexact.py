@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 
 from chain_fixtures import (EXAMPLE_COEFFS, assert_bit_identical, bits, random_coeffs,
                             random_inputs, samsat_unit, with_float)
-from generator import chain
-from generator.chain import reference_sensor
-from generator.coeffs import CoefficientSet
-from generator.host import HostUnit
+from generator.flight import chain
+from generator.flight.chain import reference_sensor
+from generator.flight.coeffs import CoefficientSet
+from generator.flight.host import HostUnit
 
 COILS = ("coil_x_A", "coil_y_A", "coil_z_A")
 N_RANDOM = 100_000
@@ -285,7 +285,7 @@ def test_optional_stages_bit_identical():
     nonlinearity, SET/RESET rate compensation, degree 5): C == Python, pair, SET-only
     and the lag recursion over a sequence of calls."""
     from chain_fixtures import random_aux, with_options
-    from generator.chain import SensorOptions
+    from generator.flight.chain import SensorOptions
 
     rng = np.random.default_rng(21)
     base = random_coeffs(rng, samsat_unit("optsat"), coils=COILS)
@@ -372,7 +372,7 @@ def test_calls_of_every_kind_on_one_state():
     """Pair and SET-only calls interleaved on one state, some with state NULL (no filter,
     nothing stored, no offset for SET-only), with thermal lag: C == Python, bit for bit."""
     from chain_fixtures import random_aux, with_options
-    from generator.chain import NULL_STATE, SensorOptions, SensorState
+    from generator.flight.chain import NULL_STATE, SensorOptions, SensorState
 
     rng = np.random.default_rng(31)
     base = random_coeffs(rng, samsat_unit("mixsat"), coils=COILS)

@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from generator import truth as truth_mod
+from generator.io import truth as truth_mod
 from generator.cli import main
-from generator.telemetry import preprocess, read_telemetry
-from generator.unit import load_unit
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.unit import load_unit
 
 
 def read_apply_csv(path) -> dict:

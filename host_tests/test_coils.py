@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from generator.errors import InputError
-from generator.fit_coils import (DEFAULT_DISTANCE_CM, SEED_30CM_NO_PANEL_NT,
+from generator.fit.coils import (DEFAULT_DISTANCE_CM, SEED_30CM_NO_PANEL_NT,
                                  SEED_30CM_PANEL_NT, correction_table, fit_coils,
                                  fit_coupling, format_correction_table,
                                  format_interference_table, interference_table,
@@ -97,9 +97,9 @@ def test_undetermined_couplings_rejected():
 # ---------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def _load(fm1_dir):
-    from generator import fit_thermal
-    from generator.telemetry import read_telemetry
-    from generator.unit import load_unit
+    from generator.fit import thermal as fit_thermal
+    from generator.io.telemetry import read_telemetry
+    from generator.io.unit import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     coils = read_telemetry(fm1_dir / "coils.csv", unit)
@@ -108,7 +108,7 @@ def _load(fm1_dir):
 
 @pytest.fixture(scope="module")
 def shared(fm1_dir):
-    from generator.truth import load_truth
+    from generator.io.truth import load_truth
     unit, cals, coils = _load(fm1_dir)
     return unit, cals, coils, load_truth(fm1_dir / "truth.json"), fit_coils(unit, [coils])
 
@@ -130,7 +130,7 @@ def test_shared_K_is_in_raw_units_not_scaled_by_M(shared):
     """K is subtracted before M: it must match K_true, not W K_true, on the sensor whose
     W departs most from I at the largest coupling (mmc1)."""
     unit, cals, coils, truth, cf = shared
-    from generator.truth import true_W
+    from generator.io.truth import true_W
     f = cf.sensors["mmc1"]
     K_true = truth["sensors"]["mmc1"]["K_nT_per_A"]
     W = true_W(truth, "mmc1", np.array([25.0]))[0]

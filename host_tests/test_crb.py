@@ -1,4 +1,4 @@
-"""The Cramér-Rao bound of the ellipsoid calibration (generator.crb) against Monte Carlo.
+"""The Cramér-Rao bound of the ellipsoid calibration (generator.fit.bounds) against Monte Carlo.
 
 The bound is checked the way it is used: many noisy draws of the same geometry are fitted,
 and the empirical covariance of the fitted offset must come out at the bound for an
@@ -21,8 +21,8 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from generator.crb import ellipsoid_crb, normalised_residuals, residual_gain
-from generator.fit_ellipsoid import (algebraic_ellipsoid, ellipsoid_fit, polar_spd,
+from generator.fit.bounds import ellipsoid_crb, normalised_residuals, residual_gain
+from generator.fit.ellipsoid import (algebraic_ellipsoid, ellipsoid_fit, polar_spd,
                                      sym_from6, sym_to6)
 
 R_NT = 50000.0
@@ -171,7 +171,7 @@ def test_residual_variance_is_the_propagated_noise():
 
 
 def test_our_refined_fit_attains_the_bound_on_the_full_sphere():
-    """generator.fit_ellipsoid.ellipsoid_fit (algebraic + geometric refinement) on a
+    """generator.fit.ellipsoid.ellipsoid_fit (algebraic + geometric refinement) on a
     realistic sensor over the full sphere: empirical covariance of the offset = bound."""
     rng = np.random.default_rng(7)
     W = mild_W(rng)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from generator.coeffs import CoefficientSet
-from generator.docs import EXAMPLE, OUT, chain_markdown
+from generator.flight.coeffs import CoefficientSet
+from generator.report.chain_doc import EXAMPLE, OUT, chain_markdown
 
 
 def test_chain_page_is_up_to_date():
     want = chain_markdown(CoefficientSet.load(EXAMPLE))
-    assert OUT.read_text() == want, "docs/chain.md is stale: run python3 -m generator.docs"
+    assert OUT.read_text() == want, "docs/chain.md is stale: run python3 -m generator.report.chain_doc"
 
 
 def test_chain_page_lists_every_block_of_every_sensor():

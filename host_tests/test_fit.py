@@ -7,15 +7,15 @@ import json
 
 import numpy as np
 
-from generator.crb import normalised_residuals
+from generator.fit.bounds import normalised_residuals
 import pytest
 
 from generator.errors import InputError
-from generator.fit_ellipsoid import (algebraic_ellipsoid, ellipsoid_fit, polar_spd,
+from generator.fit.ellipsoid import (algebraic_ellipsoid, ellipsoid_fit, polar_spd,
                                      sym_from6, sym_to6)
-from generator.fit_thermal import (FitData, find_segments, fit_sensor, group_levels,
+from generator.fit.thermal import (FitData, find_segments, fit_sensor, group_levels,
                                    reference_fit, temperature_quantum)
-from generator.truth import (rms_norm_error, true_calibrated_frame, true_frame_field)
+from generator.io.truth import (rms_norm_error, true_calibrated_frame, true_frame_field)
 
 R_LAB_NT = 51540.0
 B_LAB_NT = np.array([18447.6, 3652.7, 47986.6])

@@ -1,4 +1,4 @@
-"""Checks of the seed-001 analytic calibration (generator.fit_analytic).
+"""Checks of the seed-001 analytic calibration (generator.fit.analytic).
 
 Independent references:
   (a) ordinary linear least squares row by row in the reparametrised unknowns, solved by
@@ -21,7 +21,7 @@ from hypothesis import assume, given, settings, strategies as st
 from scipy import stats
 
 from generator.errors import InputError
-from generator.fit_analytic import (
+from generator.fit.analytic import (
     MIN_SAMPLES,
     PLANARITY_MIN_RATIO,
     P_from_angles,

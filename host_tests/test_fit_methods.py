@@ -24,17 +24,17 @@ import pytest
 from scipy import stats as sps
 
 from generator.errors import InputError
-from generator.fit_analytic import (P_from_angles, angles_from_P, fit_analytic,
+from generator.fit.analytic import (P_from_angles, angles_from_P, fit_analytic,
                                     fit_analytic_rotated, lq_split, rotation_from_rotvec,
                                     rotvec_from_rotation)
-from generator.fit_compare import SEED_000_MMC5883_NO2, compare_methods, sections
-from generator.fit_thermal import (FIT_METHODS, fit_data_from, fit_sensor, fit_unit,
+from generator.report.compare import SEED_000_MMC5883_NO2, compare_methods, sections
+from generator.fit.thermal import (FIT_METHODS, fit_data_from, fit_sensor, fit_unit,
                                    rotated_fit_M)
-from generator.report import Report, Section, Table
-from generator.telemetry import preprocess, read_telemetry
-from generator.truth import (load_truth, rms_norm_error, rms_vector_error,
+from generator.report.report import Report, Section, Table
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.truth import (load_truth, rms_norm_error, rms_vector_error,
                              true_calibrated_frame)
-from generator.unit import load_unit
+from generator.io.unit import load_unit
 
 SENSORS = ("mmc1", "mpu1", "mpu2", "mmc2", "mpu3")
 MAX_RATIO = 1.15
@@ -196,8 +196,8 @@ def test_analytic_method_accuracy_apply64(analytic, thermal, sensor, capsys):
 
 
 def test_analytic_method_through_the_flight_chain(analytic, unit, thermal):
-    from generator.coeffs import CoefficientSet
-    from generator.host import HostUnit
+    from generator.flight.coeffs import CoefficientSet
+    from generator.flight.host import HostUnit
     from generator.pipeline import chain_inputs
 
     cs = CoefficientSet.from_calibrations(unit, analytic)

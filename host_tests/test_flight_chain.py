@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from generator import truth as truth_mod
+from generator.io import truth as truth_mod
 from generator.cli import main
-from generator.telemetry import preprocess, read_telemetry
-from generator.unit import load_unit
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.unit import load_unit
 from test_cli import read_apply_csv
 
 COILS = ["coil_x_A", "coil_y_A", "coil_z_A"]

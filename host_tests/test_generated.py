@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from generator.codegen import generate, render
-from generator.coeffs import CoefficientSet
+from generator.flight.codegen import generate, render
+from generator.flight.coeffs import CoefficientSet
 
 GENERATED = Path(__file__).resolve().parent.parent / "generated"
 UNITS = sorted(p.parent for p in GENERATED.glob("*/coefficients.json"))

@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from generator import telemetry_io
+from generator.io import telemetry_csv as telemetry_io
 from generator.errors import InputError
-from generator.telemetry import preprocess, read_telemetry
-from generator.unit import load_unit
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.unit import load_unit
 
 # =========================================================================== unit file
 

@@ -14,13 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from generator import plan as P
-from generator.check import (B_NAMES, M_NAMES, MIN_DIRECTION_EIG, MIN_ICOSA_FRACTION,
+from generator.campaign import plan as P
+from generator.campaign.check import (B_NAMES, M_NAMES, MIN_DIRECTION_EIG, MIN_ICOSA_FRACTION,
                              direction_coverage, poly_covariance, up_axis_and_heading)
 from generator.cli import main
-from generator.fit_thermal import reference_fit
-from generator.telemetry import preprocess, read_telemetry
-from generator.unit import load_unit
+from generator.fit.thermal import reference_fit
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.unit import load_unit
 
 
 # ---------------------------------------------------------------------------------------
@@ -75,7 +75,7 @@ def default_plan_json(tmp_path_factory, fm1_dir):
 # plan
 # ---------------------------------------------------------------------------------------
 def test_positions_cover_every_axis_up_twice_and_match_the_simulator():
-    from generator.simulate import twelve_positions as sim_positions
+    from generator.campaign.simulate import twelve_positions as sim_positions
 
     F, inc = 51540.0, 68.0
     pos = P.positions(F, inc)
@@ -189,7 +189,7 @@ def test_plan_bad_input_exits_2(tmp_path, fm1_dir, capsys, extra, fragment):
 
 
 def test_plan_needs_a_lab_field(tmp_path, capsys):
-    from generator.simulate import make_example_unit, write_unit_toml
+    from generator.campaign.simulate import make_example_unit, write_unit_toml
     from dataclasses import replace
 
     unit = replace(make_example_unit(), lab_field_nT=None)
@@ -311,8 +311,8 @@ def test_check_names_a_removed_temperature_plateau(fm1_dir, fm1_unit, tmp_path, 
 def test_check_with_holds_too_short_for_the_boards(tmp_path, capsys):
     """A simulated campaign whose holds are shorter than the boards need: check names the
     unsettled levels; the same campaign with the plan's holds passes against that plan."""
-    from generator.simulate import make_example_unit, random_truth, simulate_campaign
-    from generator.simulate import write_unit_toml
+    from generator.campaign.simulate import make_example_unit, random_truth, simulate_campaign
+    from generator.campaign.simulate import write_unit_toml
 
     unit = make_example_unit()
     write_unit_toml(unit, tmp_path / "unit.toml")

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from generator import report as R
+from generator.report import report as R
 from generator.cli import main
-from generator.coeffs import CoefficientSet
+from generator.flight.coeffs import CoefficientSet
 
 
 class _Links(HTMLParser):
@@ -138,7 +138,7 @@ def test_figure_numbers_are_in_the_tables(fm1_fit_report, fm1_dir, tmp_path):
     cs = CoefficientSet.load(fm1_fit_report[0] / "coefficients.json")
     an = R.CampaignAnalysis(cs, [fm1_dir / "thermal_12pos.csv"])
     drawn = []
-    from generator import figures as F
+    from generator.report import figures as F
     orig = F.coefficient_grids
 
     def spy(jobs):
@@ -200,7 +200,7 @@ def test_demo_ends_with_the_report(tmp_path, capsys):
 
 
 def test_hooks_make_a_figure_and_a_table_each(tmp_path):
-    from generator.setreset import offset_error_maps
+    from generator.fit.setreset import offset_error_maps
 
     rng = np.random.default_rng(0)
     before = np.abs(rng.normal(0.8, 0.1, 500))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from generator.errors import InputError
-from generator.setreset import (SEED_OFFSET_ERROR_BOUND_PCT, T_TM_MS, StoredOffset,
+from generator.fit.setreset import (SEED_OFFSET_ERROR_BOUND_PCT, T_TM_MS, StoredOffset,
                                 chip_offset_compensated, compensate_offset,
                                 compensation_gain, field_after, format_compensation_table,
                                 format_worst_case_table, offset_and_field,
@@ -54,8 +54,8 @@ def test_rotation_helpers():
 
 def test_counts_formula_matches_preprocess(fm1_dir):
     """The float64 formulas give the toolchain's own SET/RESET field and chip offset."""
-    from generator.telemetry import preprocess, read_telemetry
-    from generator.unit import load_unit
+    from generator.io.telemetry import preprocess, read_telemetry
+    from generator.io.unit import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     tel = read_telemetry(fm1_dir / "rotation.csv", unit)
     data = preprocess(tel, unit)
@@ -236,11 +236,11 @@ def test_compensate_offset_vectorised_matches_loop():
 # ---------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def _shared(fm1_dir):
-    from generator import fit_thermal
-    from generator.fit_alignment import align_boom
-    from generator.telemetry import preprocess, read_telemetry
-    from generator.truth import load_truth
-    from generator.unit import load_unit
+    from generator.fit import thermal as fit_thermal
+    from generator.fit.alignment import align_boom
+    from generator.io.telemetry import preprocess, read_telemetry
+    from generator.io.truth import load_truth
+    from generator.io.unit import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     rot = read_telemetry(fm1_dir / "rotation.csv", unit)

@@ -1,7 +1,7 @@
 """Uplink coefficient tables: the flight C validator, reassembly and double buffer.
 
 The flight table code (`<unit>_table.c`, from templates/table.*.j2) runs through cffi
-(generator.tables.TableHost). The promises tested here:
+(generator.flight.tables.TableHost). The promises tested here:
 
 * a table made by the ground encoder, sent in parts in any order and committed, puts
   exactly those coefficients in use: the correction through the active table is
@@ -31,12 +31,12 @@ from hypothesis import strategies as st
 
 from chain_fixtures import (assert_bit_identical, bits, random_aux, random_coeffs,
                             random_inputs, samsat_unit, with_float, with_options)
-from generator import tables
-from generator.chain import ChainSpec, SensorOptions, reference_sensor
-from generator.coeffs import CoefficientSet
+from generator.flight import tables
+from generator.flight.chain import ChainSpec, SensorOptions, reference_sensor
+from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
-from generator.host import HostUnit
-from generator.tables import (CRC_BYTES, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_INDEX,
+from generator.flight.host import HostUnit
+from generator.flight.tables import (CRC_BYTES, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_INDEX,
                               PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS, Reassembler,
                               TableError, TableHost, TableStatus, check_table, chunk_table,
                               decode_table, diff_tables, encode_table, reseal)
@@ -976,7 +976,7 @@ def test_encoder_refuses_a_table_the_flight_code_would_reject():
 
 def test_format_page_is_up_to_date():
     assert tables.DOC_PATH.read_text() == tables.format_doc(), \
-        "docs/table_format.md is stale: run python -m generator.tables --write-doc"
+        "docs/table_format.md is stale: run python -m generator.flight.tables --write-doc"
 
 
 def test_format_page_and_c_header_show_the_python_layout():

@@ -1,7 +1,7 @@
 """Issue 6 acceptance: `magcal trace` names effects the model lacks, on data it was not told
 about, and leaves clean data alone.
 
-The project's simulator (generator.simulate) injects each catalogue effect with a random
+The project's simulator (generator.campaign.simulate) injects each catalogue effect with a random
 size (3-20 x the sensor's per-axis field noise, measured as the largest contribution of
 the effect that the baseline model cannot absorb), random axis direction, sensor and
 channel into fast campaigns; a fixed seed list per effect (not one lucky draw). For every
@@ -17,7 +17,7 @@ nominal SET/RESET delay is set to 0 in the campaigns: clean means "nothing the b
 lacks"; SetResetDelay injects a delay. The boom alignment of the random truth is set to
 the identity so that the rotation rig's body-frame reference holds for the boom sensor.
 
-Also here: the float64 model of the extended chain equals generator.chain's reference
+Also here: the float64 model of the extended chain equals generator.flight.chain's reference
 run in float64, the traced coefficients generate flight C that reproduces it, the
 correlated-channel cases, and the command-line handler.
 """
@@ -31,15 +31,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from generator import chain
-from generator import simulate as sim
-from generator import trace as tr
-from generator.chain import ChainSpec, SensorOptions
-from generator.coeffs import CoefficientSet
+from generator.flight import chain
+from generator.campaign import simulate as sim
+from generator.trace import tracer as tr
+from generator.flight.chain import ChainSpec, SensorOptions
+from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.pipeline import chain_inputs
-from generator.telemetry import Telemetry, preprocess, read_telemetry
-from generator.unit import Unit
+from generator.io.telemetry import Telemetry, preprocess, read_telemetry
+from generator.io.unit import Unit
 
 SIZE_RANGE = (3.0, 20.0)       # effect size in units of the per-axis field noise
 RATIO_LIMIT = 1.2              # final held-out RMS / truth-model RMS
@@ -396,7 +396,7 @@ def rotation_with_channels(tmp_path_factory):
 
 
 def test_the_float64_model_is_the_flight_chain(rotation_with_channels):
-    """SensorModel (what trace fits) against generator.chain.reference_sensor run in
+    """SensorModel (what trace fits) against generator.flight.chain.reference_sensor run in
     float64, with every optional stage: channels, thermal lag, degree 5, cubic, SET/RESET
     rate compensation with the boom's H^T w."""
     unit, truth, base, (thermal, tel), rng = rotation_with_channels
@@ -431,7 +431,7 @@ def test_traced_coefficients_generate_flight_c_with_the_effects(tmp_path):
     if shutil.which("gcc") is None:
         pytest.skip("gcc not found")
     from generator.cli import main
-    from generator.host import HostUnit
+    from generator.flight.host import HostUnit
     unit = small_unit()
     truth = sim.random_truth(unit, np.random.default_rng(21))
     src = sim.SquareWave(300.0, 0.4, 0.5, 0.0, 10.0, 3)
@@ -457,7 +457,7 @@ def test_traced_coefficients_generate_flight_c_with_the_effects(tmp_path):
                            channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
         # the flight C of the extended chain is the float32 reference, bit for bit ...
         from chain_fixtures import assert_bit_identical
-        from generator.chain import reference_sensor
+        from generator.flight.chain import reference_sensor
         py = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
                               inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                               channels=inp["channels"], rate_dps=inp["rate_dps"],
@@ -554,7 +554,7 @@ def test_zz_summary():
 
 def test_docs_list_every_catalogue_effect():
     from conftest import REPO
-    from generator.effects import CATALOGUE
+    from generator.trace.effects import CATALOGUE
     text = (REPO / "docs" / "effects.md").read_text()
     for cls in CATALOGUE:
         assert f"`{cls.name}`" in text, f"docs/effects.md does not describe {cls.name}"

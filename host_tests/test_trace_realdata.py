@@ -23,8 +23,8 @@ import json
 import numpy as np
 import pytest
 
-from generator import trace as tr
-from generator.coeffs import CoefficientSet
+from generator.trace import tracer as tr
+from generator.flight.coeffs import CoefficientSet
 
 from conftest import REALDATA
 
@@ -78,7 +78,7 @@ def test_px4_adapter_reads_the_log(px4_dir):
     unit, tel = tr.px4_log_telemetry(px4_dir, average_s=1.0)
     assert unit.sensor_names == ("mag0", "mag1", "mag2", "mag3")
     assert 320 < tel.time_s[-1] - tel.time_s[0] < 335
-    from generator.telemetry import preprocess
+    from generator.io.telemetry import preprocess
     pre = preprocess(tel, unit)
     for s in unit.sensors:
         d = pre[s.name]

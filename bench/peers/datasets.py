@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from generator import simulate as sim
+from generator.campaign import simulate as sim
 from generator.errors import InputError
-from generator.fit_ellipsoid import algebraic_ellipsoid, polar_spd
-from generator.fit_thermal import fit_data_from
-from generator.telemetry import preprocess, read_telemetry
-from generator.truth import load_truth, true_b, true_frame_field, true_W
-from generator.unit import load_unit
+from generator.fit.ellipsoid import algebraic_ellipsoid, polar_spd
+from generator.fit.thermal import fit_data_from
+from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.truth import load_truth, true_b, true_frame_field, true_W
+from generator.io.unit import load_unit
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared"
@@ -240,7 +240,7 @@ class ThermalCase:
     id: str
     condition: str
     sensor: str
-    fit_data: object                 # generator.fit_thermal.FitData, all samples usable
+    fit_data: object                 # generator.fit.thermal.FitData, all samples usable
     W_poly: np.ndarray               # (k, 3, 3) truth, polynomials in T - t_ref
     b_poly_nT: np.ndarray            # (k, 3)
     t_ref_C: float

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from generator.crb import ellipsoid_crb
-from generator.fit_ellipsoid import _sym_grad, polar_spd
+from generator.fit.bounds import ellipsoid_crb
+from generator.fit.ellipsoid import _sym_grad, polar_spd
 
 PPM = 1e6
 
@@ -42,7 +42,7 @@ def heldout_scatter_rel(b_nT, M, case) -> float:
 
 
 def offset_crb(case):
-    """Cramér-Rao bound of the case's offset (generator.crb) at its truth."""
+    """Cramér-Rao bound of the case's offset (generator.fit.bounds) at its truth."""
     return ellipsoid_crb(case.field_true_nT, case.b_true_nT, np.linalg.inv(case.W_true),
                          case.sigma_nT, case.ref_norm_nT)
 

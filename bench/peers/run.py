@@ -52,7 +52,7 @@ import metrics                                           # noqa: E402
 import variants                                          # noqa: E402
 import venvs                                             # noqa: E402
 from generator.errors import InputError                  # noqa: E402
-from generator.truth import true_calibrated_frame        # noqa: E402
+from generator.io.truth import true_calibrated_frame        # noqa: E402
 
 OURS = "ours (ellipsoid_fit)"
 VARIANT = "ours, plain geometric refinement (before)"
@@ -80,12 +80,12 @@ class Method:
 
 METHODS = [
     Method(OURS, fit=variants.ours_fit,
-           note="generator.fit_ellipsoid.ellipsoid_fit: algebraic Li-Griffiths start in "
+           note="generator.fit.ellipsoid.ellipsoid_fit: algebraic Li-Griffiths start in "
                 "normalised coordinates, Levenberg-Marquardt refinement of the "
                 "noise-normalised residuals (|M(x-b)|-R)/|M^T u|, refuses fits the data do "
                 "not determine"),
     Method("ours, algebraic stage only", fit=variants.ours_algebraic,
-           note="generator.fit_ellipsoid.algebraic_ellipsoid alone"),
+           note="generator.fit.ellipsoid.algebraic_ellipsoid alone"),
     Method(VARIANT, fit=variants.geometric_fit,
            note="same start; refinement of the plain |M(x-b)|-R (ellipsoid_fit("
                 "residual='geometric')), the pipeline's default until the peer comparison "
@@ -428,7 +428,7 @@ def conditions_section(run: Run, elapsed_s) -> list:
         f"{', '.join(str(len(c.readings_nT)) for c in fm1)} usable samples, full sphere by hand, "
         "boom deployed; truth = W(T), b(T) averaged over the samples' true board "
         "temperatures.",
-        f"* **Project simulator** (generator.simulate, `random_truth` per seed, "
+        f"* **Project simulator** (generator.campaign.simulate, `random_truth` per seed, "
         f"`simulate_campaign('rotation', coverage_cap_deg=...)`): 5 sensors per seed, N = "
         f"{', '.join(map(str, n_sim))} samples per sensor; field direction over the full sphere "
         f"or within a cap of half-angle {', '.join(f'{c:g}' for c in a.caps)} deg about body "

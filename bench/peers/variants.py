@@ -1,13 +1,13 @@
 """Variants of this toolchain's fits, built from the pipeline's own pieces, for the peer
 comparison. Nothing here changes the pipeline; these are what the table compares.
 
-* `ours_fit`: generator.fit_ellipsoid.ellipsoid_fit as `magcal fit` runs it (algebraic
+* `ours_fit`: generator.fit.ellipsoid.ellipsoid_fit as `magcal fit` runs it (algebraic
   Li-Griffiths start in normalised coordinates + geometric Levenberg-Marquardt refinement,
   with its refusal checks).
 * `ours_algebraic`: its algebraic stage alone.
 * `geometric_fit`: the pipeline's fit with the plain geometric refinement, as it was
   before the noise-normalised residuals became the default. The default refines the
-  NOISE-NORMALISED residuals (|M (x - b)| - R) / |M^T u| of generator.crb,
+  NOISE-NORMALISED residuals (|M (x - b)| - R) / |M^T u| of generator.fit.bounds,
   whose variance is the same for every sample: the first-order maximum likelihood. The
   plain geometric cost sum (|M (x - b)| - R)^2 can lower itself by shrinking M along the
   directions where the data's normals point (the residual of the same reading noise is
@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from generator.calibration import POLY_DEGREE, SensorCalibration
-from generator.crb import normalised_residuals
+from generator.fit.calibration import POLY_DEGREE, SensorCalibration
+from generator.fit.bounds import normalised_residuals
 from generator.errors import InputError
-from generator.fit_ellipsoid import (_normalised_resid_jac, algebraic_ellipsoid,
+from generator.fit.ellipsoid import (_normalised_resid_jac, algebraic_ellipsoid,
                                      ellipsoid_fit, sym_from6, sym_to6)
-from generator.fit_thermal import T_REF_C, _gather, _powers
+from generator.fit.thermal import T_REF_C, _gather, _powers
 
 
 def ours_fit(x_nT, R_nT):
@@ -88,5 +88,5 @@ def px4_thermal_fit(name, datas, degree=POLY_DEGREE) -> SensorCalibration:
 
 
 def ours_thermal_fit(name, datas) -> SensorCalibration:
-    from generator.fit_thermal import fit_sensor
+    from generator.fit.thermal import fit_sensor
     return fit_sensor(name, datas)

@@ -21,7 +21,7 @@ It also measures what the flight code costs on the target (`flight_report`):
 * the minimum number of floating-point operations of the chain (the arithmetic
   instructions of the CasADi Function's algorithm), and the ratio.
 
-    python -m generator.target_arm report COEFFS.json -o docs/flight_target.md
+    python -m generator.flight.target report COEFFS.json -o docs/flight_target.md
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from .chain import ChainSpec, np_dtype
-from .codegen import REPO, TEMPLATE_DIR, _env, build_kernel, render, template_context
-from .coeffs import CoefficientSet
+from generator.flight.chain import ChainSpec, np_dtype
+from generator.flight.codegen import REPO, TEMPLATE_DIR, _env, build_kernel, render, template_context
+from generator.flight.coeffs import CoefficientSet
 
 # ---- toolchain ------------------------------------------------------------------------
 
@@ -372,7 +372,7 @@ class Entry:
 
     def kernel(self, spec: ChainSpec) -> ca.Function:
         """The CasADi Function whose arithmetic this entry point runs."""
-        from . import codegen
+        from generator.flight import codegen
         if self.kind == "select":
             return codegen.build_agreement_kernel(spec)
         s = spec.unit.sensor(self.sensor)
@@ -904,7 +904,7 @@ class EntryMeasure:
 
 
 def _ref_sensor(cs, sensor, raw, temp, coil, **kw):
-    from .chain import reference_sensor
+    from generator.flight.chain import reference_sensor
     return reference_sensor(cs.spec, cs.unit.sensor(sensor), cs.flat_sensor(sensor),
                             cs.flat_unit(), raw, temp, coil, **kw)
 
@@ -914,7 +914,7 @@ def representative_calls(cs: CoefficientSet, entry: Entry) -> dict:
     Python reference so that each really takes its path: {path: (args, expected status)}.
     'nominal' is a valid sample (status 0): a calibrated vector of plausible magnitude,
     in-range temperature, coil currents given."""
-    from . import chain
+    from generator.flight import chain
     spec = cs.spec
     if entry.kind == "select":
         S = len(spec.unit.sensors)
@@ -1254,7 +1254,7 @@ def _measure_variant(cs, files):
     # the wrapper now holds CasADi's code: the same warning exception as the kernels file
     arm = ArmUnit(cs, sources=files)
     mv = measure(cs, arm)
-    from .chain import reference_sensor
+    from generator.flight.chain import reference_sensor
     rng = np.random.default_rng(11)
     calls, refs = [], []
     for s in cs.unit.sensors:
@@ -1375,7 +1375,7 @@ def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m generator.target_arm",
+    ap = argparse.ArgumentParser(prog="python -m generator.flight.target",
                                  description="the flight C on the emulated Cortex-M4F")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("report", help="measure size, stack, instructions; write Markdown")

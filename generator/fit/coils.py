@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from generator.errors import InputError
 
 # Seed 000: coil at 30 cm (point 6, the boom length) driven at 0.1 A, mean absolute error
 SEED_CURRENT_A = 0.1
@@ -158,7 +158,7 @@ def fit_coils(unit, telemetries, *, coils=None, sensors=None) -> CoilFit:
     taken as one static position (noted). Rows with a missing current or an unusable
     reading are left out.
     """
-    from . import telemetry as _telemetry
+    from generator.io import telemetry as _telemetry
     if not telemetries:
         raise InputError(unit.path, "coils: no telemetry files given")
     if coils is None:
@@ -295,7 +295,7 @@ def correction_table(unit, tel, calibrations, coil_fit: CoilFit, *, H_boom_to_bo
     (body frame = the boom board's frame in the jig) when present. H_boom_to_body: give it
     when the file was taken with the boom deployed; the boom sensors' reference vectors are
     then H^T ref."""
-    from . import telemetry as _telemetry
+    from generator.io import telemetry as _telemetry
     data = _telemetry.preprocess(tel, unit)
     I = np.column_stack([tel.columns[c] for c in coil_fit.coils])
     if tel.has("ref_norm_nT"):

@@ -37,11 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import Block, ChainSpec, np_dtype
-from .coeffs import CoefficientSet
-from .errors import InputError
+from generator.flight.chain import Block, ChainSpec, np_dtype
+from generator.flight.coeffs import CoefficientSet
+from generator.errors import InputError
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DOC_PATH = REPO / "docs" / "table_format.md"
 
 MAGIC = b"MGCT"            # a magcal coefficient table
@@ -882,7 +882,7 @@ def _crc_byte_table() -> list:
 
 def table_context(cs: CoefficientSet) -> dict:
     """Everything table.h.j2 / table.c.j2 need beyond codegen.template_context(cs)."""
-    from .codegen import c_literal
+    from generator.flight.codegen import c_literal
 
     spec = cs.spec
     ft = spec.unit.float_type
@@ -933,7 +933,7 @@ def table_context(cs: CoefficientSet) -> dict:
 def flight_sources(cs: CoefficientSet) -> dict:
     """{file name: text}: codegen.render(cs) plus the table files, rendered with the
     table context whether or not codegen renders them itself already."""
-    from .codegen import _env, render
+    from generator.flight.codegen import _env, render
 
     files = render(cs)
     ctx = _table_ctx(cs)
@@ -1164,7 +1164,7 @@ int main(int argc, char **argv)
 
 
 def _table_ctx(cs: CoefficientSet) -> dict:
-    from .codegen import template_context
+    from generator.flight.codegen import template_context
 
     ctx = template_context(cs)
     ctx.setdefault("table", table_context(cs))
@@ -1175,7 +1175,7 @@ def host_sources(cs: CoefficientSet) -> dict:
     """What the table code needs (no CasADi kernels): the unit's magcal.h and compiled-in
     defaults, the table files, and the host helper table_host.c/.h; plus the cffi cdef
     as "table_host.cdef"."""
-    from .codegen import TEMPLATES, _env
+    from generator.flight.codegen import TEMPLATES, _env
 
     ctx = _table_ctx(cs)
     env = _env()
@@ -1193,7 +1193,7 @@ def host_sources(cs: CoefficientSet) -> dict:
 
 
 def sanitizer_driver(cs: CoefficientSet) -> str:
-    from .codegen import _env
+    from generator.flight.codegen import _env
 
     return _env().from_string(SANITIZER_DRIVER_C).render(**_table_ctx(cs))
 
@@ -1223,7 +1223,7 @@ class TableHost:
     the correction: -std=c99 -O2 -ffp-contract=off; -Wall -Wextra -Werror -pedantic)."""
 
     def __init__(self, cs: CoefficientSet):
-        from . import host
+        from generator.flight import host
 
         self.cs = cs
         self.spec = cs.spec
@@ -1326,8 +1326,8 @@ class TableHost:
 
 def _doc_example_spec() -> ChainSpec:
     """A chain with every block there is: coils, a boom sensor, every optional stage."""
-    from .chain import SensorOptions
-    from .unit import SensorSpec, Unit
+    from generator.flight.chain import SensorOptions
+    from generator.io.unit import SensorSpec, Unit
 
     unit = Unit("example", (
         SensorSpec("mmc1", "MMC5883MA", "body", ("+z", "+y", "+x"), 25.0, 32768, True),
@@ -1350,7 +1350,7 @@ def format_doc() -> str:
     a("# Uplink coefficient table format")
     a("")
     a("<!-- DO NOT EDIT: generated from generator/tables.py by "
-      "`python -m generator.tables --write-doc`; host_tests/test_tables.py checks it. -->")
+      "`python -m generator.flight.tables --write-doc`; host_tests/test_tables.py checks it. -->")
     a("")
     a("A table carries one unit's complete coefficient set from the ground to the flight "
       "code. Everything is little-endian. A table is")
@@ -1629,10 +1629,10 @@ cli_table = cmd_table
 
 
 def main(argv=None) -> int:
-    """`python -m generator.tables --write-doc`: regenerate docs/table_format.md."""
+    """`python -m generator.flight.tables --write-doc`: regenerate docs/table_format.md."""
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m generator.tables")
+    p = argparse.ArgumentParser(prog="python -m generator.flight.tables")
     p.add_argument("--write-doc", action="store_true", help=f"write {DOC_PATH}")
     args = p.parse_args(argv)
     if args.write_doc:

@@ -1,6 +1,6 @@
 """Cramér-Rao bound of the ellipsoid (attitude-independent) calibration.
 
-Model (seed 000 eq. 5-6, generator.fit_ellipsoid): readings x_i = x0_i + n_i, where the
+Model (seed 000 eq. 5-6, generator.fit.ellipsoid): readings x_i = x0_i + n_i, where the
 noise-free reading x0_i lies on the ellipsoid |M (x0_i - b)| = R_i (R_i the known field
 magnitude) and n_i ~ N(0, diag(sigma^2)) per axis, independent between samples.
 
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit_ellipsoid import _sym_grad, polar_spd
+from generator.fit.ellipsoid import _sym_grad, polar_spd
 
 N_PARAMS = 9     # b (3) + symmetric M (6)
 

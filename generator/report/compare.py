@@ -31,7 +31,7 @@ every calibration is also scored on them by |B| only (a boom sensor sees H^T B t
 "rotation" row: an ellipsoid fitted to that file.
 
 Public API: compare_methods(unit, telemetries, truth=None, *, evaluate=()) -> dict;
-sections(result) -> [generator.report.Section]; SEED_000_MMC5883_NO2.
+sections(result) -> [generator.report.report.Section]; SEED_000_MMC5883_NO2.
 """
 
 from __future__ import annotations
@@ -41,9 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .fit_thermal import FIT_METHODS, fit_unit
-from .report import Section, Table
+from generator.errors import InputError
+from generator.fit.thermal import FIT_METHODS, fit_unit
+from generator.report.report import Section, Table
 
 #: Seed 000, section 4: |B| after calibration of MMC5883 No.2, mean and standard deviation
 #: ("СКО") in nT.
@@ -72,7 +72,7 @@ _LABEL = {
 def _eval_data(tel, unit):
     """Per sensor: field, temperature, reference vectors (or None) and magnitudes of the
     samples every calibration can be scored on (usable, no coil current, a reference)."""
-    from .telemetry import preprocess
+    from generator.io.telemetry import preprocess
 
     data = preprocess(tel, unit)
     n = tel.n
@@ -151,7 +151,7 @@ def _truth_metrics(cal, truth, name, T):
 
     Offsets: |b - b_true| in nT; matrices: Frobenius norm of M - W_true^-1 in ppm, and the
     same for their symmetric polar factors (what a magnitude-only fit determines)."""
-    from .truth import true_W, true_b
+    from generator.io.truth import true_W, true_b
 
     Tu, counts = np.unique(np.asarray(T, float), return_counts=True)
     w = counts / counts.sum()
@@ -187,7 +187,7 @@ def compare_methods(unit, telemetries, truth=None, *, evaluate=(), methods=COMPA
                     progress=None) -> dict:
     """Fit `telemetries` with each method and score every calibration on the same data.
 
-    unit: generator.unit.Unit; telemetries: Telemetry list (fitted and scored); truth:
+    unit: generator.io.unit.Unit; telemetries: Telemetry list (fitted and scored); truth:
     truth.json path or loaded dict (adds the true-parameter row and the b(T), M(T)
     errors); evaluate: further Telemetry, scored but not fitted; one without reference
     vectors also gives the seed's "rotation" row, an ellipsoid fitted to that file.
@@ -203,7 +203,7 @@ def compare_methods(unit, telemetries, truth=None, *, evaluate=(), methods=COMPA
     sd_norm_nT, rms_norm_nT, rms_vector_nT, rms_vector_best_rotation_nT,
     best_rotation_deg.
     """
-    from .truth import load_truth, true_calibrated_frame
+    from generator.io.truth import load_truth, true_calibrated_frame
 
     say = progress or (lambda msg: None)
     if not telemetries:
@@ -297,7 +297,7 @@ def _name(path):
 
 
 def sections(result) -> list:
-    """Report sections of a compare_methods result (generator.report Section/Table)."""
+    """Report sections of a compare_methods result (generator.report.report Section/Table)."""
     files = list(result["files"]) + [p for p in result["evaluate_files"]
                                      if p not in result["files"]]
     has_truth = result["truth"] is not None

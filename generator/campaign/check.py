@@ -1,17 +1,17 @@
 """`magcal check`: does a recorded campaign cover the test program?
 
 Per planned position and temperature level: is there a settled constant-temperature
-segment (the fit's own segment finder, generator.fit_thermal.find_segments), how many
+segment (the fit's own segment finder, generator.fit.thermal.find_segments), how many
 samples, how many missing or saturated; how well the orientations cover the sphere; and
 what the data would leave poorly determined, predicted from the design of the fit itself:
 
 Prediction of the coefficient uncertainty. The calibration B = M(T)(B~ - b(T)), b and M
-polynomials in dT = T - t_ref (generator.calibration), is fitted by least squares on
+polynomials in dT = T - t_ref (generator.fit.calibration), is fitted by least squares on
 
 * vector rows  r = M(T)(B~ - b(T)) - B_ref        where reference vectors are known,
 * magnitude rows r = |M(T)(B~ - b(T))| - |B|      where only the magnitude is,
 
-(generator.fit_thermal). Linearised about nominal coefficients (M = I, b = the constant
+(generator.fit.thermal). Linearised about nominal coefficients (M = I, b = the constant
 offset, or the fitted ones) the Jacobian J of these rows with respect to the polynomial
 coefficients is the design matrix; with a reading noise sigma per axis the coefficients'
 covariance is sigma^2 (J^T J)^-1, and the 1-sigma of b_i(T) and m_ij(T) at a temperature
@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .calibration import POLY_DEGREE
-from .errors import InputError
-from .fit_ellipsoid import SYM_INDEX, _sym_grad, coverage
-from .fit_thermal import (DEGREE_STEP_C, T_REF_C, _powers, find_segments,
+from generator.fit.calibration import POLY_DEGREE
+from generator.errors import InputError
+from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, coverage
+from generator.fit.thermal import (DEGREE_STEP_C, T_REF_C, _powers, find_segments,
                           temperature_quantum)
 
 AXES = "xyz"
@@ -313,9 +313,9 @@ def _coil_on(tel):
 def gather_samples(unit, tels, pres=None) -> dict:
     """{sensor: SensorSamples} from telemetry files (and their preprocess() results).
 
-    Usable as in generator.fit_thermal: finite, not saturated, no magnetorquer current, and
+    Usable as in generator.fit.thermal: finite, not saturated, no magnetorquer current, and
     some field reference (reference vectors, ref_norm_nT or the unit's lab_field_nT)."""
-    from .telemetry import preprocess
+    from generator.io.telemetry import preprocess
     if pres is None:
         pres = [preprocess(t, unit) for t in tels]
     out = {}
@@ -381,7 +381,7 @@ def gather_samples(unit, tels, pres=None) -> dict:
 
 
 def level_tolerance_C(temps) -> float:
-    """Gap between segment temperatures that starts a new level (as generator.fit_thermal)."""
+    """Gap between segment temperatures that starts a new level (as generator.fit.thermal)."""
     quantum = temperature_quantum(temps) if len(temps) else 0.0
     return max(2.0, 3.0 * quantum, DEGREE_STEP_C / 2)
 
@@ -470,8 +470,8 @@ def _distinct_angles(angles_deg, tol_deg):
 
 def _constant_offset(S: SensorSamples):
     """A constant offset to linearise the prediction about (and say if even that fails)."""
-    from .fit_ellipsoid import ellipsoid_fit
-    from .fit_thermal import reference_fit
+    from generator.fit.ellipsoid import ellipsoid_fit
+    from generator.fit.thermal import reference_fit
     v = S.is_vec
     try:
         if v.sum() >= 4:
@@ -539,7 +539,7 @@ def _count_at(tels, S: SensorSamples, flag, position, pres=None, name=None, temp
 
 def _why_weak(S: SensorSamples, pred) -> str:
     """A short reason why a campaign leaves coefficients poorly determined."""
-    from .fit_ellipsoid import distinct_rows
+    from generator.fit.ellipsoid import distinct_rows
     why = []
     v = S.is_vec
     if v.any():
@@ -594,8 +594,8 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     needs (default: the plan's samples_per_segment when a plan is given, else
     MIN_SEGMENT_SAMPLES).
     """
-    from .plan import PlanProfile, make_plan
-    from .telemetry import preprocess, read_telemetry
+    from generator.campaign.plan import PlanProfile, make_plan
+    from generator.io.telemetry import preprocess, read_telemetry
 
     say = progress or (lambda m: None)
     explicit = profile is not None
@@ -972,8 +972,8 @@ def run_check(args, progress) -> tuple:
     stderr and the full list on stdout (or the JSON result with --json)."""
     import sys
 
-    from .plan import load_profile
-    from .unit import load_unit
+    from generator.campaign.plan import load_profile
+    from generator.io.unit import load_unit
 
     unit = load_unit(args.unit)
     profile = load_profile(args.plan) if args.plan else None

@@ -24,8 +24,8 @@ import re
 
 import numpy as np
 
-from .errors import InputError
-from .telemetry import SensorData, Telemetry
+from generator.errors import InputError
+from generator.io.telemetry import SensorData, Telemetry
 
 TIME_COLUMN = "time_s"
 POSITION_COLUMN = "position"

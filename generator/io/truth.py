@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from generator.errors import InputError
 
 
 def load_truth(path) -> dict:

@@ -11,7 +11,7 @@ sensor and sample:
   (file, position), fitted with the rest.
 
 Model. The float64 model of the extended flight chain (`SensorModel`, the order of
-generator.chain.sensor_kernel, see generator.effects) with the baseline's structure
+generator.flight.chain.sensor_kernel, see generator.trace.effects) with the baseline's structure
 (polynomial degree of b(T), M(T), coil coupling K) plus the effects found so far. Its
 parameters are deviations from the baseline (the core fit, fit_thermal.fit_unit with
 the coil and boom fits of `magcal fit`, or a supplied coefficients.json), in scaled
@@ -26,7 +26,7 @@ files ("holdout"). Without: the data are cut into contiguous time blocks and eve
 fifth block is held out ("split"); the models are fitted on the rest, the figures are
 the held-out RMS, and the final coefficients are refitted on all the data.
 
-Tracing, per sensor, in rounds. Each candidate of the catalogue (generator.effects) is
+Tracing, per sensor, in rounds. Each candidate of the catalogue (generator.trace.effects) is
 scored by blocked cross-validation in time on the fit data (contiguous blocks, five
 folds, blocks dealt to the folds in turn), linearised about the current fit: the current
 model's Jacobian plus the candidate's columns (or, for a scanned effect, its residual
@@ -75,12 +75,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from . import effects as fx
-from .calibration import SensorCalibration
-from .chain import MAX_POLY_DEGREE, ChainSpec, SensorOptions
-from .coeffs import CoefficientSet, json_default
-from .errors import InputError
-from .fit_ellipsoid import sym_from6
+from generator.trace import effects as fx
+from generator.fit.calibration import SensorCalibration
+from generator.flight.chain import MAX_POLY_DEGREE, ChainSpec, SensorOptions
+from generator.flight.coeffs import CoefficientSet, json_default
+from generator.errors import InputError
+from generator.fit.ellipsoid import sym_from6
 
 VEC, NORM, POS = 0, 1, 2
 KIND_NAMES = {VEC: "vector rows B_cal - B_ref (per axis)",
@@ -229,7 +229,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
     boom -> body rotation (the rate in a boom sensor's frame is H^T w)."""
-    from .telemetry import preprocess
+    from generator.io.telemetry import preprocess
     notes = notes if notes is not None else []
     H = np.eye(3) if H is None else np.asarray(H, float)
     acc = {s.name: [] for s in unit.sensors}
@@ -390,7 +390,7 @@ class SensorModel:
 
     theta: internal parameters, deviations from the baseline: b rows (nT at the edge of
     the temperature range), M rows (M_UNIT), K (nT at the rms current), B_p (nT), then
-    each effect's parameters (see generator.effects)."""
+    each effect's parameters (see generator.trace.effects)."""
 
     def __init__(self, base: BaseFit, *, free_b, free_M, free_K, groups, Bp0, i_rms=1.0,
                  effects=(), theta=None):
@@ -972,7 +972,7 @@ class SensorTrace:
 
 
 def _context(model: SensorModel, S: SensorSamples):
-    from .fit_thermal import temperature_quantum
+    from generator.fit.thermal import temperature_quantum
     return SimpleNamespace(samples=S, effects=model.effects, degree=model.degree,
                            temp_quantum=temperature_quantum(S.temp_C))
 
@@ -1020,7 +1020,7 @@ def equivalent(a: Score, b: Score) -> bool:
 
 def choose(sig: list) -> Score:
     """The significant candidate with the least held-out error, unless an equivalent one
-    (see `equivalent`) has a higher prior (generator.effects.Effect.prior)."""
+    (see `equivalent`) has a higher prior (generator.trace.effects.Effect.prior)."""
     best = sig[0]
     for s in sig[1:]:
         if s.effect.prior > best.effect.prior and equivalent(best, s):
@@ -1148,7 +1148,7 @@ def baseline_coefficients(unit, tels, progress=None) -> tuple:
     from a deployed file), or the identity where no file carries any field reference
     (data calibrated upstream: only deviations from a constant can be traced).
     Returns (CoefficientSet, {sensor: degree}, notes)."""
-    from .fit_thermal import fit_unit
+    from generator.fit.thermal import fit_unit
     say = progress or (lambda m: None)
     notes = []
     try:
@@ -1186,7 +1186,7 @@ def baseline_coefficients(unit, tels, progress=None) -> tuple:
                    for c in t.columns)
     coil_tels = [t for t in tels if steps_in_positions(t)]
     if coil_tels:
-        from .fit_coils import fit_coils
+        from generator.fit.coils import fit_coils
         try:
             cf = fit_coils(unit, coil_tels)
             K, coils = cf.K(), tuple(cf.coils)
@@ -1197,7 +1197,7 @@ def baseline_coefficients(unit, tels, progress=None) -> tuple:
     if any(s.frame == "boom" for s in unit.sensors) and unit.boom_reference and core != "identity":
         deployed = [t for t in tels if not t.has("ref_x_nT", "ref_y_nT", "ref_z_nT")]
         if deployed:
-            from .fit_alignment import align_boom
+            from generator.fit.alignment import align_boom
             try:
                 H = align_boom(unit, deployed[0], cals, coil_K_nT_per_A=K).H
             except InputError as err:
@@ -1249,7 +1249,7 @@ def calibrated_field64(cs: CoefficientSet, tel, sensor: str):
 def _with_any_reference(tel):
     """The same telemetry with a dummy magnitude reference where it has none (so that
     every usable sample is gathered)."""
-    from .telemetry import Telemetry
+    from generator.io.telemetry import Telemetry
     cols = dict(tel.columns)
     if "ref_norm_nT" not in cols and not tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT"):
         cols["ref_norm_nT"] = np.full(tel.n, 1.0)
@@ -1508,7 +1508,7 @@ def protocol_text(evaluated_on) -> dict:
 
 
 def _read(unit, items):
-    from .telemetry import Telemetry, read_telemetry
+    from generator.io.telemetry import Telemetry, read_telemetry
     out = []
     for it in items:
         out.append(it if isinstance(it, Telemetry) else read_telemetry(it, unit))
@@ -1522,7 +1522,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     unit: Unit or unit-file path; data, holdout: telemetry paths or Telemetry objects;
     coeffs: baseline CoefficientSet or path (default: the core fit of the data files).
     """
-    from .unit import Unit, load_unit
+    from generator.io.unit import Unit, load_unit
     t0 = time.perf_counter()
     say = progress or (lambda m: None)
     if not isinstance(unit, Unit):
@@ -1664,7 +1664,7 @@ def plot_step(name, tr: SensorTrace, st: Step, path) -> str:
 
 
 def write_report(res: TraceResult, out: Path) -> Path:
-    from .report import Report, Section, Table
+    from generator.report.report import Report, Section, Table
     rep = Report(f"magcal trace: unit {res.unit.id}")
     src = res.sources
     rep.add(Section("Inputs and protocol", [
@@ -1749,7 +1749,7 @@ def add_trace_args(p):
 
 
 def cmd_trace(args) -> int:
-    from .pipeline import Progress
+    from generator.pipeline import Progress
     progress = Progress(quiet=getattr(args, "quiet", False))
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
     paths = res.write(args.output)
@@ -1785,8 +1785,8 @@ def px4_log_telemetry(folder, *, lsb_nT=2.0, average_s=None):
     averaged over the interval (the field is constant while the vehicle stands still;
     averaging removes most of the vibration noise and keeps anything slower).
     """
-    from .telemetry import Telemetry
-    from .unit import SensorSpec, Unit
+    from generator.io.telemetry import Telemetry
+    from generator.io.unit import SensorSpec, Unit
     folder = Path(folder)
     mags = sorted(folder.glob("sensor_mag_*.csv"),
                   key=lambda p: int(p.stem.rsplit("_", 1)[1]))

@@ -62,7 +62,7 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> "Telemetry":
     number of cells, a count outside the part's raw range. Empty cells are missing values
     (NaN) and are allowed. Extra columns are kept as channels.
     """
-    from .telemetry_io import read_csv
+    from generator.io.telemetry_csv import read_csv
     return read_csv(path, unit, require_sensors=require_sensors)
 
 
@@ -72,5 +72,5 @@ def preprocess(tel: "Telemetry", unit) -> dict:
     Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
     the part's rail (saturated); these are counted in n_missing / n_saturated, never used.
     """
-    from .telemetry_io import preprocess_sensors
+    from generator.io.telemetry_csv import preprocess_sensors
     return preprocess_sensors(tel, unit)

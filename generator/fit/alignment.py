@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import InputError
+from generator.errors import InputError
 
 # Seed 000 conclusions: after the agreement algorithm the normalised projections differ
 # by no more than 0.5 % and the vectors by no more than 0.07 deg.
@@ -403,7 +403,7 @@ class BoomAlignment:
 
 
 def _coil_currents(tel):
-    from .fit_coils import coil_columns
+    from generator.fit.coils import coil_columns
     names = coil_columns(tel)
     if not names:
         return [], None
@@ -416,7 +416,7 @@ def calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A=None, data=None):
     with the file's coil_*_A columns (sorted by name); without it samples with any
     non-zero coil current are left out. data: preprocess(tel, unit) if already done."""
     if data is None:
-        from . import telemetry as _telemetry
+        from generator.io import telemetry as _telemetry
         data = _telemetry.preprocess(tel, unit)
     coil_names, coil_A = _coil_currents(tel)
     mask = np.ones(tel.n, dtype=bool)
@@ -478,7 +478,7 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
         if not calibrations[n].body_frame:
             notes.append(f"{n}: calibration is magnitude-only (M symmetric, its rotation "
                          "unknown): H then also absorbs that sensor's unknown rotation")
-    from . import telemetry as _telemetry
+    from generator.io import telemetry as _telemetry
     data = _telemetry.preprocess(tel, unit)
     fields, mask = calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A, data)
     if mask.sum() < tel.n:

@@ -40,7 +40,7 @@ import os
 
 import numpy as np
 
-from .errors import InputError
+from generator.errors import InputError
 
 T_SETTLE_MS = 1.0
 T_TM_MS = (10.0, 5.0, 2.5, 1.6)

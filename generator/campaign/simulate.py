@@ -39,8 +39,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from .plan import twelve_positions   # the jig positions of the test program
-from .unit import PARTS, SensorSpec, Unit
+from generator.campaign.plan import twelve_positions   # the jig positions of the test program
+from generator.io.unit import PARTS, SensorSpec, Unit
 
 CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")
 
@@ -887,7 +887,7 @@ def simulate_campaign(kind: str, unit: Unit, truth: Truth, rng: np.random.Genera
     for spec in unit.sensors:
         sensor_cols.update(_render_sensor(spec, truth, sc, effects, channel_values, rng,
                                           set_reset_delay_s, noise_scale))
-    comments = [f"campaign: {kind}", f"unit: {unit.id}", "source: generator.simulate",
+    comments = [f"campaign: {kind}", f"unit: {unit.id}", "source: generator.campaign.simulate",
                 f"description: {sc.description}"]
     csv_path = out_dir / f"{name}.csv"
     write_telemetry_csv(csv_path, comments, {**time_cols, **sensor_cols, **channels})
@@ -925,7 +925,7 @@ def make_example_unit(unit_id: str = "demo_sat") -> Unit:
 def write_unit_toml(unit: Unit, path) -> None:
     """Write an ICD section 1 unit file."""
     q = json.dumps      # a TOML basic string for these plain names
-    lines = ["# Flight unit description (ICD section 1), written by generator.simulate",
+    lines = ["# Flight unit description (ICD section 1), written by generator.campaign.simulate",
              "[unit]", f"id = {q(unit.id)}"]
     if unit.lab_field_nT is not None:
         lines.append(f"lab_field_nT = {float(unit.lab_field_nT)!r}")

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from generator.errors import InputError
 
 # Order of the six independent entries of a symmetric 3x3 matrix (seed order a,b,c,f,g,h).
 SYM_INDEX = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))

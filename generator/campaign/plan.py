@@ -11,7 +11,7 @@ to magnetic north: each of +-X, +-Y, +-Z up, at headings 0 and 90 deg of the nex
 (X up: Y north, then Y east; Y up: Z north / east; Z up: X north / east). R_p maps body axes
 to the lab's north-east-down axes; the expected field in body axes is R_p^T B_lab with
 B_lab = F (cos I, 0, sin I) (F the lab field magnitude, I the inclination, north along
-magnetic north, i.e. declination already removed). generator.simulate uses the same twelve.
+magnetic north, i.e. declination already removed). generator.campaign.simulate uses the same twelve.
 
 Holds. A board follows the chamber as a first-order lag with time constant tau. After a
 step of size S (from the board's last settled temperature to the new set-point), the
@@ -35,7 +35,7 @@ Default assumptions (all overridable on the command line):
   offset drift of a few tens of nT/degC then moves b by well under the reading noise;
 * ramp 1 degC/min: gentle on the boards and the connectors, avoids condensation;
 * 120 samples per segment at 5 s (10 min): the segment finder of the fit needs 10 min of
-  steady temperature (generator.fit_thermal.find_segments), and 120 samples per position
+  steady temperature (generator.fit.thermal.find_segments), and 120 samples per position
   and level make the per-level calibration's noise negligible against the cubic's;
 * levels -20, -5, 10, 25, 40, 55 degC (the example unit's ground test), room 25 degC,
   15 min to turn the jig.
@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from generator.errors import InputError
 
 FORMAT = "magcal-test-plan"
 FORMAT_VERSION = 1
@@ -395,7 +395,7 @@ def _hms(seconds: float) -> str:
 def predicted_board_temperature(plan: TestPlan, time_s, one_position=True):
     """Board temperature (first-order lag of the chamber set-point, ramps linear) on a time
     grid, starting settled at room temperature."""
-    from .simulate import first_order_lag
+    from generator.campaign.simulate import first_order_lag
     tc, Tc = plan.setpoint_profile(one_position)
     setpoint = np.interp(time_s, tc, Tc)
     return setpoint, first_order_lag(np.asarray(time_s, float), setpoint, plan.board_tau_s,
@@ -428,8 +428,8 @@ def window_check(plan: TestPlan, step_s=10.0) -> dict:
 
 def plan_report(plan: TestPlan, out_dir):
     """Report (title, sections, figures written into out_dir) of a test plan."""
-    from . import figures
-    from .report import Report, Section, Table
+    from generator.report import figures
+    from generator.report.report import Report, Section, Table
 
     out_dir = Path(out_dir)
     rep = Report(f"Ground test program: unit {plan.unit_id}")
@@ -525,7 +525,7 @@ def write_plan(plan: TestPlan, out_dir) -> dict:
 
 def run_plan(args, progress) -> tuple:
     """`magcal plan`: exit status and the JSON result (the profile and the paths)."""
-    from .unit import load_unit
+    from generator.io.unit import load_unit
 
     unit = load_unit(args.unit)
     plan = make_plan(unit, lab_field_nT=args.lab_field_nT, inclination_deg=args.inclination_deg,

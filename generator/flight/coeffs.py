@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .calibration import SensorCalibration
-from .chain import ChainSpec
-from .errors import InputError
-from .unit import Unit
+from generator import __version__
+from generator.fit.calibration import SensorCalibration
+from generator.flight.chain import ChainSpec
+from generator.errors import InputError
+from generator.io.unit import Unit
 
 FORMAT = "magcal-coefficients"
 FORMAT_VERSION = 1

@@ -1,6 +1,6 @@
 """docs/chain.md, written from the chain definition (not by hand).
 
-    python3 -m generator.docs [COEFFS.json] [-o docs/chain.md]
+    python3 -m generator.report.chain_doc [COEFFS.json] [-o docs/chain.md]
 
 host_tests/test_docs.py regenerates it and requires the committed page to match, so
 the documentation of the layout cannot drift from the code.
@@ -13,10 +13,10 @@ import inspect
 import sys
 from pathlib import Path
 
-from . import chain
-from .coeffs import CoefficientSet
+from generator.flight import chain
+from generator.flight.coeffs import CoefficientSet
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "generated" / "samsat_fm1" / "coefficients.json"
 OUT = REPO / "docs" / "chain.md"
 
@@ -31,7 +31,7 @@ def chain_markdown(cs: CoefficientSet) -> str:
     lines = [
         "# The correction chain",
         "",
-        "_Written by `python3 -m generator.docs` from `generator/chain.py`; do not edit._",
+        "_Written by `python3 -m generator.report.chain_doc` from `generator/chain.py`; do not edit._",
         "",
         "## Stages",
         "",

@@ -12,7 +12,7 @@ Building blocks for the verbs:
 * fit_sections(cs): summary and coefficients (tables only; no data needed);
 * CampaignAnalysis(cs, data_paths): the numbers the figures need, computed once from the
   telemetry with the fit's own public functions (segments, levels, per-level fits,
-  coefficient covariance from generator.check.poly_covariance);
+  coefficient covariance from generator.campaign.check.poly_covariance);
 * temperature_section(...), rms_section(...): seed 000 fig. 24-25 and 27-29;
 * hooks taking plain arrays, for numbers other modules produce: alignment_section
   (fig. 10), setreset_section (fig. 12-13), coil_distance_section (fig. 5-6),
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from generator import __version__
 
 
 @dataclass
@@ -341,15 +341,15 @@ MAX_COV_ROWS = 8000     # samples entering the band's covariance (every k-th; se
 class CampaignAnalysis:
     """The telemetry as the fit used it, and what the report's figures need.
 
-    Per sensor: the samples (generator.check.gather_samples), temperature levels and
+    Per sensor: the samples (generator.campaign.check.gather_samples), temperature levels and
     per-level constant calibrations (reference-vector fit where vectors exist, else the
     ellipsoid fit: the seed's per-segment b_i, m_ij), the covariance of the fitted
     polynomial (its 1-sigma band), and the |B| RMS before / after per level and position.
     """
 
     def __init__(self, cs, data_paths, progress=None):
-        from .check import gather_samples
-        from .telemetry import preprocess, read_telemetry
+        from generator.campaign.check import gather_samples
+        from generator.io.telemetry import preprocess, read_telemetry
 
         say = progress or (lambda m: None)
         self.cs = cs
@@ -367,10 +367,10 @@ class CampaignAnalysis:
 
     # ---- levels and per-level fits ------------------------------------------------------
     def _levels(self, name):
-        from .check import level_tolerance_C
-        from .errors import InputError
-        from .fit_ellipsoid import ellipsoid_fit
-        from .fit_thermal import group_levels, reference_fit
+        from generator.campaign.check import level_tolerance_C
+        from generator.errors import InputError
+        from generator.fit.ellipsoid import ellipsoid_fit
+        from generator.fit.thermal import group_levels, reference_fit
 
         S = self.samples[name]
         segs = [g for g in S.segments if len(g.index)]
@@ -417,7 +417,7 @@ class CampaignAnalysis:
 
     def covariance(self, name):
         """PolyCovariance of the fitted coefficients (residual scatter), or None."""
-        from .check import poly_covariance
+        from generator.campaign.check import poly_covariance
         S = self.samples[name]
         if S.n == 0:
             return None
@@ -481,8 +481,8 @@ def temperature_section(cs, analysis: CampaignAnalysis, name, out_dir) -> Sectio
 def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) -> list:
     """One section per sensor (seed 000 fig. 24-25): per-level estimates with 1-sigma error
     bars, the fitted polynomial with its 1-sigma band from the coefficient covariance, and
-    the tables of both; the figures are drawn together (generator.figures.coefficient_grids)."""
-    from . import figures
+    the tables of both; the figures are drawn together (generator.report.figures.coefficient_grids)."""
+    from generator.report import figures
 
     names = names or [s.name for s in cs.unit.sensors]
     jobs, sections = [], []
@@ -556,7 +556,7 @@ def cal_method(cs, name) -> str:
 def rms_section(cs, analysis: CampaignAnalysis, out_dir) -> Section:
     """|B| RMS before and after calibration per temperature level and per position
     (seed 000 fig. 27-29), one row of bar charts per sensor, and the table."""
-    from . import figures
+    from generator.report import figures
 
     rows_fig, rows_tab = [], []
     for s in cs.unit.sensors:
@@ -603,7 +603,7 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
                       title=None, stem=None) -> Section:
     """Angle between the two magnetometers' vectors before (H = I) and after the alignment
     H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out."""
-    from . import figures
+    from generator.report import figures
 
     b = np.asarray(angle_before_deg, float)
     a = np.asarray(angle_after_deg, float)
@@ -637,8 +637,8 @@ def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_n
                      stem="setreset_error_maps") -> Section:
     """SET/RESET offset error maps (seed 000 fig. 12-13): error_nT (K, R, Th) for K
     measurement times t_TM_ms, rates rate_dps (R) and field-to-axis angles theta_deg (Th)
-    (e.g. generator.setreset.offset_error_maps()["error_abs_nT"][..., 0])."""
-    from . import figures
+    (e.g. generator.fit.setreset.offset_error_maps()["error_abs_nT"][..., 0])."""
+    from generator.report import figures
 
     E = np.abs(np.asarray(error_nT, float))
     rate = np.asarray(rate_dps, float)
@@ -671,7 +671,7 @@ def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
                           stem="coil_distance") -> Section:
     """Coil interference by distance (seed 000 fig. 5-6): series_nT {label: (D,) nT at
     distance_cm (NaN where not measured)}."""
-    from . import figures
+    from generator.report import figures
 
     d = np.asarray(distance_cm, float)
     png = figures.coil_distance(Path(out_dir) / f"{stem}.png", title, d, series_nT,
@@ -689,7 +689,7 @@ def residual_causes_section(out_dir, effects, *, title="Residuals and their trac
     """Residuals against the quantity that explains them (trace). effects: list of dicts
     {"sensor", "effect", "explained_by" (str), "x" (N,), "residual_before_nT" (N,),
     "residual_after_nT" (N,) or None, "rms_before_nT", "rms_after_nT", "evidence"}."""
-    from . import figures
+    from generator.report import figures
 
     rows, panels = [], []
     for e in effects:
@@ -805,9 +805,9 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 
 
 def _coil_sections(cs, analysis, out_dir) -> list:
-    from .fit_coils import (SEED_POINTS_CM, correction_table, fit_coils,
+    from generator.fit.coils import (SEED_POINTS_CM, correction_table, fit_coils,
                             interference_table)
-    from .pipeline import _has_coil_steps
+    from generator.pipeline import _has_coil_steps
 
     k = next((i for i, t in enumerate(analysis.tels) if _has_coil_steps(t)), None)
     if k is None:
@@ -849,7 +849,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
 
 
 def _setreset_sections(cs, out_dir) -> list:
-    from . import setreset
+    from generator.fit import setreset
 
     field = float(cs.unit.lab_field_nT or setreset.DEFAULT_FIELD_NT)
     maps = setreset.offset_error_maps(field_nT=field)
@@ -881,7 +881,7 @@ def _setreset_sections(cs, out_dir) -> list:
 
 
 def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
-    from .fit_alignment import angle_between_deg, calibrated_fields
+    from generator.fit.alignment import angle_between_deg, calibrated_fields
 
     src = al.get("source")
     k = next(i for i, p in enumerate(analysis.paths) if p == src)
@@ -916,7 +916,7 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
     if m:
         rep.add(m)
     if analysis is not None:
-        from .figures import parallel
+        from generator.report.figures import parallel
 
         say("report: drawing the figures")
         with parallel():

@@ -19,12 +19,12 @@ import casadi as ca
 import jinja2
 import numpy as np
 
-from . import __version__
-from .chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
+from generator import __version__
+from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
                     lag_kernel, sensor_kernel)
-from .coeffs import CoefficientSet
+from generator.flight.coeffs import CoefficientSet
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 TEMPLATE_DIR = REPO / "templates"
 
 # (template, output file name pattern); {unit} is the unit id.
@@ -252,7 +252,7 @@ def template_context(cs: CoefficientSet) -> dict:
         "fallback_order": list(spec.fallback_order()),
         "pairs": [(i, j) for i in range(len(sensors)) for j in range(i + 1, len(sensors))],
     }
-    from .tables import table_context      # late import: tables imports codegen
+    from generator.flight.tables import table_context      # late import: tables imports codegen
     ctx["table"] = table_context(cs)
     return ctx
 

@@ -1,6 +1,6 @@
 """Temperature-dependent calibration of every sensor of a unit (seed 000 eq. 5-7, seed 001).
 
-Model (generator.calibration): B_cal = M(T) (B~ - b(T)), b and M polynomials in
+Model (generator.fit.calibration): B_cal = M(T) (B~ - b(T)), b and M polynomials in
 dT = clamp(T) - t_ref. What is known about the true field decides the fit:
 
 * reference vectors (`ref_x/y/z_nT`, body frame): `reference_fit`. The measurement model
@@ -10,7 +10,7 @@ dT = clamp(T) - t_ref. What is known about the true field decides the fit:
   or 0.05 nT for parts like the SamSat ones, far below the noise). M is then the full
   matrix to the body frame.
 * only the magnitude (`ref_norm_nT` or the unit's `lab_field_nT`): ellipsoid fit
-  (generator.fit_ellipsoid), M symmetric (known only up to a rotation).
+  (generator.fit.ellipsoid), M symmetric (known only up to a rotation).
 
 Temperature dependence is fitted two ways and the better one on held-out data is kept:
 
@@ -32,7 +32,7 @@ elsewhere); they are counted in stats.
 The above is method "auto". Two more methods (`fit_unit(..., method=)`, FIT_METHODS):
 
 * "analytic" (seed 001): per constant-temperature level the known-vector model with a
-  rotation, h = Q P R B + b (generator.fit_analytic.fit_analytic_rotated), M = (Q P R)^-1;
+  rotation, h = Q P R B + b (generator.fit.analytic.fit_analytic_rotated), M = (Q P R)^-1;
   then the weighted polynomial over the levels as in "segments". Per level, stats keep
   k, e, R, b with 1-sigma and the residual of seed 001's model without R. Without
   reference vectors the sensor falls back to "auto" (stats say so);
@@ -51,9 +51,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .calibration import POLY_DEGREE, SensorCalibration
-from .errors import InputError
-from .fit_ellipsoid import (SYM_INDEX, _sym_grad, coverage, covariance, distinct_rows,
+from generator.fit.calibration import POLY_DEGREE, SensorCalibration
+from generator.errors import InputError
+from generator.fit.ellipsoid import (SYM_INDEX, _sym_grad, coverage, covariance, distinct_rows,
                             ellipsoid_fit, lm_solve, sym_from6, sym_to6)
 
 #: The fit methods of fit_unit / fit_sensor (the CLI's `magcal fit --method`).
@@ -774,7 +774,7 @@ def rotated_fit_M(fit):
         E = np.zeros((3, 3))
         E[i, i] = 1.0
         dW.append(E @ PR)
-    from .fit_analytic import _dP_de   # only the analytic method needs it (and scipy.optimize)
+    from generator.fit.analytic import _dP_de   # only the analytic method needs it (and scipy.optimize)
 
     dW += [fit.Q @ dP @ fit.R for dP in _dP_de(fit.e_rad)]
     for j in range(3):
@@ -791,7 +791,7 @@ def rotated_fit_M(fit):
 def _analytic_level(x_nT, ref_nT):
     """Seed 001 at one temperature: the plain model h = Q P B + b (for its residual) and
     the rotated one h = Q P R B + b. Returns (rotated fit, plain fit, M, M_sigma)."""
-    from .fit_analytic import fit_analytic, fit_analytic_rotated
+    from generator.fit.analytic import fit_analytic, fit_analytic_rotated
 
     plain = fit_analytic(x_nT, ref_nT)
     rot = fit_analytic_rotated(x_nT, ref_nT, analytic=plain)
@@ -1148,7 +1148,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto") -> dict:
     FIT_METHODS, see fit_sensor. Returns {sensor name: SensorCalibration}. Raises
     InputError when a sensor cannot be fitted or the method is unknown.
     """
-    from . import telemetry as _telemetry
+    from generator.io import telemetry as _telemetry
     if method not in FIT_METHODS:
         raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
                                     f"{', '.join(FIT_METHODS)})")

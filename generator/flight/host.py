@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import ChainSpec, np_dtype
-from .codegen import _env, render, template_context
-from .coeffs import CoefficientSet
+from generator.flight.chain import ChainSpec, np_dtype
+from generator.flight.codegen import _env, render, template_context
+from generator.flight.coeffs import CoefficientSet
 
 CC = os.environ.get("CC", "gcc")
 FP_FLAGS = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math"]

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .unit import SensorSpec, Unit
+from generator.io.unit import SensorSpec, Unit
 
 CHAIN_VERSION = 1  # bump when the meaning of an existing block or stage changes
 

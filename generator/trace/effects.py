@@ -7,8 +7,8 @@ in physical units), where it acts in the float64 model of the chain (a *hook*, b
 its FLIGHT FORM, i.e. how it enters the flight chain's coefficient set (`to_flight`;
 `in_chain = False` for effects the flight chain does not carry).
 
-The float64 model of the extended chain (generator.trace.SensorModel) runs, per sample,
-in the order of generator.chain.sensor_kernel:
+The float64 model of the extended chain (generator.trace.tracer.SensorModel) runs, per sample,
+in the order of generator.flight.chain.sensor_kernel:
 
     field_f                         raw field, frame axes (SET/RESET, axis map)
     T_el   <- hook "temperature"    (ThermalLag: first-order filter of the reported T)
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .chain import MAX_POLY_DEGREE
+from generator.flight.chain import MAX_POLY_DEGREE
 
 FIELD_SCALE_nT = 50000.0          # the cubic's internal parameter: nT at 50 uT on the axis
 
@@ -132,12 +132,12 @@ class Effect:
 
 
 # ---------------------------------------------------------------------------------------
-# Helpers over the sensor samples (S: generator.trace.SensorSamples)
+# Helpers over the sensor samples (S: generator.trace.tracer.SensorSamples)
 # ---------------------------------------------------------------------------------------
 
 def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
     """The flight chain's element temperature: T_el[0] = T[0], then
-    T_el[k] = T_el[k-1] + dt/(tau + dt) (T[k] - T_el[k-1]) (generator.chain.lag_kernel)."""
+    T_el[k] = T_el[k-1] + dt/(tau + dt) (T[k] - T_el[k-1]) (generator.flight.chain.lag_kernel)."""
     t = np.asarray(time_s, float)
     T = np.asarray(temp_C, float)
     out = np.empty_like(T)
@@ -443,7 +443,7 @@ class CubicNonlinearity(Effect):
             return [], "no field reference (positions only): the scale of the reading is free"
         v = np.where((S.kind == 0)[:, None], S.ref, S.x)[absolute]
         u = v / np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
-        from .fit_ellipsoid import distinct_rows
+        from generator.fit.ellipsoid import distinct_rows
         if distinct_rows(u, 0.1, at_most=6) < 6:
             return [], ("the field takes fewer than 6 directions: a cubic is not separable "
                         "from noise")

@@ -1,7 +1,7 @@
 """The report's figures (matplotlib, Agg backend, no pyplot state): plain arrays in, PNG out.
 
 Each function writes one PNG and returns its path. The numbers drawn always come from
-the caller, who puts the same numbers in a table beside the figure (generator.report).
+the caller, who puts the same numbers in a table beside the figure (generator.report.report).
 Figures are kept few and cheap: one figure per sensor with a grid of subplots, modest dpi.
 """
 
@@ -402,7 +402,7 @@ def positions_sheet(path, plan) -> Path:
     the caption of each drawing."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from .plan import lab_field_ned
+    from generator.campaign.plan import lab_field_ned
 
     fig = _figure(12.5, 10.5)
     b_lab = _to_plot(lab_field_ned(1.0, plan.inclination_deg))
@@ -459,7 +459,7 @@ def matplotlib_color(c):
 def profile_figure(path, plan) -> Path:
     """Chamber set-point and predicted board temperature over one position's cycle, with
     the recording windows shaded and the tolerance band; below, the whole program."""
-    from .plan import predicted_board_temperature
+    from generator.campaign.plan import predicted_board_temperature
 
     t = np.arange(0.0, plan.position_duration_s + plan.sample_period_s, plan.sample_period_s)
     setpoint, board = predicted_board_temperature(plan, t)

@@ -1,4 +1,4 @@
-"""Read and validate a unit file (ICD section 1) into generator.unit.Unit.
+"""Read and validate a unit file (ICD section 1) into generator.io.unit.Unit.
 
 Every fault raises InputError naming the file, the table and the key, and the line where
 the key (or its table) is written when that can be found, e.g.
@@ -16,8 +16,8 @@ import re
 import tomllib
 from pathlib import Path
 
-from .errors import InputError
-from .unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
+from generator.errors import InputError
+from generator.io.unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
 
 NAME_PATTERN = "[a-z][a-z0-9_]*"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -34,7 +34,7 @@ _MISSING = object()
 
 
 def read_unit_toml(path) -> Unit:
-    """Read and validate one unit file; see generator.unit.load_unit for what is checked."""
+    """Read and validate one unit file; see generator.io.unit.load_unit for what is checked."""
     try:
         raw = Path(path).read_bytes()
     except OSError as e:

@@ -122,6 +122,6 @@ def load_unit(path) -> Unit:
     lsb_nT, set_reset on a part that cannot, duplicate sensor names, boom.reference
     that is not a body-frame sensor, float not in FLOAT_TYPES.
     """
-    from .unitfile import read_unit_toml  # implemented in unitfile.py
+    from generator.io.unitfile import read_unit_toml  # implemented in unitfile.py
 
     return read_unit_toml(path)
