@@ -28,7 +28,7 @@ def verb(name, help_text):
 
 
 def _progress(args):
-    from generator.pipeline import Progress
+    from generator.progress import Progress
     return Progress(quiet=getattr(args, "quiet", False))
 
 
@@ -48,8 +48,8 @@ def cmd_fit(args):
     extra = []
     if args.compare_methods:
         from generator.report import compare as fit_compare
-        from generator.io.telemetry import read_telemetry
-        from generator.io.unit import load_unit
+        from generator.io.telemetry_csv import read_telemetry
+        from generator.io.unitfile import load_unit
 
         unit = load_unit(args.unit)
         tels = [read_telemetry(p, unit) for p in args.data]
@@ -144,7 +144,7 @@ def _args_demo(p):
 
 @verb("plan", "write the ground-test program of a unit (positions, temperature profile)")
 def cmd_plan(args):
-    from generator.campaign.plan import run_plan
+    from generator.verbs.plan import run_plan
     return run_plan(args, _progress(args))
 
 
@@ -210,13 +210,13 @@ def _args_check(p):
 
 @verb("table", "write, decode, diff, split or check an uplink coefficient table")
 def cmd_table(args):
-    from generator.flight.tables import cmd_table as run
+    from generator.verbs.table import cmd_table as run
 
     return run(args)
 
 
 def _args_table(p):
-    from generator.flight.tables import add_table_args
+    from generator.verbs.table import add_table_args
 
     add_table_args(p)
 
@@ -224,13 +224,13 @@ def _args_table(p):
 @verb("trace", "trace structure left in the residual to an effect the model lacks, "
                "add it, report before and after")
 def cmd_trace(args):
-    from generator.trace.tracer import cmd_trace as run
+    from generator.verbs.trace import cmd_trace as run
 
     return run(args)
 
 
 def _args_trace(p):
-    from generator.trace.tracer import add_trace_args
+    from generator.verbs.trace import add_trace_args
 
     add_trace_args(p)
 

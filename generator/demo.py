@@ -27,7 +27,7 @@ def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
     and the angle to the true field (calibrated and true parameters)."""
     from generator import pipeline
     from generator.io import truth as truth_mod
-    from generator.io.telemetry import preprocess, read_telemetry
+    from generator.io.telemetry_csv import preprocess, read_telemetry
 
     tel = read_telemetry(csv_path, cs.unit)
     data = preprocess(tel, cs.unit)
@@ -69,11 +69,14 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     from generator import pipeline
     from generator.campaign import simulate
     from generator.flight import tables
+    from generator.flight import table_host
     from generator.io import truth as truth_mod
     from generator.flight.host import HostUnit
     from generator.report.report import Report, Section, Table, fit_report
 
-    progress = progress or pipeline.Progress()
+    from generator.progress import Progress
+
+    progress = progress or Progress()
     out = Path(out)
     data_dir = out / "data"
     progress(f"simulating the example unit (seed {seed}) into {data_dir}")
@@ -105,7 +108,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     progress("uplink table: encode, flight validator, one flipped bit")
     table = tables.encode_table(cs, serial=1, created_s=0)
     (out / "table.bin").write_bytes(table)
-    th = tables.TableHost(cs)
+    th = table_host.TableHost(cs)
     accepted = th.validate(table)
     flipped = bytearray(table)
     flipped[len(flipped) // 2] ^= 0x10

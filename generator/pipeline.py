@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import time
 from pathlib import Path
 
 import numpy as np
@@ -11,24 +10,11 @@ import numpy as np
 from generator.flight.chain import STATUS_BITS, ChainSpec
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
-from generator.io.telemetry import Telemetry, read_telemetry
-from generator.io.unit import Unit, load_unit
-
-
-class Progress:
-    """One line per step on stderr, with elapsed time; silent when quiet."""
-
-    def __init__(self, quiet=False, stream=None):
-        import sys
-
-        self.quiet = quiet
-        self.stream = stream or sys.stderr
-        self.t0 = time.perf_counter()
-
-    def __call__(self, message: str):
-        if not self.quiet:
-            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream,
-                  flush=True)
+from generator.progress import Progress
+from generator.io.telemetry import Telemetry
+from generator.io.telemetry_csv import read_telemetry
+from generator.io.unit import Unit
+from generator.io.unitfile import load_unit
 
 
 # ---- raw inputs of the chain from telemetry --------------------------------------------
@@ -77,18 +63,6 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
 # ---- fit ----------------------------------------------------------------------------------
 
 
-def _has_coil_steps(tel: Telemetry) -> bool:
-    """A coil campaign: magnetorquer currents that step while the unit stands in static
-    positions (a `position` column > 0). Orbit telemetry with B-dot currents is not one:
-    its field turns with the satellite, which a per-position constant cannot absorb."""
-    cols = [c for c in tel.columns if c.startswith("coil_") and c.endswith("_A")]
-    if not cols or "position" not in tel.columns:
-        return False
-    static = tel.columns["position"] > 0
-    return bool(static.any()) and any(np.nanmax(np.abs(tel.columns[c][static])) > 0
-                                      for c in cols)
-
-
 def _has_ref_vectors(tel: Telemetry) -> bool:
     return tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT")
 
@@ -104,7 +78,7 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
       between the reference body sensor and the boom MMC5883 (fit_alignment).
     """
     from generator.fit.alignment import align_boom
-    from generator.fit.coils import fit_coils
+    from generator.fit.coils import fit_coils, has_coil_steps
     from generator.fit.thermal import fit_unit
 
     progress = progress or Progress(quiet=True)
@@ -120,7 +94,7 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
             "method": method, "notes": []}
 
     K, coils = None, ()
-    coil_tels = [t for t in tels if _has_coil_steps(t)]
+    coil_tels = [t for t in tels if has_coil_steps(t)]
     if coil_tels:
         cf = fit_coils(unit, coil_tels)
         K, coils = cf.K(), tuple(cf.coils)

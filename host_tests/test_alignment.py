@@ -209,8 +209,8 @@ def test_shape_zero_vector_and_weights_rejected():
 @functools.lru_cache(maxsize=None)
 def _fitted(fm1_dir):
     from generator.fit import thermal as fit_thermal
-    from generator.io.telemetry import read_telemetry
-    from generator.io.unit import load_unit
+    from generator.io.telemetry_csv import read_telemetry
+    from generator.io.unitfile import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     rot = read_telemetry(fm1_dir / "rotation.csv", unit)

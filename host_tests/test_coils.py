@@ -98,8 +98,8 @@ def test_undetermined_couplings_rejected():
 @functools.lru_cache(maxsize=None)
 def _load(fm1_dir):
     from generator.fit import thermal as fit_thermal
-    from generator.io.telemetry import read_telemetry
-    from generator.io.unit import load_unit
+    from generator.io.telemetry_csv import read_telemetry
+    from generator.io.unitfile import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     coils = read_telemetry(fm1_dir / "coils.csv", unit)

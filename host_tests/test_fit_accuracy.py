@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from generator.fit.thermal import fit_unit
-from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.truth import (load_truth, rms_norm_error, rms_vector_error,
                              true_calibrated_frame)
-from generator.io.unit import load_unit
+from generator.io.unitfile import load_unit
 
 SENSORS = ("mmc1", "mpu1", "mpu2", "mmc2", "mpu3")
 MAX_RATIO = 1.15

@@ -31,10 +31,10 @@ from generator.report.compare import SEED_000_MMC5883_NO2, compare_methods, sect
 from generator.fit.thermal import (FIT_METHODS, fit_data_from, fit_sensor, fit_unit,
                                    rotated_fit_M)
 from generator.report.report import Report, Section, Table
-from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.truth import (load_truth, rms_norm_error, rms_vector_error,
                              true_calibrated_frame)
-from generator.io.unit import load_unit
+from generator.io.unitfile import load_unit
 
 SENSORS = ("mmc1", "mpu1", "mpu2", "mmc2", "mpu3")
 MAX_RATIO = 1.15

@@ -14,8 +14,8 @@ import pytest
 
 from generator.io import truth as truth_mod
 from generator.cli import main
-from generator.io.telemetry import preprocess, read_telemetry
-from generator.io.unit import load_unit
+from generator.io.telemetry_csv import preprocess, read_telemetry
+from generator.io.unitfile import load_unit
 from test_cli import read_apply_csv
 
 COILS = ["coil_x_A", "coil_y_A", "coil_z_A"]

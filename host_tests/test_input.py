@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 
 from generator.io import telemetry_csv as telemetry_io
 from generator.errors import InputError
-from generator.io.telemetry import preprocess, read_telemetry
-from generator.io.unit import load_unit
+from generator.io.telemetry_csv import preprocess, read_telemetry
+from generator.io.unitfile import load_unit
 
 # =========================================================================== unit file
 

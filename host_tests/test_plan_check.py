@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 
 from generator.campaign import plan as P
+from generator.verbs.plan import write_plan
 from generator.campaign.check import (B_NAMES, M_NAMES, MIN_DIRECTION_EIG, MIN_ICOSA_FRACTION,
                              direction_coverage, poly_covariance, up_axis_and_heading)
 from generator.cli import main
 from generator.fit.thermal import reference_fit
-from generator.io.telemetry import preprocess, read_telemetry
-from generator.io.unit import load_unit
+from generator.io.telemetry_csv import preprocess, read_telemetry
+from generator.io.unitfile import load_unit
 
 
 # ---------------------------------------------------------------------------------------
@@ -320,7 +321,7 @@ def test_check_with_holds_too_short_for_the_boards(tmp_path, capsys):
     tau_scale = 240.0 / max(truth.board_tau_s.values())     # boards: tau <= 4 min
     plan = P.make_plan(unit, levels_C=(-20.0, 25.0, 55.0), board_tau_min=4.0,
                        sample_period_s=20.0, samples_per_segment=40)
-    P.write_plan(plan, tmp_path / "plan")
+    write_plan(plan, tmp_path / "plan")
     hold = max(s.hold_s + s.ramp_s for s in plan.steps)
     good, _ = simulate_campaign("thermal_12pos", unit, truth, np.random.default_rng(4),
                                 tmp_path, name="good", levels_C=plan.levels_C, hold_s=hold,

@@ -54,8 +54,8 @@ def test_rotation_helpers():
 
 def test_counts_formula_matches_preprocess(fm1_dir):
     """The float64 formulas give the toolchain's own SET/RESET field and chip offset."""
-    from generator.io.telemetry import preprocess, read_telemetry
-    from generator.io.unit import load_unit
+    from generator.io.telemetry_csv import preprocess, read_telemetry
+    from generator.io.unitfile import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     tel = read_telemetry(fm1_dir / "rotation.csv", unit)
     data = preprocess(tel, unit)
@@ -238,9 +238,9 @@ def test_compensate_offset_vectorised_matches_loop():
 def _shared(fm1_dir):
     from generator.fit import thermal as fit_thermal
     from generator.fit.alignment import align_boom
-    from generator.io.telemetry import preprocess, read_telemetry
+    from generator.io.telemetry_csv import preprocess, read_telemetry
     from generator.io.truth import load_truth
-    from generator.io.unit import load_unit
+    from generator.io.unitfile import load_unit
     unit = load_unit(fm1_dir / "unit.toml")
     cals = fit_thermal.fit_unit(unit, [read_telemetry(fm1_dir / "thermal_12pos.csv", unit)])
     rot = read_telemetry(fm1_dir / "rotation.csv", unit)

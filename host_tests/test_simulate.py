@@ -446,7 +446,7 @@ def test_unit_toml_is_an_icd_unit_file(unit, tmp_path):
     for s in d["sensor"]:
         assert s["set_reset"] == (s["part"] == "MMC5883MA")
     try:
-        from generator.io.unit import load_unit
+        from generator.io.unitfile import load_unit
         loaded = load_unit(path)
     except ImportError:
         return                                           # the TOML reader is not in the tree yet

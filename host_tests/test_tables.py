@@ -1,7 +1,7 @@
 """Uplink coefficient tables: the flight C validator, reassembly and double buffer.
 
 The flight table code (`<unit>_table.c`, from templates/table.*.j2) runs through cffi
-(generator.flight.tables.TableHost). The promises tested here:
+(generator.flight.table_host.TableHost). The promises tested here:
 
 * a table made by the ground encoder, sent in parts in any order and committed, puts
   exactly those coefficients in use: the correction through the active table is
@@ -32,13 +32,17 @@ from hypothesis import strategies as st
 from chain_fixtures import (assert_bit_identical, bits, random_aux, random_coeffs,
                             random_inputs, samsat_unit, with_float, with_options)
 from generator.flight import tables
+from generator.flight import table_host
+from generator.report import table_doc
+from generator.verbs import table as verbs_table
 from generator.flight.chain import ChainSpec, SensorOptions, reference_sensor
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.host import HostUnit
+from generator.flight.table_host import TableHost
 from generator.flight.tables import (CRC_BYTES, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_INDEX,
                               PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS, Reassembler,
-                              TableError, TableHost, TableStatus, check_table, chunk_table,
+                              TableError, TableStatus, check_table, chunk_table,
                               decode_table, diff_tables, encode_table, reseal)
 
 S = TableStatus
@@ -628,7 +632,7 @@ class Mutator:
 
         def add(items, first=0, last=0):
             for j, x in enumerate(items):
-                a = tables.FUZZ_COMMIT_AFTER if self.rng.random() < commit_p else 0
+                a = table_host.FUZZ_COMMIT_AFTER if self.rng.random() < commit_p else 0
                 if j == 0:
                     a |= first
                 if j == len(items) - 1:
@@ -667,8 +671,8 @@ class Mutator:
             elif kind == "valid":
                 add([t])
             elif kind == "parts":
-                first = tables.FUZZ_ABORT_BEFORE if self.rng.random() < 0.7 else 0
-                last = tables.FUZZ_COMMIT_AFTER if self.rng.random() < 0.9 else 0
+                first = table_host.FUZZ_ABORT_BEFORE if self.rng.random() < 0.7 else 0
+                last = table_host.FUZZ_COMMIT_AFTER if self.rng.random() < 0.9 else 0
                 add(self._parts(), first, last)
             else:
                 add([self._part_header(self._parts()[0])])
@@ -681,14 +685,14 @@ def _mirror(spec, inputs, actions, active):
     codes = np.zeros((len(inputs), 4), dtype=np.int32)
     switches = 0
     for i, (x, a) in enumerate(zip(inputs, actions)):
-        if a & tables.FUZZ_ABORT_BEFORE:
+        if a & table_host.FUZZ_ABORT_BEFORE:
             r.abort()
         v = _status(x, spec)[0]
         if v == S.OK:
             active, switches = x, switches + 1
         rcv = r.receive(x)
         c = -1
-        if a & tables.FUZZ_COMMIT_AFTER:
+        if a & table_host.FUZZ_COMMIT_AFTER:
             c, t = r.commit()
             if c == S.OK:
                 active, switches = t, switches + 1
@@ -772,7 +776,7 @@ def test_arbitrary_bytes_are_rejected_without_crash(data, as_part):
     before = _active_bytes(h, mgr)
     res, codes = h.fuzz(mgr, [data], 1)
     assert res == 0
-    want, _, _ = _mirror(default.spec, [data], tables.fuzz_actions(1, 1), None)
+    want, _, _ = _mirror(default.spec, [data], table_host.fuzz_actions(1, 1), None)
     np.testing.assert_array_equal(codes, want)
     assert _active_bytes(h, mgr) == before
 
@@ -802,12 +806,12 @@ def test_validator_and_reassembly_under_sanitizers(tmp_path, label):
             pytest.fail("the C compiler cannot build with -fsanitize=address,undefined")
         pytest.skip("the C compiler here lacks -fsanitize=address,undefined support")
     default, new = CASES[label]
-    files = tables.host_sources(default)
+    files = table_host.host_sources(default)
     src = tmp_path / "src"
     src.mkdir()
     for name, text in files.items():
         (src / name).write_text(text)
-    (src / "driver.c").write_text(tables.sanitizer_driver(default))
+    (src / "driver.c").write_text(table_host.sanitizer_driver(default))
     cc = os.environ.get("CC", "gcc")
     c_files = [str(src / n) for n in sorted(files) if n.endswith(".c")] + [str(src / "driver.c")]
     exe = tmp_path / "table_fuzz"
@@ -820,8 +824,8 @@ def test_validator_and_reassembly_under_sanitizers(tmp_path, label):
         20_000, np.ones(len(Mutator.KINDS)), 0.05)
     extra = _flips(valid[0])[::3] + [valid[0][:n] for n in range(0, len(valid[0]), 7)]
     inputs += extra
-    actions = np.concatenate([actions, tables.fuzz_actions(len(extra), 7)])
-    tables.write_fuzz_file(tmp_path / "inputs.bin", inputs, actions)
+    actions = np.concatenate([actions, table_host.fuzz_actions(len(extra), 7)])
+    table_host.write_fuzz_file(tmp_path / "inputs.bin", inputs, actions)
     env = dict(os.environ, ASAN_OPTIONS="abort_on_error=0:halt_on_error=1:detect_leaks=1",
                UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1")
     run = subprocess.run([str(exe), str(tmp_path / "inputs.bin")], capture_output=True,
@@ -849,7 +853,7 @@ def test_flight_table_code_is_clean_under_extra_warnings(tmp_path):
     prototypes, casts away from const."""
     cc = os.environ.get("CC", "gcc")
     for label in ("f32_coils", "f64_coils"):
-        files = tables.host_sources(CASES[label][0])
+        files = table_host.host_sources(CASES[label][0])
         src = tmp_path / label
         src.mkdir()
         for name, text in files.items():
@@ -894,11 +898,11 @@ def test_diff_names_changes_in_physical_terms():
 
 def _cli(argv):
     p = argparse.ArgumentParser(prog="magcal table")
-    tables.add_table_args(p)
+    verbs_table.add_table_args(p)
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
     try:
-        return tables.cmd_table(args)
+        return verbs_table.cmd_table(args)
     except InputError as e:
         print(f"magcal table: {e}")
         return 2
@@ -975,14 +979,14 @@ def test_encoder_refuses_a_table_the_flight_code_would_reject():
 
 
 def test_format_page_is_up_to_date():
-    assert tables.DOC_PATH.read_text() == tables.format_doc(), \
-        "docs/table_format.md is stale: run python -m generator.flight.tables --write-doc"
+    assert table_doc.DOC_PATH.read_text() == table_doc.format_doc(), \
+        "docs/table_format.md is stale: run python -m generator.report.table_doc --write-doc"
 
 
 def test_format_page_and_c_header_show_the_python_layout():
-    text = tables.DOC_PATH.read_text()
+    text = table_doc.DOC_PATH.read_text()
     default, _ = CASES["f32"]
-    header = tables.host_sources(default)[f"{default.unit.id}_table.h"]
+    header = table_host.host_sources(default)[f"{default.unit.id}_table.h"]
     unit = default.unit.id.upper()
     for f in HEADER_FIELDS:
         assert f"| {HEADER_OFFSETS[f.name]} | {f.size} | {f.type_name} | `{f.name}` |" in text
@@ -1014,5 +1018,5 @@ def test_example_unit_table_validates(tmp_path):
     cs = CoefficientSet.load(EXAMPLE_COEFFS)
     table = encode_table(cs, 1, 0)
     assert TableHost(cs).validate(table) == S.OK
-    files = tables.flight_sources(cs)
+    files = table_host.flight_sources(cs)
     assert f"{cs.unit.id}_table.c" in files and f"{cs.unit.id}_table.h" in files

@@ -34,11 +34,13 @@ import pytest
 from generator.flight import chain
 from generator.campaign import simulate as sim
 from generator.trace import tracer as tr
+from generator.verbs import trace as verbs_trace
 from generator.flight.chain import ChainSpec, SensorOptions
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.pipeline import chain_inputs
-from generator.io.telemetry import Telemetry, preprocess, read_telemetry
+from generator.io.telemetry import Telemetry
+from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.unit import Unit
 
 SIZE_RANGE = (3.0, 20.0)       # effect size in units of the per-axis field noise
@@ -484,12 +486,12 @@ def test_cmd_trace_writes_the_icd_outputs(tmp_path):
                                                           src)], fast=True, name="later")
     sim.write_unit_toml(unit, tmp_path / "unit.toml")
     parser = argparse.ArgumentParser()
-    tr.add_trace_args(parser)
+    verbs_trace.add_trace_args(parser)
     parser.add_argument("-q", "--quiet", action="store_true")
     out = tmp_path / "out"
     args = parser.parse_args([str(tmp_path / "unit.toml"), str(p), "-o", str(out),
                               "--holdout", str(h), "-q"])
-    assert tr.cmd_trace(args) == 0
+    assert verbs_trace.cmd_trace(args) == 0
     j = json.loads((out / "trace.json").read_text())
     assert j["evaluated_on"] == "holdout"
     assert set(j["baseline"]) == set(j["final"]) == {"mmc1", "mpu1", "mmc2"}

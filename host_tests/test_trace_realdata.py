@@ -24,6 +24,8 @@ import numpy as np
 import pytest
 
 from generator.trace import tracer as tr
+from generator.io.px4_csv import px4_log_telemetry
+from generator.report.trace_report import write_report
 from generator.flight.coeffs import CoefficientSet
 
 from conftest import REALDATA
@@ -64,6 +66,7 @@ def _check(res, tmp_path):
         assert st.score.significant
         assert st.rms_after_nT < st.rms_before_nT, (n, st.effect.label())
     paths = res.write(tmp_path)
+    paths["report"] = write_report(res, tmp_path)
     j = json.loads(paths["trace"].read_text())
     assert set(j["baseline"]) == set(j["final"]) == {"mag0", "mag1", "mag2", "mag3"}
     assert len(j["effects"]) == len(found)
@@ -75,10 +78,10 @@ def _check(res, tmp_path):
 
 
 def test_px4_adapter_reads_the_log(px4_dir):
-    unit, tel = tr.px4_log_telemetry(px4_dir, average_s=1.0)
+    unit, tel = px4_log_telemetry(px4_dir, average_s=1.0)
     assert unit.sensor_names == ("mag0", "mag1", "mag2", "mag3")
     assert 320 < tel.time_s[-1] - tel.time_s[0] < 335
-    from generator.io.telemetry import preprocess
+    from generator.io.telemetry_csv import preprocess
     pre = preprocess(tel, unit)
     for s in unit.sensors:
         d = pre[s.name]
@@ -88,12 +91,12 @@ def test_px4_adapter_reads_the_log(px4_dir):
         assert 2.0 < T[-20:].mean() - T[:20].mean() < 8.0, s.name  # the chips warm up
     motors = [c for c in tel.columns if c.startswith("motor") and c.endswith("_pwm_us")]
     assert len(motors) >= 6 and "armed" in tel.columns
-    raw_unit, raw = tr.px4_log_telemetry(px4_dir)
+    raw_unit, raw = px4_log_telemetry(px4_dir)
     assert raw.n > 100_000 and raw_unit == unit
 
 
 def test_px4_trace_names_a_cause_of_the_drift(px4_dir, tmp_path):
-    unit, tel = tr.px4_log_telemetry(px4_dir, average_s=1.0)
+    unit, tel = px4_log_telemetry(px4_dir, average_s=1.0)
     res = tr.trace(unit, [tel])
     print(_table(res))
     _check(res, tmp_path)
@@ -101,7 +104,7 @@ def test_px4_trace_names_a_cause_of_the_drift(px4_dir, tmp_path):
 
 @pytest.mark.slow
 def test_px4_trace_on_the_raw_samples(px4_dir, tmp_path):
-    unit, tel = tr.px4_log_telemetry(px4_dir)
+    unit, tel = px4_log_telemetry(px4_dir)
     res = tr.trace(unit, [tel])
     print(_table(res))
     _check(res, tmp_path)

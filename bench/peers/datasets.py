@@ -22,9 +22,9 @@ from generator.campaign import simulate as sim
 from generator.errors import InputError
 from generator.fit.ellipsoid import algebraic_ellipsoid, polar_spd
 from generator.fit.thermal import fit_data_from
-from generator.io.telemetry import preprocess, read_telemetry
+from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.truth import load_truth, true_b, true_frame_field, true_W
-from generator.io.unit import load_unit
+from generator.io.unitfile import load_unit
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared"

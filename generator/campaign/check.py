@@ -315,7 +315,7 @@ def gather_samples(unit, tels, pres=None) -> dict:
 
     Usable as in generator.fit.thermal: finite, not saturated, no magnetorquer current, and
     some field reference (reference vectors, ref_norm_nT or the unit's lab_field_nT)."""
-    from generator.io.telemetry import preprocess
+    from generator.io.telemetry_csv import preprocess
     if pres is None:
         pres = [preprocess(t, unit) for t in tels]
     out = {}
@@ -595,7 +595,7 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     MIN_SEGMENT_SAMPLES).
     """
     from generator.campaign.plan import PlanProfile, make_plan
-    from generator.io.telemetry import preprocess, read_telemetry
+    from generator.io.telemetry_csv import preprocess, read_telemetry
 
     say = progress or (lambda m: None)
     explicit = profile is not None
@@ -973,7 +973,7 @@ def run_check(args, progress) -> tuple:
     import sys
 
     from generator.campaign.plan import load_profile
-    from generator.io.unit import load_unit
+    from generator.io.unitfile import load_unit
 
     unit = load_unit(args.unit)
     profile = load_profile(args.plan) if args.plan else None

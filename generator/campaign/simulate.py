@@ -39,6 +39,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from generator.campaign.board_thermal import first_order_lag
 from generator.campaign.plan import twelve_positions   # the jig positions of the test program
 from generator.io.unit import PARTS, SensorSpec, Unit
 
@@ -55,24 +56,6 @@ MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = 0.7, -75.0   # MMC5883MA temperature output: 
 # ---------------------------------------------------------------------------------------
 # Small helpers
 # ---------------------------------------------------------------------------------------
-
-def first_order_lag(time_s, input_value, tau_s, initial=None) -> np.ndarray:
-    """Output of dy/dt = (u - y) / tau sampled at time_s, exact for u linear between
-    samples. initial: y at time_s[0] (default u[0])."""
-    t = np.asarray(time_s, dtype=float)
-    u = np.asarray(input_value, dtype=float)
-    y = np.empty_like(u)
-    y[0] = u[0] if initial is None else initial
-    if tau_s <= 0:
-        y[:] = u
-        return y
-    h = np.diff(t)
-    a = np.exp(-h / tau_s)
-    slope_tau = np.divide(u[1:] - u[:-1], h, out=np.zeros_like(h), where=h > 0) * tau_s
-    for n in range(len(h)):
-        y[n + 1] = u[n + 1] - slope_tau[n] + (y[n] - u[n] + slope_tau[n]) * a[n]
-    return y
-
 
 def rotate_by_rate(v_nT, rate_dps, dt_s) -> np.ndarray:
     """Body-frame vector after the body turned at rate_dps for dt_s: exp(-[w]x dt) v."""

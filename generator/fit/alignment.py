@@ -416,7 +416,7 @@ def calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A=None, data=None):
     with the file's coil_*_A columns (sorted by name); without it samples with any
     non-zero coil current are left out. data: preprocess(tel, unit) if already done."""
     if data is None:
-        from generator.io import telemetry as _telemetry
+        from generator.io import telemetry_csv as _telemetry
         data = _telemetry.preprocess(tel, unit)
     coil_names, coil_A = _coil_currents(tel)
     mask = np.ones(tel.n, dtype=bool)
@@ -478,7 +478,7 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
         if not calibrations[n].body_frame:
             notes.append(f"{n}: calibration is magnitude-only (M symmetric, its rotation "
                          "unknown): H then also absorbs that sensor's unknown rotation")
-    from generator.io import telemetry as _telemetry
+    from generator.io import telemetry_csv as _telemetry
     data = _telemetry.preprocess(tel, unit)
     fields, mask = calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A, data)
     if mask.sum() < tel.n:

@@ -158,7 +158,7 @@ def fit_coils(unit, telemetries, *, coils=None, sensors=None) -> CoilFit:
     taken as one static position (noted). Rows with a missing current or an unusable
     reading are left out.
     """
-    from generator.io import telemetry as _telemetry
+    from generator.io import telemetry_csv as _telemetry
     if not telemetries:
         raise InputError(unit.path, "coils: no telemetry files given")
     if coils is None:
@@ -295,7 +295,7 @@ def correction_table(unit, tel, calibrations, coil_fit: CoilFit, *, H_boom_to_bo
     (body frame = the boom board's frame in the jig) when present. H_boom_to_body: give it
     when the file was taken with the boom deployed; the boom sensors' reference vectors are
     then H^T ref."""
-    from generator.io import telemetry as _telemetry
+    from generator.io import telemetry_csv as _telemetry
     data = _telemetry.preprocess(tel, unit)
     I = np.column_stack([tel.columns[c] for c in coil_fit.coils])
     if tel.has("ref_norm_nT"):
@@ -350,3 +350,15 @@ def format_correction_table(table: dict) -> str:
 
 def _f(x):
     return "-" if x is None else f"{x:.1f}"
+
+
+def has_coil_steps(tel) -> bool:
+    """A coil campaign: magnetorquer currents that step while the unit stands in static
+    positions (a `position` column > 0). Orbit telemetry with B-dot currents is not one:
+    its field turns with the satellite, which a per-position constant cannot absorb."""
+    cols = [c for c in tel.columns if c.startswith("coil_") and c.endswith("_A")]
+    if not cols or "position" not in tel.columns:
+        return False
+    static = tel.columns["position"] > 0
+    return bool(static.any()) and any(np.nanmax(np.abs(tel.columns[c][static])) > 0
+                                      for c in cols)

@@ -1148,7 +1148,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto") -> dict:
     FIT_METHODS, see fit_sensor. Returns {sensor name: SensorCalibration}. Raises
     InputError when a sensor cannot be fitted or the method is unknown.
     """
-    from generator.io import telemetry as _telemetry
+    from generator.io import telemetry_csv as _telemetry
     if method not in FIT_METHODS:
         raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
                                     f"{', '.join(FIT_METHODS)})")

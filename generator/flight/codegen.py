@@ -11,21 +11,32 @@ Output is deterministic: same coefficients, same bytes.
 
 from __future__ import annotations
 
+import importlib.resources
 import re
 import tempfile
 from pathlib import Path
 
 import casadi as ca
 import jinja2
-import numpy as np
 
 from generator import __version__
 from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
                     lag_kernel, sensor_kernel)
+from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
+from generator.flight.tables import table_context
 
-REPO = Path(__file__).resolve().parents[2]
-TEMPLATE_DIR = REPO / "templates"
+
+def _template_dir() -> Path:
+    """The Jinja2 templates: shipped inside the package as package data (a wheel install),
+    else the top-level ``templates/`` of a source checkout (an editable install)."""
+    shipped = importlib.resources.files("generator") / "templates"
+    if shipped.is_dir():
+        return Path(str(shipped))
+    return Path(__file__).resolve().parents[2] / "templates"
+
+
+TEMPLATE_DIR = _template_dir()
 
 # (template, output file name pattern); {unit} is the unit id.
 TEMPLATES = (
@@ -35,6 +46,7 @@ TEMPLATES = (
     ("table.h.j2", "{unit}_table.h"),
     ("table.c.j2", "{unit}_table.c"),
 )
+TABLE_TEMPLATES = tuple(t for t in TEMPLATES if t[0].startswith("table."))
 
 
 def versions() -> dict:
@@ -125,18 +137,6 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
         sizes[k] = (got["ARG"], got["RES"])
     return c_text, sizes, funcs
 
-
-def c_literal(value: float, float_type: str) -> str:
-    """Shortest literal that round-trips to the exact value in the flight float type."""
-    if float_type == "float32":
-        text = str(np.float32(value))
-        suffix = "f"
-    else:
-        text = repr(float(value))
-        suffix = ""
-    if "." not in text and "e" not in text:
-        text += ".0"
-    return text + suffix
 
 
 def _internal_helpers_static(c_text: str) -> str:
@@ -252,7 +252,6 @@ def template_context(cs: CoefficientSet) -> dict:
         "fallback_order": list(spec.fallback_order()),
         "pairs": [(i, j) for i in range(len(sensors)) for j in range(i + 1, len(sensors))],
     }
-    from generator.flight.tables import table_context      # late import: tables imports codegen
     ctx["table"] = table_context(cs)
     return ctx
 

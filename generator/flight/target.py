@@ -45,7 +45,7 @@ import casadi as ca
 import numpy as np
 
 from generator.flight.chain import ChainSpec, np_dtype
-from generator.flight.codegen import REPO, TEMPLATE_DIR, _env, build_kernel, render, template_context
+from generator.flight.codegen import TEMPLATE_DIR, _env, build_kernel, render, template_context
 from generator.flight.coeffs import CoefficientSet
 
 # ---- toolchain ------------------------------------------------------------------------
@@ -1386,8 +1386,9 @@ def main(argv=None) -> int:
         try:
             cs = CoefficientSet.load(args.coeffs)
             src = args.coeffs
-            if Path(src).resolve().is_relative_to(REPO):
-                src = str(Path(src).resolve().relative_to(REPO))
+            cwd = Path.cwd().resolve()
+            if Path(src).resolve().is_relative_to(cwd):      # name it as the user did
+                src = str(Path(src).resolve().relative_to(cwd))
             m = flight_report(cs, args.output, source=src)
         except ArmToolchainMissing as e:
             print(f"error: {e}", file=sys.stderr)

@@ -50,27 +50,3 @@ class SensorData:
     chip_offset_sensor_nT: np.ndarray | None = None  # (N, 3) SET/RESET sensors: (set+reset)/2 - zero, sensor axes
     counts: dict = field(default_factory=dict)        # raw count columns used, by column name
     missing_columns: tuple = ()        # needed columns absent from the file (require_sensors=False)
-
-
-
-def read_telemetry(path, unit, *, require_sensors: bool = True) -> "Telemetry":
-    """Read and validate one telemetry CSV against the unit (ICD section 2).
-
-    Raises InputError (file, line, column, fault) on: unreadable file, no header, missing
-    `time_s`, a sensor column the unit requires missing (require_sensors), a cell that is
-    not a number, a literal NaN/inf cell, time going backwards, a row with the wrong
-    number of cells, a count outside the part's raw range. Empty cells are missing values
-    (NaN) and are allowed. Extra columns are kept as channels.
-    """
-    from generator.io.telemetry_csv import read_csv
-    return read_csv(path, unit, require_sensors=require_sensors)
-
-
-def preprocess(tel: "Telemetry", unit) -> dict:
-    """Counts -> nT, SET/RESET -> field and chip offset, axis mapping -> frame axes.
-
-    Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
-    the part's rail (saturated); these are counted in n_missing / n_saturated, never used.
-    """
-    from generator.io.telemetry_csv import preprocess_sensors
-    return preprocess_sensors(tel, unit)

@@ -37,8 +37,15 @@ _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 
 # --------------------------------------------------------------------------- reading
 
-def read_csv(path, unit, require_sensors: bool = True) -> Telemetry:
-    """Read and validate one telemetry file against the unit; see telemetry.read_telemetry."""
+def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
+    """Read and validate one telemetry CSV against the unit (ICD section 2).
+
+    Raises InputError (file, line, column, fault) on: unreadable file, no header, missing
+    `time_s`, a sensor column the unit requires missing (require_sensors), a cell that is
+    not a number, a literal NaN/inf cell, time going backwards, a row with the wrong
+    number of cells, a count outside the part's raw range. Empty cells are missing values
+    (NaN) and are allowed. Extra columns are kept as channels.
+    """
     text = _read_text(path)
     header, header_line, rows, row_lines, meta, comments = _split_lines(path, text)
     if "unit" in meta and meta["unit"] != unit.id:
@@ -244,14 +251,11 @@ def _fmt(x) -> str:
 
 # --------------------------------------------------------------------------- preprocessing
 
-def preprocess_sensors(tel: Telemetry, unit) -> dict:
-    """{sensor name: SensorData} for every sensor of the unit, in unit order (float64).
+def preprocess(tel: Telemetry, unit) -> dict:
+    """Counts -> nT, SET/RESET -> field and chip offset, axis mapping -> frame axes.
 
-    A sample is unusable where any needed cell (counts, temperature) is missing or non-finite
-    (n_missing), or, otherwise, where a count sits at or beyond the part's rail (n_saturated).
-    field_frame_nT and chip_offset_sensor_nT are NaN on unusable samples, so that a caller who
-    forgets the mask gets NaN, never a silently wrong number. Columns absent from the file
-    (read with require_sensors=False) count as missing cells and are listed in missing_columns.
+    Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
+    the part's rail (saturated); these are counted in n_missing / n_saturated, never used.
     """
     return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors}
 

@@ -33,8 +33,15 @@ _TOML_POS_RE = re.compile(r"\s*\(at line (\d+), column (\d+)\)$")
 _MISSING = object()
 
 
-def read_unit_toml(path) -> Unit:
-    """Read and validate one unit file; see generator.io.unit.load_unit for what is checked."""
+def load_unit(path) -> Unit:
+    """Read and validate a unit TOML file (ICD section 1).
+
+    Raises generator.errors.InputError naming the file (and the key / [[sensor]] index)
+    on any fault: TOML syntax, missing key, bad id or name pattern, unknown part,
+    unknown frame, axes that are not a signed permutation of x, y, z, non-positive
+    lsb_nT, set_reset on a part that cannot, duplicate sensor names, boom.reference
+    that is not a body-frame sensor, float not in FLOAT_TYPES.
+    """
     try:
         raw = Path(path).read_bytes()
     except OSError as e:

@@ -72,7 +72,7 @@ _LABEL = {
 def _eval_data(tel, unit):
     """Per sensor: field, temperature, reference vectors (or None) and magnitudes of the
     samples every calibration can be scored on (usable, no coil current, a reference)."""
-    from generator.io.telemetry import preprocess
+    from generator.io.telemetry_csv import preprocess
 
     data = preprocess(tel, unit)
     n = tel.n

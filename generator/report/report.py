@@ -349,7 +349,7 @@ class CampaignAnalysis:
 
     def __init__(self, cs, data_paths, progress=None):
         from generator.campaign.check import gather_samples
-        from generator.io.telemetry import preprocess, read_telemetry
+        from generator.io.telemetry_csv import preprocess, read_telemetry
 
         say = progress or (lambda m: None)
         self.cs = cs
@@ -807,9 +807,9 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 def _coil_sections(cs, analysis, out_dir) -> list:
     from generator.fit.coils import (SEED_POINTS_CM, correction_table, fit_coils,
                             interference_table)
-    from generator.pipeline import _has_coil_steps
+    from generator.fit.coils import has_coil_steps
 
-    k = next((i for i, t in enumerate(analysis.tels) if _has_coil_steps(t)), None)
+    k = next((i for i, t in enumerate(analysis.tels) if has_coil_steps(t)), None)
     if k is None:
         return []
     tel = analysis.tels[k]

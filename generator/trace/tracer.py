@@ -229,7 +229,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
     boom -> body rotation (the rate in a boom sensor's frame is H^T w)."""
-    from generator.io.telemetry import preprocess
+    from generator.io.telemetry_csv import preprocess
     notes = notes if notes is not None else []
     H = np.eye(3) if H is None else np.asarray(H, float)
     acc = {s.name: [] for s in unit.sensors}
@@ -1397,9 +1397,7 @@ class TraceResult:
         (out / "trace.json").write_text(json.dumps(self.to_json(), indent=1,
                                                    default=_json_default) + "\n")
         self.coefficients.save(out / "coefficients.json")
-        report = write_report(self, out)
-        return {"trace": out / "trace.json", "coefficients": out / "coefficients.json",
-                "report": report}
+        return {"trace": out / "trace.json", "coefficients": out / "coefficients.json"}
 
 
 def _model_text(m: SensorModel) -> str:
@@ -1508,7 +1506,8 @@ def protocol_text(evaluated_on) -> dict:
 
 
 def _read(unit, items):
-    from generator.io.telemetry import Telemetry, read_telemetry
+    from generator.io.telemetry import Telemetry
+    from generator.io.telemetry_csv import read_telemetry
     out = []
     for it in items:
         out.append(it if isinstance(it, Telemetry) else read_telemetry(it, unit))
@@ -1522,7 +1521,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     unit: Unit or unit-file path; data, holdout: telemetry paths or Telemetry objects;
     coeffs: baseline CoefficientSet or path (default: the core fit of the data files).
     """
-    from generator.io.unit import Unit, load_unit
+    from generator.io.unit import Unit
+    from generator.io.unitfile import load_unit
     t0 = time.perf_counter()
     say = progress or (lambda m: None)
     if not isinstance(unit, Unit):
@@ -1598,296 +1598,6 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                        time.perf_counter() - t0)
 
 
-# =======================================================================================
-# Report
-# =======================================================================================
-def _per_sample(S: SensorSamples, r, direction=None):
-    """(sample index, value) from residual rows: 3-row kinds projected on `direction`."""
-    iv, im, ip = S.idx
-    nv, nm = 3 * len(iv), len(im)
-    vals = np.empty(S.n)
-    if direction is None:
-        direction = np.array([1.0, 0.0, 0.0])
-    if len(iv):
-        vals[iv] = r[:nv].reshape(-1, 3) @ direction
-    if len(im):
-        vals[im] = r[nv:nv + nm]
-    if len(ip):
-        vals[ip] = r[nv + nm:].reshape(-1, 3) @ direction
-    return vals
-
-
-def _direction(S, explained):
-    iv, im, ip = S.idx
-    nv, nm = 3 * len(iv), len(im)
-    three = np.concatenate([explained[:nv].reshape(-1, 3), explained[nv + nm:].reshape(-1, 3)])
-    if len(three) == 0:
-        return np.array([1.0, 0.0, 0.0])
-    _, _, Vt = np.linalg.svd(three, full_matrices=False)
-    d = Vt[0]
-    return d if three.mean(axis=0) @ d >= 0 else -d
-
-
-def plot_step(name, tr: SensorTrace, st: Step, path) -> str:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    S = tr.S_eval
-    rb = st.model_before.residual(st.model_before.theta[None], S)[0]
-    ra = st.model_after.residual(st.model_after.theta[None], S)[0]
-    expl = rb - ra
-    d = _direction(S, expl)
-    vb, va, ve = (_per_sample(S, r, d) for r in (rb, ra, expl))
-    o = np.argsort(S.order, kind="stable")
-    fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
-    k = np.arange(S.n)
-    ax[0].plot(k, vb[o], ".", ms=2, color="0.6", label=f"before ({st.rms_before_nT:.1f} nT rms)")
-    ax[0].plot(k, va[o], ".", ms=2, color="tab:blue", label=f"after ({st.rms_after_nT:.1f} nT rms)")
-    ax[0].plot(k, ve[o], "-", lw=1, color="tab:red", label=f"explained by {st.effect.name}")
-    ax[0].set_xlabel("held-out sample, time order")
-    axis_txt = "" if not any(S.kind != NORM) else \
-        f" along [{d[0]:+.2f}, {d[1]:+.2f}, {d[2]:+.2f}]"
-    ax[0].set_ylabel(f"residual{axis_txt}, nT")
-    ax[0].legend(fontsize=7, loc="best")
-    ax[0].set_title(f"{name}: {st.effect.label()}", fontsize=9)
-    lim = [float(np.min(ve)), float(np.max(ve))]
-    ax[1].plot(ve, vb, ".", ms=2, color="0.6", label="before")
-    ax[1].plot(ve, va, ".", ms=2, color="tab:blue", label="after")
-    ax[1].plot(lim, lim, "-", color="tab:red", lw=1, label="slope 1")
-    ax[1].set_xlabel(f"explained by {st.effect.name}, nT")
-    ax[1].set_ylabel("residual, nT")
-    ax[1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return str(path)
-
-
-def write_report(res: TraceResult, out: Path) -> Path:
-    from generator.report.report import Report, Section, Table
-    rep = Report(f"magcal trace: unit {res.unit.id}")
-    src = res.sources
-    rep.add(Section("Inputs and protocol", [
-        f"Data: {', '.join(src['data'])}." + (f" Holdout: {', '.join(src['holdout'])}."
-                                              if src["holdout"] else ""),
-        f"Baseline: {src['baseline']}. Figures evaluated on: {res.evaluated_on}.",
-        *[f"{k.capitalize()}: {v}." for k, v in protocol_text(res.evaluated_on).items()],
-        *[f"Note: {n}" for n in res.notes[:20]]]))
-    rows = []
-    for n, tr in res.traces.items():
-        rows.append([n, tr.metric, tr.baseline_rms_nT,
-                     ", ".join(st.effect.label() for st in tr.steps) or "none",
-                     tr.final_rms_nT])
-    for n, why in res.skipped.items():
-        rows.append([n, "-", float("nan"), f"skipped: {why}", float("nan")])
-    rep.add(Section("Summary", [
-        "Held-out RMS of the residual per sensor, before (the baseline structure refitted) "
-        "and after the traced effects."],
-        [Table(["sensor", "residual", "baseline RMS nT", "effects found", "final RMS nT"],
-               rows)]))
-    k = 0
-    for n, tr in res.traces.items():
-        for i, st in enumerate(tr.steps):
-            k += 1
-            fig = f"trace_{n}_{i + 1}_{st.effect.name}.png"
-            plot_step(n, tr, st, out / fig)
-            e = st.effect
-            cand = [[s.effect.label(), s.dof, 100 * s.rel_rms_gain,
-                     f"{s.blocks_improved}/{len(s.block_gain)}", s.t, s.lr,
-                     "yes" if s.significant else "; ".join(s.reasons)]
-                    for s in st.scores[:8]]
-            params = e.describe(st.params, st.model_after)
-            paras = [evidence_sentence(n, st),
-                     f"Physics: {e.physics}.",
-                     "Parameters: " + ", ".join(f"{k_}={_fmt(v)}"
-                                                for k_, v in params.items()) + ".",
-                     f"Flight form: {e.flight_form}."]
-            if st.runner_up is not None:
-                paras.append("Runner-up: " + runner_up_text(st) + ".")
-            rep.add(Section(f"{n}: {e.label()}", paras, [Table(
-                ["candidate", "parameters", "CV RMS gain %", "blocks improved", "t",
-                 "likelihood ratio", "significant"], cand,
-                f"round {i + 1}: candidates by held-out error")],
-                [(fig, f"{n}: held-out residual before and after {e.label()}, and the part "
-                       "it explains")]))
-    quiet = []
-    for n, tr in res.traces.items():
-        best = tr.last_scores[0] if tr.last_scores else None
-        quiet.append([n, best.effect.label() if best else "-",
-                      100 * best.rel_rms_gain if best else float("nan"),
-                      tr.stop])
-    rep.add(Section("What is left", [
-        "The best remaining candidate per sensor and why it was not added."],
-        [Table(["sensor", "best remaining candidate", "CV RMS gain %", "stop"], quiet)]))
-    na = [[n, name, why] for n, tr in res.traces.items() for name, why in tr.not_applicable.items()]
-    if na:
-        rep.add(Section("Candidates that did not apply", [],
-                        [Table(["sensor", "effect", "why"], na)]))
-    return rep.write(out, stem="trace_report")
-
-
-def _fmt(v):
-    if isinstance(v, list):
-        return "[" + ", ".join(_fmt(x) for x in v) + "]"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
-
-# =======================================================================================
-# Command line
-# =======================================================================================
-def add_trace_args(p):
-    p.add_argument("unit", help="unit file (TOML, ICD section 1)")
-    p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2) to fit")
-    p.add_argument("-o", "--output", required=True, help="output folder")
-    p.add_argument("--holdout", nargs="+", default=[], metavar="DATA",
-                   help="telemetry files to evaluate on (default: every 5th time block of "
-                        "the data is held out)")
-    p.add_argument("--coeffs", default=None,
-                   help="baseline coefficients.json (default: the core fit of the data)")
-
-
-def cmd_trace(args) -> int:
-    from generator.pipeline import Progress
-    progress = Progress(quiet=getattr(args, "quiet", False))
-    res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
-    paths = res.write(args.output)
-    for n, tr in res.traces.items():
-        found = ", ".join(st.effect.label() for st in tr.steps) or "nothing significant"
-        progress(f"{n}: {tr.baseline_rms_nT:.2f} -> {tr.final_rms_nT:.2f} nT held-out RMS; "
-                 f"{found}")
-    progress(f"wrote {paths['trace']}, {paths['coefficients']} and {paths['report']}")
-    return 0
-
-
-# =======================================================================================
-# Adapter: PX4 ulog CSV exports (sensor_mag_<i>.csv, actuator_outputs_0.csv, ...)
-# =======================================================================================
-PX4_GAUSS_nT = 1e5
-
-
-def px4_log_telemetry(folder, *, lsb_nT=2.0, average_s=None):
-    """Read a PX4 ulog CSV export into the toolchain's structures: (Unit, Telemetry).
-
-    Every sensor_mag_<i>.csv becomes a sensor `mag<i>` (frame body, axes as logged, no
-    SET/RESET; part MPU-9255 stands for "a 3-axis part without SET/RESET"); its x, y, z
-    (gauss, already calibrated by PX4) become counts of lsb_nT, its chip temperature
-    <s>_temp_C. The vehicle stands still: one static position (position = 1), no field
-    reference (lab_field_nT unknown). actuator_outputs_0.csv outputs that move (motor
-    PWM, us) become channels motor<k>_pwm_us, their mean motors_mean_pwm_us, and
-    actuator_armed_0.csv `armed`, each held at its last logged value (the channel as the
-    flight software sees it at the magnetometer sample).
-
-    average_s None: one merged time line (s from the first magnetometer sample), one row
-    per magnetometer sample, the other sensors' cells empty. average_s > 0: one row per
-    interval of that length, every sensor's readings and temperature and every channel
-    averaged over the interval (the field is constant while the vehicle stands still;
-    averaging removes most of the vibration noise and keeps anything slower).
-    """
-    from generator.io.telemetry import Telemetry
-    from generator.io.unit import SensorSpec, Unit
-    folder = Path(folder)
-    mags = sorted(folder.glob("sensor_mag_*.csv"),
-                  key=lambda p: int(p.stem.rsplit("_", 1)[1]))
-    if not mags:
-        raise InputError(folder, "no sensor_mag_<i>.csv files")
-
-    def load(p):
-        try:
-            return np.genfromtxt(p, delimiter=",", names=True, deletechars="")
-        except (OSError, ValueError) as e:
-            raise InputError(p, f"not a PX4 CSV export: {e}") from None
-
-    logs = [(int(p.stem.rsplit("_", 1)[1]), load(p)) for p in mags]
-    for p, (_, d) in zip(mags, logs):
-        missing = [c for c in ("timestamp", "x", "y", "z", "temperature")
-                   if c not in (d.dtype.names or ())]
-        if missing:
-            raise InputError(p, f"missing column(s) {', '.join(missing)}")
-    t0 = min(float(d["timestamp"][0]) for _, d in logs)
-    t_cat = np.concatenate([(d["timestamp"] - t0) * 1e-6 for _, d in logs])
-    o = np.argsort(t_cat, kind="stable")
-    t_all = t_cat[o]
-    row_of = np.empty(len(o), int)
-    row_of[o] = np.arange(len(o))           # every sample its own row, in time order
-    starts = np.cumsum([0] + [len(d) for _, d in logs])
-    held = {}
-
-    def hold(p, names, out_names):
-        if not p.exists():
-            return
-        d = load(p)
-        t = (d["timestamp"] - t0) * 1e-6
-        for nm, on in zip(names, out_names):
-            v = np.asarray(d[nm], float)
-            if np.ptp(v) > 0:
-                held[on] = (t, v)
-
-    ao = folder / "actuator_outputs_0.csv"
-    if ao.exists():
-        hdr = ao.read_text().split("\n", 1)[0].strip().split(",")
-        outs = [h for h in hdr if h.startswith("output[")]
-        hold(ao, outs, [f"motor{int(h[7:-1]) + 1}_pwm_us" for h in outs])
-        motors = [k for k in held if k.startswith("motor")]
-        if len(motors) > 1:
-            t = held[motors[0]][0]
-            held["motors_mean_pwm_us"] = (t, np.mean([held[k][1] for k in motors], axis=0))
-    hold(folder / "actuator_armed_0.csv", ["armed"], ["armed"])
-
-    def at(name, times):
-        t, v = held[name]
-        k = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 1)
-        return v[k]
-
-    sensors = [SensorSpec(f"mag{i}", "MPU-9255", "body", ("+x", "+y", "+z"), float(lsb_nT),
-                          0, False, None) for i, _ in logs]
-    if average_s:
-        edges = np.arange(0.0, t_all[-1] + average_s, average_s)
-        nb = len(edges) - 1
-        cols = {"time_s": 0.5 * (edges[:-1] + edges[1:]), "position": np.ones(nb)}
-        for i, d in logs:
-            t = (d["timestamp"] - t0) * 1e-6
-            b = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, nb - 1)
-            cnt = np.bincount(b, minlength=nb).astype(float)
-            with np.errstate(invalid="ignore"):
-                for a in "xyz":
-                    m = np.bincount(b, d[a] * PX4_GAUSS_nT, nb) / cnt
-                    cols[f"mag{i}_{a}"] = np.round(m / lsb_nT, 3)
-                cols[f"mag{i}_temp_C"] = np.bincount(b, d["temperature"], nb) / cnt
-        tb = np.clip(np.searchsorted(edges, t_all, side="right") - 1, 0, nb - 1)
-        cnt = np.bincount(tb, minlength=nb).astype(float)
-        for name in held:
-            with np.errstate(invalid="ignore"):
-                cols[name] = np.bincount(tb, at(name, t_all), nb) / cnt
-        keep = cnt > 0
-        cols = {k: v[keep] for k, v in cols.items()}
-        n = int(keep.sum())
-    else:
-        n = len(t_all)
-        cols = {"time_s": t_all, "position": np.ones(n)}
-        for k, (i, d) in enumerate(logs):
-            row = row_of[starts[k]:starts[k + 1]]
-            for a in "xyz":
-                v = np.full(n, np.nan)
-                v[row] = np.round(d[a] * PX4_GAUSS_nT / lsb_nT)
-                cols[f"mag{i}_{a}"] = v
-            T = np.full(n, np.nan)
-            T[row] = d["temperature"]
-            cols[f"mag{i}_temp_C"] = T
-        for name in held:
-            cols[name] = at(name, t_all)
-    unit = Unit(id="px4_" + "".join(c if c.isalnum() else "_" for c in folder.name.lower()),
-                sensors=tuple(sensors), lab_field_nT=None, float_type="float32",
-                boom_reference=None, path=str(folder))
-    meta = {"source": "PX4 ulog CSV export", "position": "vehicle standing still"}
-    if average_s:
-        meta["averaged_s"] = str(average_s)
-    tel = Telemetry(str(folder) + (f" ({average_s:g} s means)" if average_s else ""), cols,
-                    np.arange(1, n + 1), meta)
-    return unit, tel
-
-
 __all__ = ["trace", "TraceResult", "SensorModel", "SensorSamples", "to_coefficient_set",
            "gather_samples", "model_from_coefficients", "calibrated_field64",
-           "add_trace_args", "cmd_trace", "px4_log_telemetry", "ALPHA", "MIN_REL_GAIN"]
+           "ALPHA", "MIN_REL_GAIN"]

@@ -1,0 +1,21 @@
+"""Progress lines for long work: one line per step on stderr, with elapsed time."""
+
+from __future__ import annotations
+
+import time
+
+
+class Progress:
+    """One line per step on stderr, with elapsed time; silent when quiet."""
+
+    def __init__(self, quiet=False, stream=None):
+        import sys
+
+        self.quiet = quiet
+        self.stream = stream or sys.stderr
+        self.t0 = time.perf_counter()
+
+    def __call__(self, message: str):
+        if not self.quiet:
+            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream,
+                  flush=True)

@@ -1,0 +1,217 @@
+"""docs/table_format.md, written from the table format's one definition (flight/tables.py).
+
+    python3 -m generator.report.table_doc --write-doc
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from generator.flight.chain import ChainSpec
+from generator.flight.tables import (CRC_BYTES, ERRORS, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS,
+                                     ORDERED_PAIRS, PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS,
+                                     PLAUSIBLE_RANGES, TableStatus)
+
+REPO = Path(__file__).resolve().parents[2]
+DOC_PATH = REPO / "docs" / "table_format.md"
+
+
+# ---- the docs page -----------------------------------------------------------------------
+
+
+def _doc_example_spec() -> ChainSpec:
+    """A chain with every block there is: coils, a boom sensor, every optional stage."""
+    from generator.flight.chain import SensorOptions
+    from generator.io.unit import SensorSpec, Unit
+
+    unit = Unit("example", (
+        SensorSpec("mmc1", "MMC5883MA", "body", ("+z", "+y", "+x"), 25.0, 32768, True),
+        SensorSpec("mpu3", "MPU-9255", "boom", ("-y", "-z", "+x"), 150.0, 0, False),
+    ), float_type="float32")
+    everything = SensorOptions(channels=("heater_A",), thermal_lag=True, nonlinear=True,
+                               sr_compensation=True)
+    return ChainSpec(unit, coils=("coil_x_A", "coil_y_A", "coil_z_A"),
+                     sensor_options=(("mmc1", everything),))
+
+
+def _cell(text) -> str:
+    return str(text).replace("|", "\\|")
+
+
+def format_doc() -> str:
+    """docs/table_format.md, from the definitions above (a test keeps the file equal)."""
+    L = []
+    a = L.append
+    a("# Uplink coefficient table format")
+    a("")
+    a("<!-- DO NOT EDIT: generated from generator/flight/tables.py by "
+      "`python -m generator.report.table_doc --write-doc`; host_tests/test_tables.py checks it. -->")
+    a("")
+    a("A table carries one unit's complete coefficient set from the ground to the flight "
+      "code. Everything is little-endian. A table is")
+    a("")
+    a(f"    header ({HEADER_BYTES} bytes) | payload (payload_bytes) | CRC-32 ({CRC_BYTES} bytes)")
+    a("")
+    a("and the flight code accepts it only if every check below passes; otherwise the "
+      "table in use stays in use (double buffer, switched by one assignment after "
+      "validation). The definitions live in `generator/flight/tables.py` (`HEADER_FIELDS`, "
+      "`PART_FIELDS`, `ERRORS`, `PLAUSIBLE_RANGES`) and the chain's blocks in "
+      "`generator/chain.py`; the encoder, the ground decoder, the flight C "
+      "(`<unit>_table.h/.c`) and this page are all made from them.")
+    a("")
+    a("## Header")
+    a("")
+    a("| offset | bytes | type | field | meaning | checked before the CRC |")
+    a("| ---: | ---: | --- | --- | --- | --- |")
+    for f in HEADER_FIELDS:
+        a(f"| {HEADER_OFFSETS[f.name]} | {f.size} | {f.type_name} | `{f.name}` | {f.doc} | "
+          f"{('`' + f.check + '`') if f.check else '-'} |")
+    a("")
+    a(f"The payload starts at offset {HEADER_BYTES}. The CRC-32 (IEEE 802.3, as "
+      "`zlib.crc32`: reflected polynomial 0xEDB88320, initial value and final XOR "
+      "0xFFFFFFFF) covers the header and the payload and follows them as a uint32.")
+    a("")
+    a("The unit id is checked by hash and as text; either mismatch is `WRONG_UNIT`. "
+      "The compiled-in default coefficients are the same format: "
+      "`<unit>_table_default[]` (serial 0, created_s 0) is made by the same encoder.")
+    a("")
+    a("## Payload")
+    a("")
+    a("The coefficients as IEEE-754 float32 or float64 (`value_bytes`, the unit's "
+      "`float`), in the order of the chain definition: sensor by sensor in the unit "
+      "file's order, each sensor's blocks in order, every block row-major; then the "
+      "unit-wide blocks. This is exactly the flat contents of `<unit>_coeffs_t`. "
+      "With three coils and every optional stage (one channel), a sensor's blocks are:")
+    a("")
+    spec = _doc_example_spec()
+    a("| block | shape | unit | kind | meaning |")
+    a("| --- | --- | --- | --- | --- |")
+    for b in spec.sensor_blocks(spec.unit.sensors[0]):
+        a(f"| `{b.name}` | {list(b.shape) if b.shape else 'scalar'} | {_cell(b.unit)} | "
+          f"{b.kind} | {_cell(b.doc)} |")
+    a("")
+    a("and the unit-wide blocks:")
+    a("")
+    a("| block | shape | unit | kind | meaning |")
+    a("| --- | --- | --- | --- | --- |")
+    for b in spec.unit_blocks():
+        a(f"| `{b.name}` | {list(b.shape) if b.shape else 'scalar'} | {_cell(b.unit)} | "
+          f"{b.kind} | {_cell(b.doc)} |")
+    a("")
+    a("`K_nT_per_A` is there only when the chain has coils, the blocks after it up to "
+      "`agree_nT` only for the sensor's optional stages, `H_boom_to_body` only when the "
+      "unit has a boom sensor; `layout_hash` covers which blocks there are and their "
+      "shapes, so `payload_bytes` follows from the layout.")
+    a("")
+    a("## Plausible ranges")
+    a("")
+    a("Every value must lie in the closed range of its block's kind. For polynomial "
+      "blocks (first axis = order k) the range of the order-k coefficients is the "
+      "kind's range divided by span^k: every term c_k dT^k stays in the kind's range "
+      "for |dT| up to the span.")
+    a("")
+    a("| kind | range | span | why |")
+    a("| --- | --- | --- | --- |")
+    for r in PLAUSIBLE_RANGES.values():
+        rng = "part's raw count range" if r.part_counts else f"[{r.lo:g}, {r.hi:g}]"
+        span = f"{r.poly_span_C:g} degC" if r.poly_span_C else "-"
+        a(f"| {r.kind} | {rng} | {span} | {_cell(r.why)} |")
+    a("")
+    a("The bounds are rounded to the unit's float type, as the values are, in the flight "
+      "C (one range table per block and order, `<unit>_table.c`) and in the ground "
+      "decoder alike. The header temperature range must lie in the `temp` range with "
+      "t_min_C < t_max_C.")
+    a("")
+    a("## Checks, in order")
+    a("")
+    a("`<unit>_table_validate` runs these checks in this order and returns the status of "
+      "the first that fails; a flipped bit in a field checked before the CRC gives that "
+      "field's status, any other flipped bit `BAD_CRC`.")
+    a("")
+    a("| code | status | meaning |")
+    a("| ---: | --- | --- |")
+    for i, (n, r) in enumerate(ERRORS):
+        a(f"| {i} | `{n}` | {_cell(r)} |")
+    a("")
+    first_part = int(TableStatus.PART_TRUNCATED)
+    first_commit = int(TableStatus.NOTHING_STAGED)
+    a(f"Codes 1 to {first_part - 1} come from the table checks, in this order: a NULL "
+      "buffer; the length against the header; the header fields in header order (magic, "
+      "version, value width, unit id hash and text, layout hash, payload length); the "
+      "length against the payload length; the CRC; then the content: the header "
+      "temperature range, finiteness of every value, the plausible range of every value, "
+      "every lower limit below its upper limit (`ORDERED_PAIRS`: "
+      + ", ".join(f"{lo} < {hi}" for lo, hi in ORDERED_PAIRS) + "), and the header "
+      "range equal to the min/max over the sensors (in float32). "
+      f"Codes {first_part} to {first_commit - 1} come from `receive_part`, in that order; "
+      f"{first_commit} to {len(ERRORS) - 1} from `commit` (nothing staged and missing "
+      "parts before the table checks of the reassembled table, the serial after them). "
+      "`<unit>_table_strerror(code)` gives the meaning.")
+    a("")
+    a("## Parts")
+    a("")
+    a("For the link, a table is cut into parts of at most N bytes "
+      "(`magcal table ... --chunk N`), each:")
+    a("")
+    a(f"    part header ({PART_HEADER_BYTES} bytes) | part_bytes table bytes | "
+      f"CRC-32 of header and bytes ({CRC_BYTES} bytes)")
+    a("")
+    a("| offset | bytes | type | field | meaning | checked before the CRC |")
+    a("| ---: | ---: | --- | --- | --- | --- |")
+    for f in PART_FIELDS:
+        a(f"| {PART_OFFSETS[f.name]} | {f.size} | {f.type_name} | `{f.name}` | {f.doc} | "
+          f"{('`' + f.check + '`') if f.check else '-'} |")
+    a("")
+    a("The flight code collects parts into a staging buffer (bytes), never into the "
+      "coefficients in use. Parts may arrive in any order (each goes at "
+      "part_index * chunk_bytes, and the numbering must tile the table exactly); a part "
+      "already received is refused (`PART_REPEATED` if identical, `PART_CONFLICT` if "
+      "not) and changes nothing; a part of another serial while a transfer is in "
+      "progress is refused (`PART_FOREIGN_SERIAL`; `<unit>_table_abort` drops the "
+      "transfer); so is a change of part count or chunk size (`PART_COUNT_CHANGED`). "
+      "`<unit>_table_commit` refuses an incomplete transfer (`PARTS_MISSING`, the "
+      "transfer stays open for the missing parts), then validates the whole table, "
+      "checks that its serial is the parts' serial, decodes it into the inactive "
+      "buffer and switches the active index. A commit that fails validation drops "
+      "the transfer. `<unit>_table_load` does the same for a table received in one "
+      "piece.")
+    a("")
+    a("## Commands")
+    a("")
+    a("    magcal table COEFFS.json -o TABLE.bin [--serial N] [--created-s T] [--chunk N]")
+    a("    magcal table --decode TABLE.bin [--coeffs COEFFS.json]")
+    a("    magcal table --diff A.bin B.bin [--coeffs COEFFS.json]")
+    a("    magcal table --check TABLE.bin --coeffs COEFFS.json")
+    a("")
+    a("The first writes TABLE.bin, the dump TABLE.txt beside it and, with --chunk N, "
+      "TABLE.part000.bin ... of at most N bytes each. `--created-s` defaults to "
+      "SOURCE_DATE_EPOCH if set, else 0, so the output is reproducible. `--check` runs "
+      "the flight C validator, compiled on the host, and exits 0 if it accepts the "
+      "table, 2 with the status code and reason if not.")
+    return "\n".join(L) + "\n"
+
+
+def write_format_doc(path=DOC_PATH) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(format_doc())
+    return path
+
+
+def main(argv=None) -> int:
+    """`python -m generator.report.table_doc --write-doc`: regenerate docs/table_format.md."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m generator.report.table_doc")
+    p.add_argument("--write-doc", action="store_true", help=f"write {DOC_PATH}")
+    args = p.parse_args(argv)
+    if args.write_doc:
+        print(f"wrote {write_format_doc()}")
+        return 0
+    p.print_help()
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""`magcal trace`: trace what is left in the residual, write trace.json, coefficients and the report."""
+
+from __future__ import annotations
+
+from generator.progress import Progress
+from generator.report.trace_report import write_report
+from generator.trace.tracer import trace
+
+
+def add_trace_args(p):
+    p.add_argument("unit", help="unit file (TOML, ICD section 1)")
+    p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2) to fit")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    p.add_argument("--holdout", nargs="+", default=[], metavar="DATA",
+                   help="telemetry files to evaluate on (default: every 5th time block of "
+                        "the data is held out)")
+    p.add_argument("--coeffs", default=None,
+                   help="baseline coefficients.json (default: the core fit of the data)")
+
+
+def cmd_trace(args) -> int:
+    progress = Progress(quiet=getattr(args, "quiet", False))
+    res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
+    paths = res.write(args.output)
+    paths["report"] = write_report(res, paths["trace"].parent)
+    for n, tr in res.traces.items():
+        found = ", ".join(st.effect.label() for st in tr.steps) or "nothing significant"
+        progress(f"{n}: {tr.baseline_rms_nT:.2f} -> {tr.final_rms_nT:.2f} nT held-out RMS; "
+                 f"{found}")
+    progress(f"wrote {paths['trace']}, {paths['coefficients']} and {paths['report']}")
+    return 0
+
+
