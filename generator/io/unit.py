@@ -30,6 +30,10 @@ class SensorSpec:
     zero_count: int           # count at zero field
     set_reset: bool           # telemetry holds SET and RESET outputs
     noise_nT: float | None = None
+    # ICD section 4 (version 2), all optional:
+    input: str = "counts"     # what the <s>_x.. columns hold: counts | nT | uT | mG | G
+    temperature: bool = True  # False: the sensor reports no temperature (no <s>_temp_C)
+    range_nT: float | None = None  # full-scale field per axis ("generic" parts)
 
     @property
     def count_min(self) -> int:
@@ -90,6 +94,11 @@ class Unit:
                     "name": s.name, "part": s.part, "frame": s.frame, "axes": list(s.axes),
                     "lsb_nT": s.lsb_nT, "zero_count": s.zero_count,
                     "set_reset": s.set_reset, "noise_nT": s.noise_nT,
+                    # version-2 keys only where they differ from version 1's meaning, so a
+                    # version-1 unit's coefficients.json keeps its bytes
+                    **({"input": s.input} if s.input != "counts" else {}),
+                    **({"temperature": False} if not s.temperature else {}),
+                    **({"range_nT": s.range_nT} if s.range_nT is not None else {}),
                 }
                 for s in self.sensors
             ],
@@ -107,21 +116,9 @@ class Unit:
                     name=s["name"], part=s["part"], frame=s["frame"], axes=tuple(s["axes"]),
                     lsb_nT=float(s["lsb_nT"]), zero_count=int(s["zero_count"]),
                     set_reset=bool(s["set_reset"]), noise_nT=s.get("noise_nT"),
+                    input=s.get("input", "counts"), temperature=s.get("temperature", True),
+                    range_nT=s.get("range_nT"),
                 )
                 for s in d["sensors"]
             ),
         )
-
-
-def load_unit(path) -> Unit:
-    """Read and validate a unit TOML file (ICD section 1).
-
-    Raises generator.errors.InputError naming the file (and the key / [[sensor]] index)
-    on any fault: TOML syntax, missing key, bad id or name pattern, unknown part,
-    unknown frame, axes that are not a signed permutation of x, y, z, non-positive
-    lsb_nT, set_reset on a part that cannot, duplicate sensor names, boom.reference
-    that is not a body-frame sensor, float not in FLOAT_TYPES.
-    """
-    from generator.io.unitfile import read_unit_toml  # implemented in unitfile.py
-
-    return read_unit_toml(path)
