@@ -20,17 +20,43 @@ STAGES = ("io", "fit", "flight", "trace", "campaign", "report")
 APP = ("cli", "pipeline", "demo", "verbs")
 
 
-def module_name(path: Path) -> str:
-    rel = path.relative_to(REPO).with_suffix("")
+def module_name(path: Path, root: Path = REPO) -> str:
+    rel = path.relative_to(root).with_suffix("")
     parts = list(rel.parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
     return ".".join(parts)
 
 
-def import_graph() -> dict:
-    """{module: {imported generator modules}} from every import statement in the source."""
-    modules = {module_name(p): p for p in PKG.rglob("*.py")}
+def _string_imports(tree):
+    """importlib.import_module("x") and __import__("x") with a literal name."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant) \
+                and isinstance(node.args[0].value, str):
+            f = node.func
+            name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
+            if name in ("import_module", "__import__"):
+                yield node.args[0].value
+
+
+def import_graph(pkg: Path = PKG, root: Path = REPO) -> dict:
+    """{module: {generator modules it imports}} from every import in the source.
+
+    `from P import N` is an edge to the module P.N where that is a module, else to P
+    itself (a name from P's namespace, its __init__ for a package); `import a.b` and the
+    literal names given to importlib.import_module / __import__ are edges to the longest
+    module prefix. Imports inside functions count: a lazy import is still a dependency.
+    """
+    modules = {module_name(p, root): p for p in pkg.rglob("*.py")}
+
+    def longest_module(dotted):
+        parts = dotted.split(".")
+        for k in range(len(parts), 0, -1):
+            cand = ".".join(parts[:k])
+            if cand in modules:
+                return cand
+        return None
+
     graph = {}
     for name, path in modules.items():
         tree = ast.parse(path.read_text(), filename=str(path))
@@ -38,7 +64,7 @@ def import_graph() -> dict:
         deps = set()
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
+                deps.update(longest_module(a.name) for a in node.names)
             elif isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = name.split(".")
@@ -46,15 +72,13 @@ def import_graph() -> dict:
                     mod = ".".join(base + ([node.module] if node.module else []))
                 else:
                     mod = node.module or ""
-                targets = [mod] + [f"{mod}.{a.name}" for a in node.names]
-            else:
-                continue
-            for t in targets:
-                if t in modules and t != name:
-                    deps.add(t)
-        # `from generator.x import y` also imports the package generator.x: only count
-        # the most specific module named
-        graph[name] = {d for d in deps if not any(o.startswith(d + ".") for o in deps)}
+                for a in node.names:
+                    sub = f"{mod}.{a.name}"
+                    deps.add(sub if sub in modules else longest_module(mod))
+        deps.update(longest_module(s) for s in _string_imports(tree))
+        deps.discard(None)
+        deps.discard(name)
+        graph[name] = deps
     return graph
 
 
@@ -83,10 +107,10 @@ def find_cycle(graph):
     return None
 
 
-def stage_of(module: str):
+def stage_of(module: str) -> int:
     parts = module.split(".")
     if len(parts) < 2:
-        return None
+        return -1      # the package's face (generator/__init__.py: the version)
     top = parts[1]
     if top in STAGES:
         return STAGES.index(top)
@@ -104,6 +128,23 @@ def test_the_graph_is_read_from_the_source():
 def test_no_import_cycle():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_the_graph_sees_package_names_and_string_imports(tmp_path):
+    """A cycle through a package's __init__ and an import by string are both seen."""
+    pkg = tmp_path / "generator"
+    (pkg / "flight").mkdir(parents=True)
+    (pkg / "io").mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "flight" / "__init__.py").write_text("from generator.flight.codegen import render\n")
+    (pkg / "flight" / "codegen.py").write_text("from generator.flight import FLAGS\n")
+    (pkg / "io" / "__init__.py").write_text("")
+    (pkg / "io" / "unit.py").write_text("import importlib\n"
+                                        "def f():\n    importlib.import_module('generator.cli')\n")
+    (pkg / "cli.py").write_text("")
+    g = import_graph(pkg, tmp_path)
+    assert find_cycle(g) == ["generator.flight", "generator.flight.codegen", "generator.flight"]
+    assert "generator.cli" in g["generator.io.unit"]
 
 
 def test_find_cycle_finds_one():

@@ -13,10 +13,15 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
+import sys
 from pathlib import Path
 
 from generator.errors import InputError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:                                   # Python 3.10: the same parser, as a package
+    import tomli as tomllib
 from generator.io.unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
 
 NAME_PATTERN = "[a-z][a-z0-9_]*"

@@ -16,7 +16,10 @@ from pathlib import Path
 from generator.flight import chain
 from generator.flight.coeffs import CoefficientSet
 
+# The defaults name the source checkout's files; an installed package has no docs/ and no
+# generated/ of its own, so there both arguments must be given.
 REPO = Path(__file__).resolve().parents[2]
+IN_CHECKOUT = (REPO / "pyproject.toml").is_file() and (REPO / "generator").is_dir()
 EXAMPLE = REPO / "generated" / "samsat_fm1" / "coefficients.json"
 OUT = REPO / "docs" / "chain.md"
 
@@ -31,7 +34,7 @@ def chain_markdown(cs: CoefficientSet) -> str:
     lines = [
         "# The correction chain",
         "",
-        "_Written by `python3 -m generator.report.chain_doc` from `generator/chain.py`; do not edit._",
+        "_Written by `python3 -m generator.report.chain_doc` from `generator/flight/chain.py`; do not edit._",
         "",
         "## Stages",
         "",
@@ -98,10 +101,15 @@ def chain_markdown(cs: CoefficientSet) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="write docs/chain.md from the chain definition")
-    ap.add_argument("coeffs", nargs="?", default=str(EXAMPLE))
-    ap.add_argument("-o", "--output", default=str(OUT))
+    ap = argparse.ArgumentParser(prog="python3 -m generator.report.chain_doc",
+                                 description="write docs/chain.md from the chain definition")
+    ap.add_argument("coeffs", nargs="?", default=str(EXAMPLE) if IN_CHECKOUT else None,
+                    help="coefficients.json (default in a checkout: the example unit's)")
+    ap.add_argument("-o", "--output", default=str(OUT) if IN_CHECKOUT else None,
+                    help="page to write (default in a checkout: docs/chain.md)")
     args = ap.parse_args(argv)
+    if args.coeffs is None or args.output is None:
+        ap.error("outside a source checkout give COEFFS.json and -o PAGE.md")
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(chain_markdown(CoefficientSet.load(args.coeffs)))
     return 0
