@@ -30,6 +30,23 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     boom        B_body_i = H_i0 B_0 + H_i1 B_1 + H_i2 B_2                    (boom sensors, eq. 2-3)
     band        B.B - field_min^2 and field_max^2 - B.B, both >= 0 when plausible
 
+Units of 1 to 8 sensors, any mix (ICD section 4):
+
+    physical input  input = "nT" | "uT" | "mG" | "G": the flight API takes real numbers in
+                    that unit (<unit>_<s>_raw_t.field_uT[3], ...; SET/RESET: set_field_uT,
+                    reset_field_uT); the chain multiplies by a constant (nT 1, uT 1000,
+                    mG 100, G 100000, each exact in float32) instead of (count - zero) lsb,
+                    so the sensor has no lsb_nT, zero_count blocks; SATURATED when a reading
+                    is beyond +-range_nT / scale (range_nT of the unit file, else the part's),
+                    NONFINITE when a reading is NaN or infinite.
+    no temperature  temperature = false: b and M are constant (one term each, no t_ref_C,
+                    t_min_C, t_max_C blocks), nothing is clamped (TEMP_CLAMPED never set),
+                    the raw struct keeps a temp_C field that is ignored (documented there);
+                    no thermal lag.
+    boom, no H fit  a unit whose boom sensors have no body-frame reference (or no boom
+                    campaign) gets H = identity; coefficients.json fit.boom_alignment and
+                    the generated header say so, and those fields stay in the boom frame.
+
 The kernels use only + - * / (and the wrappers only comparisons), so float32 results are
 reproducible bit for bit on any IEEE-754 machine that rounds each operation to nearest
 (C built without FMA contraction: -ffp-contract=off).
@@ -335,8 +352,16 @@ class ChainSpec:
 
     def fallback_order(self) -> tuple:
         """Sensor indices in the order the attitude system takes them: lower-noise parts
-        first (MMC5883 before MPU-9255), boom before body (farther from the magnetorquers
-        and the electronics), then unit order. SamSat-ION: mmc2, mmc1, mpu3, mpu1, mpu2."""
+        first (MMC5883 before MPU-9255, other parts after them), boom before body (farther
+        from the magnetorquers and the electronics), then unit order. SamSat-ION: mmc2,
+        mmc1, mpu3, mpu1, mpu2.
+
+        Any count works. One sensor: nothing to cross-check; select returns its vector
+        (SINGLE) when its status is 0, else zeros (NONE), and never sets DISAGREE. Two
+        sensors: neither has two others to be outvoted by, so DISAGREE is never set; the
+        first valid one in this order is CONFIRMED when they agree, UNCONFIRMED when not.
+        Three to eight: a sensor that agrees with fewer than half (and has at least two)
+        valid others gets DISAGREE and is skipped."""
         rank = {"MMC5883MA": 0, "MPU-9255": 1}
         sensors = list(enumerate(self.unit.sensors))
         sensors.sort(key=lambda e: (rank.get(e[1].part, 9), 0 if e[1].frame == "boom" else 1,

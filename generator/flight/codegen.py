@@ -21,7 +21,7 @@ import jinja2
 
 from generator import __version__
 from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
-                    is_physical, lag_kernel, saturation_limit, sensor_kernel)
+                    is_physical, lag_kernel, range_nT, saturation_limit, sensor_kernel)
 from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
 from generator.flight.tables import table_context
@@ -221,6 +221,8 @@ def template_context(cs: CoefficientSet) -> dict:
             # the raw struct's fields (physical inputs: real numbers, the unit in the name)
             "raw_fields": _raw_fields(s),
             "sat_limit": c_literal(saturation_limit(s), ft) if is_physical(s) else None,
+            "full_scale": (f"{saturation_limit(s):.9g} {s.input} ({range_nT(s):.9g} nT)"
+                           if is_physical(s) else None),
             # real-valued inputs of the raw struct that the finiteness probe tests: the
             # temperature, then (physical inputs) the readings; a prefix of it for SET-only
             "probe": (["temp_C"] if s.temperature else []) +
