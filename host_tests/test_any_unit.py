@@ -500,3 +500,22 @@ def test_arm_units_bit_identical(label, cs):
         np.testing.assert_array_equal(outs[-1][k], p_sel[k], err_msg=k)
     np.testing.assert_array_equal(bits(outs[-1]["field_body_nT"]),
                                   bits(p_sel["field_body_nT"]))
+
+
+def test_degree_comes_from_the_sensors_with_temperature():
+    """A unit whose first sensor has no temperature (a constant calibration) still gets
+    the cubic of its other sensors; a unit with no temperature at all is constant."""
+    a = make_sensor(0, "physical", "body", ("+x", "+y", "+z"), False)
+    b = make_sensor(1, "mpu", "body", ("+x", "+y", "+z"), True)
+    eye = np.eye(3)[None]
+    cals = {"m0": SensorCalibration("m0", np.zeros((1, 3)), eye, 0.0, -np.inf, np.inf),
+            "m1": SensorCalibration("m1", np.zeros((4, 3)),
+                                    np.concatenate([eye, np.zeros((3, 3, 3))]), 25.0, -20.0,
+                                    55.0)}
+    cs = CoefficientSet.from_calibrations(make_unit([a, b], unit_id="deg"), cals)
+    assert cs.spec.poly_degree == 3
+    assert cs.sensors["m0"]["M_poly"].shape == (1, 3, 3)
+    assert cs.sensors["m1"]["M_poly"].shape == (4, 3, 3)
+    cs0 = CoefficientSet.from_calibrations(make_unit([a], unit_id="deg0"), {"m0": cals["m0"]})
+    assert cs0.spec.poly_degree == 0
+    check_unit(cs, host_build(cs), 15)

@@ -75,8 +75,11 @@ class CoefficientSet:
         agree_nT: {sensor: tolerance} for the cross-sensor check; by default
         AGREE_SIGMAS x sqrt(3) x the sensor's per-axis scatter (its noise_nT, or the fit's
         per-axis residual when larger)."""
-        spec = ChainSpec(unit, poly_degree=next(iter(cals.values())).b_poly_nT.shape[0] - 1,
-                         coils=tuple(coils))
+        # the degree of b(T), M(T): of the sensors that have a temperature (a sensor with
+        # none is constant whatever degree its calibration carries)
+        with_t = [cals[s.name] for s in unit.sensors if s.temperature]
+        degree = with_t[0].b_poly_nT.shape[0] - 1 if with_t else 0
+        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils))
         sensors, unc = {}, {}
         for s in unit.sensors:
             cal: SensorCalibration = cals[s.name]
