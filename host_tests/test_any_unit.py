@@ -519,3 +519,32 @@ def test_degree_comes_from_the_sensors_with_temperature():
     cs0 = CoefficientSet.from_calibrations(make_unit([a], unit_id="deg0"), {"m0": cals["m0"]})
     assert cs0.spec.poly_degree == 0
     check_unit(cs, host_build(cs), 15)
+
+
+def _static_units():
+    """The new shapes of the generated C: one sensor without temperature, physical inputs
+    (plain and SET/RESET, with and without temperature), eight sensors with coils."""
+    phys = [make_sensor(0, "physical", "body", ("-y", "+x", "+z"), False, inp="G"),
+            make_sensor(1, "physical_sr", "boom", ("+z", "-x", "+y"), True, inp="mG"),
+            make_sensor(2, "mmc", "boom", ("+x", "+y", "-z"), False)]
+    return [("one_notemp", _unit_of(["mpu"], temperature=False, seed=21)),
+            ("physical", random_coeffs(np.random.default_rng(22),
+                                       make_unit(phys, unit_id="physw"), coils=COILS)),
+            ("eight", _unit_of(KINDS + ("mpu", "mmc", "physical"),
+                               frames=["boom", "body"] * 4, coils=COILS, seed=23))]
+
+
+@pytest.mark.arm
+@pytest.mark.slow   # cppcheck on three units: about a minute on the shared 2-core machine
+@pytest.mark.parametrize("label,cs", _static_units(), ids=[u[0] for u in _static_units()])
+def test_new_shapes_pass_the_static_checks(label, cs, tmp_path):
+    """The flight flags plus -Wdouble-promotion -Wconversion -Wshadow (-Werror), on the
+    Cortex-M4F compiler, and cppcheck: clean, as test_arm requires of the example."""
+    from generator.flight import target as ta
+    if ta.missing_tools():
+        pytest.skip(f"missing {', '.join(ta.missing_tools())}")
+    msgs, work = ta.warning_check(cs, workdir=tmp_path, sources=render(cs, tables=False))
+    assert msgs and all(m == "" for m in msgs.values()), msgs
+    if ta.cppcheck_available():
+        p = ta.cppcheck(sorted(work.glob("*.c")), work)
+        assert p.returncode == 0, p.stdout + p.stderr
