@@ -14,9 +14,11 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
 
     SET/RESET   field_s = (set - reset) * 0.5 * lsb       offset_s = ((set + reset) * 0.5 - zero) * lsb
     or plain    field_s = (count - zero) * lsb
+    or physical field_s = value * scale      (input nT/uT/mG/G: scale 1/1e3/100/1e5 nT per unit)
     axes        field_f[k] = sign[k] * field_s[idx[k]]   (eq. 1; a sign swaps the subtraction)
     lag         T_el += dt / (tau + dt) (T - T_el), state between calls      (option: thermal_lag)
     temperature T = clamp(T_el or temp_C, t_min, t_max),  dT = T - t_ref     (clamp in the wrapper)
+                (a sensor with temperature = false: no T, no clamp, b and M constant)
     b(T)        b_i(T)  = ((b3_i dT + b2_i) dT + b1_i) dT + b0_i             (Horner, eq. 7)
     M(T)        m_ij(T) = ((m3_ij dT + m2_ij) dT + m1_ij) dT + m0_ij
     offset      x_i = field_f_i - b_i(T)
@@ -28,12 +30,30 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     boom        B_body_i = H_i0 B_0 + H_i1 B_1 + H_i2 B_2                    (boom sensors, eq. 2-3)
     band        B.B - field_min^2 and field_max^2 - B.B, both >= 0 when plausible
 
+Units of 1 to 8 sensors, any mix (ICD section 4):
+
+    physical input  input = "nT" | "uT" | "mG" | "G": the flight API takes real numbers in
+                    that unit (<unit>_<s>_raw_t.field_uT[3], ...; SET/RESET: set_field_uT,
+                    reset_field_uT); the chain multiplies by a constant (nT 1, uT 1000,
+                    mG 100, G 100000, each exact in float32) instead of (count - zero) lsb,
+                    so the sensor has no lsb_nT, zero_count blocks; SATURATED when a reading
+                    is beyond +-range_nT / scale (range_nT of the unit file, else the part's),
+                    NONFINITE when a reading is NaN or infinite.
+    no temperature  temperature = false: b and M are constant (one term each, no t_ref_C,
+                    t_min_C, t_max_C blocks), nothing is clamped (TEMP_CLAMPED never set),
+                    the raw struct keeps a temp_C field that is ignored (documented there);
+                    no thermal lag.
+    boom, no H fit  a unit whose boom sensors have no body-frame reference (or no boom
+                    campaign) gets H = identity; coefficients.json fit.boom_alignment and
+                    the generated header say so, and those fields stay in the boom frame.
+
 The kernels use only + - * / (and the wrappers only comparisons), so float32 results are
 reproducible bit for bit on any IEEE-754 machine that rounds each operation to nearest
 (C built without FMA contraction: -ffp-contract=off).
 
 Status bits (the wrapper, C and Python alike): a sample with a non-finite temperature or
-current gets zeros and STATUS_NONFINITE; a count at a rail of the part's range gets
+current (or physical reading) gets zeros and STATUS_NONFINITE; a count at a rail of the
+part's range, or a physical reading with |value| beyond the full scale, gets
 STATUS_SATURATED; a temperature outside the calibrated range is clamped and gets
 STATUS_TEMP_CLAMPED; |B| outside the band gets STATUS_IMPLAUSIBLE; `select` adds
 STATUS_DISAGREE. ``valid`` is ``status == 0``.
@@ -47,7 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from generator.io.unit import SensorSpec, Unit
+from generator.io.unit import PARTS, SensorSpec, Unit
 
 CHAIN_VERSION = 1  # bump when the meaning of an existing block or stage changes
 
@@ -129,6 +149,48 @@ class SensorOptions:
 
 NO_OPTIONS = SensorOptions()
 MAX_POLY_DEGREE = 5
+MAX_SENSORS = 8   # the flight API's int8/uint8 indices and the C's pair tables assume few
+
+# Physical inputs (ICD section 4): nT per unit of the sensor's `input`. Each is exact in
+# float32, so "value x scale" is one correctly rounded multiplication, C and Python alike.
+INPUT_SCALE_nT = {"nT": 1.0, "uT": 1000.0, "mG": 100.0, "G": 100000.0}
+INPUT_KINDS = ("counts",) + tuple(INPUT_SCALE_nT)
+
+
+def is_physical(sensor: SensorSpec) -> bool:
+    """Whether the sensor's readings are real numbers in a physical unit (not counts)."""
+    return sensor.input != "counts"
+
+
+def input_scale_nT(sensor: SensorSpec) -> float:
+    """nT per unit of a physical-input sensor's readings."""
+    try:
+        return INPUT_SCALE_nT[sensor.input]
+    except KeyError:
+        raise ValueError(f"sensor '{sensor.name}': input '{sensor.input}' is not one of "
+                         f"{', '.join(INPUT_KINDS)}") from None
+
+
+def range_nT(sensor: SensorSpec) -> float:
+    """Full-scale field per axis of a physical-input sensor (saturation when |value| is
+    beyond it): the unit file's range_nT, else the part's catalogue entry."""
+    if sensor.range_nT is not None:
+        r = float(sensor.range_nT)
+    else:
+        r = PARTS.get(sensor.part, {}).get("range_nT")
+        if r is None:
+            raise ValueError(f"sensor '{sensor.name}': input '{sensor.input}' needs range_nT "
+                             f"(the part '{sensor.part}' declares no full-scale range)")
+        r = float(r)
+    if not (np.isfinite(r) and r > 0):
+        raise ValueError(f"sensor '{sensor.name}': range_nT {r!r} is not a positive number")
+    return r
+
+
+def saturation_limit(sensor: SensorSpec) -> float:
+    """|reading| beyond which a physical-input sample is saturated, in the input's unit
+    (float64; the flight code and the reference round it once to their float type)."""
+    return range_nT(sensor) / input_scale_nT(sensor)
 
 
 @dataclass(frozen=True)
@@ -150,9 +212,17 @@ class ChainSpec:
         if not 0 <= self.poly_degree <= MAX_POLY_DEGREE:
             raise ValueError(f"poly_degree {self.poly_degree} outside 0..{MAX_POLY_DEGREE}")
         names = set(self.unit.sensor_names)
-        for name, _ in self.sensor_options:
+        if not 1 <= len(names) <= MAX_SENSORS or len(names) != len(self.unit.sensors):
+            raise ValueError(f"a unit has 1 to {MAX_SENSORS} sensors with distinct names "
+                             f"({len(self.unit.sensors)} given)")
+        for name, o in self.sensor_options:
             if name not in names:
                 raise ValueError(f"sensor_options names unknown sensor '{name}'")
+            if o.thermal_lag and not self.unit.sensor(name).temperature:
+                raise ValueError(f"sensor '{name}' has no temperature: no thermal lag")
+        for s in self.unit.sensors:
+            if is_physical(s):
+                saturation_limit(s)   # raises on an unknown input kind or a missing range
 
     def opts(self, sensor) -> SensorOptions:
         name = sensor if isinstance(sensor, str) else sensor.name
@@ -192,19 +262,33 @@ class ChainSpec:
     def has_boom(self) -> bool:
         return any(s.frame == "boom" for s in self.unit.sensors)
 
+    def degree(self, sensor: SensorSpec) -> int:
+        """Degree of the sensor's b(T), M(T): 0 (constant) for a sensor with no temperature."""
+        return self.poly_degree if sensor.temperature else 0
+
     def sensor_blocks(self, sensor: SensorSpec) -> tuple:
-        n = self.poly_degree + 1
-        blocks = [
-            Block("lsb_nT", (), "nT/count", "lsb", "field per count"),
-            Block("zero_count", (), "count", "zero_count", "count at zero field"),
-            Block("t_ref_C", (), "degC", "temp", "reference temperature of the polynomials"),
-            Block("t_min_C", (), "degC", "temp", "lowest calibrated temperature (clamp)"),
-            Block("t_max_C", (), "degC", "temp", "highest calibrated temperature (clamp)"),
-            Block("b_poly_nT", (n, 3), "nT/degC^k", "offset_poly",
-                  "offset b(T) = sum_k b_poly_nT[k] dT^k, frame axes"),
-            Block("M_poly", (n, 3, 3), "1/degC^k", "matrix_poly",
-                  "calibration matrix M(T) = sum_k M_poly[k] dT^k"),
-        ]
+        n = self.degree(sensor) + 1
+        blocks = []
+        if not is_physical(sensor):   # physical inputs: a constant scale, no lsb and zero
+            blocks += [Block("lsb_nT", (), "nT/count", "lsb", "field per count"),
+                       Block("zero_count", (), "count", "zero_count", "count at zero field")]
+        if sensor.temperature:
+            blocks += [
+                Block("t_ref_C", (), "degC", "temp", "reference temperature of the polynomials"),
+                Block("t_min_C", (), "degC", "temp", "lowest calibrated temperature (clamp)"),
+                Block("t_max_C", (), "degC", "temp", "highest calibrated temperature (clamp)"),
+                Block("b_poly_nT", (n, 3), "nT/degC^k", "offset_poly",
+                      "offset b(T) = sum_k b_poly_nT[k] dT^k, frame axes"),
+                Block("M_poly", (n, 3, 3), "1/degC^k", "matrix_poly",
+                      "calibration matrix M(T) = sum_k M_poly[k] dT^k"),
+            ]
+        else:
+            blocks += [
+                Block("b_poly_nT", (1, 3), "nT", "offset_poly",
+                      "offset b, frame axes (no temperature: constant)"),
+                Block("M_poly", (1, 3, 3), "1", "matrix_poly",
+                      "calibration matrix M (no temperature: constant)"),
+            ]
         if self.coils:
             blocks.append(Block("K_nT_per_A", (3, len(self.coils)), "nT/A", "coupling",
                                 "magnetorquer coupling, one column per coil, frame axes"))
@@ -236,14 +320,17 @@ class ChainSpec:
         return tuple(blocks)
 
     def sensor_inputs(self, sensor: SensorSpec, set_only=False) -> tuple:
+        u = sensor.input if is_physical(sensor) else "count"
         if set_only:
-            raw = Input("raw_counts", 6, "count",
-                        "SET x,y,z, then the stored bridge offset x,y,z (counts)")
+            raw = Input("raw_counts", 6, u,
+                        f"SET x,y,z, then the stored bridge offset x,y,z ({u})")
         elif sensor.set_reset:
-            raw = Input("raw_counts", 6, "count", "SET x,y,z then RESET x,y,z, sensor axes")
+            raw = Input("raw_counts", 6, u, "SET x,y,z then RESET x,y,z, sensor axes")
         else:
-            raw = Input("raw_counts", 3, "count", "x, y, z, sensor axes")
-        ins = [raw, Input("temp_C", 1, "degC", "element temperature, already clamped")]
+            raw = Input("raw_counts", 3, u, "x, y, z, sensor axes")
+        ins = [raw]
+        if sensor.temperature:
+            ins.append(Input("temp_C", 1, "degC", "element temperature, already clamped"))
         if self.coils:
             ins.append(Input("coil_A", len(self.coils), "A", "magnetorquer currents"))
         o = self.opts(sensor)
@@ -265,8 +352,16 @@ class ChainSpec:
 
     def fallback_order(self) -> tuple:
         """Sensor indices in the order the attitude system takes them: lower-noise parts
-        first (MMC5883 before MPU-9255), boom before body (farther from the magnetorquers
-        and the electronics), then unit order. SamSat-ION: mmc2, mmc1, mpu3, mpu1, mpu2."""
+        first (MMC5883 before MPU-9255, other parts after them), boom before body (farther
+        from the magnetorquers and the electronics), then unit order. SamSat-ION: mmc2,
+        mmc1, mpu3, mpu1, mpu2.
+
+        Any count works. One sensor: nothing to cross-check; select returns its vector
+        (SINGLE) when its status is 0, else zeros (NONE), and never sets DISAGREE. Two
+        sensors: neither has two others to be outvoted by, so DISAGREE is never set; the
+        first valid one in this order is CONFIRMED when they agree, UNCONFIRMED when not.
+        Three to eight: a sensor that agrees with fewer than half (and has at least two)
+        valid others gets DISAGREE and is skipped."""
         rank = {"MMC5883MA": 0, "MPU-9255": 1}
         sensors = list(enumerate(self.unit.sensors))
         sensors.sort(key=lambda e: (rank.get(e[1].part, 9), 0 if e[1].frame == "boom" else 1,
@@ -299,6 +394,10 @@ class ChainSpec:
                     "name": s.name, "part": s.part, "frame": s.frame, "axes": list(s.axes),
                     "set_reset": s.set_reset, "options": self.opts(s).to_dict(),
                     "blocks": [[b.name, list(b.shape)] for b in self.sensor_blocks(s)],
+                    # version-2 keys only where they differ from version 1 (same hash)
+                    **({"input": s.input, "saturation": saturation_limit(s)}
+                       if is_physical(s) else {}),
+                    **({"temperature": False} if not s.temperature else {}),
                 }
                 for s in self.unit.sensors
             ],
@@ -387,15 +486,14 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
                   u: CoeffView, half, set_only=False, channels=(), rate_dps=()):
     """The arithmetic of the chain for one sensor and one sample.
 
-    raw, coil_A: lists of scalars; temp_C: scalar (already clamped); c, u: coefficient
+    raw, coil_A: lists of scalars; temp_C: scalar (already clamped; unused by a sensor with
+    no temperature); c, u: coefficient
     views; half: the constant 0.5 in the backend's type. Works on any scalar type with
     + - * (CasADi SX, numpy float32/float64 arrays). Returns {output name: [scalars]}.
     set_only: a SET/RESET sensor read after SET only; raw[3:6] is the stored offset
     (SET + RESET) / 2 in counts from the last pair. With a fresh offset the result equals
     the pair's bit for bit: (s - (s + r) * 0.5) and (s - r) * 0.5 are both exact here.
     """
-    lsb = c.scalar("lsb_nT")
-    zero = c.scalar("zero_count")
     out = {}
     # counts -> nT, sensor axes (seed 000 eq. 4 for SET/RESET)
     # axis mapping to the board frame (seed 000 eq. 1): frame axis k is sensor axis idx[k]
@@ -406,26 +504,55 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     def diff(a, b, k):
         return a - b if sign[k] > 0 else b - a
 
-    if set_only:
-        s, o = raw[0:3], raw[3:6]
-        field_f = [diff(s[idx[k]], o[idx[k]], k) * lsb for k in range(3)]
-    elif sensor.set_reset:
-        s, r = raw[0:3], raw[3:6]
-        # (d * 0.5) * lsb == d * (lsb * 0.5) bit for bit: both halvings are exact
-        half_lsb = lsb * half
-        field_f = [diff(s[idx[k]], r[idx[k]], k) * half_lsb for k in range(3)]
-        offset_counts = [(s[i] + r[i]) * half for i in range(3)]
-        out["chip_offset_nT"] = [(offset_counts[i] - zero) * lsb for i in range(3)]
-        out["offset_counts"] = offset_counts
+    if is_physical(sensor):
+        # physical input (ICD section 4): a constant scale to nT, no zero point; a negative
+        # axis is the exact negation -v (written so in C and Python alike)
+        const = type(half)
+        scale = const(input_scale_nT(sensor))
+
+        def signed(v, k):
+            return v if sign[k] > 0 else -v
+
+        if set_only:
+            s, o = raw[0:3], raw[3:6]
+            field_f = [diff(s[idx[k]], o[idx[k]], k) * scale for k in range(3)]
+        elif sensor.set_reset:
+            s, r = raw[0:3], raw[3:6]
+            half_scale = const(input_scale_nT(sensor) * 0.5)   # exact: a power-of-two step
+            field_f = [diff(s[idx[k]], r[idx[k]], k) * half_scale for k in range(3)]
+            offset_in = [(s[i] + r[i]) * half for i in range(3)]
+            out["chip_offset_nT"] = [offset_in[i] * scale for i in range(3)]
+            out["offset_counts"] = offset_in
+        else:
+            field_f = [signed(raw[idx[k]], k) * scale for k in range(3)]
     else:
-        field_f = [diff(raw[idx[k]], zero, k) * lsb for k in range(3)]
-    # temperature polynomials by Horner (eq. 7)
-    dT = temp_C - c.scalar("t_ref_C")
+        lsb = c.scalar("lsb_nT")
+        zero = c.scalar("zero_count")
+        if set_only:
+            s, o = raw[0:3], raw[3:6]
+            field_f = [diff(s[idx[k]], o[idx[k]], k) * lsb for k in range(3)]
+        elif sensor.set_reset:
+            s, r = raw[0:3], raw[3:6]
+            # (d * 0.5) * lsb == d * (lsb * 0.5) bit for bit: both halvings are exact
+            half_lsb = lsb * half
+            field_f = [diff(s[idx[k]], r[idx[k]], k) * half_lsb for k in range(3)]
+            offset_counts = [(s[i] + r[i]) * half for i in range(3)]
+            out["chip_offset_nT"] = [(offset_counts[i] - zero) * lsb for i in range(3)]
+            out["offset_counts"] = offset_counts
+        else:
+            field_f = [diff(raw[idx[k]], zero, k) * lsb for k in range(3)]
     b_poly = c.get("b_poly_nT")           # [k][i]
     M_poly = c.get("M_poly")              # [k][i][j]
-    n = spec.poly_degree + 1
-    b = [_horner([b_poly[k][i] for k in range(n)], dT) for i in range(3)]
-    M = [[_horner([M_poly[k][i][j] for k in range(n)], dT) for j in range(3)] for i in range(3)]
+    if sensor.temperature:
+        # temperature polynomials by Horner (eq. 7)
+        dT = temp_C - c.scalar("t_ref_C")
+        n = spec.degree(sensor) + 1
+        b = [_horner([b_poly[k][i] for k in range(n)], dT) for i in range(3)]
+        M = [[_horner([M_poly[k][i][j] for k in range(n)], dT) for j in range(3)]
+             for i in range(3)]
+    else:   # no temperature: constant b and M
+        b = [b_poly[0][i] for i in range(3)]
+        M = [[M_poly[0][i][j] for j in range(3)] for i in range(3)]
     # offset and magnetorquer interference
     x = [field_f[i] - b[i] for i in range(3)]
     if spec.coils:
@@ -536,8 +663,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     Each chain scalar is a numpy array over samples of the unit's float type, and every
     operation is an elementwise IEEE operation in the order of `sensor_kernel`: no BLAS,
     no reductions. Only the thermal-lag filter, a recursion, runs sample by sample.
-    raw_counts: int (N, 6|3), for set_only (N, 3) SET counts; temp_C: (N,) (converted to
-    the float type first, as the C API takes it); coil_A (N, ncoil), channels {column name:
+    raw_counts: int (N, 6|3), for set_only (N, 3) SET counts; a physical-input sensor's
+    readings in its input unit (converted to the float type first, as its C API takes
+    them); temp_C: (N,) (converted to the float type first, as the C API takes it;
+    ignored for a sensor with no temperature); coil_A (N, ncoil), channels {column name:
     (N,)}, rate_dps (N, 3), dt_s (N,): None means zeros (as a null aux);
     offset_counts: set_only, (N, 3) stored offset per sample, NaN rows meaning none.
     Returns {output: (N, k) array, 'status': (N,) uint16}; pair mode also 'offset_counts',
@@ -551,9 +680,15 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     """
     ft = np_dtype(spec.unit)
     o = spec.opts(sensor)
-    raw_counts = np.asarray(raw_counts)
+    physical = is_physical(sensor)
+    # the C API takes counts as int32 and physical readings as the float type
+    raw_counts = np.asarray(raw_counts, dtype=np.float64).astype(ft) if physical \
+        else np.asarray(raw_counts)
     n = raw_counts.shape[0]
-    temp = np.asarray(temp_C, dtype=np.float64).astype(ft)
+    if sensor.temperature:
+        temp = np.asarray(temp_C, dtype=np.float64).astype(ft)
+    else:   # no temperature: the raw struct's temp_C is ignored
+        temp = np.zeros(n, dtype=ft)
     coeffs_sensor = np.asarray(coeffs_sensor, dtype=ft)
     c = CoeffView([coeffs_sensor[k] for k in range(coeffs_sensor.size)],
                   spec.sensor_blocks(sensor))
@@ -566,8 +701,13 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
             return np.zeros((n, width), dtype=ft)
         return np.asarray(values, dtype=np.float64).astype(ft).reshape(n, width)
 
-    # saturation at the part's rails
-    sat = np.any((raw_counts <= sensor.count_min) | (raw_counts >= sensor.count_max), axis=1)
+    # saturation at the part's rails; physical inputs: |value| beyond the full scale
+    if physical:
+        lim = ft(saturation_limit(sensor))
+        sat = np.any((raw_counts > lim) | (raw_counts < -lim), axis=1)
+    else:
+        sat = np.any((raw_counts <= sensor.count_min) | (raw_counts >= sensor.count_max),
+                     axis=1)
     status[sat] |= STATUS_SATURATED
     # non-finite inputs (only those this sensor reads)
     inputs = {}
@@ -582,6 +722,8 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     if o.thermal_lag:
         inputs["dt_s"] = aux(dt_s, 1)
     nonfinite = ~np.isfinite(temp)
+    if physical:
+        nonfinite |= ~np.all(np.isfinite(raw_counts), axis=1)
     for v in inputs.values():
         nonfinite |= ~np.all(np.isfinite(v), axis=1)
     status[nonfinite] |= STATUS_NONFINITE
@@ -604,7 +746,8 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
             t_el[k] = el
         t = t_el
         state.temp_el_C = el
-    raw = [raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
+    raw = [np.where(nonfinite, ft(0), raw_counts[:, i]).astype(ft) if physical else
+           raw_counts[:, i].astype(ft) for i in range(raw_counts.shape[1])]
     if set_only:
         if offset_counts is not None:
             off = np.asarray(offset_counts, dtype=ft)
@@ -616,12 +759,14 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         status[no_offset] |= STATUS_NO_OFFSET
         zeroed |= no_offset
         raw += [np.where(zeroed, ft(0), off[:, i]) for i in range(3)]
-    # clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...)
-    t_min, t_max = c.scalar("t_min_C"), c.scalar("t_max_C")
+    # clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...);
+    # a sensor with no temperature has no range and nothing to clamp
     t = np.where(zeroed, ft(0), t)
-    below, above = t < t_min, t > t_max
-    t = np.where(below, t_min, np.where(above, t_max, t)).astype(ft)
-    status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED
+    if sensor.temperature:
+        t_min, t_max = c.scalar("t_min_C"), c.scalar("t_max_C")
+        below, above = t < t_min, t > t_max
+        t = np.where(below, t_min, np.where(above, t_max, t)).astype(ft)
+        status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED
 
     with np.errstate(all="ignore"):
         out = sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), c, u, ft(0.5),

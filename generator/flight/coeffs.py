@@ -15,7 +15,7 @@ import numpy as np
 
 from generator import __version__
 from generator.fit.calibration import SensorCalibration
-from generator.flight.chain import ChainSpec
+from generator.flight.chain import ChainSpec, is_physical
 from generator.errors import InputError
 from generator.io.unit import Unit
 
@@ -25,6 +25,9 @@ FORMAT_VERSION = 1
 # Plausible |B| for the flight check: LEO spans about 18,000-55,000 nT, the lab ~50,000.
 FIELD_BAND_nT = (15000.0, 70000.0)
 AGREE_SIGMAS = 5.0
+# fit_info["boom_alignment"] when no H was fitted (no body-frame reference for the boom)
+NO_BOOM_ALIGNMENT = ("identity, not fitted (no body-frame reference or no boom campaign): "
+                     "the boom sensors' field is reported in the boom frame")
 
 
 def default_agree_nT(sensor, cal) -> float:
@@ -72,18 +75,28 @@ class CoefficientSet:
         agree_nT: {sensor: tolerance} for the cross-sensor check; by default
         AGREE_SIGMAS x sqrt(3) x the sensor's per-axis scatter (its noise_nT, or the fit's
         per-axis residual when larger)."""
-        spec = ChainSpec(unit, poly_degree=next(iter(cals.values())).b_poly_nT.shape[0] - 1,
-                         coils=tuple(coils))
+        # the degree of b(T), M(T): of the sensors that have a temperature (a sensor with
+        # none is constant whatever degree its calibration carries)
+        with_t = [cals[s.name] for s in unit.sensors if s.temperature]
+        degree = with_t[0].b_poly_nT.shape[0] - 1 if with_t else 0
+        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils))
         sensors, unc = {}, {}
         for s in unit.sensors:
             cal: SensorCalibration = cals[s.name]
-            v = {
-                "lsb_nT": np.array(s.lsb_nT), "zero_count": np.array(float(s.zero_count)),
-                "t_ref_C": np.array(cal.t_ref_C), "t_min_C": np.array(cal.t_min_C),
-                "t_max_C": np.array(cal.t_max_C),
-                "b_poly_nT": np.asarray(cal.b_poly_nT, float),
-                "M_poly": np.asarray(cal.M_poly, float),
-            }
+            # blocks the sensor's chain has (chain.ChainSpec.sensor_blocks): a physical
+            # input has no lsb/zero, a sensor with no temperature a constant b, M (the
+            # calibration's value at its t_ref, the k = 0 term) and no temperature range
+            nk = spec.degree(s) + 1
+            v = {}
+            if not is_physical(s):
+                v["lsb_nT"] = np.array(s.lsb_nT)
+                v["zero_count"] = np.array(float(s.zero_count))
+            if s.temperature:
+                v["t_ref_C"] = np.array(cal.t_ref_C)
+                v["t_min_C"] = np.array(cal.t_min_C)
+                v["t_max_C"] = np.array(cal.t_max_C)
+            v["b_poly_nT"] = np.asarray(cal.b_poly_nT, float)[:nk]
+            v["M_poly"] = np.asarray(cal.M_poly, float)[:nk]
             if coils:
                 v["K_nT_per_A"] = np.asarray(K_nT_per_A[s.name], float) if K_nT_per_A \
                     else np.zeros((3, len(coils)))
@@ -92,16 +105,18 @@ class CoefficientSet:
             sensors[s.name] = v
             u = {}
             if cal.b_poly_sigma_nT is not None:
-                u["b_poly_nT"] = np.asarray(cal.b_poly_sigma_nT, float)
+                u["b_poly_nT"] = np.asarray(cal.b_poly_sigma_nT, float)[:nk]
             if cal.M_poly_sigma is not None:
-                u["M_poly"] = np.asarray(cal.M_poly_sigma, float)
+                u["M_poly"] = np.asarray(cal.M_poly_sigma, float)[:nk]
             unc[s.name] = u
         unit_values = {"field_min_nT": np.array(float(field_band_nT[0])),
                        "field_max_nT": np.array(float(field_band_nT[1]))}
+        info = dict(fit_info or {})
         if spec.has_boom:
             unit_values["H_boom_to_body"] = np.eye(3) if H_boom_to_body is None \
                 else np.asarray(H_boom_to_body, float)
-        info = dict(fit_info or {})
+            if H_boom_to_body is None:   # the generated header and the report say so
+                info.setdefault("boom_alignment", NO_BOOM_ALIGNMENT)
         info.setdefault("sensors", {})
         for name, cal in cals.items():
             info["sensors"].setdefault(name, {}).update(
@@ -117,7 +132,12 @@ class CoefficientSet:
                               self.fit_info)
 
     def calibration(self, name) -> SensorCalibration:
+        """The sensor's calibration; a sensor with no temperature: constant b, M with
+        t_ref 0 and an unbounded range (the model holds at any temperature)."""
         v = self.sensors[name]
+        if "t_ref_C" not in v:
+            return SensorCalibration(name, np.array(v["b_poly_nT"]), np.array(v["M_poly"]),
+                                     0.0, -np.inf, np.inf)
         return SensorCalibration(
             name, np.array(v["b_poly_nT"]), np.array(v["M_poly"]), float(v["t_ref_C"]),
             float(v["t_min_C"]), float(v["t_max_C"]))
