@@ -1036,6 +1036,10 @@ class TableManager(Reassembler):
             self.coeffs_valid = True
         return st
 
+    def receive_part(self, part) -> TableStatus:
+        """`<unit>_table_receive_part` (Reassembler.receive under the flight API's name)."""
+        return self.receive(part)
+
     def load(self, table) -> TableStatus:
         try:
             st = self._accept(bytes(table))
