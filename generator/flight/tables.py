@@ -1026,14 +1026,28 @@ class TableManager(Reassembler):
         self.active_values = vals if self.coeffs_valid else poisoned_values(self.spec)
         self.active_serial = 0
         self.last_status = self.init_status
+        self.last_bad = NO_INDEX if self.init_bad is None else self.init_bad
 
-    def _accept(self, table) -> TableStatus:
-        h, values = check_table(table, self.spec)
-        st = serial_status(self.active_serial, self.active_values, h["table_serial"], values)
+    def _accept(self, table, parts_serial=None) -> TableStatus:
+        """Checks, the parts' serial (commit), the serial rule, the switch; sets
+        last_status and last_bad as the flight manager does."""
+        try:
+            h, values = check_table(table, self.spec)
+        except TableError as e:
+            self.last_status = e.status
+            self.last_bad = NO_INDEX if e.bad_value_index is None else e.bad_value_index
+            return e.status
+        self.last_bad = NO_INDEX
+        if parts_serial is not None and h["table_serial"] != parts_serial:
+            st = TableStatus.SERIAL_MISMATCH
+        else:
+            st = serial_status(self.active_serial, self.active_values, h["table_serial"],
+                               values)
         if st == TableStatus.OK:
             self.active_serial = h["table_serial"]
             self.active_values = values.astype(values.dtype.newbyteorder("="))
             self.coeffs_valid = True
+        self.last_status = st
         return st
 
     def receive_part(self, part) -> TableStatus:
@@ -1041,21 +1055,18 @@ class TableManager(Reassembler):
         return self.receive(part)
 
     def load(self, table) -> TableStatus:
-        try:
-            st = self._accept(bytes(table))
-        except TableError as e:
-            st = e.status
-        self.last_status = st
-        return st
+        return self._accept(bytes(table))
 
     def commit(self) -> tuple:
-        st, table = super().commit()
-        if st == TableStatus.OK:
-            st = self._accept(table)
-            table = table if st == TableStatus.OK else None
-        if st not in (TableStatus.NOTHING_STAGED, TableStatus.PARTS_MISSING):
-            self.last_status = st
-        return st, table
+        S = TableStatus
+        if not self.open:
+            return S.NOTHING_STAGED, None
+        if len(self.seen) != self.count:
+            return S.PARTS_MISSING, None
+        self.open = False
+        table = bytes(self.staging)
+        st = self._accept(table, self.serial)
+        return st, (table if st == S.OK else None)
 
 
 def join_parts(parts, spec: ChainSpec) -> bytes:
