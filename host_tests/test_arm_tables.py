@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from chain_fixtures import random_coeffs, random_rotation, samsat_unit, with_float
-from generator.flight import tables
+from generator.flight import table_physics, tables
 from generator.flight import target as ta
 from generator.flight.arm_tables import ArmTables, host_results, python_results
 from generator.flight.coeffs import CoefficientSet
@@ -78,7 +78,7 @@ def _det_alternatives(m, dt):
     """det of 9 scalars in the validator's order, by the first column, and exactly
     (rational arithmetic) then rounded: what another order or a fused/wider evaluation
     would give."""
-    d1 = tables._det3(m)
+    d1 = table_physics.det3(m)
     d2 = m[0] * (m[4] * m[8] - m[5] * m[7]) - m[3] * (m[1] * m[8] - m[2] * m[7]) \
         + m[6] * (m[1] * m[5] - m[2] * m[4])
     f = [Fraction(float(x)) for x in m]

@@ -5,7 +5,7 @@ cleared by the next finite sample.
 Every rule is tried on hand-built coefficient sets whose verdict is known without running
 either validator (exact determinants, exact H^T H entries, serial orders), and the same
 input goes through the flight C (generator.flight.table_host.TableHost, cffi) and the
-Python ground code (tables.check_table / TableManager): both must give the expected
+Python ground code (tables.check_table, table_manager.TableManager): both must give the expected
 status and name the same bad value.
 """
 
@@ -23,7 +23,8 @@ from generator.flight.chain import SensorOptions, SensorState, reference_sensor
 from generator.flight.coeffs import CoefficientSet
 from generator.flight.host import HostUnit
 from generator.flight.table_host import TableHost
-from generator.flight.tables import (NO_INDEX, TableError, TableManager, TableStatus,
+from generator.flight.table_manager import TableManager, init_status
+from generator.flight.tables import (NO_INDEX, TableError, TableStatus,
                                      check_table, chunk_table, encode_table)
 
 S = TableStatus
@@ -232,7 +233,7 @@ def test_example_unit_passes_the_physical_checks():
     for name, dets in phys["det_M"]:
         assert all(0.5 < float(d) < 2 for d in dets), (name, dets)   # gains near 1
     assert max(abs(float(g)) for g in phys["HtH_minus_I"]) < 1e-6    # rounding only
-    assert tables.init_status(cs.spec, vals) == (S.OK, None)
+    assert init_status(cs.spec, vals) == (S.OK, None)
 
 
 # ---- monotonic serials ---------------------------------------------------------------------
@@ -386,7 +387,7 @@ def test_init_with_valid_defaults_and_with_a_bad_struct():
     mgr, st = h.init(vals)
     assert st == S.BAD_DETERMINANT and h.info(mgr)["coeffs_valid"] == 0
     assert h.info(mgr)["last_bad_value"] == _m_index(BASE["f32"].spec, "mmc1")
-    assert tables.init_status(BASE["f32"].spec, vals) == \
+    assert init_status(BASE["f32"].spec, vals) == \
         (S.BAD_DETERMINANT, _m_index(BASE["f32"].spec, "mmc1"))
     vals[3] = np.nan
     assert h.init(vals)[1] == S.NONFINITE_VALUE

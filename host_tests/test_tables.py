@@ -40,9 +40,10 @@ from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.host import HostUnit
 from generator.flight.table_host import TableHost
+from generator.flight.table_manager import TableManager
 from generator.flight.tables import (CRC_BYTES, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_INDEX,
                               PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS, Reassembler,
-                              TableError, TableManager, TableStatus, check_table, chunk_table,
+                              TableError, TableStatus, check_table, chunk_table,
                               decode_table, diff_tables, encode_table, reseal)
 
 S = TableStatus
@@ -692,7 +693,7 @@ class Mutator:
 
 
 def _mirror(default, inputs, actions):
-    """The Python ground code (tables.TableManager, started from the default set) on the
+    """The Python ground code (table_manager.TableManager, started from the default set) on the
     same stream: (codes (n, 4), switches, active values)."""
     m = TableManager(default.spec, _flat_of(default))
     codes = np.zeros((len(inputs), 4), dtype=np.int32)

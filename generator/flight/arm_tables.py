@@ -1,12 +1,12 @@
 """The flight table code on the emulated Cortex-M4F, and the same operations on the host.
 
 The unit's `<unit>_table.c` is part of its flight sources and is built for the target with
-the flight flags like the rest (generator.flight.target.build). A small runner extension
+the flight flags like the rest (generator.flight.arm_build.build). A small runner extension
 (templates/arm/table_ext.c.j2, test code only) drives its API through the runner's EXT
 command: init (compiled-in or given defaults), validate, load, receive_part, commit,
 abort, and the active coefficients. `ArmTables.run(ops)` runs a list of operations in one
 QEMU run; `host_results(TableHost, ops)` runs the same list through the cffi build, and
-`python_results(spec, ops)` through the ground code (tables.TableManager), so the tests
+`python_results(spec, ops)` through the ground code (table_manager.TableManager), so the tests
 compare the three result by result.
 
     ops: ("init",) | ("init_values", flat) | ("validate", table) | ("load", table)
@@ -23,9 +23,11 @@ import struct
 import numpy as np
 
 from generator.flight.coeffs import CoefficientSet
-from generator.flight.tables import (NO_INDEX, TableError, TableManager, TableStatus,
+from generator.flight.table_manager import TableManager
+from generator.flight.tables import (NO_INDEX, TableError, TableStatus,
                                      check_table, value_dtype)
-from generator.flight.target import EXT_MAX, ArmRunError, ArmUnit, Job, _arm_env, run_job
+from generator.flight.arm_build import EXT_MAX, ArmRunError, _arm_env
+from generator.flight.arm_runner import ArmUnit, Job, run_job
 from generator.flight.codegen import template_context
 
 OPS = {"init": 0, "init_values": 1, "validate": 2, "load": 3, "receive_part": 4,

@@ -34,10 +34,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from generator.flight.chain import Block, ChainSpec, _horner, np_dtype
+from generator.flight.chain import Block, ChainSpec, np_dtype
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
+from generator.flight.table_physics import (PHYSICAL_LIMITS, MatrixIndex, evaluate,
+                                             first_fault)
 
 
 MAGIC = b"MGCT"            # a magcal coefficient table
@@ -261,49 +263,6 @@ PLAUSIBLE_RANGES = {r.kind: r for r in (
 )}
 
 
-@dataclass(frozen=True)
-class PhysicalLimits:
-    """Checks of what the coefficients mean, beyond the range of each value.
-
-    det_M: every sensor's calibration matrix M(T) (seed 000 eq. 5-7) must have its
-    determinant within [lo, hi] at T = t_ref_C (M0, the constant term) and at the ends
-    t_min_C, t_max_C of the calibrated range (the temperatures the chain clamps to), with
-    M(T) by Horner in the unit's float type. det M is the product of M's singular values,
-    the volume scale of the correction: the matrix_poly range lets each gain be up to 3,
-    and a gain below 1/3 means the part's lsb is wrong by 3x, so with every gain within
-    [1/3, 3] det M lies within [3^-3, 3^3]. Below: singular or nearly (a dead axis, an
-    all-zero M gives 0); negative: an axis reflected (a sign error in the axis map or
-    the fit). The bounds are rounded to the float type, as the value ranges are.
-
-    rotation_tol: H_boom_to_body must be a rotation, |(H^T H - I)_ij| <= rotation_tol
-    for every i <= j (computed in the unit's float type), and det H > 0 (an orthogonal H
-    with det -1 is a reflection). The tolerance is a float32 rounding bound plus a
-    physical allowance:
-      * rounding: each stored element is within 2^-24 relative of the true rotation's
-        (round to nearest), which moves (H^T H)_ij by at most 2 * 2^-24 (columns of unit
-        length, Cauchy-Schwarz); the float32 evaluation (3 products, 2 sums, the
-        subtraction of 1) adds at most 3 * 2^-24 + 2^-24; 6 * 2^-24 in all, taken as
-        8 * 2^-24 = 2^-21 (4.8e-7) for margin;
-      * physics: with E = H^T H - I, |H v|^2 = |v|^2 + v^T E v and |v^T E v| <= 3 max|E_ij|
-        |v|^2, so an allowance of 1e-5 changes |B| by at most 1.5e-5 relative: 0.8 nT at
-        the 55 000 nT of the strongest LEO field, 1/30 of the finest lsb of the parts
-        (25 nT) and far below their noise (40 nT and more).
-      H scaled by 1.0005 (1e-3 off) or sheared by 1e-4 is refused; a fitted rotation
-      (Wahba's problem, orthogonal in float64) rounded to float32 passes.
-    """
-
-    det_M_lo: float = 1.0 / 27.0
-    det_M_hi: float = 27.0
-    rotation_rounding: float = 2.0 ** -21
-    rotation_allowance: float = 1e-5
-
-    @property
-    def rotation_tol(self) -> float:
-        return self.rotation_allowance + self.rotation_rounding
-
-
-PHYSICAL_LIMITS = PhysicalLimits()
-
 # Lower and upper limits that must be strictly ordered, by block name, wherever both
 # are blocks of the same sensor (or of the unit).
 ORDERED_PAIRS = (("t_min_C", "t_max_C"), ("field_min_nT", "field_max_nT"))
@@ -455,18 +414,6 @@ def _temp_indices(spec: ChainSpec) -> tuple:
     return tuple(out)
 
 
-@dataclass(frozen=True)
-class MatrixIndex:
-    """Payload indices of one sensor's M_poly and temperatures (physical checks)."""
-
-    sensor: str
-    m_poly: int        # index of M_poly[0][0][0]
-    orders: int        # polynomial orders (poly_degree + 1)
-    t_ref: int
-    t_min: int
-    t_max: int
-
-
 @_per_spec
 def _matrix_indices(spec: ChainSpec) -> tuple:
     """MatrixIndex of every sensor, in unit order."""
@@ -489,79 +436,19 @@ def _rotation_index(spec: ChainSpec):
     return base + off["H_boom_to_body"] if "H_boom_to_body" in off else None
 
 
-def _det3(m):
-    """det of a row-major 3x3 (9 scalars), by the first row, in this order (the flight C's)."""
-    return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) \
-        + m[2] * (m[3] * m[7] - m[4] * m[6])
-
-
-def _matrix_at(values, mi: MatrixIndex, dT) -> list:
-    """M(T) row-major, each element by Horner in dT over the orders (chain._horner's
-    order); dT None: the constant term M0."""
-    step = 9
-    out = []
-    for e in range(9):
-        if dT is None:
-            out.append(values[mi.m_poly + e])
-        else:
-            out.append(_horner([values[mi.m_poly + k * step + e] for k in range(mi.orders)],
-                               dT))
-    return out
-
-
 def physical_values(spec: ChainSpec, values) -> dict:
-    """What the physical checks compute, in the unit's float type, in the flight C's
-    order: {'det_M': [(sensor, [det at t_ref, t_min, t_max]) ...], 'HtH_minus_I':
-    [[g_ij (i <= j)] ], 'det_H': value} (the last two only with a boom)."""
-    dt = value_dtype(spec)
-    values = np.asarray(values).astype(dt, copy=False)
-    dets = []
-    for mi in _matrix_indices(spec):
-        t_ref = values[mi.t_ref]
-        row = [_det3(_matrix_at(values, mi, None))]
-        for end in (mi.t_min, mi.t_max):
-            row.append(_det3(_matrix_at(values, mi, values[end] - t_ref)))
-        dets.append((mi.sensor, row))
-    out = {"det_M": dets}
-    h0 = _rotation_index(spec)
-    if h0 is not None:
-        h = [values[h0 + e] for e in range(9)]
-        one = dt.type(1)
-        g = []
-        for i in range(3):
-            for j in range(i, 3):
-                v = h[i] * h[j] + h[3 + i] * h[3 + j] + h[6 + i] * h[6 + j]
-                g.append(v - one if i == j else v)
-        out["HtH_minus_I"] = g
-        out["det_H"] = _det3(h)
-    return out
+    """What the physical checks compute (table_physics.evaluate) for these payload values,
+    in the unit's float type."""
+    return evaluate(np.asarray(values).astype(value_dtype(spec), copy=False),
+                    _matrix_indices(spec), _rotation_index(spec))
 
 
 def _check_physics(spec: ChainSpec, values):
-    """BAD_DETERMINANT, NOT_A_ROTATION: PHYSICAL_LIMITS, in the flight C's order."""
-    dt = value_dtype(spec)
-    lim = PHYSICAL_LIMITS
-    lo, hi = dt.type(lim.det_M_lo), dt.type(lim.det_M_hi)
-    phys = physical_values(spec, values)
-    for mi, (name, dets) in zip(_matrix_indices(spec), phys["det_M"]):
-        for where, d in zip(("t_ref_C", "t_min_C", "t_max_C"), dets):
-            if not (d >= lo and d <= hi):
-                _fail("BAD_DETERMINANT", f"{name} det M at {where} = {d}, plausible within "
-                                         f"[{lo}, {hi}]", mi.m_poly)
-    h0 = _rotation_index(spec)
-    if h0 is None:
-        return
-    tol = dt.type(lim.rotation_tol)
-    k = 0
-    for i in range(3):
-        for j in range(i, 3):
-            g = phys["HtH_minus_I"][k]
-            k += 1
-            if not (g <= tol and g >= -tol):
-                _fail("NOT_A_ROTATION", f"(H^T H - I)[{i}][{j}] = {g}, tolerance {tol}",
-                      h0 + 3 * i + j)
-    if not phys["det_H"] > dt.type(0):
-        _fail("NOT_A_ROTATION", f"det H = {phys['det_H']}: a reflection", h0)
+    """BAD_DETERMINANT, NOT_A_ROTATION (table_physics.first_fault), as TableError."""
+    fault = first_fault(np.asarray(values).astype(value_dtype(spec), copy=False),
+                        _matrix_indices(spec), _rotation_index(spec))
+    if fault is not None:
+        _fail(*fault)
 
 
 @_per_spec
@@ -977,96 +864,6 @@ class Reassembler:
         if h["table_serial"] != self.serial:
             return S.SERIAL_MISMATCH, None
         return S.OK, table
-
-
-def serial_status(active_serial: int, active_values, serial: int, values) -> TableStatus:
-    """The serial rule of load and commit for a table that passed every check: a lower
-    serial than the active table's is a rollback; an equal one is a replay if the
-    coefficients differ (bit for bit), ALREADY_ACTIVE if they are the same (refused too:
-    nothing to change, and the ground sees that its table is the one in use)."""
-    S = TableStatus
-    if serial < active_serial:
-        return S.SERIAL_ROLLBACK
-    if serial == active_serial:
-        a, b = np.asarray(active_values), np.asarray(values)
-        same = a.dtype.itemsize == b.dtype.itemsize and a.size == b.size and \
-            np.array_equal(a.view(f"u{a.dtype.itemsize}"), b.view(f"u{b.dtype.itemsize}"))
-        return S.ALREADY_ACTIVE if same else S.SERIAL_REPLAY
-    return S.OK
-
-
-def poisoned_values(spec: ChainSpec) -> np.ndarray:
-    """What the flight manager puts in use when the compiled-in defaults fail their checks
-    at init: every coefficient a quiet NaN, so every correction is flagged (the |B| band
-    check fails on NaN: STATUS_IMPLAUSIBLE) and select finds no valid sensor."""
-    return np.full(n_values(spec), np.nan, dtype=value_dtype(spec).newbyteorder("="))
-
-
-def init_status(spec: ChainSpec, default_values) -> tuple:
-    """(status, bad value index or None) of `<unit>_table_init` on these defaults:
-    CONTENT_CHECKS (no header)."""
-    try:
-        check_values(np.asarray(default_values).astype(value_dtype(spec), copy=False), spec)
-    except TableError as e:
-        return e.status, e.bad_value_index
-    return TableStatus.OK, None
-
-
-class TableManager(Reassembler):
-    """The whole flight table manager in Python (`<unit>_table_init/load/receive_part/
-    commit/abort`): the reassembly, the table checks, the serial rule and the fallback
-    of init, with the same codes in the same order; the differential tests run it
-    beside the flight C."""
-
-    def __init__(self, spec, default_values):
-        super().__init__(spec)
-        vals = np.asarray(default_values).astype(value_dtype(self.spec).newbyteorder("="))
-        self.init_status, self.init_bad = init_status(self.spec, vals)
-        self.coeffs_valid = self.init_status == TableStatus.OK
-        self.active_values = vals if self.coeffs_valid else poisoned_values(self.spec)
-        self.active_serial = 0
-        self.last_status = self.init_status
-        self.last_bad = NO_INDEX if self.init_bad is None else self.init_bad
-
-    def _accept(self, table, parts_serial=None) -> TableStatus:
-        """Checks, the parts' serial (commit), the serial rule, the switch; sets
-        last_status and last_bad as the flight manager does."""
-        try:
-            h, values = check_table(table, self.spec)
-        except TableError as e:
-            self.last_status = e.status
-            self.last_bad = NO_INDEX if e.bad_value_index is None else e.bad_value_index
-            return e.status
-        self.last_bad = NO_INDEX
-        if parts_serial is not None and h["table_serial"] != parts_serial:
-            st = TableStatus.SERIAL_MISMATCH
-        else:
-            st = serial_status(self.active_serial, self.active_values, h["table_serial"],
-                               values)
-        if st == TableStatus.OK:
-            self.active_serial = h["table_serial"]
-            self.active_values = values.astype(values.dtype.newbyteorder("="))
-            self.coeffs_valid = True
-        self.last_status = st
-        return st
-
-    def receive_part(self, part) -> TableStatus:
-        """`<unit>_table_receive_part` (Reassembler.receive under the flight API's name)."""
-        return self.receive(part)
-
-    def load(self, table) -> TableStatus:
-        return self._accept(bytes(table))
-
-    def commit(self) -> tuple:
-        S = TableStatus
-        if not self.open:
-            return S.NOTHING_STAGED, None
-        if len(self.seen) != self.count:
-            return S.PARTS_MISSING, None
-        self.open = False
-        table = bytes(self.staging)
-        st = self._accept(table, self.serial)
-        return st, (table if st == S.OK else None)
 
 
 def join_parts(parts, spec: ChainSpec) -> bytes:
