@@ -440,3 +440,27 @@ def test_a_nonfinite_lag_state_is_cleared_by_the_next_finite_sample(sensor):
     # for a while, so they are clamped to the range: finite, flagged TEMP_CLAMPED)
     assert np.all(np.isfinite(full["field_body_nT"]))
     assert not np.any(full["status"] & chain.STATUS_IMPLAUSIBLE & ~ref["status"])
+
+
+def test_check_command_names_the_physical_fault(tmp_path, capsys):
+    """`magcal table --check` (the flight validator on the host) exits 2 naming the new
+    check and the bad value."""
+    import argparse
+
+    from generator.errors import InputError
+    from generator.verbs import table as verbs_table
+
+    base = BASE["f32"]
+    coeffs = tmp_path / "coefficients.json"
+    base.save(coeffs)
+    bad = tmp_path / "bad.bin"
+    bad.write_bytes(encode_table(_edit(base, H_boom_to_body=1.0005 * np.eye(3)), 2, 0,
+                                 check=False))
+    p = argparse.ArgumentParser()
+    verbs_table.add_table_args(p)
+    args = p.parse_args(["--check", str(bad), "--coeffs", str(coeffs)])
+    with pytest.raises(InputError) as e:
+        verbs_table.cmd_table(args)
+    msg = str(e.value)
+    assert f"error {int(S.NOT_A_ROTATION)} NOT_A_ROTATION" in msg
+    assert "unit H_boom_to_body[0][0]" in msg and "bad.bin" in msg

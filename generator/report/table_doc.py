@@ -129,7 +129,9 @@ def format_doc() -> str:
     a("## Physical checks")
     a("")
     a("Beyond the range of each value, the coefficients must mean something physical "
-      "(`PHYSICAL_LIMITS`), computed in the unit's float type with + - * only, in the same "
+      "(`PHYSICAL_LIMITS` in `generator/flight/table_physics.py`, which also holds the "
+      "ground validator's arithmetic), computed in the unit's float type with + - * only, "
+      "in the same "
       "order in the flight C and the ground validator, so both give the same verdict bit "
       "for bit (on the host and on the Cortex-M4F):")
     a("")
@@ -153,8 +155,9 @@ def format_doc() -> str:
     a("## Serials")
     a("")
     a("A table that passes every check is installed only if its serial is above the "
-      "active table's (`SERIAL_CHECKS`, in `<unit>_table_load` and `_commit`, after "
-      "`SERIAL_MISMATCH`): a lower serial is `SERIAL_ROLLBACK`; an equal serial with "
+      "active table's (`SERIAL_CHECKS`; the Python model of the manager is "
+      "`generator/flight/table_manager.py`), in `<unit>_table_load` and `_commit`, after "
+      "`SERIAL_MISMATCH`: a lower serial is `SERIAL_ROLLBACK`; an equal serial with "
       "other coefficients (compared bit for bit) is `SERIAL_REPLAY`; an equal serial "
       "with the same coefficients is refused too, as `ALREADY_ACTIVE`: nothing changes, "
       "and the ground sees that its table is the one in use (as `PART_REPEATED` does for "
