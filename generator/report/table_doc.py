@@ -166,9 +166,10 @@ def format_doc() -> str:
       "with serial >= 1 is accepted and serial 0 is never accepted from the ground "
       "(`magcal table` writes serial 1 unless told otherwise). Serials do not wrap: "
       "after 4294967295 nothing newer can be loaded. The manager keeps its serial in "
-      "RAM: after a reset it starts again from the compiled-in default at serial 0, "
-      "and a rollback across a reset is not detected (the flight software must keep the "
-      "last serial in non-volatile memory and refuse older tables itself).")
+      "RAM: after a reset it starts again from the compiled-in default at serial 0, so a "
+      "rollback across a reset is only refused if the flight software keeps the last "
+      "accepted table in non-volatile memory and loads it (`<unit>_table_load`) at boot, "
+      "before it accepts uplinks: that restores the serial the rule compares against.")
     a("")
     a("## The compiled-in default at init")
     a("")
