@@ -3,9 +3,10 @@
  * generator/chain.py. Unit samsat_fm1, chain layout 0xa99c742b. */
 /*
  * samsat_fm1: validation, reassembly and double buffering of uplink coefficient tables.
- * The checks run in the order of generator/tables.py ERRORS (docs/table_format.md); the
- * ground decoder (tables.check_table) runs the same checks in the same order, and the
- * host tests compare the two on every single-bit flip and on random inputs.
+ * The checks run in the order of generator/flight/tables.py CHECK_ORDER (codes: ERRORS;
+ * docs/table_format.md); the ground decoder (tables.check_table) runs the same checks in
+ * the same order, and the host tests compare the two on every single-bit flip and on
+ * random inputs, the target tests on the emulated Cortex-M4F.
  */
 #include <math.h>
 #include <string.h>
@@ -139,12 +140,13 @@ static const uint16_t t_max_index[SAMSAT_FM1_TABLE_N_SENSORS] = { 4u, 67u, 130u,
 static const uint16_t pair_lo[SAMSAT_FM1_TABLE_N_PAIRS] = { 3u, 66u, 129u, 192u, 255u, 315u };
 static const uint16_t pair_hi[SAMSAT_FM1_TABLE_N_PAIRS] = { 4u, 67u, 130u, 193u, 256u, 316u };
 
-/* Physical checks (generator/flight/tables.py PHYSICAL_LIMITS): det M(T) of every sensor
- * at t_ref_C, t_min_C and t_max_C within [DET_LO, DET_HI]; H_boom_to_body a rotation,
- * |(H^T H - I)_ij| <= ROTATION_TOL and det H > 0. The tolerance is a float32 rounding
- * bound (2^-21) plus a physical allowance (1e-5: |B| changes by at most 1.5e-5 relative);
- * the derivation is in tables.PhysicalLimits. Only + - * and comparisons, in the order
- * of the ground validator (tables.physical_values), so both give the same verdict. */
+/* Physical checks (generator/flight/table_physics.py PHYSICAL_LIMITS): det M(T) of every
+ * sensor at t_ref_C, t_min_C and t_max_C within [DET_LO, DET_HI]; H_boom_to_body a
+ * rotation, |(H^T H - I)_ij| <= ROTATION_TOL and det H > 0. The tolerance is a float32
+ * rounding bound (2^-21) plus a physical allowance (1e-5: |B| changes by at most 1.5e-5
+ * relative); the derivation is in table_physics.PhysicalLimits. Only + - * and
+ * comparisons, in the order of the ground validator (table_physics.evaluate), so both
+ * give the same verdict bit for bit. */
 #define SAMSAT_FM1_TABLE_DET_LO 0.037037037f
 #define SAMSAT_FM1_TABLE_DET_HI 27.0f
 #define SAMSAT_FM1_TABLE_ROTATION_TOL 1.0476837e-05f
@@ -420,7 +422,7 @@ uint32_t samsat_fm1_table_crc32(const uint8_t *buf, uint32_t len)
     return crc ^ 0xFFFFFFFFu;
 }
 
-/* ---- the table checks, in the order of tables.ERRORS ---- */
+/* ---- the table checks, in the order of tables.CHECK_ORDER ---- */
 
 static samsat_fm1_table_status_t check_content(const uint8_t *payload, const uint8_t *header,
     uint32_t *bad);
@@ -478,7 +480,7 @@ static samsat_fm1_table_status_t check_table(const uint8_t *buf, uint32_t len, u
     return check_content(buf + SAMSAT_FM1_TABLE_HEADER_BYTES, buf, bad);
 }
 
-/* det of a row-major 3x3, by the first row (the order of tables._det3) */
+/* det of a row-major 3x3, by the first row (the order of table_physics.det3) */
 static samsat_fm1_real_t det3(const samsat_fm1_real_t m[9])
 {
     return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) +
@@ -505,7 +507,7 @@ static void matrix_at(const uint8_t *payload, const matrix_index_t *mi, int at_r
     }
 }
 
-/* BAD_DETERMINANT, NOT_A_ROTATION (tables._check_physics) */
+/* BAD_DETERMINANT, NOT_A_ROTATION (table_physics.first_fault) */
 static samsat_fm1_table_status_t check_physics(const uint8_t *payload, uint32_t *bad)
 {
     samsat_fm1_real_t m[9], d, t_ref;
@@ -692,8 +694,8 @@ static void encode(const samsat_fm1_coeffs_t *co, uint8_t *payload)
     }
 }
 
-/* A table that passed every check: the serial rule (tables.serial_status), then decode
- * into the inactive buffer and switch to it. A lower serial than the active table's is a
+/* A table that passed every check: the serial rule (table_manager.serial_status), then
+ * decode into the inactive buffer and switch to it. A lower serial than the active table's is a
  * rollback; an equal serial a replay if the coefficients differ, ALREADY_ACTIVE if they
  * are the same bits (nothing to change). Decoding into the inactive buffer before the
  * comparison is safe: that buffer is not in use. */
