@@ -9,8 +9,10 @@ run on the inactive buffer, a double buffer switched only after validation.
 Everything that knows the table format reads it from this module, from ONE definition:
 
 * ``HEADER_FIELDS`` / ``PART_FIELDS`` (the header layouts), ``ERRORS`` (the status codes,
-  in the order the checks run), ``PLAUSIBLE_RANGES`` (per Block.kind, per polynomial
-  order) and the chain's blocks (``ChainSpec``, chain.py);
+  never renumbered) and ``CHECK_ORDER`` (the order the table checks run),
+  ``PLAUSIBLE_RANGES`` (per Block.kind, per polynomial order), ``PHYSICAL_LIMITS``
+  (table_physics.py: det M, H a rotation) and the chain's blocks (``ChainSpec``, chain.py);
+* the flight manager's serial rule and init fallback, modelled in table_manager.py;
 * the encoder (:func:`encode_table`), the ground validator/decoder (:func:`check_table`,
   :func:`decode_table`) and the reassembler (:class:`Reassembler`);
 * the flight C: ``templates/table.h.j2`` and ``table.c.j2`` are rendered with
@@ -261,7 +263,6 @@ PLAUSIBLE_RANGES = {r.kind: r for r in (
                                              "reading x up to 100 000 nT"),
     KindRange("sr_delay", -0.01, 0.01, "s rad/deg: a SET->RESET delay of at most ~1 s"),
 )}
-
 
 # Lower and upper limits that must be strictly ordered, by block name, wherever both
 # are blocks of the same sensor (or of the unit).
@@ -997,7 +998,6 @@ def table_context(cs: CoefficientSet) -> dict:
         "det_lo": c_literal(PHYSICAL_LIMITS.det_M_lo, ft),
         "det_hi": c_literal(PHYSICAL_LIMITS.det_M_hi, ft),
         "rotation_tol": c_literal(PHYSICAL_LIMITS.rotation_tol, ft),
-        "content_checks": list(CONTENT_CHECKS),
         "header_temp_lo": c_literal(t_lo, "float32"),
         "header_temp_hi": c_literal(t_hi, "float32"),
         "crc_lines": [", ".join(f"0x{c:08x}u" for c in _crc_byte_table()[i:i + 6]) + ","
