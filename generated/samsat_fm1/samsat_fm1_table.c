@@ -3,9 +3,10 @@
  * generator/chain.py. Unit samsat_fm1, chain layout 0xa99c742b. */
 /*
  * samsat_fm1: validation, reassembly and double buffering of uplink coefficient tables.
- * The checks run in the order of generator/tables.py ERRORS (docs/table_format.md); the
- * ground decoder (tables.check_table) runs the same checks in the same order, and the
- * host tests compare the two on every single-bit flip and on random inputs.
+ * The checks run in the order of generator/flight/tables.py CHECK_ORDER (codes: ERRORS;
+ * docs/table_format.md); the ground decoder (tables.check_table) runs the same checks in
+ * the same order, and the host tests compare the two on every single-bit flip and on
+ * random inputs, the target tests on the emulated Cortex-M4F.
  */
 #include <math.h>
 #include <string.h>
@@ -21,6 +22,10 @@
 typedef char samsat_fm1_table_float_is_4_bytes[(sizeof(float) == 4u) ? 1 : -1];
 typedef char samsat_fm1_table_value_bytes[(sizeof(samsat_fm1_real_t) == SAMSAT_FM1_TABLE_VALUE_BYTES) ? 1 : -1];
 typedef char samsat_fm1_table_n_values[(SAMSAT_FM1_TABLE_N_VALUES == 0u + SAMSAT_FM1_MMC1_N_COEFFS + SAMSAT_FM1_MPU1_N_COEFFS + SAMSAT_FM1_MPU2_N_COEFFS + SAMSAT_FM1_MMC2_N_COEFFS + SAMSAT_FM1_MPU3_N_COEFFS + SAMSAT_FM1_UNIT_N_COEFFS) ? 1 : -1];
+
+/* No padding in the coefficient struct: comparing two of them with memcmp compares
+ * exactly the bits of their values (the ALREADY_ACTIVE / SERIAL_REPLAY decision). */
+typedef char samsat_fm1_table_coeffs_packed[(sizeof(samsat_fm1_coeffs_t) == SAMSAT_FM1_TABLE_N_VALUES * sizeof(samsat_fm1_real_t)) ? 1 : -1];
 
 #define SAMSAT_FM1_TABLE_N_SENSORS 5u
 #define SAMSAT_FM1_TABLE_N_RANGES 78u
@@ -135,6 +140,34 @@ static const uint16_t t_max_index[SAMSAT_FM1_TABLE_N_SENSORS] = { 4u, 67u, 130u,
 static const uint16_t pair_lo[SAMSAT_FM1_TABLE_N_PAIRS] = { 3u, 66u, 129u, 192u, 255u, 315u };
 static const uint16_t pair_hi[SAMSAT_FM1_TABLE_N_PAIRS] = { 4u, 67u, 130u, 193u, 256u, 316u };
 
+/* Physical checks (generator/flight/table_physics.py PHYSICAL_LIMITS): det M(T) of every
+ * sensor at t_ref_C, t_min_C and t_max_C within [DET_LO, DET_HI]; H_boom_to_body a
+ * rotation, |(H^T H - I)_ij| <= ROTATION_TOL and det H > 0. The tolerance is a float32
+ * rounding bound (2^-21) plus a physical allowance (1e-5: |B| changes by at most 1.5e-5
+ * relative); the derivation is in table_physics.PhysicalLimits. Only + - * and
+ * comparisons, in the order of the ground validator (table_physics.evaluate), so both
+ * give the same verdict bit for bit. */
+#define SAMSAT_FM1_TABLE_DET_LO 0.037037037f
+#define SAMSAT_FM1_TABLE_DET_HI 27.0f
+#define SAMSAT_FM1_TABLE_ROTATION_TOL 1.0476837e-05f
+
+typedef struct {
+    uint16_t m_poly;   /* payload index of M_poly[0][0][0] */
+    uint16_t orders;   /* polynomial orders */
+    uint16_t t_ref;
+    uint16_t t_min;
+    uint16_t t_max;
+} matrix_index_t;
+
+static const matrix_index_t matrix_index[SAMSAT_FM1_TABLE_N_SENSORS] = {
+    { 17u, 4u, 2u, 3u, 4u },  /* mmc1 */
+    { 80u, 4u, 65u, 66u, 67u },  /* mpu1 */
+    { 143u, 4u, 128u, 129u, 130u },  /* mpu2 */
+    { 206u, 4u, 191u, 192u, 193u },  /* mmc2 */
+    { 269u, 4u, 254u, 255u, 256u },  /* mpu3 */
+};
+#define SAMSAT_FM1_TABLE_H_INDEX 317u  /* H_boom_to_body[0][0] */
+
 static const char *const status_text[SAMSAT_FM1_TABLE_N_STATUS] = {
     "accepted",
     "a pointer argument is NULL",
@@ -166,6 +199,11 @@ static const char *const status_text[SAMSAT_FM1_TABLE_N_STATUS] = {
     "commit without a transfer in progress",
     "commit before every part has arrived",
     "reassembled table's serial differs from its parts' serial",
+    "det M(T) of a sensor (at t_ref_C, t_min_C or t_max_C) is outside its plausible range: singular, reflected or an implausible gain",
+    "H_boom_to_body is not a rotation: an element of H^T H - I beyond the tolerance, or det H <= 0",
+    "table serial below the active table's: rollback refused",
+    "table serial equal to the active table's, with other coefficients",
+    "table serial and coefficients equal the active table's: nothing changed",
 };
 
 const uint8_t samsat_fm1_table_default[SAMSAT_FM1_TABLE_BYTES] = {  /* CRC 0x4156f50a */
@@ -312,6 +350,17 @@ static samsat_fm1_real_t get_value(const uint8_t *payload, uint32_t i)
     return get_f32(payload + 4u * i);
 }
 
+static void put_value(uint8_t *payload, uint32_t i, samsat_fm1_real_t v)
+{
+    uint32_t bits;
+    uint8_t *p = payload + 4u * i;
+    unsigned k;
+    memcpy(&bits, &v, sizeof bits);
+    for (k = 0u; k < 4u; ++k) {
+        p[k] = (uint8_t)(bits >> (8u * k));
+    }
+}
+
 /* ---- CRC-32, IEEE 802.3 (reflected 0xEDB88320, as zlib.crc32), a byte at a time ---- */
 
 static const uint32_t crc_table[256] = {
@@ -373,14 +422,14 @@ uint32_t samsat_fm1_table_crc32(const uint8_t *buf, uint32_t len)
     return crc ^ 0xFFFFFFFFu;
 }
 
-/* ---- the table checks, in the order of tables.ERRORS ---- */
+/* ---- the table checks, in the order of tables.CHECK_ORDER ---- */
+
+static samsat_fm1_table_status_t check_content(const uint8_t *payload, const uint8_t *header,
+    uint32_t *bad);
 
 static samsat_fm1_table_status_t check_table(const uint8_t *buf, uint32_t len, uint32_t *bad)
 {
-    const uint8_t *payload;
     float hdr_t_min, hdr_t_max;
-    samsat_fm1_real_t v, t_lo, t_hi;
-    uint32_t i, j;
 
     *bad = SAMSAT_FM1_TABLE_NO_INDEX;
     if (buf == 0) {
@@ -428,7 +477,95 @@ static samsat_fm1_table_status_t check_table(const uint8_t *buf, uint32_t len, u
           hdr_t_min < hdr_t_max)) {
         return SAMSAT_FM1_TABLE_BAD_TEMP_RANGE;
     }
-    payload = buf + SAMSAT_FM1_TABLE_HEADER_BYTES;
+    return check_content(buf + SAMSAT_FM1_TABLE_HEADER_BYTES, buf, bad);
+}
+
+/* det of a row-major 3x3, by the first row (the order of table_physics.det3) */
+static samsat_fm1_real_t det3(const samsat_fm1_real_t m[9])
+{
+    return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) +
+           m[2] * (m[3] * m[7] - m[4] * m[6]);
+}
+
+/* M(T) of one sensor, row-major: the constant term (at_ref != 0), else every element by
+ * Horner in dT over the orders, ((M3 dT + M2) dT + M1) dT + M0 (chain._horner) */
+static void matrix_at(const uint8_t *payload, const matrix_index_t *mi, int at_ref,
+                      samsat_fm1_real_t dT, samsat_fm1_real_t m[9])
+{
+    uint32_t e, k;
+    for (e = 0u; e < 9u; ++e) {
+        if (at_ref != 0) {
+            m[e] = get_value(payload, mi->m_poly + e);
+        } else {
+            k = (uint32_t)mi->orders - 1u;
+            m[e] = get_value(payload, mi->m_poly + 9u * k + e);
+            while (k > 0u) {
+                --k;
+                m[e] = m[e] * dT + get_value(payload, mi->m_poly + 9u * k + e);
+            }
+        }
+    }
+}
+
+/* BAD_DETERMINANT, NOT_A_ROTATION (table_physics.first_fault) */
+static samsat_fm1_table_status_t check_physics(const uint8_t *payload, uint32_t *bad)
+{
+    samsat_fm1_real_t m[9], d, t_ref;
+    uint32_t j;
+    int end;
+    samsat_fm1_real_t g;
+    uint32_t i, c;
+
+    for (j = 0u; j < SAMSAT_FM1_TABLE_N_SENSORS; ++j) {
+        const matrix_index_t *mi = &matrix_index[j];
+        t_ref = get_value(payload, mi->t_ref);
+        for (end = 0; end < 3; ++end) {
+            if (end == 0) {
+                matrix_at(payload, mi, 1, 0, m);
+            } else {
+                matrix_at(payload, mi, 0,
+                          get_value(payload, end == 1 ? mi->t_min : mi->t_max) - t_ref, m);
+            }
+            d = det3(m);
+            if (!(d >= SAMSAT_FM1_TABLE_DET_LO && d <= SAMSAT_FM1_TABLE_DET_HI)) {
+                *bad = mi->m_poly;
+                return SAMSAT_FM1_TABLE_BAD_DETERMINANT;
+            }
+        }
+    }
+    for (c = 0u; c < 9u; ++c) {
+        m[c] = get_value(payload, SAMSAT_FM1_TABLE_H_INDEX + c);
+    }
+    /* (H^T H)_ij = column i . column j */
+    for (i = 0u; i < 3u; ++i) {
+        for (c = i; c < 3u; ++c) {
+            g = m[i] * m[c] + m[3u + i] * m[3u + c] + m[6u + i] * m[6u + c];
+            if (i == c) {
+                g = g - 1;
+            }
+            if (!(g <= SAMSAT_FM1_TABLE_ROTATION_TOL && g >= -SAMSAT_FM1_TABLE_ROTATION_TOL)) {
+                *bad = SAMSAT_FM1_TABLE_H_INDEX + 3u * i + c;
+                return SAMSAT_FM1_TABLE_NOT_A_ROTATION;
+            }
+        }
+    }
+    if (!(det3(m) > 0)) {
+        *bad = SAMSAT_FM1_TABLE_H_INDEX;
+        return SAMSAT_FM1_TABLE_NOT_A_ROTATION;
+    }
+    return SAMSAT_FM1_TABLE_OK;
+}
+
+/* The checks of the coefficients (tables.check_values), in order: finite, plausible
+ * ranges, ordered pairs, with a header (not NULL) its temperature range against the
+ * sensors', then the physical checks. Without a header: what init runs on the
+ * compiled-in defaults. */
+static samsat_fm1_table_status_t check_content(const uint8_t *payload, const uint8_t *header,
+    uint32_t *bad)
+{
+    samsat_fm1_real_t v, t_lo, t_hi;
+    uint32_t i, j;
+
     for (i = 0u; i < SAMSAT_FM1_TABLE_N_VALUES; ++i) {
         if (!isfinite(get_value(payload, i))) {
             *bad = i;
@@ -450,22 +587,25 @@ static samsat_fm1_table_status_t check_table(const uint8_t *buf, uint32_t len, u
             return SAMSAT_FM1_TABLE_EMPTY_RANGE;
         }
     }
-    t_lo = get_value(payload, t_min_index[0]);
-    t_hi = get_value(payload, t_max_index[0]);
-    for (j = 1u; j < SAMSAT_FM1_TABLE_N_SENSORS; ++j) {
-        v = get_value(payload, t_min_index[j]);
-        if (v < t_lo) {
-            t_lo = v;
+    if (header != 0) {
+        t_lo = get_value(payload, t_min_index[0]);
+        t_hi = get_value(payload, t_max_index[0]);
+        for (j = 1u; j < SAMSAT_FM1_TABLE_N_SENSORS; ++j) {
+            v = get_value(payload, t_min_index[j]);
+            if (v < t_lo) {
+                t_lo = v;
+            }
+            v = get_value(payload, t_max_index[j]);
+            if (v > t_hi) {
+                t_hi = v;
+            }
         }
-        v = get_value(payload, t_max_index[j]);
-        if (v > t_hi) {
-            t_hi = v;
+        if ((float)t_lo != get_f32(header + SAMSAT_FM1_TABLE_OFF_T_MIN_C) ||
+            (float)t_hi != get_f32(header + SAMSAT_FM1_TABLE_OFF_T_MAX_C)) {
+            return SAMSAT_FM1_TABLE_TEMP_RANGE_MISMATCH;
         }
     }
-    if ((float)t_lo != hdr_t_min || (float)t_hi != hdr_t_max) {
-        return SAMSAT_FM1_TABLE_TEMP_RANGE_MISMATCH;
-    }
-    return SAMSAT_FM1_TABLE_OK;
+    return check_physics(payload, bad);
 }
 
 samsat_fm1_table_status_t samsat_fm1_table_validate(const uint8_t *buf, uint32_t len)
@@ -495,12 +635,9 @@ const char *samsat_fm1_table_strerror(int status)
 
 /* ---- the double buffer ---- */
 
-/* Decode a validated table into the inactive buffer, then switch to it. */
-static void install(samsat_fm1_table_mgr_t *mgr, const uint8_t *table)
+/* The payload of a table into a coefficient struct. */
+static void decode(const uint8_t *payload, samsat_fm1_coeffs_t *out)
 {
-    const uint8_t *payload = table + SAMSAT_FM1_TABLE_HEADER_BYTES;
-    uint8_t next = (uint8_t)(1u - (mgr->active & 1u));
-    samsat_fm1_coeffs_t *out = &mgr->buffer[next];
     uint32_t i, k = 0u;
     for (i = 0u; i < (uint32_t)SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
         out->mmc1[i] = get_value(payload, k + i);
@@ -525,21 +662,94 @@ static void install(samsat_fm1_table_mgr_t *mgr, const uint8_t *table)
     for (i = 0u; i < (uint32_t)SAMSAT_FM1_UNIT_N_COEFFS; ++i) {
         out->unit[i] = get_value(payload, k + i);
     }
-    mgr->serial[next] = get_u32(table + SAMSAT_FM1_TABLE_OFF_TABLE_SERIAL);
+}
+
+/* A coefficient struct as a payload (the table's byte order), to run the content checks
+ * on the compiled-in defaults. */
+static void encode(const samsat_fm1_coeffs_t *co, uint8_t *payload)
+{
+    uint32_t i, k = 0u;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->mmc1[i]);
+    }
+    k += (uint32_t)SAMSAT_FM1_MMC1_N_COEFFS;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_MPU1_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->mpu1[i]);
+    }
+    k += (uint32_t)SAMSAT_FM1_MPU1_N_COEFFS;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->mpu2[i]);
+    }
+    k += (uint32_t)SAMSAT_FM1_MPU2_N_COEFFS;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->mmc2[i]);
+    }
+    k += (uint32_t)SAMSAT_FM1_MMC2_N_COEFFS;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_MPU3_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->mpu3[i]);
+    }
+    k += (uint32_t)SAMSAT_FM1_MPU3_N_COEFFS;
+    for (i = 0u; i < (uint32_t)SAMSAT_FM1_UNIT_N_COEFFS; ++i) {
+        put_value(payload, k + i, co->unit[i]);
+    }
+}
+
+/* A table that passed every check: the serial rule (table_manager.serial_status), then
+ * decode into the inactive buffer and switch to it. A lower serial than the active table's is a
+ * rollback; an equal serial a replay if the coefficients differ, ALREADY_ACTIVE if they
+ * are the same bits (nothing to change). Decoding into the inactive buffer before the
+ * comparison is safe: that buffer is not in use. */
+static samsat_fm1_table_status_t install(samsat_fm1_table_mgr_t *mgr, const uint8_t *table)
+{
+    uint8_t now = (uint8_t)(mgr->active & 1u);
+    uint8_t next = (uint8_t)(1u - now);
+    uint32_t serial = get_u32(table + SAMSAT_FM1_TABLE_OFF_TABLE_SERIAL);
+    if (serial < mgr->serial[now]) {
+        return SAMSAT_FM1_TABLE_SERIAL_ROLLBACK;
+    }
+    decode(table + SAMSAT_FM1_TABLE_HEADER_BYTES, &mgr->buffer[next]);
+    if (serial == mgr->serial[now]) {
+        return memcmp(&mgr->buffer[next], &mgr->buffer[now], sizeof mgr->buffer[now]) == 0 ?
+            SAMSAT_FM1_TABLE_ALREADY_ACTIVE : SAMSAT_FM1_TABLE_SERIAL_REPLAY;
+    }
+    mgr->serial[next] = serial;
+    mgr->coeffs_valid = 1u;
     mgr->active = next;   /* the switch: one assignment, after the buffer is complete */
+    return SAMSAT_FM1_TABLE_OK;
 }
 
 samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
     const samsat_fm1_coeffs_t *defaults)
 {
+    uint32_t bad, i;
+    samsat_fm1_table_status_t status;
     if (mgr == 0 || defaults == 0) {
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
     }
     memset(mgr, 0, sizeof *mgr);
+    /* the compiled-in defaults get the content checks of an uplinked table (no header) */
+    encode(defaults, mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES);
+    bad = SAMSAT_FM1_TABLE_NO_INDEX;
+    status = check_content(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, 0, &bad);
+    memset(mgr->staging, 0, sizeof mgr->staging);
+    mgr->last_status = status;
+    mgr->last_bad_value = bad;
+    if (status != SAMSAT_FM1_TABLE_OK) {
+        /* the fallback: no coefficient is trusted. Both buffers hold NaN, so every
+         * correction is flagged (the |B| band check fails on NaN: IMPLAUSIBLE) and
+         * select finds no valid sensor, until a valid table (serial >= 1) is loaded. */
+        for (i = 0u; i < SAMSAT_FM1_TABLE_N_VALUES; ++i) {
+            put_value(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, i, (samsat_fm1_real_t)NAN);
+        }
+        decode(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, &mgr->buffer[0]);
+        memset(mgr->staging, 0, sizeof mgr->staging);
+        mgr->buffer[1] = mgr->buffer[0];
+        mgr->coeffs_valid = 0u;
+        return status;
+    }
     mgr->buffer[0] = *defaults;
     mgr->buffer[1] = *defaults;
-    mgr->last_status = SAMSAT_FM1_TABLE_OK;
-    mgr->last_bad_value = SAMSAT_FM1_TABLE_NO_INDEX;
+    mgr->coeffs_valid = 1u;
     return SAMSAT_FM1_TABLE_OK;
 }
 
@@ -552,11 +762,11 @@ samsat_fm1_table_status_t samsat_fm1_table_load(samsat_fm1_table_mgr_t *mgr,
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
     }
     status = check_table(table, len, &bad);
+    if (status == SAMSAT_FM1_TABLE_OK) {
+        status = install(mgr, table);
+    }
     mgr->last_status = status;
     mgr->last_bad_value = bad;
-    if (status == SAMSAT_FM1_TABLE_OK) {
-        install(mgr, table);
-    }
     return status;
 }
 
@@ -648,11 +858,11 @@ samsat_fm1_table_status_t samsat_fm1_table_commit(samsat_fm1_table_mgr_t *mgr)
         get_u32(mgr->staging + SAMSAT_FM1_TABLE_OFF_TABLE_SERIAL) != mgr->transfer_serial) {
         status = SAMSAT_FM1_TABLE_SERIAL_MISMATCH;
     }
+    if (status == SAMSAT_FM1_TABLE_OK) {
+        status = install(mgr, mgr->staging);
+    }
     mgr->last_status = status;
     mgr->last_bad_value = bad;
-    if (status == SAMSAT_FM1_TABLE_OK) {
-        install(mgr, mgr->staging);
-    }
     return status;
 }
 
@@ -681,4 +891,5 @@ void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_i
     info->transfer_serial = mgr->transfer_serial;
     info->last_status = mgr->last_status;
     info->last_bad_value = mgr->last_bad_value;
+    info->coeffs_valid = mgr->coeffs_valid;
 }

@@ -95,7 +95,12 @@ typedef enum {
     SAMSAT_FM1_TABLE_NOTHING_STAGED = 27,  /* commit without a transfer in progress */
     SAMSAT_FM1_TABLE_PARTS_MISSING = 28,  /* commit before every part has arrived */
     SAMSAT_FM1_TABLE_SERIAL_MISMATCH = 29,  /* reassembled table's serial differs from its parts' serial */
-    SAMSAT_FM1_TABLE_N_STATUS = 30
+    SAMSAT_FM1_TABLE_BAD_DETERMINANT = 30,  /* det M(T) of a sensor (at t_ref_C, t_min_C or t_max_C) is outside its plausible range: singular, reflected or an implausible gain */
+    SAMSAT_FM1_TABLE_NOT_A_ROTATION = 31,  /* H_boom_to_body is not a rotation: an element of H^T H - I beyond the tolerance, or det H <= 0 */
+    SAMSAT_FM1_TABLE_SERIAL_ROLLBACK = 32,  /* table serial below the active table's: rollback refused */
+    SAMSAT_FM1_TABLE_SERIAL_REPLAY = 33,  /* table serial equal to the active table's, with other coefficients */
+    SAMSAT_FM1_TABLE_ALREADY_ACTIVE = 34,  /* table serial and coefficients equal the active table's: nothing changed */
+    SAMSAT_FM1_TABLE_N_STATUS = 35
 } samsat_fm1_table_status_t;
 
 /* Table manager: the double buffer and the reassembly of the next table. */
@@ -104,6 +109,7 @@ typedef struct {
     uint32_t serial[2];                 /* table serial of each buffer (0: compiled-in) */
     uint8_t active;                     /* 0 or 1, switched by one assignment */
     uint8_t transfer_open;              /* 1 while the parts of a table are collected */
+    uint8_t coeffs_valid;               /* 0: the defaults failed at init, NaN in use */
     uint16_t part_count;                /* of the transfer in progress */
     uint16_t chunk_bytes;               /* of the transfer in progress */
     uint16_t parts_received;
@@ -124,6 +130,9 @@ typedef struct {
     uint32_t transfer_serial;
     samsat_fm1_table_status_t last_status;
     uint32_t last_bad_value;
+    uint8_t coeffs_valid;   /* 1: the coefficients in use passed every check; 0: the
+                             * compiled-in defaults failed them at init and no table has
+                             * been accepted since (NaN in use, every output flagged) */
 } samsat_fm1_table_info_t;
 
 /* The compiled-in default coefficients as a table (serial 0, created_s 0). */
@@ -143,7 +152,12 @@ samsat_fm1_table_status_t samsat_fm1_table_validate_detail(const uint8_t *buf, u
 /* Meaning of a status code (any int; unknown codes get a text too). */
 const char *samsat_fm1_table_strerror(int status);
 
-/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, serial 0. */
+/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, serial 0, after the
+ * content checks of a table (finite, plausible ranges, ordered limits, det M, H a
+ * rotation; no header). If they fail, init returns the failing check's status (also in
+ * last_status / last_bad_value) and falls back to NaN coefficients: every correction
+ * returns SAMSAT_FM1_STATUS_IMPLAUSIBLE and select finds no valid sensor until a valid
+ * table with serial >= 1 is loaded; info.coeffs_valid says which case holds. */
 samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
     const samsat_fm1_coeffs_t *defaults);
 
@@ -151,7 +165,10 @@ samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
 samsat_fm1_table_status_t samsat_fm1_table_receive_part(samsat_fm1_table_mgr_t *mgr,
     const uint8_t *part, uint32_t len);
 
-/* Validate the reassembled table and, only if it is accepted, switch to it. */
+/* Validate the reassembled table and, only if it is accepted, switch to it. Accepted
+ * means every check passes and its serial is above the active table's: a lower serial
+ * is SERIAL_ROLLBACK, an equal one SERIAL_REPLAY (other coefficients) or ALREADY_ACTIVE
+ * (the same); the manager starts at serial 0, the compiled-in defaults. */
 samsat_fm1_table_status_t samsat_fm1_table_commit(samsat_fm1_table_mgr_t *mgr);
 
 /* Validate a table received in one piece and, only if it is accepted, switch to it. */

@@ -742,7 +742,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         dts = cols["dt_s"][0]
         dts = np.where(dts >= 0, dts, ft(0)).astype(ft)   # a step back in time holds the filter
         for k in np.nonzero(~nonfinite)[0]:
-            el = t[k] if el is None else lag_kernel(t[k], el, dts[k], tau)
+            with np.errstate(over="ignore", invalid="ignore"):
+                new = None if el is None else lag_kernel(t[k], el, dts[k], tau)
+            # a non-finite result (NaN/inf state, overflow) restarts the filter at t[k]
+            el = new if new is not None and np.isfinite(new) else t[k]
             t_el[k] = el
         t = t_el
         state.temp_el_C = el

@@ -52,6 +52,7 @@ typedef struct {
     uint32_t transfer_serial;
     {{ unit }}_table_status_t last_status;
     uint32_t last_bad_value;
+    uint8_t coeffs_valid;
 } {{ unit }}_table_info_t;
 typedef struct { ...; } {{ unit }}_table_mgr_t;
 typedef struct { ...; } {{ unit }}_coeffs_t;
@@ -114,7 +115,8 @@ void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
  * and a commit after it as actions[i] says. codes[4 i ..]: validate, load, receive,
  * commit (-1: not run). Returns the number of switches to a new table, or -(i + 1) when
  * input i broke an invariant: the active table changed without an accepted load or
- * commit, load and validate disagreed, or a code is not a status code. */
+ * commit, load and validate disagreed (load may only add the serial rule to a table
+ * validate accepts), or a code is not a status code. */
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
     const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes)
 {
@@ -143,8 +145,10 @@ long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uin
         codes[4 * i + 1] = l;
         codes[4 * i + 2] = r;
         codes[4 * i + 3] = c;
-        if (v != l || v < 0 || v >= n_status || r < 0 || r >= n_status || c < -1 ||
-            c >= n_status) {
+        if ((v != l && !(v == 0 && (l == (int32_t){{ UNIT }}_TABLE_SERIAL_ROLLBACK ||
+                                    l == (int32_t){{ UNIT }}_TABLE_SERIAL_REPLAY ||
+                                    l == (int32_t){{ UNIT }}_TABLE_ALREADY_ACTIVE))) ||
+            v < 0 || v >= n_status || r < 0 || r >= n_status || c < -1 || c >= n_status) {
             return -(i + 1);
         }
         switches += (l == 0) + (c == 0);
@@ -334,12 +338,27 @@ class TableHost:
         return self.ffi.string(self._fn("strerror")(int(status))).decode()
 
     def manager(self, defaults=None):
-        """A new table manager initialised with the compiled-in default coefficients."""
-        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
-        defaults = defaults if defaults is not None else self.lib.host_table_defaults()
-        st = self._fn("init")(mgr, defaults)
-        assert st == 0, st
+        """A new table manager initialised with the compiled-in default coefficients
+        (which must pass init's checks: see init for a manager whose defaults fail)."""
+        mgr, st = self.init(defaults)
+        assert st == TableStatus.OK, st
         return mgr
+
+    def init(self, defaults=None) -> tuple:
+        """(manager, status of <unit>_table_init): defaults None: the compiled-in
+        <unit>_coeffs_default; else a pointer to a <unit>_coeffs_t, or flat values in
+        layout order (put into a struct first)."""
+        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        if defaults is None:
+            defaults = self.lib.host_table_defaults()
+        elif isinstance(defaults, np.ndarray):
+            flat = np.ascontiguousarray(defaults, dtype=self.dtype)
+            assert flat.size == n_values(self.spec)
+            co = self.ffi.new(f"{self.unit}_coeffs_t *")
+            self.ffi.memmove(co, flat.tobytes(), flat.nbytes)   # no padding (table.c checks)
+            defaults = co
+        st = TableStatus(self._fn("init")(mgr, defaults))
+        return mgr, st
 
     def receive_part(self, mgr, part) -> TableStatus:
         return TableStatus(self._fn("receive_part")(mgr, self._buf(part), len(part)))
@@ -359,7 +378,8 @@ class TableHost:
         return {k: (TableStatus(getattr(out, k)) if k == "last_status" else
                     int(getattr(out, k)))
                 for k in ("active_serial", "active_buffer", "transfer_open", "parts_received",
-                          "part_count", "transfer_serial", "last_status", "last_bad_value")}
+                          "part_count", "transfer_serial", "last_status", "last_bad_value",
+                          "coeffs_valid")}
 
     def _flat(self, co_ptr) -> np.ndarray:
         out = np.zeros(n_values(self.spec), dtype=self.dtype)

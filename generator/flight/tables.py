@@ -9,8 +9,10 @@ run on the inactive buffer, a double buffer switched only after validation.
 Everything that knows the table format reads it from this module, from ONE definition:
 
 * ``HEADER_FIELDS`` / ``PART_FIELDS`` (the header layouts), ``ERRORS`` (the status codes,
-  in the order the checks run), ``PLAUSIBLE_RANGES`` (per Block.kind, per polynomial
-  order) and the chain's blocks (``ChainSpec``, chain.py);
+  never renumbered) and ``CHECK_ORDER`` (the order the table checks run),
+  ``PLAUSIBLE_RANGES`` (per Block.kind, per polynomial order), ``PHYSICAL_LIMITS``
+  (table_physics.py: det M, H a rotation) and the chain's blocks (``ChainSpec``, chain.py);
+* the flight manager's serial rule and init fallback, modelled in table_manager.py;
 * the encoder (:func:`encode_table`), the ground validator/decoder (:func:`check_table`,
   :func:`decode_table`) and the reassembler (:class:`Reassembler`);
 * the flight C: ``templates/table.h.j2`` and ``table.c.j2`` are rendered with
@@ -38,6 +40,8 @@ from generator.flight.chain import Block, ChainSpec, np_dtype
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
+from generator.flight.table_physics import (PHYSICAL_LIMITS, MatrixIndex, evaluate,
+                                             first_fault)
 
 
 MAGIC = b"MGCT"            # a magcal coefficient table
@@ -161,7 +165,32 @@ ERRORS = (
     ("NOTHING_STAGED", "commit without a transfer in progress"),
     ("PARTS_MISSING", "commit before every part has arrived"),
     ("SERIAL_MISMATCH", "reassembled table's serial differs from its parts' serial"),
+    # Added later. A code is never renumbered (ground tools and telemetry decoders keep
+    # their meaning): new checks get the next free code, and the check order is stated
+    # in CHECK_ORDER below, not by the code values.
+    # physical checks of the content, after TEMP_RANGE_MISMATCH (PHYSICAL_LIMITS)
+    ("BAD_DETERMINANT", "det M(T) of a sensor (at t_ref_C, t_min_C or t_max_C) is outside "
+                        "its plausible range: singular, reflected or an implausible gain"),
+    ("NOT_A_ROTATION", "H_boom_to_body is not a rotation: an element of H^T H - I beyond "
+                       "the tolerance, or det H <= 0"),
+    # the serial of an accepted table against the active one (load, commit), last
+    ("SERIAL_ROLLBACK", "table serial below the active table's: rollback refused"),
+    ("SERIAL_REPLAY", "table serial equal to the active table's, with other coefficients"),
+    ("ALREADY_ACTIVE", "table serial and coefficients equal the active table's: "
+                       "nothing changed"),
 )
+
+# The table checks of <unit>_table_validate, in the order they run.
+CHECK_ORDER = ("NULL_ARGUMENT", "TRUNCATED", "BAD_MAGIC", "BAD_VERSION", "BAD_VALUE_BYTES",
+               "WRONG_UNIT", "WRONG_LAYOUT", "BAD_PAYLOAD_LENGTH", "TOO_LONG", "BAD_CRC",
+               "BAD_TEMP_RANGE", "NONFINITE_VALUE", "VALUE_OUT_OF_RANGE", "EMPTY_RANGE",
+               "TEMP_RANGE_MISMATCH", "BAD_DETERMINANT", "NOT_A_ROTATION")
+# The checks of the coefficients alone (no header): what <unit>_table_init runs on the
+# compiled-in defaults.
+CONTENT_CHECKS = ("NONFINITE_VALUE", "VALUE_OUT_OF_RANGE", "EMPTY_RANGE", "BAD_DETERMINANT",
+                  "NOT_A_ROTATION")
+# The serial rule, after every table check (and after SERIAL_MISMATCH in commit).
+SERIAL_CHECKS = ("SERIAL_ROLLBACK", "SERIAL_REPLAY", "ALREADY_ACTIVE")
 
 TableStatus = enum.IntEnum("TableStatus", [(n, i) for i, (n, _) in enumerate(ERRORS)],
                            module=__name__)
@@ -387,6 +416,43 @@ def _temp_indices(spec: ChainSpec) -> tuple:
 
 
 @_per_spec
+def _matrix_indices(spec: ChainSpec) -> tuple:
+    """MatrixIndex of every sensor, in unit order."""
+    out, base = [], 0
+    for s in spec.unit.sensors:
+        blocks = spec.sensor_blocks(s)
+        off = spec.offsets(blocks)
+        m = next(b for b in blocks if b.name == "M_poly")
+        out.append(MatrixIndex(s.name, base + off["M_poly"], m.shape[0], base + off["t_ref_C"],
+                               base + off["t_min_C"], base + off["t_max_C"]))
+        base += spec.n_sensor_coeffs(s)
+    return tuple(out)
+
+
+@_per_spec
+def _rotation_index(spec: ChainSpec):
+    """Payload index of H_boom_to_body[0][0], or None when the unit has no boom."""
+    base = sum(spec.n_sensor_coeffs(s) for s in spec.unit.sensors)
+    off = spec.offsets(spec.unit_blocks())
+    return base + off["H_boom_to_body"] if "H_boom_to_body" in off else None
+
+
+def physical_values(spec: ChainSpec, values) -> dict:
+    """What the physical checks compute (table_physics.evaluate) for these payload values,
+    in the unit's float type."""
+    return evaluate(np.asarray(values).astype(value_dtype(spec), copy=False),
+                    _matrix_indices(spec), _rotation_index(spec))
+
+
+def _check_physics(spec: ChainSpec, values):
+    """BAD_DETERMINANT, NOT_A_ROTATION (table_physics.first_fault), as TableError."""
+    fault = first_fault(np.asarray(values).astype(value_dtype(spec), copy=False),
+                        _matrix_indices(spec), _rotation_index(spec))
+    if fault is not None:
+        _fail(*fault)
+
+
+@_per_spec
 def _bound_arrays(spec: ChainSpec) -> tuple:
     """Plausible [lo, hi] of every value, rounded to the flight type as the C literals are."""
     dt = value_dtype(spec)
@@ -550,6 +616,17 @@ def check_table(data, spec: ChainSpec | None = None) -> tuple:
         _fail("BAD_TEMP_RANGE", f"[{a}, {b}] degC, plausible within [{t_lo}, {t_hi}]")
     dt = value_dtype(vb)
     values = np.frombuffer(data, dtype=dt, count=h["payload_bytes"] // vb, offset=HEADER_BYTES)
+    check_values(values, spec, (a, b))
+    return h, values
+
+
+def check_values(values, spec: ChainSpec | None = None, header_range=None) -> None:
+    """The content checks, in the flight order: finite; with spec also every plausible
+    range, the ordered pairs, the header range (header_range (t_min_C, t_max_C), when
+    given) and the physical checks. Raises TableError. Without header_range this is what
+    `<unit>_table_init` runs on the compiled-in defaults (CONTENT_CHECKS)."""
+    spec = _spec_of(spec)
+    values = np.asarray(values)
     names = value_layout(spec) if spec is not None else None
 
     def label(i):
@@ -560,7 +637,7 @@ def check_table(data, spec: ChainSpec | None = None) -> tuple:
         i = int(bad[0])
         _fail("NONFINITE_VALUE", f"{label(i)} = {values[i]}", i)
     if spec is None:
-        return h, values
+        return
     lo, hi = _bound_arrays(spec)
     bad = np.flatnonzero(~((values >= lo) & (values <= hi)))
     if bad.size:
@@ -571,10 +648,12 @@ def check_table(data, spec: ChainSpec | None = None) -> tuple:
         if not values[i_lo] < values[i_hi]:
             _fail("EMPTY_RANGE", f"{label(i_lo)} = {values[i_lo]}, "
                                  f"{label(i_hi)} = {values[i_hi]}", i_lo)
-    t_min, t_max = _temp_range(spec, values)
-    if t_min != a or t_max != b:
-        _fail("TEMP_RANGE_MISMATCH", f"header [{a}, {b}] degC, sensors [{t_min}, {t_max}]")
-    return h, values
+    if header_range is not None:
+        a, b = header_range
+        t_min, t_max = _temp_range(spec, values)
+        if t_min != a or t_max != b:
+            _fail("TEMP_RANGE_MISMATCH", f"header [{a}, {b}] degC, sensors [{t_min}, {t_max}]")
+    _check_physics(spec, values)
 
 
 def _spec_of(spec):
@@ -912,6 +991,13 @@ def table_context(cs: CoefficientSet) -> dict:
         "ordered_pairs": [{"lo": i, "hi": j, "what": f"{value_layout(spec)[i].label} < "
                                                        f"{value_layout(spec)[j].label}"}
                           for i, j in _ordered_pairs(spec)],
+        "matrices": [{"sensor": m.sensor, "m_poly": m.m_poly, "orders": m.orders,
+                      "t_ref": m.t_ref, "t_min": m.t_min, "t_max": m.t_max}
+                     for m in _matrix_indices(spec)],
+        "rotation_index": _rotation_index(spec),
+        "det_lo": c_literal(PHYSICAL_LIMITS.det_M_lo, ft),
+        "det_hi": c_literal(PHYSICAL_LIMITS.det_M_hi, ft),
+        "rotation_tol": c_literal(PHYSICAL_LIMITS.rotation_tol, ft),
         "header_temp_lo": c_literal(t_lo, "float32"),
         "header_temp_hi": c_literal(t_hi, "float32"),
         "crc_lines": [", ".join(f"0x{c:08x}u" for c in _crc_byte_table()[i:i + 6]) + ","

@@ -9,9 +9,11 @@ import sys
 from pathlib import Path
 
 from generator.flight.chain import ChainSpec
-from generator.flight.tables import (CRC_BYTES, ERRORS, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS,
+from generator.flight.tables import (CHECK_ORDER, CONTENT_CHECKS, CRC_BYTES, ERRORS,
+                                     HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS,
                                      ORDERED_PAIRS, PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS,
-                                     PLAUSIBLE_RANGES, TableStatus)
+                                     PHYSICAL_LIMITS, PLAUSIBLE_RANGES, SERIAL_CHECKS,
+                                     TableStatus)
 
 REPO = Path(__file__).resolve().parents[2]
 DOC_PATH = REPO / "docs" / "table_format.md"
@@ -123,6 +125,65 @@ def format_doc() -> str:
       "decoder alike. The header temperature range must lie in the `temp` range with "
       "t_min_C < t_max_C.")
     a("")
+    lim = PHYSICAL_LIMITS
+    a("## Physical checks")
+    a("")
+    a("Beyond the range of each value, the coefficients must mean something physical "
+      "(`PHYSICAL_LIMITS` in `generator/flight/table_physics.py`, which also holds the "
+      "ground validator's arithmetic), computed in the unit's float type with + - * only, "
+      "in the same "
+      "order in the flight C and the ground validator, so both give the same verdict bit "
+      "for bit (on the host and on the Cortex-M4F):")
+    a("")
+    a(f"- `BAD_DETERMINANT`: for every sensor, det M(T) within [1/27, 27] "
+      f"(rounded to the float type: [{lim.det_M_lo:.9g}, {lim.det_M_hi:g}]) at T = t_ref_C "
+      "(the constant term M0) and at t_min_C and t_max_C (M(T) by Horner, the chain's "
+      "order; det by the first row). det M is the product of M's singular values: with "
+      "every gain within [1/3, 3] (the matrix_poly range allows 3; below 1/3 the part's "
+      "lsb would be wrong by 3x) it lies within [3^-3, 3^3]. An all-zero or singular M "
+      "gives 0, a reflected axis a negative determinant: both refused. The first bad "
+      "value named is the sensor's `M_poly[0][0][0]`.")
+    a(f"- `NOT_A_ROTATION`: `H_boom_to_body` must be a rotation: every element of "
+      f"H^T H - I (i <= j) within +-{lim.rotation_tol:.4g} and det H > 0. The tolerance is "
+      f"a float32 rounding bound, 2^-21 = {lim.rotation_rounding:.3g} (each stored "
+      "element within 2^-24 relative, 2 x 2^-24 on (H^T H)_ij, and the float32 "
+      "evaluation's 4 roundings), plus a physical allowance of "
+      f"{lim.rotation_allowance:g}: |H v|^2 = |v|^2 + v^T (H^T H - I) v, so |B| changes "
+      "by at most 1.5e-5 relative, 0.8 nT at 55 000 nT, far below the parts' lsb and "
+      "noise. The first bad value named is H[i][j] of the failing (i, j).")
+    a("")
+    a("## Serials")
+    a("")
+    a("A table that passes every check is installed only if its serial is above the "
+      "active table's (`SERIAL_CHECKS`; the Python model of the manager is "
+      "`generator/flight/table_manager.py`), in `<unit>_table_load` and `_commit`, after "
+      "`SERIAL_MISMATCH`: a lower serial is `SERIAL_ROLLBACK`; an equal serial with "
+      "other coefficients (compared bit for bit) is `SERIAL_REPLAY`; an equal serial "
+      "with the same coefficients is refused too, as `ALREADY_ACTIVE`: nothing changes, "
+      "and the ground sees that its table is the one in use (as `PART_REPEATED` does for "
+      "a part). Only the coefficients count as the contents: `created_s` is not "
+      "compared. The compiled-in default has serial 0, so on first boot any valid table "
+      "with serial >= 1 is accepted and serial 0 is never accepted from the ground "
+      "(`magcal table` writes serial 1 unless told otherwise). Serials do not wrap: "
+      "after 4294967295 nothing newer can be loaded. The manager keeps its serial in "
+      "RAM: after a reset it starts again from the compiled-in default at serial 0, so a "
+      "rollback across a reset is only refused if the flight software keeps the last "
+      "accepted table in non-volatile memory and loads it (`<unit>_table_load`) at boot, "
+      "before it accepts uplinks: that restores the serial the rule compares against.")
+    a("")
+    a("## The compiled-in default at init")
+    a("")
+    a("`<unit>_table_init(mgr, defaults)` runs the content checks of a table on the "
+      "default coefficients, without a header (in this order: "
+      + ", ".join(f"`{c}`" for c in CONTENT_CHECKS) + "). If they pass, the defaults "
+      "are in use at serial 0 and init returns `OK`. If one fails, init returns that "
+      "check's status (also in `last_status`, with the first bad value in "
+      "`last_bad_value`) and falls back to coefficients that are all quiet NaN: every "
+      "correction then returns `STATUS_IMPLAUSIBLE` (the |B| band check fails on NaN) "
+      "and `<unit>_select` finds no valid sensor (`SELECT_NONE`), so no number computed "
+      "from a broken default reaches attitude control. `info.coeffs_valid` is 0 in "
+      "that state and becomes 1 when a valid table (serial >= 1) is loaded.")
+    a("")
     a("## Checks, in order")
     a("")
     a("`<unit>_table_validate` runs these checks in this order and returns the status of "
@@ -136,17 +197,23 @@ def format_doc() -> str:
     a("")
     first_part = int(TableStatus.PART_TRUNCATED)
     first_commit = int(TableStatus.NOTHING_STAGED)
-    a(f"Codes 1 to {first_part - 1} come from the table checks, in this order: a NULL "
+    last_commit = int(TableStatus.SERIAL_MISMATCH)
+    codes = ", ".join(str(int(TableStatus[c])) for c in CHECK_ORDER)
+    a("Codes are never renumbered: a check added later gets the next free code, so the "
+      "code values do not give the check order. The table checks (`CHECK_ORDER`, codes "
+      f"{codes}) run in this order: a NULL "
       "buffer; the length against the header; the header fields in header order (magic, "
       "version, value width, unit id hash and text, layout hash, payload length); the "
       "length against the payload length; the CRC; then the content: the header "
       "temperature range, finiteness of every value, the plausible range of every value, "
       "every lower limit below its upper limit (`ORDERED_PAIRS`: "
-      + ", ".join(f"{lo} < {hi}" for lo, hi in ORDERED_PAIRS) + "), and the header "
-      "range equal to the min/max over the sensors (in float32). "
+      + ", ".join(f"{lo} < {hi}" for lo, hi in ORDERED_PAIRS) + "), the header "
+      "range equal to the min/max over the sensors (in float32), det M, H a rotation. "
       f"Codes {first_part} to {first_commit - 1} come from `receive_part`, in that order; "
-      f"{first_commit} to {len(ERRORS) - 1} from `commit` (nothing staged and missing "
-      "parts before the table checks of the reassembled table, the serial after them). "
+      f"{first_commit} to {last_commit} from `commit` (nothing staged and missing "
+      "parts before the table checks of the reassembled table, the serial mismatch after "
+      "them); then load and commit apply the serial rule ("
+      + ", ".join(f"`{c}`" for c in SERIAL_CHECKS) + "). "
       "`<unit>_table_strerror(code)` gives the meaning.")
     a("")
     a("## Parts")
@@ -172,8 +239,8 @@ def format_doc() -> str:
       "transfer); so is a change of part count or chunk size (`PART_COUNT_CHANGED`). "
       "`<unit>_table_commit` refuses an incomplete transfer (`PARTS_MISSING`, the "
       "transfer stays open for the missing parts), then validates the whole table, "
-      "checks that its serial is the parts' serial, decodes it into the inactive "
-      "buffer and switches the active index. A commit that fails validation drops "
+      "checks that its serial is the parts' serial, applies the serial rule, decodes "
+      "it into the inactive buffer and switches the active index. A commit that fails validation drops "
       "the transfer. `<unit>_table_load` does the same for a table received in one "
       "piece.")
     a("")

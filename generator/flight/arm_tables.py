@@ -1,0 +1,149 @@
+"""The flight table code on the emulated Cortex-M4F, and the same operations on the host.
+
+The unit's `<unit>_table.c` is part of its flight sources and is built for the target with
+the flight flags like the rest (generator.flight.arm_build.build). A small runner extension
+(templates/arm/table_ext.c.j2, test code only) drives its API through the runner's EXT
+command: init (compiled-in or given defaults), validate, load, receive_part, commit,
+abort, and the active coefficients. `ArmTables.run(ops)` runs a list of operations in one
+QEMU run; `host_results(TableHost, ops)` runs the same list through the cffi build, and
+`python_results(spec, ops)` through the ground code (table_manager.TableManager), so the tests
+compare the three result by result.
+
+    ops: ("init",) | ("init_values", flat) | ("validate", table) | ("load", table)
+         | ("receive_part", part) | ("commit",) | ("abort",) | ("active",)
+
+Each result is (status, bad value index, active serial, coeffs_valid, last status) as
+ints, or for "active" the bit pattern of the active coefficients (bytes).
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from generator.flight.coeffs import CoefficientSet
+from generator.flight.table_manager import TableManager
+from generator.flight.tables import (NO_INDEX, TableError, TableStatus,
+                                     check_table, value_dtype)
+from generator.flight.arm_build import EXT_MAX, ArmRunError, _arm_env
+from generator.flight.arm_runner import ArmUnit, Job, run_job
+from generator.flight.codegen import template_context
+
+OPS = {"init": 0, "init_values": 1, "validate": 2, "load": 3, "receive_part": 4,
+       "commit": 5, "abort": 6, "active": 7}
+EXT_FILE = "table_ext.c"
+
+
+def ext_source(cs: CoefficientSet) -> str:
+    return _arm_env().get_template("table_ext.c.j2").render(**template_context(cs))
+
+
+def _payload(spec, op) -> bytes:
+    kind, *args = op
+    code = bytes([OPS[kind]])
+    if kind == "init_values":
+        flat = np.asarray(args[0]).astype(value_dtype(spec), copy=False)
+        return code + flat.tobytes()
+    if kind in ("validate", "load", "receive_part"):
+        return code + bytes(args[0])
+    return code
+
+
+class ArmTables:
+    """The unit's flight table code on the emulated Cortex-M4F (qemu mps2-an386)."""
+
+    def __init__(self, cs: CoefficientSet):
+        self.cs = cs
+        self.spec = cs.spec
+        self.arm = ArmUnit(cs, extra_sources={EXT_FILE: ext_source(cs)})
+
+    def run(self, ops, timeout=300.0) -> list:
+        job = Job(self.cs)
+        for op in ops:
+            payload = _payload(self.spec, op)
+            if len(payload) > EXT_MAX:
+                raise ValueError(f"{op[0]}: {len(payload)} bytes, the runner takes {EXT_MAX}")
+            job.ext(payload)
+        out, _ = run_job(self.arm.build.elf, job.bytes(), timeout=timeout)
+        results = []
+        for op, r in zip(ops, job.parse(out)):
+            if op[0] == "active":
+                if r["rc"] != 0:
+                    raise ArmRunError(f"active: runner extension answered {r['rc']}")
+                results.append(bytes(r["data"]))
+                continue
+            if len(r["data"]) != 20:
+                raise ArmRunError(f"{op[0]}: runner extension answered {r['rc']} with "
+                                  f"{len(r['data'])} bytes")
+            results.append(struct.unpack("<5I", r["data"]))
+        return results
+
+
+def host_results(h, ops) -> list:
+    """The same operations through the flight table code built for the host
+    (table_host.TableHost)."""
+    results, mgr = [], None
+    for kind, *args in ops:
+        bad = None
+        if kind == "init":
+            mgr, st = h.init()
+        elif kind == "init_values":
+            mgr, st = h.init(np.asarray(args[0]).astype(h.dtype))
+        elif kind == "validate":
+            st, bad = h.validate_detail(args[0])
+        elif kind == "active":
+            results.append(h.active_flat(mgr).tobytes())
+            continue
+        elif kind == "abort":
+            h.abort(mgr)
+            st = TableStatus.OK
+        else:
+            st = getattr(h, kind)(mgr, *args)
+        info = h.info(mgr) if mgr is not None else None
+        if bad is None:
+            bad = info["last_bad_value"]
+        results.append(_row(st, bad, info))
+    return results
+
+
+def _row(st, bad, info) -> tuple:
+    if info is None:
+        return (int(st), int(bad), 0, 0, 0)
+    return (int(st), int(bad), int(info["active_serial"]), int(info["coeffs_valid"]),
+            int(info["last_status"]))
+
+
+def python_results(spec, default_values, ops) -> list:
+    """The same operations through the ground code (tables.check_table, TableManager);
+    ("init",) starts from default_values (the unit's compiled-in defaults)."""
+    results, m = [], None
+    for kind, *args in ops:
+        if kind in ("init", "init_values"):
+            m = TableManager(spec, default_values if kind == "init" else args[0])
+            st = m.init_status
+        elif kind == "validate":
+            try:
+                check_table(args[0], spec)
+                st, bad = TableStatus.OK, NO_INDEX
+            except TableError as e:
+                st = e.status
+                bad = NO_INDEX if e.bad_value_index is None else e.bad_value_index
+            tail = (0, 0, 0) if m is None else \
+                (m.active_serial, int(m.coeffs_valid), int(m.last_status))
+            results.append((int(st), int(bad)) + tuple(int(x) for x in tail))
+            continue
+        elif kind == "active":
+            results.append(np.ascontiguousarray(m.active_values).astype(
+                m.active_values.dtype.newbyteorder("<")).tobytes())
+            continue
+        elif kind == "abort":
+            m.abort()
+            st = TableStatus.OK
+        elif kind == "commit":
+            st = m.commit()[0]
+        else:
+            st = getattr(m, kind)(*args)
+        results.append((int(st), int(m.last_bad), int(m.active_serial), int(m.coeffs_valid),
+                        int(m.last_status)))
+    return results
