@@ -169,51 +169,6 @@ def sensor_inputs(rng, cs, s, n):
     return raw, temp, coil
 
 
-def c_correct(host: HostUnit, s: SensorSpec, raw, temp, coil):
-    """`<unit>_<sensor>_correct` over samples. HostUnit.correct passes int32 counts; a
-    physical-input sensor's shim takes readings in the float type, so it is called here
-    with the same arguments and a real-typed raw pointer (the two lines host.py needs
-    for `magcal apply` on such sensors are in the branch's report)."""
-    if not chain.is_physical(s):
-        return host.correct(s.name, raw, temp, coil)
-    n = raw.shape[0]
-    r = np.ascontiguousarray(np.asarray(raw, np.float64).astype(host.dtype))
-    t = np.ascontiguousarray(np.asarray(temp, np.float64).astype(host.dtype))
-    co = host._coeffs(None)
-    field = np.zeros((n, 3), host.dtype)
-    chip = np.zeros((n, 3), host.dtype)
-    offs = np.zeros((n, 3), host.dtype)
-    status = np.zeros(n, np.uint16)
-    keep, aux = host._aux(n, coil, None, None, None)
-    getattr(host._lib, f"host_{s.name}_batch")(
-        host._ptr(co), n, host._ptr(r), host._ptr(t), *aux, host._ptr(field),
-        host._ptr(chip), host._ptr(offs), host._ptr(status, "uint16_t"))
-    out = {"field_body_nT": field, "status": status}
-    if s.set_reset:
-        out["chip_offset_nT"] = chip
-        out["offset_counts"] = offs
-    return out
-
-
-def c_correct_set(host: HostUnit, s: SensorSpec, set_raw, temp, offsets, coil):
-    """`<unit>_<sensor>_correct_set` with a stored offset per call (NaN: none); as
-    c_correct, physical inputs through a real-typed pointer."""
-    if not chain.is_physical(s):
-        return host.correct_set(s.name, set_raw, temp, offsets, coil)
-    n = set_raw.shape[0]
-    r = np.ascontiguousarray(np.asarray(set_raw, np.float64).astype(host.dtype))
-    t = np.ascontiguousarray(np.asarray(temp, np.float64).astype(host.dtype))
-    off = np.ascontiguousarray(np.asarray(offsets, host.dtype))
-    co = host._coeffs(None)
-    field = np.zeros((n, 3), host.dtype)
-    status = np.zeros(n, np.uint16)
-    keep, aux = host._aux(n, coil, None, None, None)
-    getattr(host._lib, f"host_{s.name}_set_batch")(
-        host._ptr(co), n, host._ptr(r), host._ptr(t), *aux, host._ptr(off),
-        host._ptr(field), host._ptr(status, "uint16_t"))
-    return {"field_body_nT": field, "status": status}
-
-
 def py_correct(cs, s, raw, temp, coil):
     return reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw, temp,
                             coil)
@@ -237,7 +192,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
     rng = np.random.default_rng(seed)
     for s in cs.unit.sensors:
         raw, temp, coil = sensor_inputs(rng, cs, s, N)
-        c_out = c_correct(host, s, raw, temp, coil)
+        c_out = host.correct(s.name, raw, temp, coil)
         assert_bit_identical(c_out, py_correct(cs, s, raw, temp, coil),
                              f"{cs.unit.id}/{s.name} ({s.part}, {s.input})")
         status = c_out["status"]
@@ -246,7 +201,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
         if not s.temperature:
             assert not np.any(status & chain.STATUS_TEMP_CLAMPED)
             # the temperature is ignored: any value gives the same bits
-            other = c_correct(host, s, raw, np.full(temp.shape, np.nan), coil)
+            other = host.correct(s.name, raw, np.full(temp.shape, np.nan), coil)
             assert_bit_identical(other, c_out, f"{s.name} with NaN temperatures")
         else:
             assert np.any(status & chain.STATUS_TEMP_CLAMPED)
@@ -256,7 +211,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
         if s.set_reset:   # SET-only readings with the pairs' stored offsets, some missing
             offs = c_out["offset_counts"].copy()
             offs[rng.random(offs.shape[0]) < 0.05] = np.nan
-            c_set = c_correct_set(host, s, raw[:, :3], temp, offs, coil)
+            c_set = host.correct_set(s.name, raw[:, :3], temp, offs, coil)
             p_set = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
                                      raw[:, :3], temp, coil, set_only=True, offset_counts=offs)
             assert_bit_identical(c_set, p_set, f"{cs.unit.id}/{s.name} SET-only")
@@ -395,7 +350,7 @@ def test_physical_units_scale_to_nT():
     for s in sensors:   # field_nT / scale is exact in float32 for these values
         raw = field_nT / chain.input_scale_nT(s)
         assert np.all(raw.astype(np.float32) * np.float32(chain.input_scale_nT(s)) == field_nT)
-        out = c_correct(host, s, raw, np.zeros(2), None)
+        out = host.correct(s.name, raw, np.zeros(2), None)
         assert_bit_identical(out, py_correct(cs, s, raw, np.zeros(2), None), s.input)
         outs.append(out["field_body_nT"])
     for o in outs[1:]:
@@ -412,7 +367,7 @@ def test_physical_saturation_at_full_scale():
     host = host_build(cs)
     v = np.array([8.0, -8.0, np.nextafter(np.float32(8), np.float32(9)), -8.000001, 0.3])
     raw = np.stack([np.full(5, 0.2), v, np.full(5, -0.1)], axis=1)
-    out = c_correct(host, s, raw, np.full(5, 25.0), None)
+    out = host.correct(s.name, raw, np.full(5, 25.0), None)
     assert_bit_identical(out, py_correct(cs, s, raw, np.full(5, 25.0), None))
     sat = (out["status"] & chain.STATUS_SATURATED) != 0
     assert list(sat) == [False, False, True, True, False]
