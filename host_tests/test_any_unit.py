@@ -75,13 +75,9 @@ def units(draw, max_sensors=8):
 
 
 def host_build(cs: CoefficientSet) -> HostUnit:
-    """The unit's generated C compiled on the host. A unit with a sensor that has no
-    temperature is built without the uplink-table validator: its generator (tables.py,
-    table.c.j2, not of this change) does not yet know sensors without a temperature
-    range; see test_table_of_a_temperature_free_unit below."""
-    if all(s.temperature for s in cs.unit.sensors):
-        return HostUnit(cs)   # every generated file, the table validator included
-    return HostUnit(cs, sources=render(cs, tables=False))
+    """The unit's generated C compiled on the host: every generated file, the uplink-table
+    validator included (sensors without a temperature take no part in its header range)."""
+    return HostUnit(cs)
 
 
 # ---- inputs ----------------------------------------------------------------------------
@@ -397,13 +393,16 @@ def test_temperature_free_sensor_is_constant_and_unclamped():
         ChainSpec(cs.unit, sensor_options=(("m0", chain.SensorOptions(thermal_lag=True)),))
 
 
-@pytest.mark.xfail(strict=True, raises=KeyError,
-                   reason="the uplink-table generator (tables.py, table.c.j2) reads t_min_C "
-                          "of every sensor; a sensor with no temperature has none (reported)")
 def test_table_of_a_temperature_free_unit():
+    """No sensor has a temperature: the table C is generated and the default table has
+    the whole plausible temperature range in its header (host_tests/test_tables_any_unit.py
+    checks such tables in C and Python)."""
+    from generator.flight import tables
     s = make_sensor(0, "mpu", "body", ("+x", "+y", "+z"), False)
     cs = random_coeffs(np.random.default_rng(4), make_unit([s], unit_id="notab"))
     assert "notab_table.c" in render(cs)
+    head, _ = tables.check_table(tables.encode_table(cs, 1, 0), cs.spec)
+    assert (head["t_min_C"], head["t_max_C"]) == tables.NO_TEMP_RANGE_C == (-100.0, 150.0)
 
 
 def test_version_1_structure_unchanged():
@@ -421,13 +420,25 @@ def test_version_1_structure_unchanged():
 
 
 def _arm_units():
-    """A handful of counts-input units (the runner takes counts; see the report):
-    1 sensor without temperature, 2 sensors boom/body, 8 sensors with coils."""
+    """A handful of units: 1 sensor without temperature, 2 sensors boom/body, 8 sensors
+    with coils, and physical inputs (the runner's real-typed readings): uT without
+    temperature beside G with SET/RESET and temperature and a counts sensor, with coils;
+    one float64 mG SET/RESET sensor without temperature."""
+    phys = [make_sensor(0, "physical", "body", ("+y", "-x", "+z"), False, inp="uT"),
+            make_sensor(1, "physical_sr", "boom", ("-z", "+y", "+x"), True, inp="G",
+                        range_nT=8e5),
+            make_sensor(2, "mmc_sr", "body", ("+x", "+y", "+z"), True)]
+    phys64 = [make_sensor(0, "physical_sr", "body", ("+x", "-y", "-z"), False, inp="mG",
+                          range_nT=4.9e6)]
     return [
         ("one_notemp", _unit_of(["mpu"], temperature=False, seed=11)),
         ("two", _unit_of(["mmc_sr", "mpu"], frames=["body", "boom"], seed=12)),
         ("eight", _unit_of(["mmc_sr", "mmc", "mpu", "mmc", "mpu", "mmc_sr", "mpu", "mmc"],
                            frames=["body", "boom"] * 4, coils=COILS, seed=13)),
+        ("physical", random_coeffs(np.random.default_rng(16),
+                                   make_unit(phys, unit_id="armphys"), coils=COILS)),
+        ("physical64", random_coeffs(np.random.default_rng(17),
+                                     make_unit(phys64, "float64", unit_id="armphys64"))),
     ]
 
 
@@ -437,13 +448,20 @@ def test_arm_units_bit_identical(label, cs):
     from generator.flight import target as ta
     if ta.missing_tools():
         pytest.skip(f"missing {', '.join(ta.missing_tools())}")
-    arm = ta.ArmUnit(cs, sources=render(cs, tables=False))
+    arm = ta.ArmUnit(cs)   # every generated file, the table validator included
     rng = np.random.default_rng(14)
     calls, refs = [], []
     for s in cs.unit.sensors:
         raw, temp, coil = sensor_inputs(rng, cs, s, 500)
         calls.append(("correct", s.name, raw, temp, coil))
         refs.append((s.name, py_correct(cs, s, raw, temp, coil)))
+        if s.set_reset:   # SET-only readings with the pairs' stored offsets, some missing
+            offs = refs[-1][1]["offset_counts"].copy()
+            offs[rng.random(offs.shape[0]) < 0.05] = np.nan
+            calls.append(("correct_set", s.name, raw[:, :3], temp, offs, coil))
+            refs.append((f"{s.name} SET-only", reference_sensor(
+                cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw[:, :3], temp, coil,
+                set_only=True, offset_counts=offs)))
     fields, statuses = select_inputs(rng, cs, 500)
     calls.append(("select", fields, statuses))
     outs = arm.run(calls)
@@ -498,7 +516,7 @@ def test_new_shapes_pass_the_static_checks(label, cs, tmp_path):
     from generator.flight import target as ta
     if ta.missing_tools():
         pytest.skip(f"missing {', '.join(ta.missing_tools())}")
-    msgs, work = ta.warning_check(cs, workdir=tmp_path, sources=render(cs, tables=False))
+    msgs, work = ta.warning_check(cs, workdir=tmp_path)   # the table validator included
     assert msgs and all(m == "" for m in msgs.values()), msgs
     if ta.cppcheck_available():
         p = ta.cppcheck(sorted(work.glob("*.c")), work)
