@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import STATUS_BITS, ChainSpec
+from generator.flight.chain import STATUS_BITS, ChainSpec, is_physical
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
@@ -23,9 +23,12 @@ from generator.io.unitfile import load_unit
 def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
     """Raw counts, temperature and currents of one sensor as the flight API takes them.
 
-    Returns raw_counts (N, 6|3) int64, temp_C (N,), coil_A (N, ncoil) or None, and
-    present (N,) bool: False where a needed cell is missing (those rows are not run
-    through the chain: a missing value is not a number the flight code would see).
+    Returns raw_counts (N, 6|3) int64 (a physical-input sensor: its readings, float64 in
+    its input unit; HostUnit rounds them once to the flight float type, as the reference
+    does), temp_C (N,) (zeros for a sensor with no temperature, which the chain ignores),
+    coil_A (N, ncoil) or None, and present (N,) bool: False where a needed cell is
+    missing (those rows are not run through the chain: a missing value is not a number
+    the flight code would see).
     """
     s = spec.unit.sensor(sensor_name)
     if s.set_reset:
@@ -33,9 +36,12 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
     else:
         cols = [f"{s.name}_{a}" for a in "xyz"]
     counts = np.stack([tel.columns[c] for c in cols], axis=1)
-    temp = tel.columns[f"{s.name}_temp_C"]
+    temp = tel.columns[f"{s.name}_temp_C"] if s.temperature else np.zeros(tel.n)
     present = np.all(np.isfinite(counts), axis=1) & np.isfinite(temp)
-    raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
+    if is_physical(s):
+        raw = np.where(np.isfinite(counts), counts, 0.0)
+    else:
+        raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
     def optional(names):
         """Columns as (N, k), zeros where absent from the file; rows with a missing cell
         are not present."""

@@ -75,13 +75,9 @@ def units(draw, max_sensors=8):
 
 
 def host_build(cs: CoefficientSet) -> HostUnit:
-    """The unit's generated C compiled on the host. A unit with a sensor that has no
-    temperature is built without the uplink-table validator: its generator (tables.py,
-    table.c.j2, not of this change) does not yet know sensors without a temperature
-    range; see test_table_of_a_temperature_free_unit below."""
-    if all(s.temperature for s in cs.unit.sensors):
-        return HostUnit(cs)   # every generated file, the table validator included
-    return HostUnit(cs, sources=render(cs, tables=False))
+    """The unit's generated C compiled on the host: every generated file, the uplink-table
+    validator included (sensors without a temperature take no part in its header range)."""
+    return HostUnit(cs)
 
 
 # ---- inputs ----------------------------------------------------------------------------
@@ -169,51 +165,6 @@ def sensor_inputs(rng, cs, s, n):
     return raw, temp, coil
 
 
-def c_correct(host: HostUnit, s: SensorSpec, raw, temp, coil):
-    """`<unit>_<sensor>_correct` over samples. HostUnit.correct passes int32 counts; a
-    physical-input sensor's shim takes readings in the float type, so it is called here
-    with the same arguments and a real-typed raw pointer (the two lines host.py needs
-    for `magcal apply` on such sensors are in the branch's report)."""
-    if not chain.is_physical(s):
-        return host.correct(s.name, raw, temp, coil)
-    n = raw.shape[0]
-    r = np.ascontiguousarray(np.asarray(raw, np.float64).astype(host.dtype))
-    t = np.ascontiguousarray(np.asarray(temp, np.float64).astype(host.dtype))
-    co = host._coeffs(None)
-    field = np.zeros((n, 3), host.dtype)
-    chip = np.zeros((n, 3), host.dtype)
-    offs = np.zeros((n, 3), host.dtype)
-    status = np.zeros(n, np.uint16)
-    keep, aux = host._aux(n, coil, None, None, None)
-    getattr(host._lib, f"host_{s.name}_batch")(
-        host._ptr(co), n, host._ptr(r), host._ptr(t), *aux, host._ptr(field),
-        host._ptr(chip), host._ptr(offs), host._ptr(status, "uint16_t"))
-    out = {"field_body_nT": field, "status": status}
-    if s.set_reset:
-        out["chip_offset_nT"] = chip
-        out["offset_counts"] = offs
-    return out
-
-
-def c_correct_set(host: HostUnit, s: SensorSpec, set_raw, temp, offsets, coil):
-    """`<unit>_<sensor>_correct_set` with a stored offset per call (NaN: none); as
-    c_correct, physical inputs through a real-typed pointer."""
-    if not chain.is_physical(s):
-        return host.correct_set(s.name, set_raw, temp, offsets, coil)
-    n = set_raw.shape[0]
-    r = np.ascontiguousarray(np.asarray(set_raw, np.float64).astype(host.dtype))
-    t = np.ascontiguousarray(np.asarray(temp, np.float64).astype(host.dtype))
-    off = np.ascontiguousarray(np.asarray(offsets, host.dtype))
-    co = host._coeffs(None)
-    field = np.zeros((n, 3), host.dtype)
-    status = np.zeros(n, np.uint16)
-    keep, aux = host._aux(n, coil, None, None, None)
-    getattr(host._lib, f"host_{s.name}_set_batch")(
-        host._ptr(co), n, host._ptr(r), host._ptr(t), *aux, host._ptr(off),
-        host._ptr(field), host._ptr(status, "uint16_t"))
-    return {"field_body_nT": field, "status": status}
-
-
 def py_correct(cs, s, raw, temp, coil):
     return reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw, temp,
                             coil)
@@ -237,7 +188,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
     rng = np.random.default_rng(seed)
     for s in cs.unit.sensors:
         raw, temp, coil = sensor_inputs(rng, cs, s, N)
-        c_out = c_correct(host, s, raw, temp, coil)
+        c_out = host.correct(s.name, raw, temp, coil)
         assert_bit_identical(c_out, py_correct(cs, s, raw, temp, coil),
                              f"{cs.unit.id}/{s.name} ({s.part}, {s.input})")
         status = c_out["status"]
@@ -246,7 +197,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
         if not s.temperature:
             assert not np.any(status & chain.STATUS_TEMP_CLAMPED)
             # the temperature is ignored: any value gives the same bits
-            other = c_correct(host, s, raw, np.full(temp.shape, np.nan), coil)
+            other = host.correct(s.name, raw, np.full(temp.shape, np.nan), coil)
             assert_bit_identical(other, c_out, f"{s.name} with NaN temperatures")
         else:
             assert np.any(status & chain.STATUS_TEMP_CLAMPED)
@@ -256,7 +207,7 @@ def check_unit(cs: CoefficientSet, host: HostUnit, seed: int):
         if s.set_reset:   # SET-only readings with the pairs' stored offsets, some missing
             offs = c_out["offset_counts"].copy()
             offs[rng.random(offs.shape[0]) < 0.05] = np.nan
-            c_set = c_correct_set(host, s, raw[:, :3], temp, offs, coil)
+            c_set = host.correct_set(s.name, raw[:, :3], temp, offs, coil)
             p_set = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
                                      raw[:, :3], temp, coil, set_only=True, offset_counts=offs)
             assert_bit_identical(c_set, p_set, f"{cs.unit.id}/{s.name} SET-only")
@@ -395,7 +346,7 @@ def test_physical_units_scale_to_nT():
     for s in sensors:   # field_nT / scale is exact in float32 for these values
         raw = field_nT / chain.input_scale_nT(s)
         assert np.all(raw.astype(np.float32) * np.float32(chain.input_scale_nT(s)) == field_nT)
-        out = c_correct(host, s, raw, np.zeros(2), None)
+        out = host.correct(s.name, raw, np.zeros(2), None)
         assert_bit_identical(out, py_correct(cs, s, raw, np.zeros(2), None), s.input)
         outs.append(out["field_body_nT"])
     for o in outs[1:]:
@@ -412,7 +363,7 @@ def test_physical_saturation_at_full_scale():
     host = host_build(cs)
     v = np.array([8.0, -8.0, np.nextafter(np.float32(8), np.float32(9)), -8.000001, 0.3])
     raw = np.stack([np.full(5, 0.2), v, np.full(5, -0.1)], axis=1)
-    out = c_correct(host, s, raw, np.full(5, 25.0), None)
+    out = host.correct(s.name, raw, np.full(5, 25.0), None)
     assert_bit_identical(out, py_correct(cs, s, raw, np.full(5, 25.0), None))
     sat = (out["status"] & chain.STATUS_SATURATED) != 0
     assert list(sat) == [False, False, True, True, False]
@@ -442,13 +393,16 @@ def test_temperature_free_sensor_is_constant_and_unclamped():
         ChainSpec(cs.unit, sensor_options=(("m0", chain.SensorOptions(thermal_lag=True)),))
 
 
-@pytest.mark.xfail(strict=True, raises=KeyError,
-                   reason="the uplink-table generator (tables.py, table.c.j2) reads t_min_C "
-                          "of every sensor; a sensor with no temperature has none (reported)")
 def test_table_of_a_temperature_free_unit():
+    """No sensor has a temperature: the table C is generated and the default table has
+    the whole plausible temperature range in its header (host_tests/test_tables_any_unit.py
+    checks such tables in C and Python)."""
+    from generator.flight import tables
     s = make_sensor(0, "mpu", "body", ("+x", "+y", "+z"), False)
     cs = random_coeffs(np.random.default_rng(4), make_unit([s], unit_id="notab"))
     assert "notab_table.c" in render(cs)
+    head, _ = tables.check_table(tables.encode_table(cs, 1, 0), cs.spec)
+    assert (head["t_min_C"], head["t_max_C"]) == tables.NO_TEMP_RANGE_C == (-100.0, 150.0)
 
 
 def test_version_1_structure_unchanged():
@@ -466,13 +420,25 @@ def test_version_1_structure_unchanged():
 
 
 def _arm_units():
-    """A handful of counts-input units (the runner takes counts; see the report):
-    1 sensor without temperature, 2 sensors boom/body, 8 sensors with coils."""
+    """A handful of units: 1 sensor without temperature, 2 sensors boom/body, 8 sensors
+    with coils, and physical inputs (the runner's real-typed readings): uT without
+    temperature beside G with SET/RESET and temperature and a counts sensor, with coils;
+    one float64 mG SET/RESET sensor without temperature."""
+    phys = [make_sensor(0, "physical", "body", ("+y", "-x", "+z"), False, inp="uT"),
+            make_sensor(1, "physical_sr", "boom", ("-z", "+y", "+x"), True, inp="G",
+                        range_nT=8e5),
+            make_sensor(2, "mmc_sr", "body", ("+x", "+y", "+z"), True)]
+    phys64 = [make_sensor(0, "physical_sr", "body", ("+x", "-y", "-z"), False, inp="mG",
+                          range_nT=4.9e6)]
     return [
         ("one_notemp", _unit_of(["mpu"], temperature=False, seed=11)),
         ("two", _unit_of(["mmc_sr", "mpu"], frames=["body", "boom"], seed=12)),
         ("eight", _unit_of(["mmc_sr", "mmc", "mpu", "mmc", "mpu", "mmc_sr", "mpu", "mmc"],
                            frames=["body", "boom"] * 4, coils=COILS, seed=13)),
+        ("physical", random_coeffs(np.random.default_rng(16),
+                                   make_unit(phys, unit_id="armphys"), coils=COILS)),
+        ("physical64", random_coeffs(np.random.default_rng(17),
+                                     make_unit(phys64, "float64", unit_id="armphys64"))),
     ]
 
 
@@ -482,13 +448,20 @@ def test_arm_units_bit_identical(label, cs):
     from generator.flight import target as ta
     if ta.missing_tools():
         pytest.skip(f"missing {', '.join(ta.missing_tools())}")
-    arm = ta.ArmUnit(cs, sources=render(cs, tables=False))
+    arm = ta.ArmUnit(cs)   # every generated file, the table validator included
     rng = np.random.default_rng(14)
     calls, refs = [], []
     for s in cs.unit.sensors:
         raw, temp, coil = sensor_inputs(rng, cs, s, 500)
         calls.append(("correct", s.name, raw, temp, coil))
         refs.append((s.name, py_correct(cs, s, raw, temp, coil)))
+        if s.set_reset:   # SET-only readings with the pairs' stored offsets, some missing
+            offs = refs[-1][1]["offset_counts"].copy()
+            offs[rng.random(offs.shape[0]) < 0.05] = np.nan
+            calls.append(("correct_set", s.name, raw[:, :3], temp, offs, coil))
+            refs.append((f"{s.name} SET-only", reference_sensor(
+                cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(), raw[:, :3], temp, coil,
+                set_only=True, offset_counts=offs)))
     fields, statuses = select_inputs(rng, cs, 500)
     calls.append(("select", fields, statuses))
     outs = arm.run(calls)
@@ -543,7 +516,7 @@ def test_new_shapes_pass_the_static_checks(label, cs, tmp_path):
     from generator.flight import target as ta
     if ta.missing_tools():
         pytest.skip(f"missing {', '.join(ta.missing_tools())}")
-    msgs, work = ta.warning_check(cs, workdir=tmp_path, sources=render(cs, tables=False))
+    msgs, work = ta.warning_check(cs, workdir=tmp_path)   # the table validator included
     assert msgs and all(m == "" for m in msgs.values()), msgs
     if ta.cppcheck_available():
         p = ta.cppcheck(sorted(work.glob("*.c")), work)

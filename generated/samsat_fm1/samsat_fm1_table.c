@@ -154,17 +154,19 @@ static const uint16_t pair_hi[SAMSAT_FM1_TABLE_N_PAIRS] = { 4u, 67u, 130u, 193u,
 typedef struct {
     uint16_t m_poly;   /* payload index of M_poly[0][0][0] */
     uint16_t orders;   /* polynomial orders */
+    uint16_t points;   /* det M checked at t_ref, t_min, t_max (3); constant M, no temperature (1) */
     uint16_t t_ref;
     uint16_t t_min;
     uint16_t t_max;
 } matrix_index_t;
 
-static const matrix_index_t matrix_index[SAMSAT_FM1_TABLE_N_SENSORS] = {
-    { 17u, 4u, 2u, 3u, 4u },  /* mmc1 */
-    { 80u, 4u, 65u, 66u, 67u },  /* mpu1 */
-    { 143u, 4u, 128u, 129u, 130u },  /* mpu2 */
-    { 206u, 4u, 191u, 192u, 193u },  /* mmc2 */
-    { 269u, 4u, 254u, 255u, 256u },  /* mpu3 */
+#define SAMSAT_FM1_TABLE_N_MATRICES 5u
+static const matrix_index_t matrix_index[SAMSAT_FM1_TABLE_N_MATRICES] = {
+    { 17u, 4u, 3u, 2u, 3u, 4u },  /* mmc1 */
+    { 80u, 4u, 3u, 65u, 66u, 67u },  /* mpu1 */
+    { 143u, 4u, 3u, 128u, 129u, 130u },  /* mpu2 */
+    { 206u, 4u, 3u, 191u, 192u, 193u },  /* mmc2 */
+    { 269u, 4u, 3u, 254u, 255u, 256u },  /* mpu3 */
 };
 #define SAMSAT_FM1_TABLE_H_INDEX 317u  /* H_boom_to_body[0][0] */
 
@@ -516,10 +518,10 @@ static samsat_fm1_table_status_t check_physics(const uint8_t *payload, uint32_t 
     samsat_fm1_real_t g;
     uint32_t i, c;
 
-    for (j = 0u; j < SAMSAT_FM1_TABLE_N_SENSORS; ++j) {
+    for (j = 0u; j < SAMSAT_FM1_TABLE_N_MATRICES; ++j) {
         const matrix_index_t *mi = &matrix_index[j];
-        t_ref = get_value(payload, mi->t_ref);
-        for (end = 0; end < 3; ++end) {
+        t_ref = get_value(payload, mi->t_ref);   /* unused when points == 1 */
+        for (end = 0; end < (int)mi->points; ++end) {
             if (end == 0) {
                 matrix_at(payload, mi, 1, 0, m);
             } else {

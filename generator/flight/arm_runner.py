@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import ChainSpec, np_dtype
+from generator.flight.chain import ChainSpec, is_physical, np_dtype
 from generator.flight.codegen import template_context
 from generator.flight.coeffs import CoefficientSet
 from generator.flight.arm_build import (CMD, DONE, JOB_FILE, MACHINE, MAGIC, OUT_FILE,
@@ -86,7 +86,8 @@ class Job:
             "sensor": np.dtype([("raw", "<i4", 6), ("temp", r), ("aux", "<u4"),
                                 ("coil", r, max(1, f["n_coils"])),
                                 ("channel", r, max(1, f["n_channels"])), ("rate", r, 3),
-                                ("dt", r), ("state", "<u4"), ("offset", r, 3)]),
+                                ("dt", r), ("state", "<u4"), ("offset", r, 3),
+                                ("reading", r, 6)]),
             "select": np.dtype([("fields", r, (S, 3)), ("status", "<u4", S)]),
         }
         meas = [("stack", "<u4"), ("ticks", "<u4")]
@@ -120,11 +121,13 @@ class Job:
         'dt_s': (N,)} (any present, or coil, makes aux non-NULL); state False: pass NULL;
         offset_counts: _correct_set's stored offset per call (NaN rows: none)."""
         s = self.spec.unit.sensor(sensor)
-        raw = np.asarray(raw, dtype=np.int64)
+        physical = is_physical(s)   # readings in the float type (as HostUnit), else counts
+        raw = np.asarray(raw, dtype=np.float64).astype(self.ft) if physical \
+            else np.asarray(raw, dtype=np.int64)
         n = raw.shape[0]
         assert raw.shape == (n, 3 if set_only or not s.set_reset else 6), raw.shape
         a = np.zeros(n, dtype=self.rec_in["sensor"])
-        a["raw"][:, :raw.shape[1]] = raw
+        a["reading" if physical else "raw"][:, :raw.shape[1]] = raw
         a["temp"] = np.asarray(temp, dtype=np.float64).astype(self.ft)
         aux = {k: v for k, v in (aux or {}).items() if v is not None}
         if self.feat["has_aux"] and (coil is not None or aux):

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import ChainSpec, np_dtype
+from generator.flight.chain import ChainSpec, is_physical, np_dtype
 from generator.flight.codegen import _env, render, template_context
 from generator.flight.coeffs import CoefficientSet
 
@@ -168,13 +168,23 @@ class HostUnit:
         return np.ascontiguousarray(self.flat_coeffs() if coeffs_flat is None else
                                     np.asarray(coeffs_flat, dtype=self.dtype))
 
+    def _raw(self, sensor, raw_counts):
+        """The readings as the sensor's C API takes them, with the pointer type: counts as
+        int32; a physical-input sensor's real numbers in the float type (float64 first,
+        then one rounding, as chain.reference_sensor converts them)."""
+        if is_physical(sensor):
+            raw = np.asarray(raw_counts, dtype=np.float64).astype(self.dtype)
+            return np.ascontiguousarray(raw), self._ctype
+        return np.ascontiguousarray(raw_counts, dtype=np.int32), "int32_t"
+
     def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None,
                 channels=None, rate_dps=None, dt_s=None) -> dict:
         """Run `<unit>_<sensor>_correct` over a sequence of samples on one state; same
         outputs as chain.reference_sensor (offset_counts: the state's stored offset after
-        each call, NaN until the first unsaturated pair). channels: {column: (N,)}."""
+        each call, NaN until the first unsaturated pair). raw_counts: counts, or for a
+        physical-input sensor its readings in its input unit. channels: {column: (N,)}."""
         s = self.spec.unit.sensor(sensor)
-        raw = np.ascontiguousarray(raw_counts, dtype=np.int32)
+        raw, raw_t = self._raw(s, raw_counts)
         n = raw.shape[0]
         assert raw.shape == (n, 6 if s.set_reset else 3), raw.shape
         temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
@@ -185,7 +195,7 @@ class HostUnit:
         status = np.zeros(n, dtype=np.uint16)
         keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_batch")(
-            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
+            self._ptr(co), n, self._ptr(raw, raw_t), self._ptr(temp), *aux,
             self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"))
         out = {"field_body_nT": field, "status": status}
         if s.set_reset:
@@ -196,7 +206,7 @@ class HostUnit:
     def correct_set(self, sensor: str, set_counts, temp_C, offset_counts, coil_A=None,
                     coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:
         """Run `<unit>_<sensor>_correct_set` with a stored offset per sample (NaN: none)."""
-        raw = np.ascontiguousarray(set_counts, dtype=np.int32)
+        raw, raw_t = self._raw(self.spec.unit.sensor(sensor), set_counts)
         n = raw.shape[0]
         temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
         off = np.ascontiguousarray(np.asarray(offset_counts, dtype=self.dtype))
@@ -205,7 +215,7 @@ class HostUnit:
         status = np.zeros(n, dtype=np.uint16)
         keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_set_batch")(
-            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
+            self._ptr(co), n, self._ptr(raw, raw_t), self._ptr(temp), *aux,
             self._ptr(off), self._ptr(field), self._ptr(status, "uint16_t"))
         return {"field_body_nT": field, "status": status}
 
@@ -213,7 +223,7 @@ class HostUnit:
                       coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:
         """Calls of every kind on one state: mode bit 0 = SET-only (raw_counts' RESET half
         unused), bit 1 = state NULL. Sensors that keep a state only."""
-        raw = np.ascontiguousarray(raw_counts, dtype=np.int32)
+        raw, raw_t = self._raw(self.spec.unit.sensor(sensor), raw_counts)
         n = raw.shape[0]
         temp = np.ascontiguousarray(np.asarray(temp_C, dtype=np.float64).astype(self.dtype))
         md = np.ascontiguousarray(mode, dtype=np.uint8)
@@ -222,7 +232,7 @@ class HostUnit:
         status = np.zeros(n, dtype=np.uint16)
         keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_mixed_batch")(
-            self._ptr(co), n, self._ptr(raw, "int32_t"), self._ptr(temp), *aux,
+            self._ptr(co), n, self._ptr(raw, raw_t), self._ptr(temp), *aux,
             self._ptr(md, "uint8_t"), self._ptr(field), self._ptr(status, "uint16_t"))
         return {"field_body_nT": field, "status": status}
 

@@ -61,14 +61,20 @@ PHYSICAL_LIMITS = PhysicalLimits()
 
 @dataclass(frozen=True)
 class MatrixIndex:
-    """Payload indices of one sensor's M_poly and temperatures (physical checks)."""
+    """Payload indices of one sensor's M_poly and temperatures (physical checks).
+    A sensor without temperature (constant M) has no t_ref/t_min/t_max: None."""
 
     sensor: str
     m_poly: int        # index of M_poly[0][0][0]
     orders: int        # polynomial orders (poly_degree + 1)
-    t_ref: int
-    t_min: int
-    t_max: int
+    t_ref: int | None
+    t_min: int | None
+    t_max: int | None
+
+    @property
+    def points(self) -> int:
+        """Temperatures det M is checked at: t_ref, t_min, t_max; the constant M once."""
+        return 1 if self.t_ref is None else 3
 
 
 def det3(m):
@@ -96,10 +102,11 @@ def evaluate(values, matrices, h_index) -> dict:
     values: the payload (numpy array of the flight type); matrices: MatrixIndex per sensor."""
     dets = []
     for mi in matrices:
-        t_ref = values[mi.t_ref]
         row = [det3(matrix_at(values, mi, None))]
-        for end in (mi.t_min, mi.t_max):
-            row.append(det3(matrix_at(values, mi, values[end] - t_ref)))
+        if mi.points == 3:
+            t_ref = values[mi.t_ref]
+            for end in (mi.t_min, mi.t_max):
+                row.append(det3(matrix_at(values, mi, values[end] - t_ref)))
         dets.append((mi.sensor, row))
     out = {"det_M": dets}
     if h_index is not None:

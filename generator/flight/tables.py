@@ -264,6 +264,11 @@ PLAUSIBLE_RANGES = {r.kind: r for r in (
     KindRange("sr_delay", -0.01, 0.01, "s rad/deg: a SET->RESET delay of at most ~1 s"),
 )}
 
+# The header temperature range of a unit none of whose sensors has a temperature: the
+# whole plausible range (its constant model holds at any temperature; the header check
+# t_min_C < t_max_C inside the plausible range passes unchanged).
+NO_TEMP_RANGE_C = PLAUSIBLE_RANGES["temp"].bounds()
+
 # Lower and upper limits that must be strictly ordered, by block name, wherever both
 # are blocks of the same sensor (or of the unit).
 ORDERED_PAIRS = (("t_min_C", "t_max_C"), ("field_min_nT", "field_max_nT"))
@@ -406,13 +411,21 @@ def _ordered_pairs(spec: ChainSpec) -> tuple:
 
 @_per_spec
 def _temp_indices(spec: ChainSpec) -> tuple:
-    """(t_min index, t_max index) of every sensor in the payload."""
+    """(t_min index, t_max index) of every sensor with a temperature, in payload order
+    (a sensor with none has no temperature range: ICD section 4, temperature = false)."""
     out, base = [], 0
     for s in spec.unit.sensors:
         off = spec.offsets(spec.sensor_blocks(s))
-        out.append((base + off["t_min_C"], base + off["t_max_C"]))
+        if "t_min_C" in off:
+            out.append((base + off["t_min_C"], base + off["t_max_C"]))
         base += spec.n_sensor_coeffs(s)
     return tuple(out)
+
+
+def _temp_sensors(spec: ChainSpec) -> tuple:
+    """The sensors _temp_indices covers, in the same order."""
+    return tuple(s for s in spec.unit.sensors
+                 if "t_min_C" in spec.offsets(spec.sensor_blocks(s)))
 
 
 @_per_spec
@@ -423,8 +436,8 @@ def _matrix_indices(spec: ChainSpec) -> tuple:
         blocks = spec.sensor_blocks(s)
         off = spec.offsets(blocks)
         m = next(b for b in blocks if b.name == "M_poly")
-        out.append(MatrixIndex(s.name, base + off["M_poly"], m.shape[0], base + off["t_ref_C"],
-                               base + off["t_min_C"], base + off["t_max_C"]))
+        temps = [base + off[k] if k in off else None for k in ("t_ref_C", "t_min_C", "t_max_C")]
+        out.append(MatrixIndex(s.name, base + off["M_poly"], m.shape[0], *temps))
         base += spec.n_sensor_coeffs(s)
     return tuple(out)
 
@@ -512,8 +525,13 @@ def flat_values(cs: CoefficientSet) -> np.ndarray:
 
 
 def _temp_range(spec: ChainSpec, values) -> tuple:
-    """Header range from the flight-type values, computed as the flight C does."""
+    """Header range from the flight-type values, computed as the flight C does: min of
+    t_min_C and max of t_max_C over the sensors with a temperature. A unit none of whose
+    sensors has a temperature has a constant model that holds at every temperature: its
+    header range is the whole plausible `temp` range, NO_TEMP_RANGE_C."""
     idx = _temp_indices(spec)
+    if not idx:
+        return tuple(np.float32(v) for v in NO_TEMP_RANGE_C)
     lo, hi = values[idx[0][0]], values[idx[0][1]]
     for i_min, i_max in idx[1:]:
         if values[i_min] < lo:
@@ -987,17 +1005,20 @@ def table_context(cs: CoefficientSet) -> dict:
                               + (f"[{s.order}]" if s.order is not None else "")}
                      for s in segments(spec)],
         "temp_index": [{"sensor": s.name, "t_min": i, "t_max": j}
-                       for s, (i, j) in zip(spec.unit.sensors, _temp_indices(spec))],
+                       for s, (i, j) in zip(_temp_sensors(spec), _temp_indices(spec))],
+        "no_temp_sensors": [s.name for s in spec.unit.sensors if s not in _temp_sensors(spec)],
         "ordered_pairs": [{"lo": i, "hi": j, "what": f"{value_layout(spec)[i].label} < "
                                                        f"{value_layout(spec)[j].label}"}
                           for i, j in _ordered_pairs(spec)],
         "matrices": [{"sensor": m.sensor, "m_poly": m.m_poly, "orders": m.orders,
-                      "t_ref": m.t_ref, "t_min": m.t_min, "t_max": m.t_max}
+                      "points": m.points, "t_ref": m.t_ref or 0, "t_min": m.t_min or 0,
+                      "t_max": m.t_max or 0}
                      for m in _matrix_indices(spec)],
         "rotation_index": _rotation_index(spec),
         "det_lo": c_literal(PHYSICAL_LIMITS.det_M_lo, ft),
         "det_hi": c_literal(PHYSICAL_LIMITS.det_M_hi, ft),
         "rotation_tol": c_literal(PHYSICAL_LIMITS.rotation_tol, ft),
+        "no_temp_range": [c_literal(v, ft) for v in NO_TEMP_RANGE_C],
         "header_temp_lo": c_literal(t_lo, "float32"),
         "header_temp_hi": c_literal(t_hi, "float32"),
         "crc_lines": [", ".join(f"0x{c:08x}u" for c in _crc_byte_table()[i:i + 6]) + ","

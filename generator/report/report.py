@@ -242,7 +242,8 @@ def fit_sections(cs) -> list:
             held_rms = held[chosen].get("rms_vector_nT") or held[chosen].get("rms_norm_nT")
         rows.append([
             s.name, s.part, s.frame, info.get(s.name, {}).get("method", ""),
-            f"{float(v['t_min_C']):.1f} .. {float(v['t_max_C']):.1f}",
+            f"{float(v['t_min_C']):.1f} .. {float(v['t_max_C']):.1f}" if s.temperature
+            else "none: no temperature (constant model)",
             st.get("samples_used", st.get("n_samples", "")),
             _first(fitst, "rms_vector_nT") if fitst else _first(st, "rms_vector_nT"),
             _first(fitst, "rms_norm_nT") if fitst else _first(st, "rms_norm_nT"),
@@ -252,7 +253,11 @@ def fit_sections(cs) -> list:
         "Calibration B = M(T)(B~ - b(T)) per sensor, polynomial (up to cubic) in temperature "
         "(seed 000, eq. 5-7). Temperatures outside the calibrated range are clamped and "
         "flagged by the flight code. Residual RMS: vector residual per axis where reference "
-        "vectors exist, and of |B|; held-out: of the method chosen."],
+        "vectors exist, and of |B|; held-out: of the method chosen."]
+        + ([f"No temperature (temperature = false): "
+            f"{', '.join(s.name for s in cs.unit.sensors if not s.temperature)}. Their b and "
+            "M are constant: no temperature model, no clamp, no temperature flag."]
+           if not all(s.temperature for s in cs.unit.sensors) else []),
         [Table(["sensor", "part", "frame", "method", "calibrated range degC", "samples",
                 "vector residual RMS nT/axis", "|B| residual RMS nT", "held-out RMS nT"],
                rows, "Fit per sensor")])
@@ -268,7 +273,9 @@ def fit_sections(cs) -> list:
         rows = [[ax, pm(b0[i], bs[i])] + [pm(M0[i, j], Ms[i, j]) for j in range(3)]
                 for i, ax in enumerate("xyz")]
         coef.tables.append(Table(["axis", "b nT", "M x", "M y", "M z"], rows,
-                                 f"{s.name} at {float(v['t_ref_C']):.1f} degC (1-sigma)"))
+                                 f"{s.name} at {float(v['t_ref_C']):.1f} degC (1-sigma)"
+                                 if s.temperature else
+                                 f"{s.name}, constant: no temperature (1-sigma)"))
     return [summary, coef]
 
 
@@ -327,6 +334,9 @@ def polynomial_table(cs, name) -> Table:
         rows.append([nm] + vals)
     header = ["coefficient"] + ["A0"] + [f"A{k} per degC" + (f"^{k}" if k > 1 else "")
                                          for k in range(1, K)]
+    if "t_ref_C" not in v:   # a sensor with no temperature
+        return Table(header, rows, f"{name}: constant coefficients (no temperature), with "
+                                   "1-sigma (b in nT, m dimensionless)")
     return Table(header, rows, f"{name}: polynomial coefficients A_k of dT^k, dT = T - "
                                f"{float(v['t_ref_C']):g} degC, with 1-sigma (b in nT/degC^k, "
                                "m in 1/degC^k)")
@@ -423,12 +433,15 @@ class CampaignAnalysis:
             return None
         v = self.cs.sensors[name]
         deg = self.degree(name)
+        # a sensor with no temperature: constant, every sample at dT = 0
+        t_ref, t_lo, t_hi = (float(v["t_ref_C"]), float(v["t_min_C"]), float(v["t_max_C"])) \
+            if "t_ref_C" in v else (0.0, 0.0, 0.0)
         return poly_covariance(S.x, S.T, S.ref, S.norm, degree=deg,
-                               t_range_C=(float(v["t_min_C"]), float(v["t_max_C"])),
+                               t_range_C=(t_lo, t_hi),
                                b_poly=np.asarray(v["b_poly_nT"])[:deg + 1],
                                M_poly=np.asarray(v["M_poly"])[:deg + 1],
                                body_frame=self.body_frame(name),
-                               t_ref_C=float(v["t_ref_C"]), max_rows=MAX_COV_ROWS)
+                               t_ref_C=t_ref, max_rows=MAX_COV_ROWS)
 
     # ---- |B| RMS before / after ---------------------------------------------------------
     def rms_groups(self, name):
@@ -489,6 +502,12 @@ def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) ->
     for name in names:
         v = cs.sensors[name]
         cal = cs.calibration(name)
+        if "t_min_C" not in v:   # no temperature: nothing to draw against it
+            sections.append(Section(f"Temperature dependence: {name}", [
+                f"{name} reports no temperature (temperature = false): its b and M are "
+                "constant, neither clamped nor flagged for temperature."],
+                [polynomial_table(cs, name)]))
+            continue
         t_lo, t_hi = float(v["t_min_C"]), float(v["t_max_C"])
         fits = analysis.level_fits[name]
         LT = np.array([f["temp_C"] for f in fits])
@@ -962,7 +981,8 @@ def fit_summary(cs, coefficients_path, report_path) -> dict:
         sensors[s.name] = {
             "method": info.get("method"), "chosen": st.get("chosen"),
             "degree": st.get("degree"),
-            "calibrated_range_C": [float(v["t_min_C"]), float(v["t_max_C"])],
+            "calibrated_range_C": [float(v["t_min_C"]), float(v["t_max_C"])]
+            if "t_min_C" in v else None,   # None: no temperature, constant model
             "samples_used": st.get("samples_used"),
             "rms_vector_nT": fitst.get("rms_vector_nT"),
             "rms_norm_nT": fitst.get("rms_norm_nT"),

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from generator.flight.chain import ChainSpec
 from generator.flight.tables import (CHECK_ORDER, CONTENT_CHECKS, CRC_BYTES, ERRORS,
-                                     HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS,
+                                     HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_TEMP_RANGE_C,
                                      ORDERED_PAIRS, PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS,
                                      PHYSICAL_LIMITS, PLAUSIBLE_RANGES, SERIAL_CHECKS,
                                      TableStatus)
@@ -123,7 +123,12 @@ def format_doc() -> str:
     a("The bounds are rounded to the unit's float type, as the values are, in the flight "
       "C (one range table per block and order, `<unit>_table.c`) and in the ground "
       "decoder alike. The header temperature range must lie in the `temp` range with "
-      "t_min_C < t_max_C.")
+      "t_min_C < t_max_C. It is the min of t_min_C and the max of t_max_C over the "
+      "sensors that have a temperature; a sensor without one (ICD section 4, "
+      "`temperature = false`) has no t_ref_C, t_min_C, t_max_C blocks and no part in it. "
+      "A unit none of whose sensors has a temperature has a constant model that holds at "
+      f"any temperature: its header range is the whole `temp` range, "
+      f"[{NO_TEMP_RANGE_C[0]:g}, {NO_TEMP_RANGE_C[1]:g}] degC.")
     a("")
     lim = PHYSICAL_LIMITS
     a("## Physical checks")
@@ -208,7 +213,7 @@ def format_doc() -> str:
       "temperature range, finiteness of every value, the plausible range of every value, "
       "every lower limit below its upper limit (`ORDERED_PAIRS`: "
       + ", ".join(f"{lo} < {hi}" for lo, hi in ORDERED_PAIRS) + "), the header "
-      "range equal to the min/max over the sensors (in float32), det M, H a rotation. "
+      "range equal to the min/max over the sensors with a temperature (in float32), det M, H a rotation. "
       f"Codes {first_part} to {first_commit - 1} come from `receive_part`, in that order; "
       f"{first_commit} to {last_commit} from `commit` (nothing staged and missing "
       "parts before the table checks of the reassembled table, the serial mismatch after "

@@ -369,7 +369,10 @@ def base_from_coefficients(cs: CoefficientSet, name: str, degree: int | None = N
     degree = int(min(degree, b.shape[0] - 1))
     K = np.asarray(v["K_nT_per_A"], float) if "K_nT_per_A" in v else None
     H = np.asarray(cs.unit_values.get("H_boom_to_body", np.eye(3)), float)
-    return BaseFit(name, degree, float(v["t_ref_C"]), float(v["t_min_C"]), float(v["t_max_C"]),
+    # a sensor with no temperature: constant, every temperature clamped to dT = 0
+    t_ref, t_lo, t_hi = (float(v["t_ref_C"]), float(v["t_min_C"]), float(v["t_max_C"])) \
+        if "t_ref_C" in v else (0.0, 0.0, 0.0)
+    return BaseFit(name, degree, t_ref, t_lo, t_hi,
                    b[:degree + 1].copy(), M[:degree + 1].copy(), K, H)
 
 
@@ -1329,8 +1332,10 @@ def _recentre(v, o, tr: SensorTrace, m: SensorModel):
     chain (what the blocks in v carry) has the baseline's mean output over the data."""
     S = tr.S_fit
     b = np.asarray(v["b_poly_nT"], float)
-    base = BaseFit(tr.name, b.shape[0] - 1, float(v["t_ref_C"]), float(v["t_min_C"]),
-                   float(v["t_max_C"]), b, np.asarray(v["M_poly"], float),
+    t_ref, t_lo, t_hi = (float(v["t_ref_C"]), float(v["t_min_C"]), float(v["t_max_C"])) \
+        if "t_ref_C" in v else (0.0, 0.0, 0.0)   # no temperature: constant, dT = 0
+    base = BaseFit(tr.name, b.shape[0] - 1, t_ref, t_lo,
+                   t_hi, b, np.asarray(v["M_poly"], float),
                    np.asarray(v["K_nT_per_A"], float) if "K_nT_per_A" in v else None, m.base.H)
     opts = SensorOptions.from_dict(o)
     inits = [ep for cls in fx.CATALOGUE for ep in cls.from_flight(v, opts, S, None)]
