@@ -19,7 +19,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import parts as P
-from generator.io.icd_write import write_telemetry_csv, write_unit_toml
+from generator.io.icd_write import unit_id_from, write_telemetry_csv, write_unit_toml
 
 _TARGET_RE = re.compile(r"[a-z][a-z0-9_]*|[a-z][a-z0-9_]*_[A-Za-z]+")
 _SOURCE_RE = re.compile(r"(.+?)(?::(\d+))?")
@@ -93,7 +93,7 @@ def _read_source(path: Path):
 
 def import_table(path, out_dir, mapping: dict, *, input_unit="uT", part=P.GENERIC,
                  range_nT=None, rate_hz=None, time_scale=1.0, unit_id=None,
-                 as_counts_lsb_nT=None) -> dict:
+                 as_counts_lsb_nT=None, field_nT=None) -> dict:
     """Writes DIR/unit.toml and DIR/<file>.csv; returns their paths."""
     path = Path(path)
     if input_unit not in P.INPUT_UNITS_nT:
@@ -154,8 +154,7 @@ def import_table(path, out_dir, mapping: dict, *, input_unit="uT", part=P.GENERI
             spec["temperature"] = False
         specs.append(spec)
     cols.update(data)                                         # the rest: channels
-    uid = unit_id or ("csv_" + "".join(c if c.isalnum() else "_"
-                                       for c in path.stem.lower()).strip("_")[:40])
+    uid = unit_id or unit_id_from("csv_", path.stem)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"unit": uid, "source": path.name,
@@ -163,6 +162,7 @@ def import_table(path, out_dir, mapping: dict, *, input_unit="uT", part=P.GENERI
                             for t, (s, k) in mapping.items())}
     csv = write_telemetry_csv(out / (path.stem + ".csv"), cols, meta=meta)
     toml = write_unit_toml(out / "unit.toml", uid, specs,
+                           unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None,
                            header=[f"Unit file skeleton written by `magcal import csv` from "
                                    f"{path.name}.",
                                    "Check part, frame and axes; add noise_nT as needed."])

@@ -12,6 +12,16 @@ from pathlib import Path
 import numpy as np
 
 
+UNIT_ID_MAX = 31        # the uplink table header holds the id in 32 bytes (flight/tables.py)
+
+
+def unit_id_from(prefix: str, stem: str) -> str:
+    """A unit id [a-z][a-z0-9_]* of at most UNIT_ID_MAX characters from a file name."""
+    s = "".join(c if c.isalnum() and c.isascii() else "_" for c in stem.lower()).strip("_")
+    s = s[len(prefix):] if s.startswith(prefix) else s
+    return (prefix + s)[:UNIT_ID_MAX].rstrip("_")
+
+
 def _atomic_write(path: Path, text: str) -> Path:
     path = Path(path)
     tmp = path.with_name(path.name + ".part")

@@ -38,7 +38,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import parts as P
-from generator.io.icd_write import write_telemetry_csv, write_unit_toml
+from generator.io.icd_write import unit_id_from, write_telemetry_csv, write_unit_toml
 
 GAUSS_nT = 1e5
 GENERIC_RANGE_nT = 1.6e6           # unknown magnetometer: +-16 G assumed (edit in the TOML)
@@ -269,7 +269,7 @@ def ned_to_body(q_wxyz, v_ned):
     return np.einsum("nji,nj->ni", R, np.asarray(v_ned, float))
 
 
-def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None):
+def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None, position=None):
     """One log -> (sensors: list of TOML dicts, columns: dict, meta: dict)."""
     if reference not in REFERENCES:
         raise InputError(None, f"--reference {reference!r} is not one of {', '.join(REFERENCES)}")
@@ -284,6 +284,8 @@ def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None):
     row[order] = np.arange(len(order))
     t0 = t_us[0]
     cols = {"time_s": (t_us - t0) * 1e-6}
+    if position is not None:                   # the vehicle stood still: one static position
+        cols["position"] = np.full(len(t_us), float(position))
     sensors = []
     start = 0
     for m in mags:
@@ -354,18 +356,17 @@ def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None):
 
 
 def _unit_id(paths) -> str:
-    stem = Path(paths[0]).stem.lower()
-    return "px4_" + "".join(c if c.isalnum() else "_" for c in stem).strip("_")[:40]
+    return unit_id_from("px4_", Path(paths[0]).stem)
 
 
 def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
-               unit_id=None) -> dict:
+               unit_id=None, field_nT=None, position=None) -> dict:
     """`magcal import px4`: writes DIR/unit.toml and DIR/<log>.csv per log. Returns paths."""
     out = Path(out_dir)
     first = None
     results = []
     for p in paths:
-        sensors, cols, meta = convert_log(p, reference=reference,
+        sensors, cols, meta = convert_log(p, reference=reference, position=position,
                                           as_counts_lsb_nT=as_counts_lsb_nT)
         key = [(s["name"], s["part"]) for s in sensors]
         if first is None:
@@ -383,5 +384,6 @@ def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
     header = [f"Unit file skeleton written by `magcal import px4` from {len(paths)} log(s) "
               f"on {_dt.date.today().isoformat()}.",
               "Check part, frame and axes; add noise_nT, [boom], [requirements] as needed."]
-    toml = write_unit_toml(out / "unit.toml", uid, first[1], header=header)
+    toml = write_unit_toml(out / "unit.toml", uid, first[1], header=header,
+                           unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None)
     return {"unit": toml, "data": csvs}

@@ -27,6 +27,9 @@ def add_import_args(p):
                    help="attitude: IGRF field at the GNSS position rotated into the body frame "
                         "by vehicle_attitude (ref_x/y/z_nT, ref_norm_nT); norm: its magnitude "
                         "only; none: no reference (default attitude)")
+    x.add_argument("--static", type=int, default=None, metavar="N",
+                   help="the vehicle stood still: write position = N (ICD static position) "
+                        "on every row")
     c = sub.add_parser("csv", help="a CSV (header line) or HDF5/.mat file in physical units",
                        description="a CSV with a header line, or an HDF5 / MATLAB v7.3 file, "
                                    "in physical units, with a column map")
@@ -53,6 +56,9 @@ def add_import_args(p):
                        help="write integer counts of this size instead of physical units, "
                             "with a constant stand-in temperature where none is reported "
                             "(for flight code that takes counts only)")
+        q.add_argument("--field-nT", type=float, default=None,
+                       help="field magnitude where the recording was made, nT: written as "
+                            "lab_field_nT (the reference of an ellipsoid fit without ref_*)")
         q.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
         q.add_argument("--json", action="store_true",
                        help="print a JSON result on stdout (for scripts)")
@@ -62,12 +68,14 @@ def cmd_import(args):
     progress = Progress(quiet=getattr(args, "quiet", False))
     if args.format == "px4":
         paths = import_px4(args.logs, args.output, reference=args.reference,
-                           as_counts_lsb_nT=args.as_counts, unit_id=args.unit_id)
+                           as_counts_lsb_nT=args.as_counts, unit_id=args.unit_id,
+                           field_nT=args.field_nT, position=args.static)
     else:
         paths = import_table(args.file, args.output, parse_map(args.map),
                              input_unit=args.input, part=args.part, range_nT=args.range_nT,
                              rate_hz=args.rate_hz, time_scale=args.time_scale,
-                             unit_id=args.unit_id, as_counts_lsb_nT=args.as_counts)
+                             unit_id=args.unit_id, as_counts_lsb_nT=args.as_counts,
+                             field_nT=args.field_nT)
     progress(f"wrote {paths['unit']} and {', '.join(str(p) for p in paths['data'])}")
     return 0, {"verb": "import", "exit": 0, "unit": str(paths["unit"]),
                "data": [str(p) for p in paths["data"]]}
