@@ -32,6 +32,9 @@ def parse_map(text: str) -> dict:
         if "=" not in item:
             raise InputError(None, f"--map: {item!r} is not TARGET=SOURCE")
         target, source = (x.strip() for x in item.split("=", 1))
+        if "=" in source:
+            raise InputError(None, f"--map: {item!r} is not TARGET=SOURCE (separate the "
+                                   "pairs with commas)")
         if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", target):
             raise InputError(None, f"--map: target {target!r} is not a column name")
         if target in out:

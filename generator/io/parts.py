@@ -27,6 +27,7 @@ class Resolution:
     range_nT: float
     count_min: int | None = None      # None: the part's
     count_max: int | None = None
+    zero_count: int | None = None     # None: the part's
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,7 @@ def _load() -> dict:
     for name, d in doc.items():
         res = tuple(Resolution(setting=r["setting"], lsb_nT=float(r["lsb_nT"]),
                                range_nT=float(r["range_nT"]), count_min=r.get("count_min"),
-                               count_max=r.get("count_max"))
+                               count_max=r.get("count_max"), zero_count=r.get("zero_count"))
                     for r in d.get("resolution", ()))
         out[name] = Part(name=name, maker=d["maker"], datasheet=d["datasheet"],
                          aliases=tuple(d.get("aliases", ())), count_min=d.get("count_min"),
