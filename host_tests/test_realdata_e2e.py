@@ -369,14 +369,17 @@ def test_px4_ecl_office_import(tmp_path):
 
 @pytest.mark.slow
 def test_px4_ecl_office_trace_generate_apply(tmp_path):
-    """trace (constant field while standing still), then the traced chain's C, bit-exact."""
+    """trace (the field is constant while the vehicle stands still), then the traced
+    chain's C, bit-exact. The chips warm by 5-7 degC during the log and PX4's calibration
+    has no temperature term (README), so trace must name a cause for at least one of the
+    four chips, each named effect lowering the held-out error."""
     import json
     unit, data, (tel,) = _import_ecl(tmp_path, "--as-counts", 1.0)
     _run("trace", tmp_path / "imp" / "unit.toml", *data, "-o", tmp_path / "tr", "-q")
     j = json.loads((tmp_path / "tr" / "trace.json").read_text())
     assert set(j["final"]) == set(unit.sensor_names)
+    assert {e["sensor"] for e in j["effects"]} & {"mag0", "mag1", "mag2", "mag3"}, j["effects"]
     for e in j["effects"]:
         assert e["rms_after_nT"] < e["rms_before_nT"] and e["evidence"]
-    coeffs = tmp_path / "tr" / "coefficients.json"
-    _run("generate", coeffs, "-o", tmp_path / "gen", "--compile", "-q")
-    _run("apply", coeffs, data[0], "-o", tmp_path / "applied.csv", "-q")
+    print({e["sensor"]: (e["effect"], e["explained_by"]) for e in j["effects"]})
+    _generate_apply(tmp_path, tmp_path / "tr" / "coefficients.json", data)

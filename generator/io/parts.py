@@ -10,7 +10,10 @@ The file is data: adding a part is adding a table there (keys documented at its 
 
 from __future__ import annotations
 
-import tomllib
+try:
+    import tomllib
+except ImportError:                      # Python 3.10
+    import tomli as tomllib
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
