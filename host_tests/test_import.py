@@ -293,3 +293,28 @@ def test_csv_import_faults_exit_2(tmp_path, capsys, args, fragment):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and fragment in err[0], err
     assert not (tmp_path / "o" / "unit.toml").exists()
+
+
+def test_px4_attitude_reference_known_answer(tmp_path):
+    """Level and facing east (yaw +90 deg): body x = east, y = south, z = down, so the
+    body-frame reference is (E, -N, D) of the field model at the logged position and time;
+    PX4 v1.14+ GNSS fields (sensor_gps, degrees and metres)."""
+    from generator.io.geomag import field_ned_nT
+    d = _px4_folder(tmp_path)
+    t0 = 1_000_000
+    utc0 = 1_700_000_000_000_000                       # 2023-11-14T22:13:20Z
+    gps = ["timestamp,time_utc_usec,latitude_deg,longitude_deg,altitude_ellipsoid_m,fix_type"]
+    gps += [f"{t0 + 200000 * k},{utc0 + 200000 * k},52.5,13.3,100.0,3" for k in range(6)]
+    (d / "sensor_gps_0.csv").write_text("\n".join(gps) + "\n")
+    c = math.cos(math.radians(45))
+    att = ["timestamp,q[0],q[1],q[2],q[3]"] + [f"{t0 + 10000 * k},{c},0,0,{c}" for k in range(100)]
+    (d / "vehicle_attitude_0.csv").write_text("\n".join(att) + "\n")
+    assert main(["import", "px4", str(d), "-o", str(tmp_path / "o"), "-q"]) == 0
+    u = load_unit(tmp_path / "o" / "unit.toml")
+    tel = read_telemetry(tmp_path / "o" / "log.csv", u)
+    assert tel.meta["utc_at_time_0"] == "2023-11-14T22:13:20.000000Z"
+    ned = field_ned_nT(52.5, 13.3, 0.1, dt.datetime(2023, 11, 14))[0]
+    ref = np.stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1)
+    np.testing.assert_allclose(ref[0], [ned[1], -ned[0], ned[2]], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(tel.columns["ref_norm_nT"][0], np.linalg.norm(ned), atol=1e-4)
+    np.testing.assert_array_equal(tel.columns["lat_deg"][:3], [52.5] * 3)

@@ -202,6 +202,9 @@ def _channels(topics, t_us) -> dict:
             elif topic == "actuator_outputs":
                 for k in range(16):
                     add(f"act{inst}_out{k}", ti, f"output[{k}]")
+            elif topic == "actuator_motors" and inst == 0:       # PX4 v1.14+: -1..1 commands
+                for k in range(12):
+                    add(f"motor{k}_cmd", ti, f"control[{k}]")
             elif topic == "actuator_armed" and inst == 0:
                 add("armed", ti, "armed")
             elif topic == "system_power" and inst == 0:
@@ -214,9 +217,18 @@ def _channels(topics, t_us) -> dict:
     return out
 
 
+def _gps(topics):
+    """vehicle_gps_position (PX4 up to v1.13; v1.14+ also publishes sensor_gps) instance 0."""
+    for name in ("vehicle_gps_position", "sensor_gps"):
+        g = topics.get(name, {}).get(0)
+        if g is not None and len(g.get("timestamp", ())):
+            return g
+    return None
+
+
 def _utc_of(topics, path):
-    """(t_us -> UTC datetime64[us]) from vehicle_gps_position's time_utc_usec."""
-    g = topics.get("vehicle_gps_position", {}).get(0)
+    """(t_us -> UTC datetime64[us]) from the GNSS receiver's time_utc_usec."""
+    g = _gps(topics)
     if g is None or "time_utc_usec" not in g:
         raise InputError(path, "no vehicle_gps_position with time_utc_usec: no UTC time and "
                                "position for the field model (use --reference none)")
@@ -231,16 +243,22 @@ def _utc_of(topics, path):
 
 
 def _position(topics, t_us, path):
-    g = topics["vehicle_gps_position"][0]
+    g = _gps(topics)
     fix = np.asarray(g.get("fix_type", np.full(len(g["timestamp"]), 3)), float) >= 3
     if not fix.any():
-        raise InputError(path, "vehicle_gps_position has no 3D fix: use --reference none")
+        raise InputError(path, "the GNSS receiver has no 3D fix in this log: use --reference none")
     t = np.asarray(g["timestamp"], float)[fix]
-    lat = np.asarray(g["lat"], float)[fix] * 1e-7
-    lon = np.asarray(g["lon"], float)[fix] * 1e-7
-    alt_mm = np.asarray(g.get("alt_ellipsoid", g["alt"]), float)[fix]
-    if not np.any(alt_mm):
-        alt_mm = np.asarray(g["alt"], float)[fix]          # MSL: within ~100 m of the ellipsoid
+    if "latitude_deg" in g:                                 # PX4 v1.14+: degrees and metres
+        lat = np.asarray(g["latitude_deg"], float)[fix]
+        lon = np.asarray(g["longitude_deg"], float)[fix]
+        alt_mm = 1e3 * np.asarray(g.get("altitude_ellipsoid_m", g.get("altitude_msl_m")),
+                                  float)[fix]
+    else:                                                   # 1e-7 deg and mm
+        lat = np.asarray(g["lat"], float)[fix] * 1e-7
+        lon = np.asarray(g["lon"], float)[fix] * 1e-7
+        alt_mm = np.asarray(g.get("alt_ellipsoid", g["alt"]), float)[fix]
+        if not np.any(alt_mm):
+            alt_mm = np.asarray(g["alt"], float)[fix]      # MSL: within ~100 m of the ellipsoid
     inside = (t_us >= t[0]) & (t_us <= t[-1])
     f = lambda v: np.where(inside, np.interp(t_us, t, v), np.nan)
     return f(lat), f(lon), f(alt_mm * 1e-6)
@@ -363,6 +381,11 @@ def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
                unit_id=None, field_nT=None, position=None) -> dict:
     """`magcal import px4`: writes DIR/unit.toml and DIR/<log>.csv per log. Returns paths."""
     out = Path(out_dir)
+    stems = [Path(p).stem for p in paths]
+    dup = sorted({x for x in stems if stems.count(x) > 1})
+    if dup:
+        raise InputError(None, f"two logs named {dup[0]!r}: their CSV files would collide; "
+                               "rename one")
     first = None
     results = []
     for p in paths:
