@@ -335,6 +335,57 @@ def test_px4_pyulog_import(tmp_path):
     assert not {"ref_norm_nT", "lat_deg"} & set(telz.columns)
 
 
+def _import_pyulog_vmag(tmp_path):
+    _run("import", "px4", _need(PYULOG), "--only", "vmag", "--as-counts", 1.0,
+         "-o", tmp_path / "imp", "-q")
+    return _unit_and_data(tmp_path / "imp")
+
+
+def _vector_residual_rms(B, ref):
+    return float(np.sqrt(np.mean(np.sum((B - ref) ** 2, axis=1))))
+
+
+def test_px4_pyulog_vmag_fit_on_the_attitude_reference(tmp_path):
+    """vehicle_magnetometer against IGRF rotated by the estimator's attitude: the vector fit
+    (seed 001) cannot be worse than the identity (a point of its search space)."""
+    from generator.flight.coeffs import CoefficientSet
+    from generator.trace.tracer import calibrated_field64
+    from generator.io.telemetry_csv import preprocess
+    unit, data, (tel,) = _import_pyulog_vmag(tmp_path)
+    assert unit.sensor_names == ("vmag",)
+    _run("fit", tmp_path / "imp" / "unit.toml", *data, "-o", tmp_path / "fit", "-q")
+    cs = CoefficientSet.load(tmp_path / "fit" / "coefficients.json")
+    rows, B = calibrated_field64(cs, tel, "vmag")
+    ref = np.stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1)
+    ok = np.isfinite(ref[rows]).all(axis=1)
+    raw = preprocess(tel, unit)["vmag"].field_frame_nT[rows]
+    assert ok.sum() > 300
+    assert (_vector_residual_rms(B[ok], ref[rows][ok])
+            <= _vector_residual_rms(raw[ok], ref[rows][ok]))
+
+
+@NEEDS_FLIGHT15_ONE_SENSOR
+def test_px4_pyulog_vmag_generate_apply(tmp_path):
+    unit, data, (tel,) = _import_pyulog_vmag(tmp_path)
+    _run("fit", tmp_path / "imp" / "unit.toml", *data, "-o", tmp_path / "fit", "-q")
+    _generate_apply(tmp_path, tmp_path / "fit" / "coefficients.json", data)
+
+
+def test_broad_calibration_transfers_between_undisturbed_trials(tmp_path):
+    """Trials 02 and 07 are the same IMU in the same room: the calibration fitted on 02
+    makes the |B| spread of 07 smaller than 07's raw spread (hard and soft iron are the
+    sensor's, not the trial's)."""
+    from generator.flight.coeffs import CoefficientSet
+    from generator.trace.tracer import calibrated_field64
+    F = _berlin_field_nT()
+    unit, data02, _ = _import_broad(tmp_path / "a", BROAD_TRIALS[0], "--as-counts", 1.0)
+    _run("fit", tmp_path / "a" / "imp" / "unit.toml", *data02, "-o", tmp_path / "fit", "-q")
+    unit7, _, (tel07,) = _import_broad(tmp_path / "b", BROAD_TRIALS[1], "--as-counts", 1.0)
+    cs = CoefficientSet.load(tmp_path / "fit" / "coefficients.json")
+    B = np.linalg.norm(calibrated_field64(cs, tel07, "mag")[1], axis=1)
+    assert np.std(B) / F < _norm_spread(tel07, unit7, F)["mag"]
+
+
 def test_px4_import_bad_input_exit_2(tmp_path, capsys):
     bad = tmp_path / "bad.ulg"
     bad.write_bytes(b"not a ulog at all")
@@ -382,4 +433,14 @@ def test_px4_ecl_office_trace_generate_apply(tmp_path):
     for e in j["effects"]:
         assert e["rms_after_nT"] < e["rms_before_nT"] and e["evidence"]
     print({e["sensor"]: (e["effect"], e["explained_by"]) for e in j["effects"]})
+    _generate_apply(tmp_path, tmp_path / "tr" / "coefficients.json", data)
+
+
+@pytest.mark.slow
+@NEEDS_FLIGHT15_PHYSICAL
+def test_px4_ecl_office_physical_units(tmp_path):
+    """The same log in gauss (input = "G"; vmag without temperature): trace, then the C."""
+    unit, data, (tel,) = _import_ecl(tmp_path)
+    assert all(s.input == "G" for s in unit.sensors) and not unit.sensor("vmag").temperature
+    _run("trace", tmp_path / "imp" / "unit.toml", *data, "-o", tmp_path / "tr", "-q")
     _generate_apply(tmp_path, tmp_path / "tr" / "coefficients.json", data)

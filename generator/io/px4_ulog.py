@@ -287,7 +287,8 @@ def ned_to_body(q_wxyz, v_ned):
     return np.einsum("nji,nj->ni", R, np.asarray(v_ned, float))
 
 
-def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None, position=None):
+def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None, position=None,
+                only=None):
     """One log -> (sensors: list of TOML dicts, columns: dict, meta: dict)."""
     if reference not in REFERENCES:
         raise InputError(None, f"--reference {reference!r} is not one of {', '.join(REFERENCES)}")
@@ -295,6 +296,13 @@ def convert_log(path, *, reference="attitude", as_counts_lsb_nT=None, position=N
     mags = _magnetometers(topics)
     if not mags:
         raise InputError(path, "no sensor_mag or vehicle_magnetometer topic in the log")
+    if only:
+        names = [m.name for m in mags]
+        unknown = [n for n in only if n not in names]
+        if unknown:
+            raise InputError(path, f"--only: no magnetometer {unknown[0]!r} in the log "
+                                   f"(it has {', '.join(names)})")
+        mags = [m for m in mags if m.name in only]
     t_all = np.concatenate([m.t_us for m in mags])
     order = np.argsort(t_all, kind="stable")
     t_us = t_all[order]
@@ -378,7 +386,7 @@ def _unit_id(paths) -> str:
 
 
 def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
-               unit_id=None, field_nT=None, position=None) -> dict:
+               unit_id=None, field_nT=None, position=None, only=None) -> dict:
     """`magcal import px4`: writes DIR/unit.toml and DIR/<log>.csv per log. Returns paths."""
     out = Path(out_dir)
     stems = [Path(p).stem for p in paths]
@@ -390,7 +398,7 @@ def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
     results = []
     for p in paths:
         sensors, cols, meta = convert_log(p, reference=reference, position=position,
-                                          as_counts_lsb_nT=as_counts_lsb_nT)
+                                          as_counts_lsb_nT=as_counts_lsb_nT, only=only)
         key = [(s["name"], s["part"]) for s in sensors]
         if first is None:
             first = (p, sensors, key)

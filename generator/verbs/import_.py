@@ -30,6 +30,8 @@ def add_import_args(p):
     x.add_argument("--static", type=int, default=None, metavar="N",
                    help="the vehicle stood still: write position = N (ICD static position) "
                         "on every row")
+    x.add_argument("--only", default=None, metavar="NAME,...",
+                   help="import only these magnetometers (mag<i>, vmag), e.g. --only vmag")
     c = sub.add_parser("csv", help="a CSV (header line) or HDF5/.mat file in physical units",
                        description="a CSV with a header line, or an HDF5 / MATLAB v7.3 file, "
                                    "in physical units, with a column map")
@@ -69,7 +71,8 @@ def cmd_import(args):
     if args.format == "px4":
         paths = import_px4(args.logs, args.output, reference=args.reference,
                            as_counts_lsb_nT=args.as_counts, unit_id=args.unit_id,
-                           field_nT=args.field_nT, position=args.static)
+                           field_nT=args.field_nT, position=args.static,
+                           only=[n.strip() for n in args.only.split(",")] if args.only else None)
     else:
         paths = import_table(args.file, args.output, parse_map(args.map),
                              input_unit=args.input, part=args.part, range_nT=args.range_nT,
