@@ -249,9 +249,9 @@ def _args_import(p):
     add_import_args(p)
 
 
-ARGS = {"fit": _args_fit, "import": _args_import, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
+ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
         "plan": _args_plan, "check": _args_check, "table": _args_table,
-        "trace": _args_trace}
+        "trace": _args_trace, "import": _args_import}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -318,3 +318,17 @@ def test_px4_attitude_reference_known_answer(tmp_path):
     np.testing.assert_allclose(ref[0], [ned[1], -ned[0], ned[2]], rtol=0, atol=1e-4)
     np.testing.assert_allclose(tel.columns["ref_norm_nT"][0], np.linalg.norm(ned), atol=1e-4)
     np.testing.assert_array_equal(tel.columns["lat_deg"][:3], [52.5] * 3)
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--unit-id", "Bad Id"], "id: 'Bad Id' does not match"),
+    (["--map", "Mag_x=bx,Mag_y=by,Mag_z=bz"], "name: 'Mag' does not match"),
+])
+def test_import_never_leaves_files_the_toolchain_refuses(tmp_path, capsys, args, fragment):
+    src = _write(tmp_path, "rec.csv", "bx,by,bz\n1,2,3\n")
+    base = ["import", "csv", str(src), "--rate-hz", "1", "--part", "LIS3MDL",
+            "--map", "mag_x=bx,mag_y=by,mag_z=bz", "-o", str(tmp_path / "o")]
+    rc = main(base + args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and fragment in err[0] and "nothing written" in err[0], err
+    assert list((tmp_path / "o").iterdir()) == []

@@ -19,7 +19,8 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import parts as P
-from generator.io.icd_write import unit_id_from, write_telemetry_csv, write_unit_toml
+from generator.io.icd_write import (STANDIN_TEMP_C, Staging, unit_id_from, write_telemetry_csv,
+                                     write_unit_toml)
 
 _TARGET_RE = re.compile(r"[a-z][a-z0-9_]*|[a-z][a-z0-9_]*_[A-Za-z]+")
 _SOURCE_RE = re.compile(r"(.+?)(?::(\d+))?")
@@ -149,7 +150,6 @@ def import_table(path, out_dir, mapping: dict, *, input_unit="uT", part=P.GENERI
         if f"{s}_temp_C" in data:
             cols[f"{s}_temp_C"] = data.pop(f"{s}_temp_C")
         elif as_counts_lsb_nT:
-            from generator.io.px4_ulog import STANDIN_TEMP_C
             cols[f"{s}_temp_C"] = np.full(n, STANDIN_TEMP_C)
             spec["_comment"].append(f"no temperature: {s}_temp_C is a constant stand-in "
                                     f"({STANDIN_TEMP_C:g} degC), not a reading")
@@ -158,15 +158,14 @@ def import_table(path, out_dir, mapping: dict, *, input_unit="uT", part=P.GENERI
         specs.append(spec)
     cols.update(data)                                         # the rest: channels
     uid = unit_id or unit_id_from("csv_", path.stem)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     meta = {"unit": uid, "source": path.name,
             "map": ",".join(f"{t}={s}" + (f":{k}" if k is not None else "")
                             for t, (s, k) in mapping.items())}
-    csv = write_telemetry_csv(out / (path.stem + ".csv"), cols, meta=meta)
-    toml = write_unit_toml(out / "unit.toml", uid, specs,
-                           unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None,
-                           header=[f"Unit file skeleton written by `magcal import csv` from "
-                                   f"{path.name}.",
-                                   "Check part, frame and axes; add noise_nT as needed."])
-    return {"unit": toml, "data": [csv]}
+    with Staging(out_dir) as st:
+        csv = write_telemetry_csv(st.dir / (path.stem + ".csv"), cols, meta=meta)
+        write_unit_toml(st.dir / "unit.toml", uid, specs,
+                        unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None,
+                        header=[f"Unit file skeleton written by `magcal import csv` from "
+                                f"{path.name}.",
+                                "Check part, frame and axes; add noise_nT as needed."])
+        return st.commit("unit.toml", [csv.name])

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 
+STANDIN_TEMP_C = 20.0   # --as-counts: the constant temperature of a sensor that reports none
 UNIT_ID_MAX = 31        # the uplink table header holds the id in 32 bytes (flight/tables.py)
 
 
@@ -20,6 +21,49 @@ def unit_id_from(prefix: str, stem: str) -> str:
     s = "".join(c if c.isalnum() and c.isascii() else "_" for c in stem.lower()).strip("_")
     s = s[len(prefix):] if s.startswith(prefix) else s
     return (prefix + s)[:UNIT_ID_MAX].rstrip("_")
+
+
+class Staging:
+    """Write an import's files into DIR/.import-<pid>/, check that the toolchain reads them
+    (unit file and every telemetry file), then move them into DIR. On any fault nothing
+    is left in DIR and the InputError names the fault."""
+
+    def __init__(self, out_dir):
+        self.out = Path(out_dir)
+        self.dir = self.out / f".import-{os.getpid()}"
+
+    def __enter__(self):
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.dir.mkdir(exist_ok=True)
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.dir.glob("*"):
+            p.unlink()
+        self.dir.rmdir()
+        return False
+
+    def commit(self, unit_name: str, data_names: list) -> dict:
+        from generator.io.telemetry_csv import read_telemetry
+        from generator.io.unitfile import load_unit
+
+        from generator.errors import InputError
+        try:
+            unit = load_unit(self.dir / unit_name)
+            for n in data_names:
+                read_telemetry(self.dir / n, unit)
+        except InputError as e:
+            where = Path(e.path).name if e.path else ""
+            line = f":{e.line}" if e.line is not None else ""
+            col = f" column '{e.column}':" if e.column is not None else ""
+            raise InputError(None, f"the imported {where}{line} would not load:{col} "
+                                   f"{e.message} (check --unit-id and the --map names); "
+                                   "nothing written") from None
+        moved = {"unit": self.out / unit_name, "data": [self.out / n for n in data_names]}
+        for n in data_names:
+            os.replace(self.dir / n, self.out / n)
+        os.replace(self.dir / unit_name, self.out / unit_name)
+        return moved
 
 
 def _atomic_write(path: Path, text: str) -> Path:

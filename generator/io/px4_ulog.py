@@ -38,11 +38,11 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import parts as P
-from generator.io.icd_write import unit_id_from, write_telemetry_csv, write_unit_toml
+from generator.io.icd_write import (STANDIN_TEMP_C, Staging, unit_id_from, write_telemetry_csv,
+                                     write_unit_toml)
 
 GAUSS_nT = 1e5
 GENERIC_RANGE_nT = 1.6e6           # unknown magnetometer: +-16 G assumed (edit in the TOML)
-STANDIN_TEMP_C = 20.0
 REFERENCES = ("attitude", "norm", "none")
 
 # PX4 src/drivers/drv_sensor.h: DRV_MAG_DEVTYPE_* -> catalogue part
@@ -388,7 +388,6 @@ def _unit_id(paths) -> str:
 def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
                unit_id=None, field_nT=None, position=None, only=None) -> dict:
     """`magcal import px4`: writes DIR/unit.toml and DIR/<log>.csv per log. Returns paths."""
-    out = Path(out_dir)
     stems = [Path(p).stem for p in paths]
     dup = sorted({x for x in stems if stems.count(x) > 1})
     if dup:
@@ -407,14 +406,15 @@ def import_px4(paths, out_dir, *, reference="attitude", as_counts_lsb_nT=None,
                                 f"{first[2]}: import the logs of one vehicle setup together")
         results.append((p, cols, meta))
     uid = unit_id or _unit_id(paths)
-    out.mkdir(parents=True, exist_ok=True)
-    csvs = []
-    for p, cols, meta in results:
-        meta = {"unit": uid, **meta}
-        csvs.append(write_telemetry_csv(out / (Path(p).stem + ".csv"), cols, meta=meta))
     header = [f"Unit file skeleton written by `magcal import px4` from {len(paths)} log(s) "
               f"on {_dt.date.today().isoformat()}.",
               "Check part, frame and axes; add noise_nT, [boom], [requirements] as needed."]
-    toml = write_unit_toml(out / "unit.toml", uid, first[1], header=header,
-                           unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None)
-    return {"unit": toml, "data": csvs}
+    with Staging(out_dir) as st:
+        names = []
+        for p, cols, meta in results:
+            meta = {"unit": uid, **meta}
+            names.append(write_telemetry_csv(st.dir / (Path(p).stem + ".csv"), cols,
+                                             meta=meta).name)
+        write_unit_toml(st.dir / "unit.toml", uid, first[1], header=header,
+                        unit_keys={"lab_field_nT": float(field_nT)} if field_nT else None)
+        return st.commit("unit.toml", names)
