@@ -235,9 +235,23 @@ def _args_trace(p):
     add_trace_args(p)
 
 
+@verb("import", "recordings from elsewhere (PX4 logs, CSV/HDF5 in physical units) -> "
+                "unit TOML skeleton and ICD telemetry CSV")
+def cmd_import(args):
+    from generator.verbs.import_ import cmd_import as run
+
+    return run(args)
+
+
+def _args_import(p):
+    from generator.verbs.import_ import add_import_args
+
+    add_import_args(p)
+
+
 ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
         "plan": _args_plan, "check": _args_check, "table": _args_table,
-        "trace": _args_trace}
+        "trace": _args_trace, "import": _args_import}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -248,9 +262,10 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (fn, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         ARGS[name](p)
-        p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-        p.add_argument("--json", action="store_true",
-                       help="print a JSON result on stdout (for scripts)")
+        if name != "import":           # its sub-commands carry them
+            p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+            p.add_argument("--json", action="store_true",
+                           help="print a JSON result on stdout (for scripts)")
         p.set_defaults(func=fn)
     return parser
 

@@ -110,8 +110,9 @@ UNIT_FAULTS = {
                    "[unit]: float: 'float16' is not one of float32, float64", False),
     "name pattern": ('name = "mpu1"', 'name = "MPU 1"', "[[sensor]] #2: name: 'MPU 1' does not match", True),
     "name missing": ('name = "mpu1"\n', '', "[[sensor]] #2: name: missing", False),
-    "unknown part": ('part = "MPU-9255"', 'part = "HMC5883L"',
-                     "[[sensor]] #2 'mpu1': part: 'HMC5883L' is not one of MMC5883MA, MPU-9255", True),
+    "unknown part": ('part = "MPU-9255"', 'part = "HMC5884"',
+                     "[[sensor]] #2 'mpu1': part: 'HMC5884' is not a known part; known parts: "
+                     "MMC5883MA, MMC5983MA, MPU-9255 (MPU-9250, AK8963)", True),
     "unknown frame": ('frame = "boom"', 'frame = "deck"',
                       "[[sensor]] #3 'mpu3': frame: 'deck' is not one of body, boom", True),
     "axes token": ('axes = ["-y", "-z", "+x"]', 'axes = ["-y", "-z", "+w"]',

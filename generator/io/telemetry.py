@@ -50,3 +50,11 @@ class SensorData:
     chip_offset_sensor_nT: np.ndarray | None = None  # (N, 3) SET/RESET sensors: (set+reset)/2 - zero, sensor axes
     counts: dict = field(default_factory=dict)        # raw count columns used, by column name
     missing_columns: tuple = ()        # needed columns absent from the file (require_sensors=False)
+    has_temperature: bool = True       # False (temperature = false): temp_C is all NaN
+
+    def temp_or(self, fill_C: float) -> np.ndarray:
+        """The reported temperature; for a sensor without one (has_temperature False), the
+        constant fill_C: the temperature-independent model's stand-in, never a reading."""
+        if self.has_temperature:
+            return self.temp_C
+        return np.full_like(np.asarray(self.temp_C, dtype=np.float64), float(fill_C))

@@ -62,6 +62,7 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     _check_time(path, columns[TIME_COLUMN], line_numbers)
     _check_counts(path, columns, line_numbers, unit)
     _check_position(path, columns, line_numbers)
+    _check_geo(path, columns, line_numbers)
     return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
                      meta=meta, comments=comments)
 
@@ -128,7 +129,7 @@ def _check_header(path, header: str, line: int, unit, require_sensors: bool) -> 
                          line=line, column=TIME_COLUMN)
     if require_sensors:
         for spec in unit.sensors:
-            needed = (*spec.count_columns, spec.temp_column)
+            needed = spec.required_columns       # no <s>_temp_C when temperature = false
             absent = [c for c in needed if c not in first_at]
             if absent:
                 kind = "with SET/RESET" if spec.set_reset else "without SET/RESET"
@@ -211,8 +212,12 @@ def _check_time(path, time_s: np.ndarray, line_numbers: np.ndarray) -> None:
 
 
 def _check_counts(path, columns: dict, line_numbers: np.ndarray, unit) -> None:
-    """Count cells are whole numbers inside the part's raw range (at the rails = saturated, allowed)."""
+    """Count cells are whole numbers inside the part's raw range (at the rails = saturated,
+    allowed). Sensors with a physical input (ICD section 4) hold real numbers: any finite
+    value is accepted here; preprocess flags those at or beyond the full scale."""
     for spec in unit.sensors:
+        if not spec.counts:
+            continue
         lo, hi = spec.count_min, spec.count_max
         for name in spec.count_columns:
             v = columns.get(name)
@@ -244,6 +249,23 @@ def _check_position(path, columns: dict, line_numbers: np.ndarray) -> None:
                          line=int(line_numbers[i]), column=POSITION_COLUMN)
 
 
+# ICD section 4 position columns: kept as channels like any other, checked for range
+GEO_LIMITS = {"lat_deg": (-90.0, 90.0), "lon_deg": (-180.0, 360.0),
+              "alt_km": (-1.0, 100000.0), "kp_index": (0.0, 9.0)}
+
+
+def _check_geo(path, columns: dict, line_numbers: np.ndarray) -> None:
+    for name, (lo, hi) in GEO_LIMITS.items():
+        v = columns.get(name)
+        if v is None:
+            continue
+        bad = np.flatnonzero(~np.isnan(v) & ((v < lo) | (v > hi)))
+        if bad.size:
+            i = bad[0]
+            raise InputError(path, f"{_fmt(v[i])} is outside [{_fmt(lo)}, {_fmt(hi)}]",
+                             line=int(line_numbers[i]), column=name)
+
+
 def _fmt(x) -> str:
     x = float(x)
     return str(int(x)) if x.is_integer() and abs(x) < 1e15 else repr(x)
@@ -256,6 +278,17 @@ def preprocess(tel: Telemetry, unit) -> dict:
 
     Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
     the part's rail (saturated); these are counted in n_missing / n_saturated, never used.
+
+    Physical inputs (ICD section 4, input = nT | uT | mG | G): field = value * nT per unit
+    (SensorSpec.nT_per_input; the unit reader stores it as lsb_nT with zero_count 0, so the
+    formulas above hold as written); saturated where any axis reaches the sensor's full
+    scale |value| * factor >= SensorSpec.full_scale_nT (the unit file's range_nT, else the
+    catalogue's range of the part).
+
+    temperature = false: SensorData.temp_C is all NaN and has_temperature is False; a
+    missing temperature does not make the sample unusable. Fits that model temperature
+    take SensorData.temp_or(t_C): the reported temperature, or the constant t_C for a
+    sensor without one (a temperature-independent model).
     """
     return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors}
 
@@ -263,14 +296,20 @@ def preprocess(tel: Telemetry, unit) -> dict:
 def _sensor_data(tel: Telemetry, spec) -> SensorData:
     absent_cells = np.full(tel.n, np.nan)
     counts = {c: tel.columns[c] for c in spec.count_columns if c in tel.columns}
-    missing_columns = tuple(c for c in (*spec.count_columns, spec.temp_column)
-                            if c not in tel.columns)
+    missing_columns = tuple(c for c in spec.required_columns if c not in tel.columns)
     raw = np.column_stack([np.asarray(tel.columns.get(c, absent_cells), dtype=np.float64)
                            for c in spec.count_columns])          # (N, 3) or (N, 6) counts
-    temp_C = np.array(tel.columns.get(spec.temp_column, absent_cells), dtype=np.float64)
-
-    missing = ~np.isfinite(raw).all(axis=1) | ~np.isfinite(temp_C)
-    at_rail = ((raw <= spec.count_min) | (raw >= spec.count_max)).any(axis=1)
+    if spec.temperature:
+        temp_C = np.array(tel.columns.get(spec.temp_column, absent_cells), dtype=np.float64)
+        missing = ~np.isfinite(raw).all(axis=1) | ~np.isfinite(temp_C)
+    else:
+        temp_C = np.full(tel.n, np.nan)          # documented: no temperature, not missing
+        missing = ~np.isfinite(raw).all(axis=1)
+    if spec.counts:
+        at_rail = ((raw <= spec.count_min) | (raw >= spec.count_max)).any(axis=1)
+    else:
+        with np.errstate(invalid="ignore"):
+            at_rail = (np.abs(raw) * spec.nT_per_input >= spec.full_scale_nT).any(axis=1)
     saturated = at_rail & ~missing              # missing and saturated counts once, as missing
     usable = ~missing & ~saturated
 
@@ -291,5 +330,5 @@ def _sensor_data(tel: Telemetry, spec) -> SensorData:
         name=spec.name, field_frame_nT=field_frame_nT, temp_C=temp_C, usable=usable,
         n_missing=int(missing.sum()), n_saturated=int(saturated.sum()),
         chip_offset_sensor_nT=chip_offset_sensor_nT, counts=counts,
-        missing_columns=missing_columns,
+        missing_columns=missing_columns, has_temperature=spec.temperature,
     )

@@ -8,12 +8,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-# Parts the toolchain knows. count_min/count_max: the raw output range; a reading at
-# or beyond either end is saturated (AK8963 reports +-32760 at full scale, the
-# MMC5883MA is a 16-bit unsigned output).
+from generator.io import parts as _parts
+
+# Parts the toolchain knows: the catalogue generator/io/parts.toml (generator.io.parts),
+# by name and alias. count_min/count_max: the raw output range of the part's default
+# setting (None for "generic": from the unit file's range_nT); a reading at or beyond
+# either end is saturated. SensorSpec.count_min/max give one sensor's range.
 PARTS = {
-    "MMC5883MA": {"count_min": 0, "count_max": 65535, "set_reset_capable": True},
-    "MPU-9255": {"count_min": -32760, "count_max": 32760, "set_reset_capable": False},
+    name: {"count_min": p.count_min, "count_max": p.count_max,
+           "set_reset_capable": p.set_reset, "temperature": p.temperature,
+           "range_nT": p.range_nT, "generic": p.generic}
+    for name, p in _parts.catalogue().items()
 }
 
 FRAMES = ("body", "boom")
@@ -26,8 +31,8 @@ class SensorSpec:
     part: str                 # a key of PARTS
     frame: str                # "body" or "boom"
     axes: tuple               # e.g. ("+z", "+y", "+x"): frame axes X, Y, Z are these sensor axes
-    lsb_nT: float             # nT per count
-    zero_count: int           # count at zero field
+    lsb_nT: float             # nT per count (input = "counts"; else not used, 1.0)
+    zero_count: int           # count at zero field (input = "counts"; else not used, 0)
     set_reset: bool           # telemetry holds SET and RESET outputs
     noise_nT: float | None = None
     # ICD section 4 (version 2), all optional:
@@ -37,11 +42,33 @@ class SensorSpec:
 
     @property
     def count_min(self) -> int:
-        return PARTS[self.part]["count_min"]
+        return self._count_range()[0]
 
     @property
     def count_max(self) -> int:
-        return PARTS[self.part]["count_max"]
+        return self._count_range()[1]
+
+    def _count_range(self) -> tuple[int, int]:
+        return _parts.count_range(_parts.part(self.part), self.lsb_nT, self.zero_count,
+                                  self.range_nT)
+
+    @property
+    def counts(self) -> bool:
+        """True: the <s>_x.. columns hold integer counts (ICD section 1); False: real
+        numbers in a physical unit (ICD section 4)."""
+        return self.input == "counts"
+
+    @property
+    def nT_per_input(self) -> float:
+        """nT per unit of the <s>_x.. columns: lsb_nT for counts, else the unit's factor."""
+        return float(self.lsb_nT) if self.counts else _parts.INPUT_UNITS_nT[self.input]
+
+    @property
+    def full_scale_nT(self) -> float:
+        """Full-scale field per axis, nT: the unit file's range_nT, else the part's
+        setting matched by lsb_nT, else the part's widest range."""
+        return _parts.sensor_range_nT(_parts.part(self.part),
+                                      self.lsb_nT if self.counts else None, self.range_nT)
 
     @property
     def count_columns(self) -> tuple:
@@ -54,6 +81,12 @@ class SensorSpec:
     @property
     def temp_column(self) -> str:
         return f"{self.name}_temp_C"
+
+    @property
+    def required_columns(self) -> tuple:
+        """Columns a telemetry file must hold for this sensor: the field (or count)
+        columns, and <s>_temp_C unless temperature = false."""
+        return (*self.count_columns, *((self.temp_column,) if self.temperature else ()))
 
     def axis_map(self) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
         """(index, sign): frame[k] = sign[k] * sensor[index[k]] (seed 000, eq. 1)."""

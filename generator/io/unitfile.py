@@ -22,7 +22,8 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:                                   # Python 3.10: the same parser, as a package
     import tomli as tomllib
-from generator.io.unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
+from generator.io import parts as P
+from generator.io.unit import FLOAT_TYPES, FRAMES, SensorSpec, Unit
 
 NAME_PATTERN = "[a-z][a-z0-9_]*"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -30,7 +31,11 @@ AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 UNIT_KEYS = ("id", "lab_field_nT", "float")
 BOOM_KEYS = ("reference",)
-SENSOR_KEYS = ("name", "part", "frame", "axes", "lsb_nT", "zero_count", "set_reset", "noise_nT")
+SENSOR_KEYS = ("name", "part", "frame", "axes", "lsb_nT", "zero_count", "set_reset", "noise_nT",
+               "input", "temperature", "range_nT")                 # the last three: ICD section 4
+ORBIT_KEYS = ("epoch_utc", "tle")
+REQUIREMENT_KEYS = ("field_error_nT", "angle_deg")
+_EPOCH_RE = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?(Z|[+-]\d{2}:\d{2})")
 
 _TABLE_HEADER_RE = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_-]+)\s*\]\]?\s*(#.*)?$")
 _KEY_RE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
@@ -42,8 +47,10 @@ def load_unit(path) -> Unit:
     """Read and validate a unit TOML file (ICD section 1).
 
     Raises generator.errors.InputError naming the file (and the key / [[sensor]] index)
-    on any fault: TOML syntax, missing key, bad id or name pattern, unknown part,
-    unknown frame, axes that are not a signed permutation of x, y, z, non-positive
+    on any fault: TOML syntax, missing key, bad id or name pattern, unknown part (the
+    message lists the catalogue, generator/io/parts.toml), unknown frame, input not one of
+    counts/nT/uT/mG/G, generic part without range_nT, [orbit] epoch_utc / tle and
+    [requirements] values malformed (ICD section 4), axes that are not a signed permutation of x, y, z, non-positive
     lsb_nT, set_reset on a part that cannot, duplicate sensor names, boom.reference
     that is not a body-frame sensor, float not in FLOAT_TYPES.
     """
@@ -111,9 +118,19 @@ def load_unit(path) -> Unit:
                                            f"body-frame sensor (one of {', '.join(body) or 'none'})")
         boom_tbl.keep_unknown(BOOM_KEYS, extra, "boom")
 
+    orbit = _read_orbit(_Table.top(path, lines, doc, "orbit", required=False), extra)
+    requirements = _read_requirements(
+        _Table.top(path, lines, doc, "requirements", required=False), extra)
+
     for key, value in doc.items():
-        if key not in ("unit", "boom", "sensor"):
+        if key not in ("unit", "boom", "sensor", "orbit", "requirements"):
             extra[key] = value
+    # ICD section 4 tables, validated, in plain form (the Unit dataclass is shared and
+    # frozen; Unit.extra carries them to whoever needs them: orbit work, the report)
+    if orbit:
+        extra["orbit"] = orbit
+    if requirements:
+        extra["requirements"] = requirements
 
     return Unit(id=unit_id, sensors=tuple(sensors), lab_field_nT=lab_field_nT,
                 float_type=float_type, boom_reference=boom_reference, path=str(path), extra=extra)
@@ -122,22 +139,89 @@ def load_unit(path) -> Unit:
 def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     name = t.name("name")
     t.label = f"[[sensor]] #{t.index} '{name}'"
-    part = t.choice("part", tuple(PARTS))
+    part_name = t.get("part")
+    part = P.find(part_name)
+    if part is None:
+        t.fail("part", f"{part_name!r} is not a known part; known parts: {P.known_text()} "
+                       "(\"generic\" needs range_nT)")
     frame = t.choice("frame", FRAMES)
     axes = _read_axes(t)
-    lsb_nT = t.number("lsb_nT", positive=True)
-    zero_count = t.integer("zero_count")
-    lo, hi = PARTS[part]["count_min"], PARTS[part]["count_max"]
-    if not lo < zero_count < hi:
-        t.fail("zero_count", f"{zero_count} is not inside the {part} raw range ({lo}, {hi})")
+    inp = t.choice("input", P.INPUTS, default="counts")
+    range_nT = t.number("range_nT", required=part.generic, positive=True)
+    temperature = t.boolean("temperature", default=True)
+    if inp == "counts":
+        lsb_nT = t.number("lsb_nT", positive=True)
+        zero_count = t.integer("zero_count")
+        lo, hi = P.count_range(part, lsb_nT, zero_count, range_nT)
+        if not lo < zero_count < hi:
+            t.fail("zero_count", f"{zero_count} is not inside the {part_name} raw range "
+                                 f"({lo}, {hi})")
+    else:
+        # ICD section 4: the columns hold real numbers in `input`; lsb_nT and zero_count
+        # are not used (written, they are ignored). The spec carries the unit's nT factor
+        # as lsb_nT and 0 as zero_count, so (value - zero_count) * lsb_nT is still the field.
+        if "lsb_nT" in t.d:
+            t.number("lsb_nT", positive=True)          # a present key is still well-formed
+        lsb_nT, zero_count = P.INPUT_UNITS_nT[inp], 0
     set_reset = t.boolean("set_reset", default=False)
-    if set_reset and not PARTS[part]["set_reset_capable"]:
-        t.fail("set_reset", f"the {part} has no SET/RESET; set_reset must be false")
+    if set_reset and not part.set_reset:
+        t.fail("set_reset", f"the {part_name} has no SET/RESET; set_reset must be false")
     noise_nT = t.number("noise_nT", required=False, positive=True)
     unknown = {k: v for k, v in t.d.items() if k not in SENSOR_KEYS}
-    spec = SensorSpec(name=name, part=part, frame=frame, axes=axes, lsb_nT=lsb_nT,
-                      zero_count=zero_count, set_reset=set_reset, noise_nT=noise_nT)
+    spec = SensorSpec(name=name, part=part_name, frame=frame, axes=axes, lsb_nT=lsb_nT,
+                      zero_count=zero_count, set_reset=set_reset, noise_nT=noise_nT,
+                      input=inp, temperature=temperature, range_nT=range_nT)
     return spec, unknown
+
+
+def _read_orbit(t, extra) -> dict:
+    """[orbit] (ICD section 4): epoch_utc "YYYY-MM-DDThh:mm:ss[.f](Z|+hh:mm)", optional
+    tle = [line 1, line 2] (69 characters each, starting "1 " and "2 ", checksums right)."""
+    if t is None:
+        return {}
+    out = {}
+    epoch = t.get("epoch_utc")
+    if not isinstance(epoch, str) or not _EPOCH_RE.fullmatch(epoch):
+        t.fail("epoch_utc", f"{epoch!r} is not a UTC time written like \"2026-03-01T00:00:00Z\"")
+    from datetime import datetime
+    try:
+        datetime.fromisoformat(epoch.replace("Z", "+00:00"))
+    except ValueError as e:
+        t.fail("epoch_utc", f"{epoch!r}: {e}")
+    out["epoch_utc"] = epoch
+    tle = t.get("tle", required=False)
+    if tle is not None:
+        if (not isinstance(tle, list) or len(tle) != 2
+                or not all(isinstance(x, str) for x in tle)):
+            t.fail("tle", "must be a list of the two lines of a two-line element set")
+        for k, line in enumerate(tle, start=1):
+            if len(line) != 69 or not line.startswith(f"{k} "):
+                t.fail("tle", f"line {k} must be 69 characters starting \"{k} \" "
+                              f"(it has {len(line)}: {line[:20]!r}...)")
+            if _tle_checksum(line) != line[68]:
+                t.fail("tle", f"line {k}: checksum {line[68]!r}, the line sums to "
+                              f"{_tle_checksum(line)!r}")
+        out["tle"] = list(tle)
+    t.keep_unknown(ORBIT_KEYS, extra, "orbit_unknown")
+    return out
+
+
+def _tle_checksum(line: str) -> str:
+    """Last digit of the sum of the first 68 characters' digits, '-' counting 1."""
+    return str(sum(int(c) if c.isdigit() else (1 if c == "-" else 0) for c in line[:68]) % 10)
+
+
+def _read_requirements(t, extra) -> dict:
+    """[requirements] (ICD section 4): field_error_nT, angle_deg, both positive, optional."""
+    if t is None:
+        return {}
+    out = {}
+    for key in REQUIREMENT_KEYS:
+        v = t.number(key, required=False, positive=True)
+        if v is not None:
+            out[key] = v
+    t.keep_unknown(REQUIREMENT_KEYS, extra, "requirements_unknown")
+    return out
 
 
 def _read_axes(t: "_Table") -> tuple:
@@ -159,7 +243,7 @@ def _check_unique_names_and_columns(path, lines, sensors) -> None:
         line = lines.key("sensor", i, "name")
         if s.name in (o.name for o in sensors[: i - 1]):
             raise InputError(path, f"{where}: name: duplicate sensor name '{s.name}'", line=line)
-        for col in (*s.count_columns, s.temp_column):
+        for col in (*s.count_columns, s.temp_column):   # temp even when temperature = false
             if col in owner:
                 raise InputError(path, f"{where}: name: telemetry column '{col}' would also "
                                        f"belong to sensor '{owner[col]}'", line=line)
