@@ -370,7 +370,7 @@ def test_physical_saturation_at_full_scale():
 
 
 def test_physical_input_needs_a_range():
-    s = SensorSpec("x", "MPU-9255", "body", ("+x", "+y", "+z"), 1.0, 0, False, input="mG")
+    s = SensorSpec("x", "generic", "body", ("+x", "+y", "+z"), 1.0, 0, False, input="mG")
     with pytest.raises(ValueError, match="range_nT"):
         ChainSpec(Unit("norange", (s,)))
     s = SensorSpec("x", "generic", "body", ("+x", "+y", "+z"), 1.0, 0, False, input="kG",

@@ -9,7 +9,7 @@ The ICD telemetry reader (io/telemetry_csv.py) still asks every sensor for a tem
 column and whole counts in its part's range; it is being extended for ICD section 4 in
 another branch. Until then the apply tests here read the file with the reader's parser
 and time checks but without its per-sensor checks (`_read_without_sensor_checks`), and
-`test_apply_command_reads_physical_telemetry` (strict xfail) runs the real command.
+`test_apply_command_reads_physical_telemetry` runs the real command.
 """
 
 from __future__ import annotations
@@ -208,9 +208,6 @@ def test_mixed_calls_on_a_physical_set_reset_sensor(tmp_path):
                                        | chain.STATUS_SATURATED))
 
 
-@pytest.mark.xfail(strict=True, reason="the ICD telemetry reader (io/telemetry_csv.py) "
-                   "still requires <s>_temp_C of every sensor and whole counts of a known "
-                   "part; extended for ICD section 4 in another branch (reported)")
 def test_apply_command_reads_physical_telemetry(tmp_path):
     """`magcal apply` itself, with the real reader: same output as above."""
     cs = _coeffs()
