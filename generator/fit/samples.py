@@ -1,0 +1,151 @@
+"""What the fits see of one sensor: per-file FitData, gathered into _Samples (usable
+samples of all files, cross-validation groups, constant-temperature segments), with the
+temperature screen (impossible and outlying temperatures rejected and counted).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from generator.errors import InputError
+from generator.fit.segments import find_segments
+
+CV_FOLDS = 4
+
+
+@dataclass
+class FitData:
+    """One file's samples of one sensor, ready to fit (arrays of the file's length)."""
+    source: str
+    time_s: np.ndarray
+    field_frame_nT: np.ndarray
+    temp_C: np.ndarray
+    usable: np.ndarray
+    position: np.ndarray | None = None
+    ref_body_nT: np.ndarray | None = None     # (N, 3), NaN where unknown
+    ref_norm_nT: np.ndarray | None = None     # (N,), NaN where unknown
+    coil_A: np.ndarray | None = None          # (N, n_coils)
+    reference_kind: str = ""                  # description for stats
+
+
+def fit_data_from(tel, sensor_data, unit) -> FitData:
+    """Collect what one telemetry file carries for one sensor (see module docstring)."""
+    n = tel.n
+    ref = None
+    if tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT"):
+        ref = np.stack([tel.columns[f"ref_{c}_nT"] for c in "xyz"], axis=1).astype(float)
+    norm = tel.get("ref_norm_nT")
+    kind = []
+    if ref is not None:
+        kind.append("ref vectors")
+    if norm is not None:
+        norm = np.asarray(norm, float)
+        kind.append("ref_norm_nT")
+    elif unit.lab_field_nT is not None:
+        norm = np.full(n, float(unit.lab_field_nT))
+        kind.append("lab_field_nT")
+    coils = [c for c in ("coil_x_A", "coil_y_A", "coil_z_A") if c in tel.columns]
+    coil = np.stack([tel.columns[c] for c in coils], axis=1).astype(float) if coils else None
+    pos = tel.get("position")
+    return FitData(source=tel.path, time_s=np.asarray(tel.time_s, float),
+                   field_frame_nT=np.asarray(sensor_data.field_frame_nT, float),
+                   temp_C=np.asarray(sensor_data.temp_C, float),
+                   usable=np.asarray(sensor_data.usable, bool),
+                   position=None if pos is None else np.asarray(pos, float),
+                   ref_body_nT=ref, ref_norm_nT=norm, coil_A=coil,
+                   reference_kind=" + ".join(kind) or "none")
+
+
+@dataclass
+class _Samples:
+    """Usable samples of one sensor over all files, concatenated."""
+    x: np.ndarray            # (N, 3) field
+    T: np.ndarray            # (N,) reported temperature
+    ref: np.ndarray          # (N, 3) reference vector (NaN where none)
+    norm: np.ndarray         # (N,) reference magnitude
+    is_vec: np.ndarray       # (N,) bool
+    group: np.ndarray        # (N,) int: cross-validation group
+    segments: list = field(default_factory=list)   # Segment with index into these arrays
+    time_s: np.ndarray | None = None                 # (N,) sample time in its file
+
+    def subset(self, mask):
+        return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
+                        self.is_vec[mask], self.group[mask],
+                        time_s=None if self.time_s is None else self.time_s[mask])
+
+    @property
+    def n(self):
+        return len(self.T)
+
+
+def _gather(name, datas, notes, per_file):
+    xs, Ts, refs, norms, vecs, groups, segs, times = [], [], [], [], [], [], [], []
+    offset = 0
+    gbase = 0
+    for d in datas:
+        n = len(d.time_s)
+        use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
+        n_unusable = int((~use).sum())
+        coil_on = np.zeros(n, bool)
+        if d.coil_A is not None:
+            coil_on = np.any(np.nan_to_num(d.coil_A, nan=0.0) != 0, axis=1)
+        n_coil = int((use & coil_on).sum())
+        use &= ~coil_on
+        ref = d.ref_body_nT if d.ref_body_nT is not None else np.full((n, 3), np.nan)
+        has_vec = np.isfinite(ref).all(axis=1)
+        norm = d.ref_norm_nT if d.ref_norm_nT is not None else np.full(n, np.nan)
+        norm = np.where(has_vec, np.linalg.norm(np.nan_to_num(ref), axis=1), norm)
+        has_ref = has_vec | (np.isfinite(norm) & (norm > 0))
+        n_noref = int((use & ~has_ref).sum())
+        use &= has_ref
+        per_file.append({"source": d.source, "samples": int(n), "used": int(use.sum()),
+                         "reference": d.reference_kind, "unusable": n_unusable,
+                         "coil_current_excluded": n_coil, "no_reference": n_noref})
+        if n_coil:
+            notes.append(f"{d.source}: {n_coil} samples with non-zero coil current left out "
+                         "from the temperature fit (the coil coupling K is fitted from them separately)")
+        if n_noref:
+            notes.append(f"{d.source}: {n_noref} samples without any field reference unused")
+        keep = np.nonzero(use)[0]
+        # cross-validation groups: static positions, else four contiguous time blocks
+        pos = d.position
+        g = np.zeros(n, int)
+        by_position = (pos is not None
+                       and len(np.unique(pos[use & (np.nan_to_num(pos) > 0)])) > 1)
+        per_file[-1]["holdout_groups"] = "static positions" if by_position else "time blocks"
+        if by_position:
+            p = np.nan_to_num(pos).astype(int)
+            g = p.copy()
+            moving = p <= 0
+            if moving.any():  # moving samples: attach to the previous static position
+                last = np.maximum.accumulate(np.where(moving, 0, np.arange(n)))
+                g[moving] = p[last[moving]]
+        else:
+            rank = np.cumsum(use) - 1
+            g = np.minimum(rank * CV_FOLDS // max(int(use.sum()), 1), CV_FOLDS - 1)
+        # segments in this file's reported temperature
+        fsegs = find_segments(d.time_s, d.temp_C, d.position, use)
+        remap = -np.ones(n, int)
+        remap[keep] = offset + np.arange(len(keep))
+        for s in fsegs:
+            s.index = remap[s.index]
+            segs.append(s)
+        xs.append(d.field_frame_nT[keep])
+        Ts.append(d.temp_C[keep])
+        times.append(np.asarray(d.time_s, float)[keep])
+        refs.append(ref[keep])
+        norms.append(norm[keep])
+        vecs.append(has_vec[keep])
+        groups.append(gbase + g[keep])
+        gbase += int(g.max()) + 1 if n else 0
+        offset += len(keep)
+    if offset == 0:
+        raise InputError(datas[0].source if datas else None,
+                         f"sensor '{name}': no usable sample with a field reference "
+                         "(reference vectors, ref_norm_nT or the unit's lab_field_nT)")
+    return _Samples(np.concatenate(xs), np.concatenate(Ts), np.concatenate(refs),
+                    np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs,
+                    time_s=np.concatenate(times))
+
