@@ -157,15 +157,18 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
     """Polynomial model fitted to all samples at once. Returns SensorCalibration."""
     if body_frame and S.is_vec.all():
         b, M, info = reference_fit(S.x, S.ref, S.T, degree, t_range_C=(t_lo, t_hi),
-                                   source=source)
-        return _make_cal(name, b, M, t_lo, t_hi, True, f"reference-vector joint, degree "
-                         f"{degree}", info["b_poly_sigma_nT"], info["M_poly_sigma"])
+                                   source=source, **reference_options(S))
+        cal = _make_cal(name, b, M, t_lo, t_hi, True, f"reference-vector joint, degree "
+                        f"{degree}", info["b_poly_sigma_nT"], info["M_poly_sigma"])
+        cal.observability = observability_of(info)
+        return cal
     # initial values
     if body_frame:
         v = S.is_vec
         span = float(np.ptp(S.T[v]))
         dv = min(degree, _degree_for_span(span))
-        b0, M0, _ = reference_fit(S.x[v], S.ref[v], S.T[v], dv, source=source)
+        b0, M0, _ = reference_fit(S.x[v], S.ref[v], S.T[v], dv, source=source,
+                                  **reference_options(S, v))
     else:
         b0c, M0c, info = ellipsoid_fit(S.x, S.norm, source=source)
         b0, M0 = b0c[None, :], M0c[None]
@@ -176,6 +179,20 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
     kind = "reference-vector + magnitude" if body_frame else "ellipsoid"
     return _make_cal(name, b, M, t_lo, t_hi, body_frame, f"{kind} joint, degree {degree}",
                      bs, Ms)
+
+
+def reference_options(S: _Samples, mask=None, with_prior=True) -> dict:
+    """reference_fit's prior, file groups (EIV weights) and stated noise for samples S.
+    with_prior=False: the part's nominal prior (a constant fit at one temperature level
+    must not be drawn to a ground calibration's value at t_ref)."""
+    fid = S.file_id if S.file_id is None or mask is None else S.file_id[mask]
+    return {"prior": S.prior if with_prior else None, "group": fid, "noise_nT": S.noise_nT}
+
+
+def observability_of(info) -> dict:
+    """The JSON-able part of reference_fit's info for SensorCalibration.observability."""
+    return {k: info[k] for k in ("parameters", "unobservable", "prior_source", "noise",
+                                 "estimator")} | {"cond": info["cond"]}
 
 
 def _residuals(cal: SensorCalibration, S: _Samples):

@@ -11,7 +11,7 @@ from generator.errors import InputError
 from generator.fit.calibration import SensorCalibration
 from generator.fit.ellipsoid import ellipsoid_fit
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
-                                 _rms, _score)
+                                 _rms, _score, reference_options)
 from generator.fit.reference import T_REF_C, _powers, reference_fit
 from generator.fit.samples import _Samples
 from generator.fit.segments import Segment, group_levels, temperature_quantum
@@ -32,7 +32,8 @@ def _level_fits(S: _Samples, levels, body_frame, source, mask=None):
                 iv = idx[S.is_vec[idx]]
                 if len(iv) == 0:
                     raise InputError(source, "no reference vectors at this level")
-                b, M, info = reference_fit(S.x[iv], S.ref[iv], None, source=source)
+                b, M, info = reference_fit(S.x[iv], S.ref[iv], None, source=source,
+                                           **reference_options(S, iv, with_prior=False))
                 out.append((temp, b[0], M[0], info["b_poly_sigma_nT"][0],
                             info["M_poly_sigma"][0], len(iv)))
             else:

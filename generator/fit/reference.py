@@ -13,7 +13,11 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    b(T) = -M(T)^-1 c(T) (exact at degree 0; a polynomial projection on Chebyshev nodes over
    the calibrated range otherwise).
 2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there.
-3. Errors in variables: the residual carries the sensor noise mapped through M and the
+3. Errors in variables. The noise of the readings x (the sensor's stated noise_nT) adds
+   noise_nT^2 |M(T)|_F^2 to every expected |r|^2; it is subtracted from the cost (adjusted
+   least squares), so a reading axis that carries only noise does not look determined
+   (plain least squares would fit that column of M to the noise, shrinking it to ~0).
+   The residual also carries the sensor noise mapped through M and the
    reference's own noise (an attitude estimate, a field model). Neither is known per sample
    in the telemetry, so each file (`group`) gets its effective variance
    v_g = mean |r|^2 / 3 of its residuals, and the fit is repeated with weights 1/v_g: a
@@ -23,9 +27,10 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. A direction with
    lambda >= 1 carries more information from the data than from the prior and is fitted;
    a direction with lambda < 1 (the data determine it worse than the prior already does)
-   is held at the prior: the Gauss-Newton steps stay in the fitted subspace. Each
-   parameter's data fraction is the squared length of its whitened unit vector in the
-   fitted subspace; >= 0.5 reads "data", else "prior". The covariance is
+   is held at the prior: the start is projected onto the fitted subspace and the
+   Gauss-Newton steps stay in it. Each parameter's data fraction is the squared length of
+   its whitened unit vector in the fitted subspace; >= 0.5 reads "data", else "prior"
+   (that parameter is then mostly the prior's value). The covariance is
    S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's where held.
 
 Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names.
@@ -58,6 +63,11 @@ PART_PRIOR_SIGMA = {
 # data's information equals the prior's (posterior variance at most half the prior's).
 FISHER_THRESHOLD = 1.0
 DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in the fitted subspace
+# The stated reading noise is known only so well (a datasheet figure, or a measurement of
+# a few hundred samples): its variance to about +-25 %. A direction counts as determined
+# only with that margin taken off the information, so that a reading axis whose signal
+# is below half its noise (rms) is not "determined" by a misstated noise level.
+NOISE_VAR_UNCERTAINTY = 0.25
 GN_MAX_ITER = 30
 
 
@@ -112,10 +122,16 @@ def _powers(dT_scaled, degree):
     return P
 
 
-def vector_normal(P, x, B, bp, Mp, jac=True, w=None):
+def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
     """Vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n with weights w_n: weighted cost and, in
     closed form, J^T W J and J^T W r (params b[k,l], then M[k,a,c]); no (3N x p) Jacobian
-    is formed. P: (N, K) powers of dT. Returns (cost, JTJ, g, r)."""
+    is formed. P: (N, K) powers of dT. Returns (cost, JTJ, g, r).
+
+    eiv_var: variance of the noise in each axis of x (errors in variables). The noise in x
+    adds eiv_var |M(T_n)|_F^2 to the expected |r_n|^2 whatever the parameters; it is
+    subtracted from the cost (and its derivatives), so that noise in the readings is not
+    taken for signal (adjusted least squares: without it, a reading axis that carries only
+    noise would make its column of M look determined and shrink it towards 0)."""
     n, K = P.shape
     nb = 3 * K
     MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
@@ -123,10 +139,13 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None):
     r = np.einsum("nij,nj->ni", MT, y) - B
     sw = np.ones(n) if w is None else np.sqrt(w)
     rw = r * sw[:, None]
+    Pw = P * sw[:, None]
     cost = float(np.sum(rw * rw))
+    if eiv_var:
+        Mw = Pw @ Mp.reshape(K, 9)                   # sqrt(w_n) M(T_n), (N, 9)
+        cost -= eiv_var * float(np.sum(Mw * Mw))
     if not jac:
         return cost, None, None, r
-    Pw = P * sw[:, None]
     PP = (Pw[:, :, None] * Pw[:, None, :]).reshape(n, K * K)
     # M-M: delta_aa' sum_n w P_k y_c P_m y_d
     Py = (Pw[:, :, None] * y[:, None, :]).reshape(n, 3 * K)
@@ -138,8 +157,12 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None):
     # M-b: -sum_n w P_k P_m y_c M[a,l]
     YM = (y[:, :, None, None] * MT[:, None, :, :]).reshape(n, 27)       # [c,a,l]
     Mb = -(PP.T @ YM).reshape(K, K, 3, 3, 3).transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)
-    JTJ = np.block([[bb, Mb.T], [Mb, MM]])
     gM = (Py.T @ rw).reshape(K, 3, 3).transpose(0, 2, 1).reshape(-1)      # [k,a,c]
+    if eiv_var:
+        PtP = Pw.T @ Pw
+        MM = MM - eiv_var * np.kron(PtP, np.eye(9))
+        gM = gM - eiv_var * (PtP @ Mp.reshape(K, 9)).reshape(-1)
+    JTJ = np.block([[bb, Mb.T], [Mb, MM]])
     gb = -(Pw.T @ np.einsum("nil,ni->nl", MT, rw)).reshape(-1)            # [k,l]
     return cost, JTJ, np.concatenate([gb, gM]), r
 
@@ -152,9 +175,10 @@ def _cheb_nodes(lo, hi, degree):
     return 0.5 * (lo + hi) + 0.5 * (hi - lo) * c
 
 
-def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s):
+def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     """Step 1: B = M(T) x + c(T), least squares per output row with the prior as extra
-    rows (the prior of c = -M b taken as -M0 b0 with b's sigma); then b = -M^-1 c."""
+    rows (the prior of c = -M b taken as -M0 b0 with b's sigma), the noise of x taken out
+    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
     K = degree + 1
     n = len(x)
     Phi = np.concatenate([(P[:, :, None] * x[:, None, :]).reshape(n, 3 * K), P], axis=1)
@@ -164,13 +188,16 @@ def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s):
     sw = np.sqrt(w)
     A = Phi * sw[:, None]
     G = A.T @ A
+    if eiv_var:
+        Pw = P * sw[:, None]
+        G[:3 * K, :3 * K] -= eiv_var * np.kron(Pw.T @ Pw, np.eye(3))
     Mk = np.zeros((K, 3, 3))
     ck = np.zeros((K, 3))
     for i in range(3):
         u0 = np.concatenate([M0[:, i, :].reshape(-1), c0[:, i]])
         s = np.concatenate([Ms[:, i, :].reshape(-1), bs[:, i]])
         D = np.diag(1.0 / s ** 2)
-        u = np.linalg.solve(G + D, A.T @ (B[:, i] * sw) + D @ u0)
+        u = np.linalg.lstsq(G + D, A.T @ (B[:, i] * sw) + D @ u0, rcond=None)[0]
         Mk[:, i, :] = u[:3 * K].reshape(K, 3)
         ck[:, i] = u[3 * K:]
     g = _cheb_nodes(lo_s, hi_s, degree)
@@ -244,6 +271,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     def unpack(th):
         return th[:3 * K].reshape(K, 3), th[3 * K:].reshape(K, 3, 3)
 
+    eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
     # pass 1 with a common variance, pass 2 with each file's effective variance
     v_grp = np.ones(n_grp)
     theta = None
@@ -256,32 +284,38 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             v0 = max(float(np.sum((B - Phi1 @ sol) ** 2)) / max(3 * (n - Phi1.shape[1]), 1),
                      1e-6)
             w = np.full(n, 1.0 / v0)
-            bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s)
+            bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
             theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
-        # all parameters, unobservable directions at the prior; then each parameter mostly
-        # in those directions held exactly at its prior and the others fitted again
+        # unobservable directions held at the prior (not single parameters: the combination
+        # the data miss is rarely one coefficient, and holding a whole coefficient would
+        # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
-        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free)
-        ev, EV, fitted = _eig_split(JTJ, S)
-        frac = np.sum(EV[:, fitted] ** 2, axis=1)
-        free = frac >= DATA_FRACTION
-        if not free.all():
-            theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free)
+        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ, S, _noise_margin(P, w, eiv_var))
+        if _pass == 1:
+            break
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
-        dof_scale = 3 * n / max(3 * n - int(free.sum()), 1)
+        dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
         for g in range(n_grp):
             m = grp == g
             v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6)
         w = 1.0 / v_grp[grp]
     # covariance of the posterior (module docstring), in scaled units; held: the prior's
-    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w)
-    f = np.nonzero(free)[0]
-    C = np.diag(S ** 2)
-    ev_f, EV_f, fit_f = _eig_split(JTJ[np.ix_(f, f)], S[f])
-    Vf, Vp = EV_f[:, fit_f], EV_f[:, ~fit_f]
-    C[np.ix_(f, f)] = ((Vf / ev_f[fit_f]) @ Vf.T + Vp @ Vp.T) * np.outer(S[f], S[f])
+    margin = _noise_margin(P, w, eiv_var)
+    for _ in range(3):   # the held directions turn a little with theta: settle them
+        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ, S, margin)
+        Vf, Vp = EV[:, fitted], EV[:, ~fitted]
+        zp = Vp.T @ ((theta - theta0) / S)
+        if not len(zp) or np.max(np.abs(zp)) < 1e-9:
+            break
+        theta = theta - S * (Vp @ zp)
+    Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
+    C = (Vf @ np.linalg.solve(Fv, Vf.T) + Vp @ Vp.T) * np.outer(S, S)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
+    frac = np.sum(Vf ** 2, axis=1)
+    z = (theta - theta0) / S
     bp_s, Mp_s = unpack(theta)
     b_poly, M_poly = bp_s / scale[:, None], Mp_s / scale[:, None, None]
     bsig = sig[:3 * K].reshape(K, 3) / scale[:, None]
@@ -292,7 +326,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     params = [{"name": nm, "value": float(th_val[i]), "sigma": float(sig[i] / unscale[i]),
                "prior": float(th0[i]), "prior_sigma": float(s_val[i]),
                "data_fraction": float(frac[i]),
-               "source": "data" if free[i] else "prior"}
+               "source": "data" if frac[i] >= DATA_FRACTION else "prior"}
               for i, nm in enumerate(names)]
     unobs = []
     for j in np.nonzero(~fitted)[0]:
@@ -300,13 +334,16 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         top = np.argsort(-np.abs(v))[:4]
         unobs.append({"information_vs_prior": float(ev[j]),
                       "direction": {names[i]: round(float(v[i]), 3) for i in top
-                                    if abs(v[i]) > 0.2}})
+                                    if abs(v[i]) > 0.2},
+                      # whitened unit vector (coefficient / prior sigma) and the fit's
+                      # component along it (0: held at the prior)
+                      "vector": [float(a) for a in v], "offset_from_prior": float(v @ z)})
     # residuals: calibrated (body axes) and of the reading model (frame axes, W r)
     T_c = np.clip(T, t_lo, t_hi) - t_ref_C
     Pp = _powers(T_c, degree)
     M_T = np.einsum("nk,kij->nij", Pp, M_poly)
     read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
-    dof = max(3 * n - int(free.sum()), 1) / 3
+    dof = max(3 * n - int(fitted.sum()), 1) / 3
     col = np.sqrt(np.diag(JTJ))
     col[col == 0] = 1.0
     Gn = JTJ / np.outer(col, col)
@@ -329,18 +366,31 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     return b_poly, M_poly, info
 
 
-def _eig_split(JTJ, S):
-    F = JTJ * np.outer(S, S)
+def _eig_split(JTJ, S, margin=None):
+    """Eigen-split of the whitened information; margin: information to take off first
+    (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables)."""
+    F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
     ev, EV = np.linalg.eigh(F)
     return ev, EV, ev >= FISHER_THRESHOLD
 
 
-def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free):
+def _noise_margin(P, w, eiv_var):
+    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block."""
+    n, K = P.shape
+    out = np.zeros((12 * K, 12 * K))
+    if eiv_var:
+        Pw = P * np.sqrt(w)[:, None]
+        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(Pw.T @ Pw, np.eye(9))
+    return out
+
+
+def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
     """Gauss-Newton on the weighted cost in whitened coordinates z = (theta - theta0)/S of
     the free parameters (the others stay at the prior), restricted to the directions the
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
     f = np.nonzero(free)[0]
     S_f, th0_f = S[f], theta0[f]
+    margin = _noise_margin(P, w, eiv_var)[np.ix_(f, f)]
     theta = theta.copy()
     theta[~free] = theta0[~free]
 
@@ -352,28 +402,30 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free):
     z = (theta[f] - th0_f) / S_f
     first = True
     for _ in range(GN_MAX_ITER):
-        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w)
-        ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f)
+        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
         Vf = EV[:, fitted]
+        evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
-            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w)
+            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
             first = False
-        dz = -Vf @ ((Vf.T @ (S_f * g[f])) / ev[fitted])
+        Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
+        dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
             z_new = z + step * dz
-            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w)[0]
-            if c_new <= cost * (1 + 1e-12):
+            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var)[0]
+            if c_new <= cost + 1e-12 * abs(cost):
                 break
             step *= 0.5
         else:
             break
         d = Vf.T @ (z_new - z)
-        done = float(np.sum(ev[fitted] * d * d)) < 1e-10    # the step moves chi^2 by < 1e-10
+        done = float(np.sum(evj * d * d)) < 1e-10    # the step moves chi^2 by < 1e-10
         z = z_new
         if done:
             break
     theta = at(z)
-    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w)
+    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
     return theta, JTJ, cost, r

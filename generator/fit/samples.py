@@ -14,6 +14,45 @@ from generator.fit.segments import find_segments
 
 CV_FOLDS = 4
 
+# Temperatures no part of these units can report while working (MMC5883MA and MPU-9255
+# operate at -40..85 degC and are rated for storage to -40..125 degC; the limits leave a wide
+# margin): a value outside is a corrupt cell, rejected and counted.
+TEMP_POSSIBLE_C = (-80.0, 150.0)
+# A reported temperature further from the running median of its file (SPIKE_WINDOW
+# samples) than SPIKE_SIGMAS robust sigmas of those deviations (1.4826 MAD), and than
+# SPIKE_QUANTA reporting steps and SPIKE_MIN_C, is an outlier: boards change temperature
+# with time constants of minutes, a sample cannot jump away and back.
+SPIKE_WINDOW = 11
+SPIKE_SIGMAS = 6.0
+SPIKE_QUANTA = 3.0
+SPIKE_MIN_C = 1.0
+
+
+def screen_temperatures(temp_C, usable=None) -> tuple[np.ndarray, dict]:
+    """Which reported temperatures to trust: (ok (N,) bool, counts {"impossible",
+    "outlying"}). Non-finite values are left to the usable mask (not counted here)."""
+    from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
+
+    from generator.fit.segments import temperature_quantum
+
+    T = np.asarray(temp_C, float)
+    fin = np.isfinite(T) if usable is None else np.isfinite(T) & np.asarray(usable, bool)
+    possible = fin & (T >= TEMP_POSSIBLE_C[0]) & (T <= TEMP_POSSIBLE_C[1])
+    ok = possible.copy()
+    idx = np.nonzero(possible)[0]
+    n_out = 0
+    if len(idx) >= 3:
+        t = T[idx]
+        med = median_filter(t, size=min(SPIKE_WINDOW, len(t) | 1), mode="nearest")
+        dev = t - med
+        s = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+        # the reporting step from the filtered series (a spike would pass for a step)
+        lim = max(SPIKE_SIGMAS * s, SPIKE_QUANTA * temperature_quantum(med), SPIKE_MIN_C)
+        out = np.abs(dev) > lim
+        ok[idx[out]] = False
+        n_out = int(out.sum())
+    return ok, {"impossible": int((fin & ~possible).sum()), "outlying": n_out}
+
 
 @dataclass
 class FitData:
@@ -28,11 +67,26 @@ class FitData:
     ref_norm_nT: np.ndarray | None = None     # (N,), NaN where unknown
     coil_A: np.ndarray | None = None          # (N, n_coils)
     reference_kind: str = ""                  # description for stats
+    noise_nT: float | None = None             # stated noise of one axis of field_frame_nT
+
+
+def field_noise_nT(spec) -> float | None:
+    """Stated 1-sigma noise of one axis of the field a sensor's fit sees: noise_nT of one
+    reading with the count quantisation (lsb^2/12) added, over sqrt(2) for a SET/RESET
+    pair ((SET - RESET)/2 averages two readings)."""
+    if spec is None or spec.noise_nT is None:
+        return None
+    per_reading = float(spec.noise_nT) ** 2 + float(spec.lsb_nT) ** 2 / 12.0
+    return float(np.sqrt(per_reading / (2.0 if spec.set_reset else 1.0)))
 
 
 def fit_data_from(tel, sensor_data, unit) -> FitData:
     """Collect what one telemetry file carries for one sensor (see module docstring)."""
     n = tel.n
+    try:
+        spec = unit.sensor(sensor_data.name)
+    except (KeyError, AttributeError):
+        spec = None
     ref = None
     if tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT"):
         ref = np.stack([tel.columns[f"ref_{c}_nT"] for c in "xyz"], axis=1).astype(float)
@@ -55,7 +109,7 @@ def fit_data_from(tel, sensor_data, unit) -> FitData:
                    usable=np.asarray(sensor_data.usable, bool),
                    position=None if pos is None else np.asarray(pos, float),
                    ref_body_nT=ref, ref_norm_nT=norm, coil_A=coil,
-                   reference_kind=" + ".join(kind) or "none")
+                   reference_kind=" + ".join(kind) or "none", noise_nT=field_noise_nT(spec))
 
 
 @dataclass
@@ -69,11 +123,16 @@ class _Samples:
     group: np.ndarray        # (N,) int: cross-validation group
     segments: list = field(default_factory=list)   # Segment with index into these arrays
     time_s: np.ndarray | None = None                 # (N,) sample time in its file
+    file_id: np.ndarray | None = None                # (N,) file number (EIV weights)
+    noise_nT: float | None = None                    # stated noise of one axis of x
+    prior: object = None                             # reference.Prior, or None (nominal)
 
     def subset(self, mask):
         return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
                         self.is_vec[mask], self.group[mask],
-                        time_s=None if self.time_s is None else self.time_s[mask])
+                        time_s=None if self.time_s is None else self.time_s[mask],
+                        file_id=None if self.file_id is None else self.file_id[mask],
+                        noise_nT=self.noise_nT, prior=self.prior)
 
     @property
     def n(self):
@@ -81,13 +140,15 @@ class _Samples:
 
 
 def _gather(name, datas, notes, per_file):
-    xs, Ts, refs, norms, vecs, groups, segs, times = [], [], [], [], [], [], [], []
+    xs, Ts, refs, norms, vecs, groups, segs, times, files = [], [], [], [], [], [], [], [], []
     offset = 0
     gbase = 0
     for d in datas:
         n = len(d.time_s)
         use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
         n_unusable = int((~use).sum())
+        t_ok, t_rej = screen_temperatures(d.temp_C, use)
+        use &= t_ok
         coil_on = np.zeros(n, bool)
         if d.coil_A is not None:
             coil_on = np.any(np.nan_to_num(d.coil_A, nan=0.0) != 0, axis=1)
@@ -102,7 +163,12 @@ def _gather(name, datas, notes, per_file):
         use &= has_ref
         per_file.append({"source": d.source, "samples": int(n), "used": int(use.sum()),
                          "reference": d.reference_kind, "unusable": n_unusable,
-                         "coil_current_excluded": n_coil, "no_reference": n_noref})
+                         "coil_current_excluded": n_coil, "no_reference": n_noref,
+                         "temperature_rejected": t_rej})
+        if t_rej["impossible"] or t_rej["outlying"]:
+            notes.append(f"{d.source}: temperatures rejected: {t_rej['impossible']} impossible "
+                         f"(outside {TEMP_POSSIBLE_C[0]:g}..{TEMP_POSSIBLE_C[1]:g} degC), "
+                         f"{t_rej['outlying']} outlying (spikes off the running median)")
         if n_coil:
             notes.append(f"{d.source}: {n_coil} samples with non-zero coil current left out "
                          "from the temperature fit (the coil coupling K is fitted from them separately)")
@@ -139,6 +205,7 @@ def _gather(name, datas, notes, per_file):
         norms.append(norm[keep])
         vecs.append(has_vec[keep])
         groups.append(gbase + g[keep])
+        files.append(np.full(len(keep), len(files)))
         gbase += int(g.max()) + 1 if n else 0
         offset += len(keep)
     if offset == 0:
@@ -147,5 +214,6 @@ def _gather(name, datas, notes, per_file):
                          "(reference vectors, ref_norm_nT or the unit's lab_field_nT)")
     return _Samples(np.concatenate(xs), np.concatenate(Ts), np.concatenate(refs),
                     np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs,
-                    time_s=np.concatenate(times))
+                    time_s=np.concatenate(times), file_id=np.concatenate(files),
+                    noise_nT=next((d.noise_nT for d in datas if d.noise_nT), None))
 

@@ -3,12 +3,11 @@
 Model (generator.fit.calibration): B_cal = M(T) (B~ - b(T)), b and M polynomials in
 dT = clamp(T) - t_ref. What is known about the true field decides the fit:
 
-* reference vectors (`ref_x/y/z_nT`, body frame): `reference_fit`. The measurement model
-  B~ = W(T) B_ref + b(T) is linear in the coefficients of W and b, so it is solved by
-  ordinary least squares with the noise where it is, in B~; then M(T) = W(T)^-1 is fitted
-  by a polynomial of the same degree (truncation ~(|W2| dT^2)^2 + (|W1| dT)^4, about 1e-6
-  or 0.05 nT for parts like the SamSat ones, far below the noise). M is then the full
-  matrix to the body frame.
+* reference vectors (`ref_x/y/z_nT`, body frame): `reference_fit` (generator.fit.reference)
+  minimises the calibrated-minus-reference residual of the model itself (per-file
+  errors-in-variables weights; what the data do not determine is held at the prior: a
+  ground calibration given with --prior, else the part's nominal). M is the full matrix
+  to the body frame.
 * only the magnitude (`ref_norm_nT` or the unit's `lab_field_nT`): ellipsoid fit
   (generator.fit.ellipsoid), M symmetric (known only up to a rotation).
 
@@ -25,6 +24,16 @@ Held-out comparison: leave-positions-out cross-validation when the files have st
 positions, contiguous time blocks otherwise; the score is the RMS of the held-out vector
 residual (per axis) where reference vectors exist, else of the magnitude residual. The
 figures and the choice go into SensorCalibration.stats.
+
+Module layout: segments.py (constant-temperature segments and levels), samples.py (the
+samples of one sensor, temperature screen), reference.py (the reference-vector fit and its
+observability), joint.py (the joint polynomial fit), levels.py (per-level fits and the
+polynomial over levels, seed 001 and seed 000 methods), sanity.py (checks before writing);
+this module chooses between them (model selection) and fits the unit.
+
+Temperatures outside -80..150 degC or off their file's running median are rejected and
+counted (samples.screen_temperatures); the calibrated range is that of the rest. A constant
+(degree 0) calibration is valid over the part's operating range.
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
@@ -63,13 +72,16 @@ from generator.fit.segments import (Segment, find_segments, group_levels, temper
 
 #: The fit methods of fit_unit / fit_sensor (the CLI's `magcal fit --method`).
 FIT_METHODS = ("auto", "analytic", "ellipsoid")
+# Operating temperature of the parts (MMC5883MA, MPU-9255 datasheets: -40..85 degC): the
+# range a constant calibration is valid over.
+OPERATING_C = (-40.0, 85.0)
 
 
 # =======================================================================================
 # Entry points
 # =======================================================================================
 def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
-               method="auto") -> SensorCalibration:
+               method="auto", prior=None) -> SensorCalibration:
     """Temperature calibration of one sensor from all its files (list of FitData).
 
     degree: highest polynomial degree in temperature; the degree used is also limited to
@@ -94,6 +106,13 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
       a rotation), then the polynomial over the levels.
 
     stats["method"] is the method used, stats["method_requested"] the one asked for.
+
+    prior: reference.Prior of the coefficients (a ground calibration), used by the
+    reference-vector fits for what the data do not determine; None: the part's nominal.
+    A constant (degree 0) calibration is valid at every temperature of the part's
+    operating range (t_min_C, t_max_C = OPERATING_C), whatever temperature it came from.
+    stats["observability"]: per coefficient data or prior, with 1-sigma;
+    stats["predicted_error"]: field and angle error at the unit's field from the 1-sigma.
     """
     if method not in FIT_METHODS:
         raise InputError(datas[0].source if datas else None,
@@ -103,13 +122,14 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
     notes, per_file = [], []
     source = datas[0].source if datas else None
     S = _gather(name, datas, notes, per_file)
+    S.prior = prior
     fallback = None
     if method == "analytic":
         if S.is_vec.any():
             cal, fallback = _fit_sensor_analytic(name, S, datas, degree, say, notes,
                                                  per_file, source)
             if cal is not None:
-                return _with_method(cal, "analytic", "analytic")
+                return _with_method(cal, "analytic", "analytic", S)
         else:
             fallback = ("no file carries reference vectors for this sensor: the known-vector "
                         "method needs them; fitted with auto")
@@ -117,18 +137,65 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
         say(f"{name}: analytic method not used ({fallback})")
     elif method == "ellipsoid":
         cal = _fit_sensor_ellipsoid(name, S, datas, degree, say, notes, per_file, source)
-        return _with_method(cal, "ellipsoid", "ellipsoid")
+        return _with_method(cal, "ellipsoid", "ellipsoid", S)
     cal = _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source)
     if fallback:
         cal.stats["method_fallback"] = fallback
-    return _with_method(cal, method, "auto")
+    return _with_method(cal, method, "auto", S)
 
 
-
-def _with_method(cal, requested, used):
+def _with_method(cal, requested, used, S):
     cal.stats["method_requested"] = requested
     cal.stats["method"] = used
+    _finish(cal, S)
     return cal
+
+
+def _finish(cal, S):
+    """Temperature range of a constant model, observability, predicted error (fit_sensor)."""
+    st = cal.stats
+    if np.all(cal.b_poly_nT[1:] == 0) and np.all(cal.M_poly[1:] == 0):
+        cal.t_min_C, cal.t_max_C = OPERATING_C
+        st["temperature_model"] = (
+            "constant (degree 0): temperature-independent, valid over the part's operating "
+            f"range {OPERATING_C[0]:g}..{OPERATING_C[1]:g} degC; its error away from the "
+            "data's temperatures is the sensor's uncalibrated drift")
+    else:
+        st["temperature_model"] = (f"polynomial in temperature, valid (not clamped) over the "
+                                   f"data's range {cal.t_min_C:.1f}..{cal.t_max_C:.1f} degC")
+    st["calibrated_range_C"] = [float(cal.t_min_C), float(cal.t_max_C)]
+    st["observability"] = cal.observability or {
+        "note": "every coefficient from the data (this method has no prior); 1-sigma in "
+                "uncertainty_1sigma"}
+    st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
+
+
+def predicted_error(cal, field_nT) -> dict:
+    """Calibration error expected from the coefficients' 1-sigma at the unit's field
+    (median of the reference magnitudes), for a field in a random direction:
+    per body axis var_i = sum_j sigma(M_ij)^2 |B|^2 / 3 + sum_j M_ij^2 sigma(b_j)^2, at
+    the worst of t_ref and the ends of the calibrated range (sigma(T)^2 = sum_k sigma_k^2
+    dT^2k); correlations between coefficients ignored. Field error: the vector's RMS;
+    angle error: its part across the field, sqrt(2/3) of it, over |B|."""
+    if cal.b_poly_sigma_nT is None or cal.M_poly_sigma is None or len(field_nT) == 0:
+        return {"note": "no 1-sigma for this calibration"}
+    F = float(np.median(field_nT))
+    worst = None
+    for T in sorted({cal.t_ref_C, cal.t_min_C, cal.t_max_C}):
+        d = np.clip(T, cal.t_min_C, cal.t_max_C) - cal.t_ref_C
+        pw = d ** (2 * np.arange(cal.b_poly_nT.shape[0]))
+        sb2 = np.einsum("k,ki->i", pw, cal.b_poly_sigma_nT ** 2)
+        sM2 = np.einsum("k,kij->ij", pw, cal.M_poly_sigma ** 2)
+        M = cal.M_at(T)
+        var = sM2.sum(axis=1) * F ** 2 / 3.0 + (M ** 2) @ sb2
+        tot = float(np.sqrt(var.sum()))
+        if worst is None or tot > worst[1]:
+            worst = (T, tot, np.sqrt(var))
+    T, tot, per_axis = worst
+    return {"at_field_nT": F, "at_temp_C": float(T), "field_error_nT": tot,
+            "field_error_per_axis_nT": per_axis.tolist(),
+            "angle_error_deg": float(np.degrees(np.sqrt(2.0 / 3.0) * tot / F)),
+            "from": "the coefficients' 1-sigma (correlations ignored), random field direction"}
 
 
 def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
@@ -234,14 +301,21 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     return cal
 
 
-def fit_unit(unit, telemetries, progress=None, method="auto") -> dict:
+def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
     else ref_norm_nT (or the unit's lab_field_nT) -> magnitude rows. method: one of
-    FIT_METHODS, see fit_sensor. Returns {sensor name: SensorCalibration}. Raises
-    InputError when a sensor cannot be fitted or the method is unknown.
+    FIT_METHODS, see fit_sensor. prior: {sensor name: reference.Prior} (a ground
+    calibration) or None. Every calibration passes the sanity checks (fit.sanity) before
+    it is returned; stats["sanity"] holds the figures. stats["set_reset_compensation"]:
+    whether the chain should compensate the SET/RESET rotation error with the gyro
+    (fit.setreset.compensation_decision). Returns {sensor name: SensorCalibration}.
+    Raises InputError when a sensor cannot be fitted, a calibration is not physical, or
+    the method is unknown.
     """
+    from generator.fit.sanity import check_calibration
+    from generator.fit.setreset import DEFAULT_FIELD_NT, compensation_decision
     from generator.io import telemetry_csv as _telemetry
     if method not in FIT_METHODS:
         raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
@@ -251,10 +325,22 @@ def fit_unit(unit, telemetries, progress=None, method="auto") -> dict:
     pre = [(_telemetry.preprocess(tel, unit), tel) for tel in telemetries]
     out = {}
     for s in unit.sensors:
-        datas = [fit_data_from(tel, data[s.name], unit) for data, tel in pre if s.name in data]
+        used = [(tel, data[s.name]) for data, tel in pre if s.name in data]
+        datas = [fit_data_from(tel, sd, unit) for tel, sd in used]
         if not datas:
             raise InputError(telemetries[0].path, f"fit: no file has data of sensor '{s.name}'")
-        out[s.name] = fit_sensor(s.name, datas, progress=progress, method=method)
+        cal = fit_sensor(s.name, datas, progress=progress, method=method,
+                         prior=(prior or {}).get(s.name))
+        vec_files = [d.source for d in datas if d.ref_body_nT is not None]
+        cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
+                                                else datas[0].source)
+        rates = [np.stack([tel.columns[f"rate_{c}_dps"] for c in "xyz"], axis=1)
+                 for tel, _ in used if tel.has("rate_x_dps", "rate_y_dps", "rate_z_dps")]
+        field = (cal.stats.get("predicted_error", {}).get("at_field_nT")
+                 or unit.lab_field_nT or DEFAULT_FIELD_NT)
+        cal.stats["set_reset_compensation"] = compensation_decision(
+            s, np.concatenate(rates) if rates else None, float(field), datas[0].noise_nT)
+        out[s.name] = cal
     return out
 
 
