@@ -288,3 +288,33 @@ def test_set_reset_compensation_decision(unit_truth):
     assert not compensation_decision(mmc, rates / 100, LAB_FIELD_nT, 28.0)["enabled"]
     assert not compensation_decision(mmc, None, LAB_FIELD_nT, 28.0)["enabled"]
     assert not compensation_decision(mpu, rates, LAB_FIELD_nT, 250.0)["enabled"]
+
+
+def test_prior_from_a_ground_calibration(unit_truth, tmp_path):
+    """`magcal fit --prior ground/coefficients.json`: what the level flight does not
+    determine (the z column of M) comes from the ground calibration, not the nominal; the
+    coefficients say so."""
+    d, unit, truth = unit_truth
+    ground, *_ = _campaign(unit_truth, "planar_rotation", 12, wobble_deg=60.0,
+                           rate_dps=TABLE_RATE_dps, duration_s=300.0)
+    level, *_ = _campaign(unit_truth, "yaw_flight", 13, tilt_max_deg=0.2,
+                          attitude_noise_deg=YAW_ATT_NOISE_deg, duration_s=300.0)
+    assert main(["fit", str(d / "unit.toml"), str(ground), "-o", str(tmp_path / "g"),
+                 "-q"]) == 0
+    assert main(["fit", str(d / "unit.toml"), str(level), "-o", str(tmp_path / "f"),
+                 "--prior", str(tmp_path / "g" / "coefficients.json"), "-q"]) == 0
+    import json
+    g = json.loads((tmp_path / "g" / "coefficients.json").read_text())
+    f = json.loads((tmp_path / "f" / "coefficients.json").read_text())
+    assert str(tmp_path / "g" / "coefficients.json") in f["fit"]["prior"]
+    for s in unit.sensors:
+        obs = f["fit"]["sensors"][s.name]["stats"]["observability"]
+        assert "coefficients.json" in obs["prior_source"]
+        assert obs["unobservable"], s.name
+        assert all(abs(u["offset_from_prior"]) < 1e-3 for u in obs["unobservable"])
+        # the z column, which the level flight cannot see, is the ground calibration's:
+        # far closer to the truth than the nominal (0, 0, 1) a fit without --prior keeps
+        Mf = np.asarray(f["sensors"][s.name]["M_poly"])[0]
+        Mt = np.linalg.inv(truth.sensors[s.name].W_poly_frame[0])
+        nominal_error = np.linalg.norm(np.array([0.0, 0.0, 1.0]) - Mt[:, 2])
+        assert np.linalg.norm(Mf[:, 2] - Mt[:, 2]) < 0.1 * nominal_error, s.name
