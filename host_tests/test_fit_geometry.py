@@ -318,3 +318,28 @@ def test_prior_from_a_ground_calibration(unit_truth, tmp_path):
         Mt = np.linalg.inv(truth.sensors[s.name].W_poly_frame[0])
         nominal_error = np.linalg.norm(np.array([0.0, 0.0, 1.0]) - Mt[:, 2])
         assert np.linalg.norm(Mf[:, 2] - Mt[:, 2]) < 0.1 * nominal_error, s.name
+
+
+def test_sanity_checks(unit_truth):
+    """A reflection and an offset beyond the part's range are errors naming the likely
+    cause; an implausible condition number is a flag; H must be a rotation."""
+    from generator.errors import InputError
+    from generator.fit.calibration import SensorCalibration
+    from generator.fit.sanity import check_calibration, check_rotation, max_condition
+
+    _, unit, _ = unit_truth
+    spec = unit.sensor("mpu1")
+    ok = SensorCalibration.constant("mpu1", np.array([100.0, -50.0, 20.0]), np.eye(3))
+    assert check_calibration(ok, spec)["warnings"] == []
+    swap = SensorCalibration.constant("mpu1", np.zeros(3), np.eye(3)[[1, 0, 2]])
+    with pytest.raises(InputError, match="reflection.*swapped or negated"):
+        check_calibration(swap, spec, "f.csv")
+    far = SensorCalibration.constant("mpu1", np.array([0.0, 0.0, 5.0e6]), np.eye(3))
+    with pytest.raises(InputError, match="exceeds the part's range"):
+        check_calibration(far, spec)
+    c = max_condition(spec.part)
+    soft = SensorCalibration.constant("mpu1", np.zeros(3), np.diag([1.0, 1.0, 1.05 * c]))
+    assert check_calibration(soft, spec)["warnings"]
+    check_rotation(np.eye(3))
+    with pytest.raises(InputError, match="not a rotation"):
+        check_rotation(np.diag([1.0, 1.0, -1.0]))

@@ -7,7 +7,9 @@
 * cond M(T) plausible for the part: with the prior's 1-sigma s on every element of M
   (generator.fit.reference.PART_PRIOR_SIGMA, 0.1), singular values within 1 +- 3 s, so
   cond <= (1 + 3 s) / (1 - 3 s) (1.86 for s = 0.1). Beyond it the fit has most likely
-  absorbed something that is not the sensor (a wrong reference, a magnet next to it).
+  absorbed something that is not the sensor (a wrong reference, a magnet next to it);
+  but strong soft iron can be real, so this one is a flag (stats["sanity"]["warnings"]
+  and the fit's progress), not an error.
 * offsets b(T) within the part's range: an offset larger than the full scale of the raw
   output cannot come from a sensor that still reads the field.
 * H orthogonal with det +1 (boom alignment): |H^T H - I| < 1e-6.
@@ -57,12 +59,13 @@ def check_calibration(cal, spec, source=None) -> dict:
                                  "swapped or negated ref_x_nT/ref_y_nT/ref_z_nT columns, or a "
                                  "wrong axis mapping (sensor axes) in the unit file")
     cmax = max_condition(spec.part)
+    warnings = []
     if np.max(cond) > cmax:
-        raise InputError(source, f"sensor '{name}': the fitted matrix M has condition number "
-                                 f"{np.max(cond):.3g}, implausible for a {spec.part} (at most "
-                                 f"{cmax:.2f}: scale and cross-axis terms within 3 sigma of "
-                                 "the part's); likely cause: a wrong or mis-scaled reference, "
-                                 "or a magnetised object next to the sensor")
+        warnings.append(f"sensor '{name}': the fitted matrix M has condition number "
+                        f"{np.max(cond):.3g}, implausible for a {spec.part} (at most "
+                        f"{cmax:.2f}: scale and cross-axis terms within 3 sigma of the "
+                        "part's); check the reference's scale, and for a magnetised object "
+                        "next to the sensor")
     lim = offset_range_nT(spec)
     bmax = float(np.max(np.abs(b)))
     if bmax > lim:
@@ -70,7 +73,8 @@ def check_calibration(cal, spec, source=None) -> dict:
                                  f"part's range {lim:.0f} nT; likely cause: wrong lsb_nT or "
                                  "zero_count in the unit file, or a reference in other units")
     return {"det_M_min": float(np.min(det)), "cond_M_max": float(np.max(cond)),
-            "cond_M_limit": cmax, "offset_max_nT": bmax, "offset_limit_nT": lim}
+            "cond_M_limit": cmax, "offset_max_nT": bmax, "offset_limit_nT": lim,
+            "warnings": warnings}
 
 
 def check_rotation(H, what="boom alignment H", source=None) -> dict:

@@ -334,6 +334,9 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
+        for w in cal.stats["sanity"]["warnings"]:
+            (progress or (lambda m: None))(f"WARNING: {w}")
+            cal.stats.setdefault("notes", []).append(w)
         rates = [np.stack([tel.columns[f"rate_{c}_dps"] for c in "xyz"], axis=1)
                  for tel, _ in used if tel.has("rate_x_dps", "rate_y_dps", "rate_z_dps")]
         field = (cal.stats.get("predicted_error", {}).get("at_field_nT")
