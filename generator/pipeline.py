@@ -89,6 +89,33 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     from generator.fit.sanity import check_rotation
     from generator.fit.thermal import fit_unit
 
+    def _load_prior(path, unit) -> dict:
+        """{sensor: reference.Prior} from a coefficients.json (values and uncertainty_1sigma;
+        a coefficient without a 1-sigma keeps the part's)."""
+        from generator.fit.reference import Prior, nominal_prior
+
+        try:
+            cs = CoefficientSet.load(path)
+        except InputError:
+            raise
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(path, f"--prior: not a readable coefficients.json ({e})") from None
+        out = {}
+        for s in unit.sensors:
+            if s.name not in cs.sensors:
+                continue
+            v = cs.sensors[s.name]
+            b, M = np.asarray(v["b_poly_nT"], float), np.asarray(v["M_poly"], float)
+            if abs(float(v["t_ref_C"]) - 25.0) > 1e-9:
+                raise InputError(path, f"--prior: sensor '{s.name}' has t_ref_C "
+                                       f"{float(v['t_ref_C'])}, the fit uses 25")
+            u = cs.uncertainty.get(s.name, {})
+            nom = nominal_prior(b.shape[0] - 1)
+            bs = np.asarray(u.get("b_poly_nT", nom.b_sigma_nT), float)
+            Ms = np.asarray(u.get("M_poly", nom.M_sigma), float)
+            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})")
+        return out
+
     progress = progress or Progress(quiet=True)
     unit = load_unit(unit_path)
     progress(f"unit {unit.id}: {len(unit.sensors)} sensors")
@@ -134,34 +161,6 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                  "vectors): H is the identity")
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
                                             coils=coils, fit_info=info)
-
-
-def _load_prior(path, unit) -> dict:
-    """{sensor: reference.Prior} from a coefficients.json (values and uncertainty_1sigma;
-    a coefficient without a 1-sigma keeps the part's)."""
-    from generator.fit.reference import Prior, nominal_prior
-
-    try:
-        cs = CoefficientSet.load(path)
-    except InputError:
-        raise
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(path, f"--prior: not a readable coefficients.json ({e})") from None
-    out = {}
-    for s in unit.sensors:
-        if s.name not in cs.sensors:
-            continue
-        v = cs.sensors[s.name]
-        b, M = np.asarray(v["b_poly_nT"], float), np.asarray(v["M_poly"], float)
-        if abs(float(v["t_ref_C"]) - 25.0) > 1e-9:
-            raise InputError(path, f"--prior: sensor '{s.name}' has t_ref_C "
-                                   f"{float(v['t_ref_C'])}, the fit uses 25")
-        u = cs.uncertainty.get(s.name, {})
-        nom = nominal_prior(b.shape[0] - 1)
-        bs = np.asarray(u.get("b_poly_nT", nom.b_sigma_nT), float)
-        Ms = np.asarray(u.get("M_poly", nom.M_sigma), float)
-        out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})")
-    return out
 
 
 # ---- apply --------------------------------------------------------------------------------

@@ -343,3 +343,15 @@ def test_sanity_checks(unit_truth):
     check_rotation(np.eye(3))
     with pytest.raises(InputError, match="not a rotation"):
         check_rotation(np.diag([1.0, 1.0, -1.0]))
+
+
+def test_prior_that_is_not_a_coefficients_file_exits_2(unit_truth, tmp_path, capsys):
+    d, _, _ = unit_truth
+    path, *_ = _campaign(unit_truth, "planar_rotation", 14, wobble_deg=20.0,
+                         duration_s=60.0, sample_rate_hz=5.0)
+    bad = tmp_path / "prior.json"
+    bad.write_text('{"x": 1}\n')
+    assert main(["fit", str(d / "unit.toml"), str(path), "-o", str(tmp_path / "o"),
+                 "--prior", str(bad), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0]

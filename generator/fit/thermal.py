@@ -334,6 +334,12 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
+        held = [p["name"] for p in cal.observability.get("parameters", [])
+                if p["source"] == "prior"]
+        if held:
+            (progress or (lambda m: None))(
+                f"{s.name}: not determined by the data, held at the prior "
+                f"({cal.observability.get('prior_source')}): {', '.join(held)}")
         for w in cal.stats["sanity"]["warnings"]:
             (progress or (lambda m: None))(f"WARNING: {w}")
             cal.stats.setdefault("notes", []).append(w)
