@@ -19,13 +19,19 @@ CV_FOLDS = 4
 # margin): a value outside is a corrupt cell, rejected and counted.
 TEMP_POSSIBLE_C = (-80.0, 150.0)
 # A reported temperature further from the running median of its file (SPIKE_WINDOW
-# samples) than SPIKE_SIGMAS robust sigmas of those deviations (1.4826 MAD), and than
-# SPIKE_QUANTA reporting steps and SPIKE_MIN_C, is an outlier: boards change temperature
-# with time constants of minutes, a sample cannot jump away and back.
-SPIKE_WINDOW = 11
+# samples) than each of: SPIKE_SIGMAS robust sigmas of those deviations (1.4826 MAD),
+# SPIKE_QUANTA reporting steps, SPIKE_MIN_C, and SPIKE_STEPS times the largest change the
+# series itself makes from one sample to the next (99th percentile, of the median-filtered
+# series, so the spikes do not count), is an outlier: a board cannot jump away from where
+# its temperature was going and back. The window is short (5): a median of 5 leaves any
+# monotone stretch as it is, so a chamber step (a corner, then a monotone settling) is
+# kept, and the step term keeps the corners of a fast profile; a spike of up to two
+# samples is caught.
+SPIKE_WINDOW = 5
 SPIKE_SIGMAS = 6.0
 SPIKE_QUANTA = 3.0
 SPIKE_MIN_C = 1.0
+SPIKE_STEPS = 3.0
 
 
 def screen_temperatures(temp_C, usable=None) -> tuple[np.ndarray, dict]:
@@ -47,7 +53,9 @@ def screen_temperatures(temp_C, usable=None) -> tuple[np.ndarray, dict]:
         dev = t - med
         s = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
         # the reporting step from the filtered series (a spike would pass for a step)
-        lim = max(SPIKE_SIGMAS * s, SPIKE_QUANTA * temperature_quantum(med), SPIKE_MIN_C)
+        step = float(np.percentile(np.abs(np.diff(med)), 99)) if len(med) > 1 else 0.0
+        lim = max(SPIKE_SIGMAS * s, SPIKE_QUANTA * temperature_quantum(med), SPIKE_MIN_C,
+                  SPIKE_STEPS * step)
         out = np.abs(dev) > lim
         ok[idx[out]] = False
         n_out = int(out.sum())
