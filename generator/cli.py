@@ -41,7 +41,7 @@ def cmd_fit(args):
     from generator.report.report import write_fit_report
 
     progress = _progress(args)
-    cs = fit(args.unit, args.data, progress=progress, method=args.method)
+    cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     cs.save(out / "coefficients.json")
@@ -74,6 +74,9 @@ def _args_fit(p):
                         "auto) and compare them in the report")
     p.add_argument("--truth", default=None,
                    help="truth.json of a simulated unit: the comparison adds errors against it")
+    p.add_argument("--prior", default=None, metavar="COEFFS.json",
+                   help="a ground calibration (coefficients.json with its 1-sigma): what the "
+                        "data do not determine is held at it instead of the part's nominal")
     p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
                    help="auto: reference vectors where the data carry them (joint or "
                         "per-level cubic, chosen on held-out data), else the ellipsoid fit; "

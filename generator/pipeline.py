@@ -73,31 +73,75 @@ def _has_ref_vectors(tel: Telemetry) -> bool:
     return tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT")
 
 
-def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
+def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> CoefficientSet:
     """Fit a unit from all the given files jointly.
 
-    * b(T), M(T) per sensor: fit_thermal.fit_unit over every file (reference vectors where
-      a file carries them, else magnitudes; coil-driven samples left out);
+    * b(T), M(T) per sensor: fit.thermal.fit_unit over every file (reference vectors where
+      a file carries them, else magnitudes; coil-driven samples left out); what the data
+      do not determine is held at the prior: `prior` (path of a coefficients.json, a ground
+      calibration with its 1-sigma) or else the part's nominal;
     * coil coupling K: from files whose magnetorquer currents step (fit_coils);
     * boom alignment H: from a file recorded with the boom deployed, i.e. one without
       reference vectors (the jig campaigns carry them with the boom stowed), by Wahba
-      between the reference body sensor and the boom MMC5883 (fit_alignment).
+      between the reference body sensor and the boom MMC5883 (fit_alignment); checked to
+      be a rotation.
+    Every calibration passes fit.sanity before anything is written (InputError if not).
+    fit_info["set_reset_compensation"]: per sensor whether the chain should compensate the
+    SET/RESET rotation error with the gyro, and why (the chain's default does not yet
+    follow it: a flight-side change).
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import fit_coils, has_coil_steps
+    from generator.fit.sanity import check_rotation
     from generator.fit.thermal import fit_unit
+
+    def _load_prior(path, unit) -> dict:
+        """{sensor: reference.Prior} from a coefficients.json (values and uncertainty_1sigma;
+        a coefficient without a 1-sigma keeps the part's)."""
+        from generator.fit.reference import Prior, nominal_prior
+
+        try:
+            cs = CoefficientSet.load(path)
+        except InputError:
+            raise
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(path, f"--prior: not a readable coefficients.json ({e})") from None
+        out = {}
+        for s in unit.sensors:
+            if s.name not in cs.sensors:
+                continue
+            v = cs.sensors[s.name]
+            b, M = np.asarray(v["b_poly_nT"], float), np.asarray(v["M_poly"], float)
+            if abs(float(v["t_ref_C"]) - 25.0) > 1e-9:
+                raise InputError(path, f"--prior: sensor '{s.name}' has t_ref_C "
+                                       f"{float(v['t_ref_C'])}, the fit uses 25")
+            u = cs.uncertainty.get(s.name, {})
+            nom = nominal_prior(b.shape[0] - 1)
+            bs = np.asarray(u.get("b_poly_nT", nom.b_sigma_nT), float)
+            Ms = np.asarray(u.get("M_poly", nom.M_sigma), float)
+            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})")
+        return out
 
     progress = progress or Progress(quiet=True)
     unit = load_unit(unit_path)
     progress(f"unit {unit.id}: {len(unit.sensors)} sensors")
+    priors = _load_prior(prior, unit) if prior else None
     tels = []
     for p in data_paths:
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
         tels.append(tel)
-    cals = fit_unit(unit, tels, progress=progress, method=method)
+    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
-            "method": method, "notes": []}
+            "method": method, "notes": [],
+            "prior": str(prior) if prior else "part nominal (M = I, b = 0, "
+                                                "generator.fit.reference.PART_PRIOR_SIGMA)",
+            "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
+                                       for n, c in cals.items()}}
+    for n, c in cals.items():
+        sr = c.stats.get("set_reset_compensation") or {}
+        if sr.get("enabled"):
+            progress(f"{n}: SET/RESET gyro compensation advised: {sr['why']}")
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
@@ -114,7 +158,8 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
             al = align_boom(unit, deployed[0], cals, coil_K_nT_per_A=K)
             H = al.H
             info["alignment"] = {"source": deployed[0].path, **al.result.to_dict(),
-                                 "notes": list(al.notes)}
+                                 "notes": list(al.notes),
+                                 "sanity": check_rotation(H, source=deployed[0].path)}
             progress(f"boom alignment H from {deployed[0].path}: {al.result.angle_deg:.3f} "
                      f"+- {al.result.sigma_angle_deg:.3f} deg")
         else:

@@ -43,7 +43,9 @@ from generator.campaign.board_thermal import first_order_lag
 from generator.campaign.plan import twelve_positions   # the jig positions of the test program
 from generator.io.unit import PARTS, SensorSpec, Unit
 
-CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")
+CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")   # make_example's campaigns
+# further geometries for fit tests (simulate_campaign kinds; not part of make_example)
+EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation")
 
 T_REF_C = 25.0
 LAB_FIELD_nT = 51540.0            # field magnitude in the lab (seed 000)
@@ -600,6 +602,113 @@ def _rotation(unit, truth, rng, *, duration_s=400.0, sample_rate_hz=10.0, speed_
                  "rate_z_dps": (gyro[:, 2], 3), "ref_norm_nT": (np.full(n, lab_field_nT), 1)})
 
 
+def _smooth_noise(time_s, rng, rms, tau_s):
+    """Zero-mean smooth random signal: white noise through two first-order lags (tau_s,
+    tau_s/5), scaled to the given rms over the record."""
+    white = rng.normal(size=len(time_s))
+    v = first_order_lag(time_s, first_order_lag(time_s, white, tau_s, 0.0), tau_s / 5, 0.0)
+    v = v - np.mean(v)
+    sd = float(np.std(v))
+    return v * (rms / sd) if sd > 0 else v
+
+
+def _attitude_campaign(time_s, R_body_to_lab, b_lab, rng, *, attitude_noise_deg,
+                       gyro_noise_dps, lab_field_nT):
+    """Field, rates and telemetry columns of a moving unit whose attitude is known from an
+    estimator: ref_x/y/z_nT are the lab field rotated by the estimated attitude (true
+    attitude times a white error of attitude_noise_deg per axis)."""
+    n = len(time_s)
+    R = Rotation.from_matrix(R_body_to_lab)
+    b_body = R.inv().apply(np.tile(b_lab, (n, 1)))
+    err = Rotation.from_rotvec(rng.normal(size=(n, 3)) * math.radians(attitude_noise_deg))
+    ref = (R * err).inv().apply(np.tile(b_lab, (n, 1)))
+    rate = _rates_from_attitude(time_s, R_body_to_lab)
+    gyro = rate + rng.normal(size=(n, 3)) * gyro_noise_dps
+    columns = {"rate_x_dps": (gyro[:, 0], 3), "rate_y_dps": (gyro[:, 1], 3),
+               "rate_z_dps": (gyro[:, 2], 3)}
+    columns.update(_ref_vector_columns(ref, lab_field_nT))
+    return b_body, rate, columns
+
+
+def _yaw_flight(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0, yaw_rate_dps=30.0,
+                tilt_max_deg=12.0, attitude_noise_deg=0.1, lab_field_nT=LAB_FIELD_nT,
+                inclination_deg=LAB_INCLINATION_deg, room_C=25.0, gyro_noise_dps=0.03):
+    """A multicopter-like flight: the body turns mostly in yaw (a smooth random yaw rate of
+    rms yaw_rate_dps), roll and pitch wander smoothly and stay under tilt_max_deg (the tilt
+    of body z from the vertical never exceeds it). The vertical field component hardly
+    changes. Reference vectors from an attitude estimate (attitude_noise_deg per axis).
+    Constant surroundings at room_C, no boom (B_frame = B_body for every sensor)."""
+    dt = 1.0 / sample_rate_hz
+    n = int(round(duration_s * sample_rate_hz))
+    time_s = np.arange(n) * dt
+    yaw = np.cumsum(_smooth_noise(time_s, rng, math.radians(yaw_rate_dps), 5.0)) * dt
+    # roll, pitch: smooth, each rms tilt_max/3, then limited so the tilt stays below max
+    roll = _smooth_noise(time_s, rng, math.radians(tilt_max_deg) / 3.0, 3.0)
+    pitch = _smooth_noise(time_s, rng, math.radians(tilt_max_deg) / 3.0, 3.0)
+    tilt = np.hypot(roll, pitch)
+    lim = 0.98 * math.radians(tilt_max_deg)
+    shrink = np.where(tilt > lim, lim / np.maximum(tilt, 1e-12), 1.0)
+    roll, pitch = roll * shrink, pitch * shrink
+    R = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
+    b_lab = _lab_field_nT(lab_field_nT, inclination_deg)
+    b_body, rate, columns = _attitude_campaign(time_s, R, b_lab, rng,
+                                               attitude_noise_deg=attitude_noise_deg,
+                                               gyro_noise_dps=gyro_noise_dps,
+                                               lab_field_nT=lab_field_nT)
+    tilt_deg = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1.0, 1.0)))
+    return Scenario(
+        description=f"yaw-dominated flight: yaw rate rms {yaw_rate_dps:g} deg/s, tilt under "
+                    f"{tilt_max_deg:g} deg, attitude estimate +-{attitude_noise_deg:g} deg",
+        time_s=time_s, b_body_nT=b_body,
+        b_body_at=_attitude_field_at(time_s, R, lambda t: np.tile(b_lab, (len(t), 1))),
+        deployed=False, temp_board_C=_board_temps(truth, time_s, room_C, 1.0, room_C),
+        rate_dps=rate, coil_A=np.zeros((n, 3)), position=None, columns=columns,
+        extra_truth={"tilt_deg": tilt_deg})
+
+
+def _planar_rotation(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0,
+                     rate_dps=20.0, wobble_deg=2.0, axis_body=(0.0, 1.0, 0.0),
+                     attitude_noise_deg=0.02, lab_field_nT=LAB_FIELD_nT,
+                     inclination_deg=LAB_INCLINATION_deg, room_C=25.0, gyro_noise_dps=0.03):
+    """A turntable turning the unit about one body axis (axis_body) held perpendicular to
+    the lab field, with a smooth wobble of that axis (rms wobble_deg/2, under wobble_deg):
+    the field direction in the body frame stays near one plane (the plane normal to
+    axis_body). Reference vectors from the table's encoder (attitude_noise_deg).
+    Constant surroundings at room_C, boom stowed."""
+    dt = 1.0 / sample_rate_hz
+    n = int(round(duration_s * sample_rate_hz))
+    time_s = np.arange(n) * dt
+    b_lab = _lab_field_nT(lab_field_nT, inclination_deg)
+    a_body = _unit_vector(axis_body)
+    a_lab = _unit_vector(np.cross(b_lab, [0.0, 0.0, 1.0]) if abs(b_lab[2]) < lab_field_nT
+                         else np.array([0.0, 1.0, 0.0]))      # horizontal, normal to the field
+    # body -> lab: a_body onto a_lab, then the table angle about a_lab, then the wobble
+    align = Rotation.align_vectors([a_lab], [a_body])[0]
+    speed = math.radians(rate_dps) * (1.0 + 0.2 * _smooth_noise(time_s, rng, 1.0, 10.0))
+    angle = np.cumsum(speed) * dt
+    wob = np.stack([_smooth_noise(time_s, rng, math.radians(wobble_deg) / 2.0, 5.0)
+                    for _ in range(3)], axis=1)
+    wob -= np.outer(wob @ a_lab, a_lab)                      # tilt the axis, not the angle
+    mag = np.linalg.norm(wob, axis=1)
+    lim = 0.98 * math.radians(wobble_deg)
+    wob *= np.where(mag > lim, lim / np.maximum(mag, 1e-12), 1.0)[:, None]
+    R = (Rotation.from_rotvec(wob) * Rotation.from_rotvec(np.outer(angle, a_lab))
+         * align).as_matrix()
+    b_body, rate, columns = _attitude_campaign(time_s, R, b_lab, rng,
+                                               attitude_noise_deg=attitude_noise_deg,
+                                               gyro_noise_dps=gyro_noise_dps,
+                                               lab_field_nT=lab_field_nT)
+    return Scenario(
+        description=f"near-planar rotation: turntable about body {tuple(axis_body)} at "
+                    f"{rate_dps:g} deg/s, wobble under {wobble_deg:g} deg",
+        time_s=time_s, b_body_nT=b_body,
+        b_body_at=_attitude_field_at(time_s, R, lambda t: np.tile(b_lab, (len(t), 1))),
+        deployed=False, temp_board_C=_board_temps(truth, time_s, room_C, 1.0, room_C),
+        rate_dps=rate, coil_A=np.zeros((n, 3)), position=None, columns=columns,
+        extra_truth={"out_of_plane_deg": np.degrees(np.arcsin(np.clip(
+            b_body @ a_body / lab_field_nT, -1.0, 1.0)))})
+
+
 def _coils(unit, truth, rng, *, positions=(1, 5, 9), steps_mA=(25, 50, 75, 100), hold_s=10.0,
            sample_period_s=1.0, lab_field_nT=LAB_FIELD_nT, inclination_deg=LAB_INCLINATION_deg,
            room_C=25.0):
@@ -741,7 +850,7 @@ def _flight(unit, truth, rng, *, duration_s=6 * 3600.0, sample_period_s=2.0, alt
 
 
 SCENARIOS = {"thermal_12pos": _thermal_12pos, "rotation": _rotation, "coils": _coils,
-             "flight": _flight}
+             "flight": _flight, "yaw_flight": _yaw_flight, "planar_rotation": _planar_rotation}
 
 # fast=True: a few hundred samples per campaign, for quick tests (explicit options win).
 FAST_OPTIONS = {
@@ -750,6 +859,8 @@ FAST_OPTIONS = {
     "rotation": {"duration_s": 120.0, "sample_rate_hz": 5.0},
     "coils": {"positions": (1, 9), "hold_s": 3.0},
     "flight": {"duration_s": 5760.0, "sample_period_s": 10.0},
+    "yaw_flight": {"duration_s": 120.0, "sample_rate_hz": 5.0},
+    "planar_rotation": {"duration_s": 120.0, "sample_rate_hz": 5.0},
 }
 
 
@@ -838,7 +949,8 @@ def simulate_campaign(kind: str, unit: Unit, truth: Truth, rng: np.random.Genera
     rate_body_dps, coil_A, ...).
     """
     if kind not in SCENARIOS:
-        raise ValueError(f"unknown campaign {kind!r}; one of {', '.join(CAMPAIGNS)}")
+        raise ValueError(f"unknown campaign {kind!r}; one of "
+                         f"{', '.join(CAMPAIGNS + EXTRA_CAMPAIGNS)}")
     for e in effects:
         if e.sensor not in unit.sensor_names:
             raise ValueError(f"effect {e.name}: unit {unit.id} has no sensor {e.sensor!r}")

@@ -33,6 +33,8 @@ class SensorCalibration:
     b_poly_sigma_nT: np.ndarray | None = None   # 1-sigma of b_poly_nT, same shape
     M_poly_sigma: np.ndarray | None = None      # 1-sigma of M_poly, same shape
     stats: dict = field(default_factory=dict)   # rms, samples, segments, ... (JSON-able)
+    # per coefficient data/prior, unobservable directions, noise (reference fit; JSON-able)
+    observability: dict = field(default_factory=dict)
 
     @staticmethod
     def constant(name, b_nT, M, t_ref_C=25.0, t_min_C=-40.0, t_max_C=85.0, **kw):

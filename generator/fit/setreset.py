@@ -460,3 +460,49 @@ def chip_offset_compensated(spec, sensor_data, calibration, rate_body_dps, *,
     for k in range(3):                                         # frame[k] = sign sensor[idx]
         err_sensor[:, idx[k]] = sign[k] * err_frame[:, k]
     return sensor_data.chip_offset_sensor_nT - err_sensor
+
+
+# =======================================================================================
+# (e) Whether a sensor needs the gyro compensation (decided by the fit)
+# =======================================================================================
+# Compensate when the SET/RESET rotation error, RMS over the recorded body rates, passes
+# this fraction of the field noise: an uncorrected error of half the noise raises the
+# total error by sqrt(1 + 0.5^2) - 1 = 12 %, and it is systematic (it follows the rate).
+SR_NOISE_FRACTION = 0.5
+# The unit file does not say which measurement time the sensor runs at: take the longest
+# (t_TM = 10 ms, delay 11 ms), the one with the largest error.
+SR_DECISION_T_TM_MS = max(T_TM_MS)
+
+
+def compensation_decision(spec, rate_dps, field_nT: float = DEFAULT_FIELD_NT,
+                          noise_nT: float | None = None) -> dict:
+    """Should the chain compensate this sensor's SET/RESET rotation error with the gyro?
+
+    spec: the sensor (SensorSpec); rate_dps: (N, 3) body rates from the telemetry, or None;
+    field_nT: the unit's field; noise_nT: 1-sigma noise of one axis of the field the chain
+    computes. The error map's worst case over geometry, |B| sin(w t_delay / 2), at each
+    recorded rate, RMS over the samples, against SR_NOISE_FRACTION x noise. Returns a
+    JSON-able dict: enabled, why, and the figures."""
+    if not spec.set_reset:
+        return {"enabled": False, "why": "the sensor reports no SET/RESET pair"}
+    w = None if rate_dps is None else np.asarray(rate_dps, float)
+    if w is not None:
+        w = w[np.all(np.isfinite(w), axis=1)]
+    if w is None or len(w) == 0:
+        return {"enabled": False, "why": "the telemetry carries no body rates "
+                                         "(rate_x/y/z_dps): the gyro compensation needs them"}
+    rate = np.linalg.norm(w, axis=1)
+    delay = float(t_delay_ms(SR_DECISION_T_TM_MS))
+    err = worst_case_offset_error(field_nT, rate, delay)
+    err_rms = float(np.sqrt(np.mean(err ** 2)))
+    noise = float(noise_nT) if noise_nT else float(spec.lsb_nT)
+    limit = SR_NOISE_FRACTION * noise
+    enabled = err_rms > limit
+    why = (f"SET/RESET rotation error {err_rms:.1f} nT RMS over the recorded rates "
+           f"(RMS {float(np.sqrt(np.mean(rate ** 2))):.2f} deg/s, delay {delay:g} ms, |B| "
+           f"{field_nT:.0f} nT) {'passes' if enabled else 'is below'} {SR_NOISE_FRACTION:g} x "
+           f"the noise ({noise:.1f} nT)")
+    return {"enabled": bool(enabled), "why": why, "error_rms_nT": err_rms,
+            "error_p95_nT": float(np.percentile(err, 95)), "noise_nT": noise,
+            "threshold_nT": limit, "rate_rms_dps": float(np.sqrt(np.mean(rate ** 2))),
+            "delay_ms": delay, "field_nT": float(field_nT)}

@@ -1,0 +1,431 @@
+"""Calibration from known field vectors: B_ref = M(T) (B~ - b(T)), fitted as that model.
+
+The estimator minimises the calibrated-minus-reference residual itself,
+
+    r_n = M(T_n) (B~_n - b(T_n)) - B_ref_n,      cost = sum_n r_n^T r_n / v_n
+
+(b and M polynomials in dT = clamp(T) - t_ref), never a regression of the raw reading on
+the reference followed by an inversion (that inverts a badly determined matrix whenever
+one reference direction hardly varies, e.g. a flight turning mostly in yaw).
+
+1. Start: the same model in the parametrisation where it is linear, B_ref = M(T) B~ + c(T)
+   (c = -M b), solved row by row by least squares with the prior as extra rows; then
+   b(T) = -M(T)^-1 c(T) (exact at degree 0; a polynomial projection on Chebyshev nodes over
+   the calibrated range otherwise).
+2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there.
+3. Errors in variables. The noise of the readings x (the sensor's stated noise_nT) adds
+   noise_nT^2 |M(T)|_F^2 to every expected |r|^2; it is subtracted from the cost (adjusted
+   least squares), so a reading axis that carries only noise does not look determined
+   (plain least squares would fit that column of M to the noise, shrinking it to ~0).
+   The residual also carries the sensor noise mapped through M and the
+   reference's own noise (an attitude estimate, a field model). Neither is known per sample
+   in the telemetry, so each file (`group`) gets its effective variance
+   v_g = mean |r|^2 / 3 of its residuals, and the fit is repeated with weights 1/v_g: a
+   file whose reference is noisier counts less.
+4. Observability: with the prior sigma s (`Prior`: a ground calibration, or the part's
+   nominal M = I, b = 0 with `PART_PRIOR_SIGMA`), the whitened Fisher information
+   F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. A direction with
+   lambda >= 1 carries more information from the data than from the prior and is fitted;
+   a direction with lambda < 1 (the data determine it worse than the prior already does)
+   is held at the prior: the start is projected onto the fitted subspace and the
+   Gauss-Newton steps stay in it. Each parameter's data fraction is the squared length of
+   its whitened unit vector in the fitted subspace; >= 0.5 reads "data", else "prior"
+   (that parameter is then mostly the prior's value). The covariance is
+   S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's where held.
+
+Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from generator.errors import InputError
+from generator.fit.calibration import POLY_DEGREE
+from generator.fit.ellipsoid import distinct_rows
+
+T_REF_C = 25.0
+MAX_REF_COND = 1e10        # condition number of the column-scaled reference-fit design
+
+# The part's nominal calibration M = I, b = 0 and its 1-sigma per polynomial degree k
+# (units nT/degC^k and 1/degC^k). Degree 0: offsets up to ~1e4 nT (hard iron of a
+# vehicle plus the MPU-9255 factory offset; the MMC5883 bridge offset is removed by
+# SET/RESET), sensitivity and cross-axis terms within ~10 % (datasheet sensitivity
+# tolerance and axis alignment, with soft iron). Temperature terms: offset drift up to
+# ~20 nT/degC and sensitivity drift up to ~0.1 %/degC, their curvature a few % of that per
+# degC. The simulator's units (campaign.simulate.random_truth) lie within 1 sigma.
+PART_PRIOR_SIGMA = {
+    "default": {"b_nT": (1.0e4, 20.0, 0.5, 0.01), "M": (0.1, 1.0e-3, 2.0e-5, 5.0e-7)},
+}
+# Whitened eigenvalue at and above which a direction is taken from the data: there the
+# data's information equals the prior's (posterior variance at most half the prior's).
+FISHER_THRESHOLD = 1.0
+DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in the fitted subspace
+# The stated reading noise is known only so well (a datasheet figure, or a measurement of
+# a few hundred samples): its variance to about +-25 %. A direction counts as determined
+# only with that margin taken off the information, so that a reading axis whose signal
+# is below half its noise (rms) is not "determined" by a misstated noise level.
+NOISE_VAR_UNCERTAINTY = 0.25
+GN_MAX_ITER = 30
+
+
+@dataclass
+class Prior:
+    """Prior of the flight coefficients: values and 1-sigma, polynomials in dT (degree K-1)."""
+    b_poly_nT: np.ndarray        # (K, 3)
+    M_poly: np.ndarray           # (K, 3, 3)
+    b_sigma_nT: np.ndarray       # (K, 3)
+    M_sigma: np.ndarray          # (K, 3, 3)
+    source: str = "part nominal"
+
+    def truncated(self, degree):
+        """This prior for a degree-`degree` model (missing degrees: nominal 0, part sigma)."""
+        K = degree + 1
+        nom = nominal_prior(degree)
+        b, M = nom.b_poly_nT.copy(), nom.M_poly.copy()
+        bs, Ms = nom.b_sigma_nT.copy(), nom.M_sigma.copy()
+        k = min(K, len(self.b_poly_nT))
+        b[:k], M[:k] = self.b_poly_nT[:k], self.M_poly[:k]
+        # a zero or missing sigma (an unfitted degree padded with zeros) keeps the part's
+        ps, pM = np.asarray(self.b_sigma_nT[:k], float), np.asarray(self.M_sigma[:k], float)
+        bs[:k] = np.where(ps > 0, ps, bs[:k])
+        Ms[:k] = np.where(pM > 0, pM, Ms[:k])
+        return Prior(b, M, bs, Ms, self.source)
+
+
+def nominal_prior(degree, part="default") -> Prior:
+    s = PART_PRIOR_SIGMA.get(part, PART_PRIOR_SIGMA["default"])
+    K = degree + 1
+    M = np.zeros((K, 3, 3))
+    M[0] = np.eye(3)
+    bs = np.repeat(np.asarray(s["b_nT"][:K], float)[:, None], 3, axis=1)
+    Ms = np.broadcast_to(np.asarray(s["M"][:K], float)[:, None, None], (K, 3, 3)).copy()
+    return Prior(np.zeros((K, 3)), M, bs, Ms, "part nominal (M = I, b = 0)")
+
+
+def parameter_names(degree):
+    """Names of the flight coefficients in fit order: b<k>_<axis>, then M<k>_<row><col>."""
+    ax = "xyz"
+    return ([f"b{k}_{ax[l]}" for k in range(degree + 1) for l in range(3)]
+            + [f"M{k}_{ax[a]}{ax[c]}" for k in range(degree + 1) for a in range(3)
+               for c in range(3)])
+
+
+def _powers(dT_scaled, degree):
+    """[1, d, d^2, ...] per sample, (N, degree+1)."""
+    P = np.empty((len(dT_scaled), degree + 1))
+    P[:, 0] = 1.0
+    for k in range(1, degree + 1):
+        P[:, k] = P[:, k - 1] * dT_scaled
+    return P
+
+
+def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
+    """Vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n with weights w_n: weighted cost and, in
+    closed form, J^T W J and J^T W r (params b[k,l], then M[k,a,c]); no (3N x p) Jacobian
+    is formed. P: (N, K) powers of dT. Returns (cost, JTJ, g, r).
+
+    eiv_var: variance of the noise in each axis of x (errors in variables). The noise in x
+    adds eiv_var |M(T_n)|_F^2 to the expected |r_n|^2 whatever the parameters; it is
+    subtracted from the cost (and its derivatives), so that noise in the readings is not
+    taken for signal (adjusted least squares: without it, a reading axis that carries only
+    noise would make its column of M look determined and shrink it towards 0)."""
+    n, K = P.shape
+    nb = 3 * K
+    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
+    y = x - P @ bp
+    r = np.einsum("nij,nj->ni", MT, y) - B
+    sw = np.ones(n) if w is None else np.sqrt(w)
+    rw = r * sw[:, None]
+    Pw = P * sw[:, None]
+    cost = float(np.sum(rw * rw))
+    if eiv_var:
+        Mw = Pw @ Mp.reshape(K, 9)                   # sqrt(w_n) M(T_n), (N, 9)
+        cost -= eiv_var * float(np.sum(Mw * Mw))
+    if not jac:
+        return cost, None, None, r
+    PP = (Pw[:, :, None] * Pw[:, None, :]).reshape(n, K * K)
+    # M-M: delta_aa' sum_n w P_k y_c P_m y_d
+    Py = (Pw[:, :, None] * y[:, None, :]).reshape(n, 3 * K)
+    G = (Py.T @ Py).reshape(K, 3, K, 3)
+    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
+    # b-b: sum_n w P_k P_m (M^T M)[l,p]
+    Q = np.einsum("nil,nip->nlp", MT, MT).reshape(n, 9)
+    bb = (PP.T @ Q).reshape(K, K, 3, 3).transpose(0, 2, 1, 3).reshape(nb, nb)
+    # M-b: -sum_n w P_k P_m y_c M[a,l]
+    YM = (y[:, :, None, None] * MT[:, None, :, :]).reshape(n, 27)       # [c,a,l]
+    Mb = -(PP.T @ YM).reshape(K, K, 3, 3, 3).transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)
+    gM = (Py.T @ rw).reshape(K, 3, 3).transpose(0, 2, 1).reshape(-1)      # [k,a,c]
+    if eiv_var:
+        PtP = Pw.T @ Pw
+        MM = MM - eiv_var * np.kron(PtP, np.eye(9))
+        gM = gM - eiv_var * (PtP @ Mp.reshape(K, 9)).reshape(-1)
+    JTJ = np.block([[bb, Mb.T], [Mb, MM]])
+    gb = -(Pw.T @ np.einsum("nil,ni->nl", MT, rw)).reshape(-1)            # [k,l]
+    return cost, JTJ, np.concatenate([gb, gM]), r
+
+
+def _cheb_nodes(lo, hi, degree):
+    if hi - lo < 1e-12:
+        return np.array([lo])
+    n = max(4 * (degree + 1), 16)
+    c = np.cos(np.pi * (np.arange(n) + 0.5) / n)
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * c
+
+
+def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
+    """Step 1: B = M(T) x + c(T), least squares per output row with the prior as extra
+    rows (the prior of c = -M b taken as -M0 b0 with b's sigma), the noise of x taken out
+    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
+    K = degree + 1
+    n = len(x)
+    Phi = np.concatenate([(P[:, :, None] * x[:, None, :]).reshape(n, 3 * K), P], axis=1)
+    b0, M0, bs, Ms = prior_s
+    c0 = np.zeros((K, 3))
+    c0[0] = -M0[0] @ b0[0]
+    sw = np.sqrt(w)
+    A = Phi * sw[:, None]
+    G = A.T @ A
+    if eiv_var:
+        Pw = P * sw[:, None]
+        G[:3 * K, :3 * K] -= eiv_var * np.kron(Pw.T @ Pw, np.eye(3))
+    Mk = np.zeros((K, 3, 3))
+    ck = np.zeros((K, 3))
+    for i in range(3):
+        u0 = np.concatenate([M0[:, i, :].reshape(-1), c0[:, i]])
+        s = np.concatenate([Ms[:, i, :].reshape(-1), bs[:, i]])
+        D = np.diag(1.0 / s ** 2)
+        u = np.linalg.lstsq(G + D, A.T @ (B[:, i] * sw) + D @ u0, rcond=None)[0]
+        Mk[:, i, :] = u[:3 * K].reshape(K, 3)
+        ck[:, i] = u[3 * K:]
+    g = _cheb_nodes(lo_s, hi_s, degree)
+    Pg = _powers(g, degree)
+    M_g = np.einsum("gk,kij->gij", Pg, Mk)
+    c_g = Pg @ ck
+    b_g = -np.linalg.solve(M_g, c_g[:, :, None])[:, :, 0]
+    proj = np.linalg.pinv(Pg)
+    return proj @ b_g, np.einsum("qg,gij->qij", proj, M_g)
+
+
+def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
+                  t_ref_C=T_REF_C, t_range_C=None, source=None, prior: Prior | None = None,
+                  group=None, noise_nT=None):
+    """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
+
+    field_frame_nT: (N, 3) uncalibrated readings in frame axes; ref_body_nT: (N, 3)
+    reference field (body frame); temp_C: (N,) reported temperature, or None for a
+    constant calibration (degree 0). Only finite rows may be passed. prior: Prior (default
+    the part's nominal); group: (N,) file labels for the errors-in-variables weights;
+    noise_nT: the sensor's stated per-axis noise (recorded next to the estimate).
+    Returns (b_poly_nT (degree+1, 3), M_poly (degree+1, 3, 3), info), polynomials in
+    dT = clamp(T, t_range) - t_ref_C (t_range defaults to the data's range). info:
+    b_poly_sigma_nT, M_poly_sigma (1-sigma, the posterior covariance), parameters (per
+    coefficient: value, sigma, prior, source "data"/"prior", data_fraction), unobservable
+    (the directions held at the prior), residual_sigma_nT (per frame axis, of the reading
+    model x - b - M^-1 B), residual_rms_nT (per body axis, calibrated), cond, cost.
+    """
+    x = np.asarray(field_frame_nT, float)
+    B = np.asarray(ref_body_nT, float)
+    if x.ndim != 2 or x.shape[1] != 3 or B.shape != x.shape:
+        raise InputError(source, f"reference fit: field {x.shape} and reference {B.shape} "
+                                 "must both be (N, 3)")
+    if not (np.isfinite(x).all() and np.isfinite(B).all()):
+        raise InputError(source, "reference fit: non-finite readings or reference vectors "
+                                 "(drop unusable samples first)")
+    n = len(x)
+    if temp_C is None:
+        degree = 0
+        T = np.full(n, float(t_ref_C))
+    else:
+        T = np.asarray(temp_C, float)
+        if T.shape != (n,) or not np.isfinite(T).all():
+            raise InputError(source, "reference fit: temperature must be finite, one per sample")
+    t_lo, t_hi = (float(T.min()), float(T.max())) if n else (t_ref_C, t_ref_C)
+    if t_range_C is not None:
+        t_lo, t_hi = map(float, t_range_C)
+    K = degree + 1
+    p = 12 * K
+    if n * 3 <= p:
+        raise InputError(source, f"reference fit: {n} samples for {p} unknowns")
+    n_dir = distinct_rows(B, 1.0, at_most=4)
+    if n_dir < 4:
+        raise InputError(source, f"reference fit: the reference field takes only {n_dir} "
+                                 "distinct values; at least 4 directions not in one plane "
+                                 "are needed")
+    tau = max(abs(t_lo - t_ref_C), abs(t_hi - t_ref_C), 1.0)
+    dts = (np.clip(T, t_lo, t_hi) - t_ref_C) / tau
+    P = _powers(dts, degree)
+    scale = tau ** np.arange(K)                     # coefficient in scaled dT = value * tau^k
+    pr = (prior or nominal_prior(degree)).truncated(degree)
+    prior_s = (pr.b_poly_nT * scale[:, None], pr.M_poly * scale[:, None, None],
+               pr.b_sigma_nT * scale[:, None], pr.M_sigma * scale[:, None, None])
+    theta0 = np.concatenate([prior_s[0].ravel(), prior_s[1].ravel()])
+    S = np.concatenate([prior_s[2].ravel(), prior_s[3].ravel()])
+    lo_s, hi_s = (t_lo - t_ref_C) / tau, (t_hi - t_ref_C) / tau
+    grp = np.zeros(n, int) if group is None else np.unique(np.asarray(group),
+                                                           return_inverse=True)[1]
+    n_grp = int(grp.max()) + 1
+
+    def unpack(th):
+        return th[:3 * K].reshape(K, 3), th[3 * K:].reshape(K, 3, 3)
+
+    eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
+    # pass 1 with a common variance, pass 2 with each file's effective variance
+    v_grp = np.ones(n_grp)
+    theta = None
+    for _pass in range(2):
+        if theta is None:
+            # the common variance: residual of the unconstrained linear model
+            Phi1 = np.concatenate([x, np.ones((n, 1))], axis=1)
+            Phi1 = (P[:, :, None] * Phi1[:, None, :]).reshape(n, -1)
+            sol, *_ = np.linalg.lstsq(Phi1, B, rcond=None)
+            v0 = max(float(np.sum((B - Phi1 @ sol) ** 2)) / max(3 * (n - Phi1.shape[1]), 1),
+                     1e-6)
+            w = np.full(n, 1.0 / v0)
+            bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
+            theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
+        # unobservable directions held at the prior (not single parameters: the combination
+        # the data miss is rarely one coefficient, and holding a whole coefficient would
+        # throw away what the data say about the rest of it)
+        free = np.ones(p, bool)
+        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ, S, _noise_margin(P, w, eiv_var))
+        if _pass == 1:
+            break
+        # errors-in-variables: each file's effective variance (sensor noise through M plus
+        # the reference's own), dof-corrected over all files
+        dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
+        for g in range(n_grp):
+            m = grp == g
+            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6)
+        w = 1.0 / v_grp[grp]
+    # covariance of the posterior (module docstring), in scaled units; held: the prior's
+    margin = _noise_margin(P, w, eiv_var)
+    for _ in range(3):   # the held directions turn a little with theta: settle them
+        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ, S, margin)
+        Vf, Vp = EV[:, fitted], EV[:, ~fitted]
+        zp = Vp.T @ ((theta - theta0) / S)
+        if not len(zp) or np.max(np.abs(zp)) < 1e-9:
+            break
+        theta = theta - S * (Vp @ zp)
+    Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
+    C = (Vf @ np.linalg.solve(Fv, Vf.T) + Vp @ Vp.T) * np.outer(S, S)
+    sig = np.sqrt(np.maximum(np.diag(C), 0))
+    frac = np.sum(Vf ** 2, axis=1)
+    z = (theta - theta0) / S
+    bp_s, Mp_s = unpack(theta)
+    b_poly, M_poly = bp_s / scale[:, None], Mp_s / scale[:, None, None]
+    bsig = sig[:3 * K].reshape(K, 3) / scale[:, None]
+    Msig = sig[3 * K:].reshape(K, 3, 3) / scale[:, None, None]
+    names = parameter_names(degree)
+    unscale = np.concatenate([np.repeat(scale, 3), np.repeat(scale, 9)])
+    th_val, th0, s_val = theta / unscale, theta0 / unscale, S / unscale
+    params = [{"name": nm, "value": float(th_val[i]), "sigma": float(sig[i] / unscale[i]),
+               "prior": float(th0[i]), "prior_sigma": float(s_val[i]),
+               "data_fraction": float(frac[i]),
+               "source": "data" if frac[i] >= DATA_FRACTION else "prior"}
+              for i, nm in enumerate(names)]
+    unobs = []
+    for j in np.nonzero(~fitted)[0]:
+        v = EV[:, j]
+        top = np.argsort(-np.abs(v))[:4]
+        unobs.append({"information_vs_prior": float(ev[j]),
+                      "direction": {names[i]: round(float(v[i]), 3) for i in top
+                                    if abs(v[i]) > 0.2},
+                      # whitened unit vector (coefficient / prior sigma) and the fit's
+                      # component along it (0: held at the prior)
+                      "vector": [float(a) for a in v], "offset_from_prior": float(v @ z)})
+    # residuals: calibrated (body axes) and of the reading model (frame axes, W r)
+    T_c = np.clip(T, t_lo, t_hi) - t_ref_C
+    Pp = _powers(T_c, degree)
+    M_T = np.einsum("nk,kij->nij", Pp, M_poly)
+    read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
+    dof = max(3 * n - int(fitted.sum()), 1) / 3
+    col = np.sqrt(np.diag(JTJ))
+    col[col == 0] = 1.0
+    Gn = JTJ / np.outer(col, col)
+    evn = np.linalg.eigvalsh(Gn)
+    cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
+    info = {
+        "n": int(n), "degree": int(degree), "cond": cond, "t_range_C": (t_lo, t_hi),
+        "b_poly_sigma_nT": bsig, "M_poly_sigma": Msig,
+        "residual_sigma_nT": np.sqrt(np.sum(read_res ** 2, axis=0) / dof),
+        "residual_rms_nT": np.sqrt(np.mean(r ** 2, axis=0)),
+        "cost": float(np.sum(r ** 2)),
+        "parameters": params, "unobservable": unobs,
+        "prior_source": pr.source,
+        "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
+                  "effective_per_file_nT": np.sqrt(v_grp).tolist()},
+        "estimator": "calibrated-minus-reference least squares (linear start, Gauss-Newton), "
+                     "per-file errors-in-variables weights, unobservable directions held at "
+                     "the prior",
+    }
+    return b_poly, M_poly, info
+
+
+def _eig_split(JTJ, S, margin=None):
+    """Eigen-split of the whitened information; margin: information to take off first
+    (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables)."""
+    F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
+    ev, EV = np.linalg.eigh(F)
+    return ev, EV, ev >= FISHER_THRESHOLD
+
+
+def _noise_margin(P, w, eiv_var):
+    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block."""
+    n, K = P.shape
+    out = np.zeros((12 * K, 12 * K))
+    if eiv_var:
+        Pw = P * np.sqrt(w)[:, None]
+        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(Pw.T @ Pw, np.eye(9))
+    return out
+
+
+def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
+    """Gauss-Newton on the weighted cost in whitened coordinates z = (theta - theta0)/S of
+    the free parameters (the others stay at the prior), restricted to the directions the
+    data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
+    f = np.nonzero(free)[0]
+    S_f, th0_f = S[f], theta0[f]
+    margin = _noise_margin(P, w, eiv_var)[np.ix_(f, f)]
+    theta = theta.copy()
+    theta[~free] = theta0[~free]
+
+    def at(z):
+        th = theta.copy()
+        th[f] = th0_f + S_f * z
+        return th
+
+    z = (theta[f] - th0_f) / S_f
+    first = True
+    for _ in range(GN_MAX_ITER):
+        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+        ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
+        Vf = EV[:, fitted]
+        evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
+        if first:               # the start's component where the data say nothing: the prior
+            z = Vf @ (Vf.T @ z)
+            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+            first = False
+        Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
+        dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
+        step = 1.0
+        while step > 1e-4:
+            z_new = z + step * dz
+            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var)[0]
+            if c_new <= cost + 1e-12 * abs(cost):
+                break
+            step *= 0.5
+        else:
+            break
+        d = Vf.T @ (z_new - z)
+        done = float(np.sum(evj * d * d)) < 1e-10    # the step moves chi^2 by < 1e-10
+        z = z_new
+        if done:
+            break
+    theta = at(z)
+    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+    return theta, JTJ, cost, r
