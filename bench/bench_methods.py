@@ -30,7 +30,7 @@ from bench_analytic import best_of, build_ipopt, closed_form_core  # noqa: E402
 
 from generator.fit.analytic import fit_analytic, fit_analytic_rotated  # noqa: E402
 from generator.report.compare import compare_methods, sections  # noqa: E402
-from generator.report.report import Report  # noqa: E402
+from generator.report.document import Report  # noqa: E402
 from generator.io.telemetry_csv import preprocess, read_telemetry  # noqa: E402
 from generator.io.unitfile import load_unit  # noqa: E402
 

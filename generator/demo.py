@@ -72,7 +72,8 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     from generator.flight import table_host
     from generator.io import truth as truth_mod
     from generator.flight.host import HostUnit
-    from generator.report.report import Report, Section, Table, fit_report
+    from generator.report.document import Report, Section, Table
+    from generator.report.report import fit_report
 
     from generator.progress import Progress
 

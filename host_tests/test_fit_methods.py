@@ -30,7 +30,7 @@ from generator.fit.analytic import (P_from_angles, angles_from_P, fit_analytic,
 from generator.report.compare import SEED_000_MMC5883_NO2, compare_methods, sections
 from generator.fit.thermal import (FIT_METHODS, fit_data_from, fit_sensor, fit_unit,
                                    rotated_fit_M)
-from generator.report.report import Report, Section, Table
+from generator.report.document import Report, Section, Table
 from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.truth import (load_truth, rms_norm_error, rms_vector_error,
                              true_calibrated_frame)

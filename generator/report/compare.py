@@ -31,7 +31,7 @@ every calibration is also scored on them by |B| only (a boom sensor sees H^T B t
 "rotation" row: an ellipsoid fitted to that file.
 
 Public API: compare_methods(unit, telemetries, truth=None, *, evaluate=()) -> dict;
-sections(result) -> [generator.report.report.Section]; SEED_000_MMC5883_NO2.
+sections(result) -> [generator.report.document.Section]; SEED_000_MMC5883_NO2.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.thermal import FIT_METHODS, fit_unit
-from generator.report.report import Section, Table
+from generator.report.document import Section, Table
 
 #: Seed 000, section 4: |B| after calibration of MMC5883 No.2, mean and standard deviation
 #: ("СКО") in nT.

@@ -8,7 +8,7 @@ import numpy as np
 
 from generator.campaign.plan import TestPlan, _hms, window_check
 from generator.report import figures
-from generator.report.report import Report, Section, Table
+from generator.report.document import Report, Section, Table
 
 
 def plan_report(plan: TestPlan, out_dir):
