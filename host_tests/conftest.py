@@ -17,7 +17,9 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-SHARED = REPO.parent / "shared"
+# ../shared beside the checkout (ICD); MAGCAL_SHARED points elsewhere (a git worktree
+# whose parent folder has no shared/).
+SHARED = Path(os.environ.get("MAGCAL_SHARED") or REPO.parent / "shared")
 FM1 = SHARED / "data" / "samsat_fm1"
 REALDATA = SHARED / "realdata"
 
