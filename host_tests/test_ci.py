@@ -113,3 +113,15 @@ def test_real_recordings_present_under_ci(realdata_dir):
     require((realdata_dir / "px4_ecl_office" / "sensor_mag_0.csv").exists(),
             f"PX4 log missing under {realdata_dir}")
     assert REALDATA == realdata_dir
+
+
+def test_example_unit_committed_under_ci():
+    """test_bitexact.py leaves the example unit out of its cases when the file is missing;
+    here that absence is a failure under CI."""
+    from chain_fixtures import EXAMPLE_COEFFS
+    require(EXAMPLE_COEFFS.exists(), f"no committed example unit at {EXAMPLE_COEFFS}")
+
+
+def test_gcc_present_under_ci():
+    from ci import require_gcc
+    require_gcc()
