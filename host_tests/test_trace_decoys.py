@@ -81,3 +81,26 @@ def test_the_rule_divides_alpha_by_the_candidates():
     assert s.judge(9, tr.ALPHA, MIN_GAIN)
     assert not s.judge(10, tr.ALPHA, MIN_GAIN)
     assert not s.judge(N_DECOYS, tr.ALPHA, MIN_GAIN)
+
+
+def _score(**kw):
+    v = dict(effect=None, hyper=None, dof=3, sse0_cv=100.0, sse1_cv=90.0,
+             block_gain=np.ones(8), t=9.0, p_t=1e-6, sse0_full=100.0, sse1_full=90.0,
+             n_eff=1000.0, lr=100.0, p_lr=1e-9, lr_fit=0.0)
+    v.update(kw)
+    return tr.Score(**v)
+
+
+def test_each_of_the_three_criteria_is_required():
+    """The documented rule needs all three: p_lr x m < ALPHA, block p_t < 0.01, held-out
+    RMS gain >= min_gain (1 - sqrt(SSE1/SSE0))."""
+    assert _score().judge(N_DECOYS, tr.ALPHA, MIN_GAIN)
+    assert not _score(p_lr=tr.ALPHA).judge(1, tr.ALPHA, MIN_GAIN)
+    assert not _score(p_t=BLOCK_LEVEL).judge(1, tr.ALPHA, MIN_GAIN)
+    assert _score(p_t=0.999 * BLOCK_LEVEL).judge(1, tr.ALPHA, MIN_GAIN)
+    # gain 1 - sqrt(0.985) = 0.75 %: below 1 %; 1 - sqrt(0.97) = 1.5 %: enough
+    assert not _score(sse1_cv=98.5).judge(1, tr.ALPHA, MIN_GAIN)
+    assert _score(sse1_cv=97.0).judge(1, tr.ALPHA, MIN_GAIN)
+    assert not _score(sse1_cv=97.0).judge(1, tr.ALPHA, 0.02)
+    assert tr.BLOCK_LEVEL == BLOCK_LEVEL and tr.MIN_REL_GAIN == MIN_GAIN
+
