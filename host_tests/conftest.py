@@ -11,20 +11,27 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import pytest
 
+from ci import require
+
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-SHARED = REPO.parent / "shared"
+# ../shared beside the checkout (ICD); MAGCAL_SHARED points elsewhere (a git worktree
+# whose parent folder has no shared/).
+SHARED = Path(os.environ.get("MAGCAL_SHARED") or REPO.parent / "shared")
 FM1 = SHARED / "data" / "samsat_fm1"
 REALDATA = SHARED / "realdata"
 
 
 @pytest.fixture(scope="session")
 def fm1_dir() -> Path:
-    if not FM1.is_dir():
-        msg = f"shared example unit not found at {FM1}"
-        if os.environ.get("CI"):
-            pytest.fail(msg + " (CI must have ../shared beside the checkout)")
-        pytest.skip(msg)
+    require(FM1.is_dir(), f"shared example unit not found at {FM1} "
+                          "(CI must have ../shared beside the checkout)")
     return FM1
+
+
+@pytest.fixture(scope="session")
+def realdata_dir() -> Path:
+    require(REALDATA.is_dir(), f"shared real recordings not found at {REALDATA}")
+    return REALDATA

@@ -13,7 +13,6 @@ environment variable CI is set (the CI script installs them).
 
 from __future__ import annotations
 
-import os
 import struct
 import subprocess
 import sys
@@ -32,7 +31,9 @@ pytestmark = pytest.mark.arm
 
 COILS = ("coil_x_A", "coil_y_A", "coil_z_A")
 N_RANDOM = 4000          # per sensor and entry point (the host suite runs 100,000)
-IN_CI = os.environ.get("CI", "").lower() not in ("", "0", "false", "no")
+from ci import in_ci
+
+IN_CI = in_ci()
 
 
 def _require(what_missing: list):

@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 import shutil
 import subprocess
 import tempfile
@@ -22,6 +21,8 @@ import pytest
 from generator.report import report as R
 from generator.cli import main
 from generator.flight.coeffs import CoefficientSet
+
+from ci import require
 
 
 class _Links(HTMLParser):
@@ -267,9 +268,7 @@ def test_report_renders_in_headless_chromium(fm1_fit_report, tmp_path):
     if exe is None:
         msg = ("chromium not installed (apt-get install -y chromium): the page was not "
                "rendered; the file and link checks above still ran")
-        if os.environ.get("CI"):
-            pytest.fail(msg + " -- CI must install it (.ci/run)")
-        pytest.skip(msg)
+        require(False, msg + " -- CI must install it (.ci/run)")
     out, _, _ = fm1_fit_report
     shot = tmp_path / "page.png"
     with tempfile.TemporaryDirectory() as profile:

@@ -10,7 +10,10 @@ from __future__ import annotations
 import csv
 import json
 import math
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:   # Python 3.10: the package depends on tomli there
+    import tomli as tomllib
 
 import numpy as np
 import pytest

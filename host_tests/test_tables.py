@@ -40,6 +40,7 @@ from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.host import HostUnit
 from generator.flight.table_host import TableHost
+from ci import require
 from generator.flight.table_manager import TableManager
 from generator.flight.tables import (CRC_BYTES, HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_INDEX,
                               PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS, Reassembler,
@@ -814,9 +815,7 @@ def _sanitizer_available(tmp_path) -> bool:
 @pytest.mark.parametrize("label", ["f32_coils", "f64_coils"])
 def test_validator_and_reassembly_under_sanitizers(tmp_path, label):
     if not _sanitizer_available(tmp_path):
-        if os.environ.get("CI"):
-            pytest.fail("the C compiler cannot build with -fsanitize=address,undefined")
-        pytest.skip("the C compiler here lacks -fsanitize=address,undefined support")
+        require(False, "the C compiler here lacks -fsanitize=address,undefined support")
     default, new = CASES[label]
     files = table_host.host_sources(default)
     src = tmp_path / "src"
@@ -1025,8 +1024,7 @@ def test_every_block_kind_of_the_chain_has_a_plausible_range():
 def test_example_unit_table_validates(tmp_path):
     from chain_fixtures import EXAMPLE_COEFFS
 
-    if not EXAMPLE_COEFFS.exists():
-        pytest.skip("no committed example unit")
+    require(EXAMPLE_COEFFS.exists(), f"no committed example unit at {EXAMPLE_COEFFS}")
     cs = CoefficientSet.load(EXAMPLE_COEFFS)
     table = encode_table(cs, 1, 0)
     assert TableHost(cs).validate(table) == S.OK

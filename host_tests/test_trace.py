@@ -43,6 +43,8 @@ from generator.io.telemetry import Telemetry
 from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.unit import Unit
 
+from ci import require_gcc
+
 SIZE_RANGE = (3.0, 20.0)       # effect size in units of the per-axis field noise
 RATIO_LIMIT = 1.2              # final held-out RMS / truth-model RMS
 SEEDS = [1, 2, 3, 4, 5, 6]
@@ -429,9 +431,7 @@ def test_traced_coefficients_generate_flight_c_with_the_effects(tmp_path):
     """Trace a channel bias and a thermal lag, write the extended coefficients, run
     `magcal generate --compile`, and run the compiled C over the data: it agrees with the
     float64 model of the trace within float32 rounding."""
-    import shutil
-    if shutil.which("gcc") is None:
-        pytest.skip("gcc not found")
+    require_gcc()
     from generator.cli import main
     from generator.flight.host import HostUnit
     unit = small_unit()

@@ -29,14 +29,14 @@ from generator.report.trace_report import write_report
 from generator.flight.coeffs import CoefficientSet
 
 from conftest import REALDATA
+from ci import require
 
 PX4 = REALDATA / "px4_ecl_office"
 
 
 @pytest.fixture(scope="module")
 def px4_dir():
-    if not (PX4 / "sensor_mag_0.csv").exists():
-        pytest.skip(f"PX4 log not found at {PX4}")
+    require((PX4 / "sensor_mag_0.csv").exists(), f"PX4 log not found at {PX4}")
     return PX4
 
 

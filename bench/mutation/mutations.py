@@ -1,0 +1,212 @@
+"""The curated mutations: deliberate bugs, one at a time, each with the tests that must
+catch it. A mutation is a list of (file, old text, new text); the old text must occur
+exactly once (the runner refuses a mutation that no longer applies, so the list follows
+the code). Flight mutations change the template and the Python reference alike where the
+bug would be planted in both; generated/ is never regenerated and test_generated.py
+(the byte diff) is never run, so a kill comes from a behavioural test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+EXPECT = ["host_tests/test_expectations.py"]
+FLIGHT = EXPECT + ["host_tests/test_flight_chain.py"]
+CHI2 = ["host_tests/test_truth_chi2.py"]
+FIT = CHI2 + ["host_tests/test_fit_accuracy.py"]
+TRACE = ["host_tests/test_trace_decoys.py"]
+TABLES = ["host_tests/test_tables.py"]
+CHAIN = "generator/flight/chain.py"
+TPL = "templates/magcal.c.j2"
+
+
+@dataclass(frozen=True)
+class Mutation:
+    id: str
+    what: str
+    edits: tuple          # ((file, old, new), ...)
+    tests: tuple
+
+
+M = Mutation
+MUTATIONS = [
+    # ---- the four bugs of issue 21 ----------------------------------------------------
+    M("clamp_upper_removed", "upper temperature clamp removed (C and Python)",
+      ((TPL, "    } else if (temp_C > c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C]) {\n"
+             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
+             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    }",
+        "    }"),
+       (CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < t_min, t < t_min")),
+      tuple(EXPECT)),
+    M("majority_at_most_half", "selection: 'fewer than half' -> 'at most half' (C and Python)",
+      ((TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
+        "n_cmp[i] >= 2u && 2u * n_agree[i] <= n_cmp[i]"),
+       (CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
+        "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]")),
+      tuple(EXPECT)),
+    M("lag_abs_dt", "thermal lag steps with |dt| on a backward clock step (C and Python)",
+      ((TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards"),
+       (CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)", "dts = np.abs(dts).astype(ft)")),
+      tuple(EXPECT)),
+    M("trace_no_bonferroni", "trace: the multiple-comparison factor dropped",
+      (("generator/trace/tracer.py", "        s.judge(len(scores), alpha, min_gain)",
+        "        s.judge(1, alpha, min_gain)"),),
+      tuple(TRACE)),
+    # ---- the same three flight bugs in one implementation only (C or Python) ----------
+    M("clamp_upper_removed_C", "upper temperature clamp removed in the C only",
+      ((TPL, "    } else if (temp_C > c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C]) {\n"
+             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
+             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    }",
+        "    }"),),
+      tuple(EXPECT)),
+    M("clamp_upper_removed_py", "upper temperature clamp removed in the Python only",
+      ((CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < t_min, t < t_min"),),
+      tuple(EXPECT)),
+    M("majority_at_most_half_C", "'at most half' in the C only",
+      ((TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
+        "n_cmp[i] >= 2u && 2u * n_agree[i] <= n_cmp[i]"),),
+      tuple(EXPECT)),
+    M("majority_at_most_half_py", "'at most half' in the Python only",
+      ((CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
+        "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]"),),
+      tuple(EXPECT)),
+    M("lag_abs_dt_C", "|dt| on a backward step in the C only",
+      ((TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards"),),
+      tuple(EXPECT)),
+    M("lag_abs_dt_py", "|dt| on a backward step in the Python only",
+      ((CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)", "dts = np.abs(dts).astype(ft)"),),
+      tuple(EXPECT)),
+    # ---- wrappers -------------------------------------------------------------------
+    M("clamp_lower_removed", "lower temperature clamp removed (C and Python)",
+      ((TPL, "    if (temp_C < c[{{ UNIT }}_{{ s.NAME }}_T_MIN_C]) {\n"
+             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MIN_C];\n"
+             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    } else if",
+        "    if (0) {\n    } else if"),
+       (CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < -np.inf, t > t_max")),
+      tuple(EXPECT)),
+    M("clamp_upper_unflagged", "upper clamp applied but not flagged (C and Python)",
+      ((TPL, "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
+             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;",
+        "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];"),
+       (CHAIN, "status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED",
+        "status[below & ~zeroed] |= STATUS_TEMP_CLAMPED")),
+      tuple(EXPECT)),
+    M("saturation_low_rail_strict", "saturation: count_min itself not a rail (C and Python)",
+      ((TPL, "raw->{{ field }}[{{ k }}] <= {{ s.count_min }} ||",
+        "raw->{{ field }}[{{ k }}] < {{ s.count_min }} ||"),
+       (CHAIN, "(raw_counts <= sensor.count_min)", "(raw_counts < sensor.count_min)")),
+      tuple(EXPECT)),
+    M("saturation_high_rail_off_by_one", "saturation: count_max - 1 flagged (C and Python)",
+      ((TPL, ">= {{ s.count_max }}) {", ">= {{ s.count_max }} - 1) {"),
+       (CHAIN, "(raw_counts >= sensor.count_max)", "(raw_counts >= sensor.count_max - 1)")),
+      tuple(EXPECT)),
+    M("nonfinite_coil_ignored", "a non-finite coil current not detected (C and Python)",
+      ((TPL, "        finite_probe += aux->coil_A[{{ k }}] - aux->coil_A[{{ k }}];\n", ""),
+       (CHAIN, "    for v in inputs.values():\n        nonfinite |=",
+        "    for v in [v for k, v in inputs.items() if k != 'coil_A']:\n        nonfinite |=")),
+      tuple(EXPECT)),
+    M("select_confirmed_needs_two", "selection reason: CONFIRMED only with two agreeing",
+      ((TPL, "} else if (n_agree[i] > 0u) {", "} else if (n_agree[i] > 1u) {"),
+       (CHAIN, "elif n_agree[i] > 0:", "elif n_agree[i] > 1:")),
+      tuple(EXPECT)),
+    M("select_two_is_enough", "disagreement with a single other valid sensor",
+      ((TPL, "n_cmp[i] >= 2u && 2u", "n_cmp[i] >= 1u && 2u"),
+       (CHAIN, "n_cmp[i] >= 2 and 2", "n_cmp[i] >= 1 and 2")),
+      tuple(EXPECT)),
+    M("fallback_body_first", "fallback order: body before boom",
+      ((CHAIN, '0 if e[1].frame == "boom" else 1,', '0 if e[1].frame == "body" else 1,'),),
+      tuple(EXPECT)),
+    M("lag_zero_dt_moves", "thermal lag: a zero step moves the filter by half",
+      ((CHAIN, "return temp_el_C + dt_s / (tau_s + dt_s) * (temp_C - temp_el_C)",
+        "return temp_el_C + (dt_s + 1) / (tau_s + dt_s + 2) * (temp_C - temp_el_C)"),),
+      tuple(EXPECT)),
+    # ---- the chain's maths (one definition: C and Python change together) -------------
+    M("offset_added", "offset added instead of subtracted",
+      ((CHAIN, "x = [field_f[i] - b[i] for i in range(3)]",
+        "x = [field_f[i] + b[i] for i in range(3)]"),),
+      tuple(FLIGHT)),
+    M("coil_sign", "coil coupling added instead of subtracted",
+      ((CHAIN, "x = [x[i] - coil_nT[i] for i in range(3)]",
+        "x = [x[i] + coil_nT[i] for i in range(3)]"),),
+      tuple(FLIGHT)),
+    M("axis_sign_ignored", "axis signs of the ICD mapping ignored",
+      ((CHAIN, "return a - b if sign[k] > 0 else b - a", "return a - b"),),
+      tuple(FLIGHT)),
+    M("setreset_not_halved", "SET/RESET difference not halved",
+      ((CHAIN, "half_lsb = lsb * half", "half_lsb = lsb"),),
+      tuple(FLIGHT)),
+    M("dT_from_t_min", "polynomials evaluated at T - t_min instead of T - t_ref",
+      ((CHAIN, 'dT = temp_C - c.scalar("t_ref_C")', 'dT = temp_C - c.scalar("t_min_C")'),),
+      tuple(FLIGHT)),
+    M("boom_H_transposed", "boom rotation applied transposed",
+      ((CHAIN, "        B = [_dot3(H[i], B) for i in range(3)]",
+        "        B = [_dot3([H[0][i], H[1][i], H[2][i]], B) for i in range(3)]"),),
+      tuple(FLIGHT)),
+    M("band_max_not_squared", "plausibility band: field_max not squared",
+      ((CHAIN, "f_max * f_max - norm2", "f_max * 1000 - norm2"),),
+      tuple(FLIGHT)),
+    M("agree_one_sided", "agreement tolerance uses one sensor's scatter only",
+      ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
+      tuple(EXPECT)),
+    # ---- fits -------------------------------------------------------------------------
+    M("fit_offset_biased", "fitted offsets biased by 0.3 x the noise per axis",
+      (("generator/fit/thermal.py", "    b_poly = b_s * scale[:, None]\n",
+        "    b_poly = b_s * scale[:, None]\n    b_poly[0] += 0.3 * np.sqrt(sig2)\n"),),
+      tuple(FIT)),
+    M("fit_b_sigma_halved", "stated sigma of b(T) half the truth",
+      (("generator/fit/thermal.py", '"b_poly_sigma_nT": np.sqrt(var_b) * scale[:, None],',
+        '"b_poly_sigma_nT": 0.5 * np.sqrt(var_b) * scale[:, None],'),),
+      tuple(CHI2)),
+    M("fit_b_sigma_tripled", "stated sigma of b(T) three times the truth",
+      (("generator/fit/thermal.py", '"b_poly_sigma_nT": np.sqrt(var_b) * scale[:, None],',
+        '"b_poly_sigma_nT": 3 * np.sqrt(var_b) * scale[:, None],'),),
+      tuple(CHI2)),
+    M("fit_M_sigma_tripled", "stated sigma of M(T) three times the truth",
+      (("generator/fit/thermal.py",
+        '"M_poly_sigma": np.sqrt(np.maximum(var_M, 0)) * scale[:, None, None],',
+        '"M_poly_sigma": 3 * np.sqrt(np.maximum(var_M, 0)) * scale[:, None, None],'),),
+      tuple(CHI2)),
+    M("coil_sigma_halved", "stated sigma of K half the truth",
+      (("generator/fit/coils.py", "K_sig = np.sqrt(np.outer(np.diag(Ginv), s2)).T",
+        "K_sig = 0.5 * np.sqrt(np.outer(np.diag(Ginv), s2)).T"),),
+      tuple(CHI2)),
+    M("alignment_cov_quartered", "stated covariance of H a quarter of the truth",
+      (("generator/fit/alignment.py", "    if s2 == 0.0:\n",
+        "    cov = cov / 4\n    if s2 == 0.0:\n"),),
+      tuple(CHI2)),
+    M("alignment_extra_cov_dropped", "H covariance without the calibrations' uncertainty",
+      (("generator/fit/alignment.py", "        cov = cov + 0.5 * (extra + extra.T)\n",
+        "        cov = cov + 0.0 * (extra + extra.T)\n"),),
+      tuple(CHI2)),
+    M("alignment_stat_cov_quartered", "statistical part of the H covariance quartered",
+      (("generator/fit/alignment.py", "    cov = cov_stat.copy()\n",
+        "    cov = cov_stat.copy() / 4\n"),),
+      tuple(CHI2)),
+    M("alignment_transposed", "boom alignment H returned transposed",
+      (("generator/fit/alignment.py", "    H = wahba_svd(B1, B2, w)\n",
+        "    H = wahba_svd(B1, B2, w).T\n"),),
+      tuple(CHI2)),
+    M("ellipsoid_refine_noop", "ellipsoid refinement turned into a no-op",
+      (("generator/fit/ellipsoid.py", "        p, cost, JTJ, lm = lm_solve(model, p0)\n",
+        "        _, cost, JTJ, lm = lm_solve(model, p0)\n        p = p0\n"),),
+      ("host_tests/test_ellipsoid_partial.py",)),
+    # ---- trace rules ------------------------------------------------------------------
+    M("trace_block_test_ignored", "trace: the block-consistency t-test ignored",
+      (("generator/trace/tracer.py", "        if not self.p_t < BLOCK_LEVEL:",
+        "        if not self.p_t < 2.0:"),),
+      tuple(TRACE)),
+    M("trace_min_gain_ignored", "trace: the 1 % minimum gain ignored",
+      (("generator/trace/tracer.py", "        if not self.rel_rms_gain >= min_gain:",
+        "        if not self.rel_rms_gain >= -1.0:"),),
+      tuple(TRACE)),
+    # ---- uplink table validator ----------------------------------------------------------
+    M("table_crc_unchecked", "flight validator: CRC not checked",
+      (("templates/table.c.j2",
+        "        return {{ UNIT }}_TABLE_BAD_CRC;\n    }\n    /* content",
+        "        (void)0;\n    }\n    /* content"),),
+      tuple(TABLES)),
+    M("table_layout_unchecked", "flight validator: layout hash not checked",
+      (("templates/table.c.j2", "        return {{ UNIT }}_TABLE_WRONG_LAYOUT;\n",
+        "        (void)0;\n"),),
+      tuple(TABLES)),
+]
