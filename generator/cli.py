@@ -40,11 +40,11 @@ def cmd_fit(args):
     from generator.pipeline import fit
     from generator.report.report import write_fit_report
 
+    from generator.io.outputs import check_output_folder, output_folder
+
     progress = _progress(args)
+    check_output_folder(args.output)
     cs = fit(args.unit, args.data, progress=progress, method=args.method)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    cs.save(out / "coefficients.json")
     extra = []
     if args.compare_methods:
         from generator.report import compare as fit_compare
@@ -58,8 +58,11 @@ def cmd_fit(args):
             unit, [t for t in tels if t.has("ref_x_nT", "ref_y_nT", "ref_z_nT")] or tels,
             truth=args.truth, evaluate=[t for t in tels if not t.has("ref_x_nT")],
             progress=progress))
-    report = write_fit_report(cs, out, data_paths=args.data, progress=progress,
-                              extra_sections=extra)
+    with output_folder(args.output) as folder:
+        cs.save(folder.tmp / "coefficients.json")
+        report = write_fit_report(cs, folder.tmp, data_paths=args.data, progress=progress,
+                                  extra_sections=extra)
+    out, report = folder.target, folder.final(report)
     progress(f"wrote {out / 'coefficients.json'} and {report}")
     from generator.report.report import fit_summary
     return 0, fit_summary(cs, out / "coefficients.json", report)
@@ -87,6 +90,9 @@ def cmd_apply(args):
     from generator.flight.coeffs import CoefficientSet
     from generator.pipeline import apply
 
+    from generator.io.outputs import check_output_file
+
+    check_output_file(args.output)
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
@@ -107,15 +113,19 @@ def cmd_generate(args):
     from generator.flight.codegen import generate
     from generator.flight.coeffs import CoefficientSet
 
+    from generator.io.outputs import check_output_folder, output_folder
+
+    check_output_folder(args.output)
     cs = CoefficientSet.load(args.coeffs)
-    paths = generate(cs, args.output)
     progress = _progress(args)
+    with output_folder(args.output) as folder:
+        paths = generate(cs, folder.tmp)
+        if args.compile:     # before the folder is committed: no C left that fails to build
+            from generator.flight.host import HostUnit
+            HostUnit(cs)
+            progress("compiled on the host (-std=c99 -O2 -ffp-contract=off -Werror)")
     for p in paths:
-        progress(f"wrote {p}")
-    if args.compile:
-        from generator.flight.host import HostUnit
-        HostUnit(cs)
-        progress("compiled on the host (-std=c99 -O2 -ffp-contract=off -Werror)")
+        progress(f"wrote {folder.final(p)}")
     return 0
 
 
@@ -244,6 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="magcal", description="Magnetometer calibration toolchain: fit, flight C, tables.")
     parser.add_argument("--version", action="version", version=f"magcal {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an internal fault (exit 1), print the Python traceback")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     for name, (fn, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -257,7 +269,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # --debug is global; accepted anywhere on the line so `magcal fit ... --debug` works too
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:          # argparse: --help/--version exit 0, bad usage exit 2
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -265,12 +284,21 @@ def main(argv=None) -> int:
     try:
         result = args.func(args)
     except InputError as e:
-        print(f"magcal {args.verb}: {e}", file=sys.stderr)
+        print(f"magcal {args.verb}: {_one_line(str(e))}", file=sys.stderr)
         if want_json:
             _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
     except KeyboardInterrupt:
         print("magcal: interrupted", file=sys.stderr)
+        return 1
+    except Exception as e:           # a genuine internal fault: one line, or the traceback
+        if debug:
+            import traceback
+            traceback.print_exc(file=sys.stderr)
+        print(f"magcal {args.verb}: internal error: {type(e).__name__}: "
+              f"{_one_line(str(e))} (run with --debug for the traceback)", file=sys.stderr)
+        if want_json:
+            _print_json({"verb": args.verb, "exit": 1, "error": f"{type(e).__name__}: {e}"})
         return 1
     payload = None
     if isinstance(result, tuple):
@@ -279,6 +307,12 @@ def main(argv=None) -> int:
     if want_json:
         _print_json(payload if payload is not None else {"verb": args.verb, "exit": rc})
     return rc
+
+
+def _one_line(text: str, limit: int = 400) -> str:
+    """A message as one line of bounded length (stderr carries exactly one line)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _print_json(obj):

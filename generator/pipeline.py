@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-from pathlib import Path
 
 import numpy as np
 
@@ -12,6 +11,7 @@ from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
 from generator.io.telemetry import Telemetry
+from generator.io.outputs import atomic_file
 from generator.io.telemetry_csv import read_telemetry
 from generator.io.unit import Unit
 from generator.io.unitfile import load_unit
@@ -36,21 +36,27 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
     temp = tel.columns[f"{s.name}_temp_C"]
     present = np.all(np.isfinite(counts), axis=1) & np.isfinite(temp)
     raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
-    def optional(names):
-        """Columns as (N, k), zeros where absent from the file; rows with a missing cell
-        are not present."""
+    def optional(names, what):
+        """Columns as (N, k); rows with a missing cell are not present. A column the chain
+        needs that the file lacks is bad input: a current or channel is never assumed 0."""
         nonlocal present
         if not names:
             return None
-        cols = np.stack([tel.columns.get(c, np.zeros(tel.n)) for c in names], axis=1)
+        for c in names:
+            if c not in tel.columns:
+                raise InputError(tel.path, f"missing from the header: the chain of sensor "
+                                           f"'{s.name}' needs this {what} (it is never "
+                                           "assumed to be 0)", column=c)
+        cols = np.stack([tel.columns[c] for c in names], axis=1)
         present &= np.all(np.isfinite(cols), axis=1)
         return np.where(np.isfinite(cols), cols, 0.0)
 
     o = spec.opts(s)
-    coil = optional(list(spec.coils))
-    ch = optional(list(o.channels))
+    coil = optional(list(spec.coils), "magnetorquer current")
+    ch = optional(list(o.channels), "telemetry channel")
     channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
-    rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [])
+    rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [],
+                    "body rate")
     dt = None
     if o.thermal_lag:
         t = tel.time_s
@@ -78,7 +84,8 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
       between the reference body sensor and the boom MMC5883 (fit_alignment).
     """
     from generator.fit.alignment import align_boom
-    from generator.fit.coils import fit_coils, has_coil_steps
+    from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
+    from generator.io.names import column_fault
     from generator.fit.thermal import fit_unit
 
     progress = progress or Progress(quiet=True)
@@ -95,6 +102,11 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
+    for t in coil_tels:          # coil names reach the flight C: C identifiers only
+        for c in coil_columns(t):
+            fault = column_fault(c)
+            if fault:
+                raise InputError(t.path, f"header: coil column {fault}")
     if coil_tels:
         cf = fit_coils(unit, coil_tels)
         K, coils = cf.K(), tuple(cf.coils)
@@ -146,7 +158,9 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     sel = host.select(fields, statuses)
     for k, s in enumerate(cs.unit.sensors):
         r = results[s.name]
-        r["status"] = np.where(r["present"], sel["status"][:, k], r["status"])
+        # a sample missing from the file carries the ABSENT bit: valid is status 0 exactly
+        r["status"] = np.where(r["present"], sel["status"][:, k],
+                               np.asarray(r["status"], dtype=np.uint16) | STATUS_ABSENT)
         r["valid"] = (r["status"] == 0) & r["present"]
         progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
     results["selected"] = sel
@@ -172,10 +186,7 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
     reasons = {v: k for k, v in SELECT_REASONS.items()}
     names = [s.name for s in unit.sensors]
     sel = results["selected"]
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(out_path.suffix + ".part")
-    with open(tmp, "w", newline="") as f:
+    with atomic_file(out_path, "w", newline="") as f:
         f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
         f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
                 + f" ABSENT={STATUS_ABSENT}; valid = status 0\n")
@@ -204,7 +215,6 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
                 row += ["", "", "", ""]
             row.append(reasons[int(sel["reason"][i])])
             w.writerow(row)
-    tmp.replace(out_path)   # nothing half-written
 
 
 def _fmt(v) -> str:

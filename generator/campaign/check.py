@@ -310,6 +310,9 @@ def _coil_on(tel):
                   axis=1)
 
 
+MIN_REF_nT = 1.0
+
+
 def gather_samples(unit, tels, pres=None) -> dict:
     """{sensor: SensorSamples} from telemetry files (and their preprocess() results).
 
@@ -342,6 +345,14 @@ def gather_samples(unit, tels, pres=None) -> dict:
                 ref = np.stack([tel.columns[f"ref_{c}_nT"] for c in AXES], 1).astype(float)
             else:
                 ref = np.full((n, 3), np.nan)
+            # below 1 nT a reference vector has no direction (every part resolves coarser):
+            # such rows are not reference vectors, and are counted
+            with np.errstate(invalid="ignore"):
+                zero = np.isfinite(ref).all(axis=1) & (np.linalg.norm(
+                    np.nan_to_num(ref), axis=1) < MIN_REF_nT)
+            excluded["zero reference"] = excluded.get("zero reference", 0) + int(
+                (zero & use).sum())
+            ref[zero] = np.nan
             has_vec = np.isfinite(ref).all(axis=1)
             norm = tel.get("ref_norm_nT")
             norm = np.asarray(norm, float) if norm is not None else np.full(
@@ -647,13 +658,22 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
             pos_rows[int(q)] = pos_rows.get(int(q), 0) + int((p == q).sum())
     planned = {p["number"]: p for p in profile.positions}
     positions_out = []
-    ref_dir, renumbered = {}, []
+    ref_dir, renumbered, no_ref = {}, [], []
     if plan_applies:
         for name, S in samples.items():
             v = S.is_vec
             for q in np.unique(S.position[v & (S.position > 0)]):
                 m = v & (S.position == q)
-                ref_dir.setdefault(int(q), S.ref[m].mean(axis=0))
+                r = S.ref[m].mean(axis=0)
+                # below 1 nT no direction can be told (every part resolves coarser): a
+                # zero reference is flagged, not divided by
+                if not np.linalg.norm(r) >= 1.0:
+                    if int(q) not in ref_dir and int(q) not in no_ref:
+                        no_ref.append(int(q))
+                        notes.append(f"position {int(q)}: the reference vector is zero "
+                                     "(|ref| < 1 nT): no direction recorded")
+                    continue
+                ref_dir.setdefault(int(q), r)
         for num, p in planned.items():
             row = {"position": num, "label": p.get("label", ""), "rows": pos_rows.get(num, 0),
                    "planned_up": p.get("up"),
@@ -813,6 +833,9 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
               "temperature_range_C": [float(S.T.min()), float(S.T.max())] if S.n else None,
               "segments": len(S.segments)}
         total = sum(t.n for t in tels)
+        if S.excluded.get("zero reference"):
+            notes.append(f"{s.name}: {S.excluded['zero reference']} samples with a zero "
+                         "reference vector (|ref| < 1 nT) used as magnitude-only or left out")
         if S.excluded["saturated"]:
             where = []
             for fi, fl in enumerate(S.file_flags):

@@ -17,10 +17,9 @@ import tomllib
 from pathlib import Path
 
 from generator.errors import InputError
+from generator.io.names import name_fault, prefix_collision
 from generator.io.unit import FLOAT_TYPES, FRAMES, PARTS, SensorSpec, Unit
 
-NAME_PATTERN = "[a-z][a-z0-9_]*"
-_NAME_RE = re.compile(NAME_PATTERN)
 AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 UNIT_KEYS = ("id", "lab_field_nT", "float")
@@ -58,7 +57,12 @@ def load_unit(path) -> Unit:
         m = _TOML_POS_RE.search(msg)
         line = int(m.group(1)) if m else None
         raise InputError(path, f"TOML syntax: {_TOML_POS_RE.sub('', msg)}", line=line) from None
+    return unit_from_doc(path, doc, text)
 
+
+def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
+    """Validate a parsed unit document (the TOML tables as dicts) into a Unit; the same
+    checks as load_unit. text: the file's text, for line numbers in messages (optional)."""
     lines = _LineFinder(text)
     extra: dict = {}
 
@@ -159,6 +163,13 @@ def _check_unique_names_and_columns(path, lines, sensors) -> None:
                 raise InputError(path, f"{where}: name: telemetry column '{col}' would also "
                                        f"belong to sensor '{owner[col]}'", line=line)
             owner[col] = s.name
+    clash = prefix_collision(s.name for s in sensors)
+    if clash:
+        a, b = clash
+        i = [s.name for s in sensors].index(b) + 1
+        raise InputError(path, f"[[sensor]] #{i} '{b}': name: starts with the name of sensor "
+                               f"'{a}' and an '_': their C identifiers could collide after "
+                               "prefixing (docs/names.md)", line=lines.key("sensor", i, "name"))
 
 
 class _LineFinder:
@@ -234,8 +245,9 @@ class _Table:
         v = self.get(key, required)
         if v is None:
             return None
-        if not isinstance(v, str) or not _NAME_RE.fullmatch(v):
-            self.fail(key, f"{v!r} does not match {NAME_PATTERN}")
+        fault = name_fault(v)
+        if fault:
+            self.fail(key, fault)
         return v
 
     def choice(self, key, allowed, default=None):
