@@ -96,7 +96,7 @@ def cmd_apply(args):
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
-    apply(cs, args.data, args.output, progress=_progress(args))
+    apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off)
     return 0
 
 
@@ -106,6 +106,10 @@ def _args_apply(p):
     p.add_argument("-o", "--output", required=True, help="output CSV")
     p.add_argument("--boom-stowed", action="store_true",
                    help="the data were taken with the boom stowed (ground jig): H = identity")
+    p.add_argument("--coils-off", action="store_true",
+                   help="the data were recorded with the magnetorquers off: coil current "
+                        "columns absent from the file are 0 A (without it, a coil column "
+                        "the chain needs and the file lacks is an error)")
 
 
 @verb("generate", "write the unit's flight C sources and header")
@@ -250,8 +254,19 @@ ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "dem
         "trace": _args_trace}
 
 
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad usage is one line on stderr (exit 2), like any other bad input."""
+
+    def error(self, message):
+        raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="magcal", description="Magnetometer calibration toolchain: fit, flight C, tables.")
     parser.add_argument("--version", action="version", version=f"magcal {__version__}")
     parser.add_argument("--debug", action="store_true",
@@ -275,7 +290,10 @@ def main(argv=None) -> int:
     argv = [a for a in argv if a != "--debug"]
     try:
         args = parser.parse_args(argv)
-    except SystemExit as e:          # argparse: --help/--version exit 0, bad usage exit 2
+    except _UsageError as e:
+        print(_one_line(str(e)), file=sys.stderr)
+        return 2
+    except SystemExit as e:          # argparse: --help and --version
         return int(e.code or 0) if not isinstance(e.code, str) else 2
     if not getattr(args, "func", None):
         parser.print_help()

@@ -20,8 +20,13 @@ from generator.io.unitfile import load_unit
 # ---- raw inputs of the chain from telemetry --------------------------------------------
 
 
-def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
+def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
+                 coils_off: bool = False) -> dict:
     """Raw counts, temperature and currents of one sensor as the flight API takes them.
+
+    A column the chain needs (coil current, channel, body rate) that the file lacks is
+    InputError: never assumed 0. coils_off=True: the caller knows the data were recorded
+    with the magnetorquers off, so absent coil columns are 0 A (cells still count).
 
     Returns raw_counts (N, 6|3) int64, temp_C (N,), coil_A (N, ncoil) or None, and
     present (N,) bool: False where a needed cell is missing (those rows are not run
@@ -36,12 +41,14 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
     temp = tel.columns[f"{s.name}_temp_C"]
     present = np.all(np.isfinite(counts), axis=1) & np.isfinite(temp)
     raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
-    def optional(names, what):
+    def optional(names, what, zero_if_absent=False):
         """Columns as (N, k); rows with a missing cell are not present. A column the chain
         needs that the file lacks is bad input: a current or channel is never assumed 0."""
         nonlocal present
         if not names:
             return None
+        if zero_if_absent and not any(c in tel.columns for c in names):
+            return np.zeros((tel.n, len(names)))
         for c in names:
             if c not in tel.columns:
                 raise InputError(tel.path, f"missing from the header: the chain of sensor "
@@ -52,7 +59,7 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
         return np.where(np.isfinite(cols), cols, 0.0)
 
     o = spec.opts(s)
-    coil = optional(list(spec.coils), "magnetorquer current")
+    coil = optional(list(spec.coils), "magnetorquer current", zero_if_absent=coils_off)
     ch = optional(list(o.channels), "telemetry channel")
     channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
     rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [],
@@ -96,17 +103,17 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
         tels.append(tel)
+    for t in tels:          # coil names reach the flight C: C identifiers only, checked first
+        for c in coil_columns(t):
+            fault = column_fault(c)
+            if fault:
+                raise InputError(t.path, f"header: coil column {fault}")
     cals = fit_unit(unit, tels, progress=progress, method=method)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": []}
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
-    for t in coil_tels:          # coil names reach the flight C: C identifiers only
-        for c in coil_columns(t):
-            fault = column_fault(c)
-            if fault:
-                raise InputError(t.path, f"header: coil column {fault}")
     if coil_tels:
         cf = fit_coils(unit, coil_tels)
         K, coils = cf.K(), tuple(cf.coils)
@@ -133,8 +140,10 @@ def fit(unit_path, data_paths, progress=None, method="auto") -> CoefficientSet:
 # ---- apply --------------------------------------------------------------------------------
 
 
-def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> dict:
+def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
+          coils_off=False) -> dict:
     """Correct a telemetry file through the compiled flight C; write the ICD output CSV.
+    coils_off: the data were recorded with the magnetorquers off (see chain_inputs).
 
     Returns per-sensor outputs (field_body_nT, status, valid) for callers and tests.
     """
@@ -145,7 +154,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     host = host or HostUnit(cs)
     results = {}
     for s in cs.unit.sensors:
-        inp = chain_inputs(tel, cs.spec, s.name)
+        inp = chain_inputs(tel, cs.spec, s.name, coils_off=coils_off)
         out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                            channels=inp["channels"], rate_dps=inp["rate_dps"],
                            dt_s=inp["dt_s"])

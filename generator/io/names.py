@@ -75,9 +75,7 @@ def reserved_reason(name: str) -> str | None:
 
 def name_fault(name, what: str = "name") -> str | None:
     """Fault of a unit id or sensor name, or None when it is a usable name."""
-    if not isinstance(name, str):
-        return f"{name!r} is not a string"
-    if not _NAME_RE.fullmatch(name):
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
         return f"{_short(name)} does not match {NAME_PATTERN}"
     if len(name) > MAX_NAME_CHARS:
         return f"{_short(name)} is longer than {MAX_NAME_CHARS} characters"
