@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from generator import __version__
@@ -282,8 +283,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_PARSER = []
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The parser, built once per process (main may be called many times in-process)."""
+    if not _PARSER:
+        _PARSER.append(build_parser())
+    return _PARSER[0]
+
+
 def main(argv=None) -> int:
-    parser = build_parser()
+    parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     # --debug is global; accepted anywhere on the line so `magcal fit ... --debug` works too
     debug = "--debug" in argv
@@ -300,7 +311,10 @@ def main(argv=None) -> int:
         return 2
     want_json = getattr(args, "json", False)
     try:
-        result = args.func(args)
+        with warnings.catch_warnings():
+            if not debug:   # numeric warnings of bad data: the outcome says it, in one line
+                warnings.simplefilter("ignore", RuntimeWarning)
+            result = args.func(args)
     except InputError as e:
         print(f"magcal {args.verb}: {_one_line(str(e))}", file=sys.stderr)
         if want_json:

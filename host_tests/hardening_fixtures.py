@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import warnings
 from pathlib import Path
 
 import pytest
@@ -44,9 +45,14 @@ def csv_slice(path: Path, every: int = 1, rows: int | None = None, start: int = 
 def run(argv) -> tuple:
     """(exit status, stdout, [stderr lines]) of `magcal argv...` run in-process."""
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         rc = main([str(a) for a in argv])
-    return rc, out.getvalue(), err.getvalue().splitlines()
+    # a warning would be printed on stderr by a real `magcal` process: count its lines
+    shown = [ln for w in caught for ln in warnings.formatwarning(
+        w.message, w.category, w.filename, w.lineno, "").splitlines()]
+    return rc, out.getvalue(), err.getvalue().splitlines() + shown
 
 
 def assert_bad_input(result, *fragments):

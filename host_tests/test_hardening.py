@@ -438,3 +438,29 @@ def test_build_cache_is_private_and_verified(tmp_path, monkeypatch):
     monkeypatch.setenv("MAGCAL_CACHE", str(link))
     with pytest.raises(InputError, match="symlink"):
         host.cache_dir()
+
+
+def test_a_coefficient_without_a_c_literal_is_bad_input_not_a_crash():
+    """A set built in Python (no schema on the way) with a value beyond float32: the
+    generator refuses it naming the coefficient, as bad input."""
+    from generator.flight.codegen import render
+    from generator.flight.coeffs import CoefficientSet
+
+    cs = CoefficientSet.load(BASE_COEFFS)
+    name = cs.unit.sensors[0].name
+    cs.sensors[name]["b_poly_nT"] = cs.sensors[name]["b_poly_nT"].copy()
+    cs.sensors[name]["b_poly_nT"][0, 0] = 1e39
+    with pytest.raises(InputError, match=f"sensors.{name}.b_poly_nT"):
+        render(cs)
+
+
+@pytest.mark.parametrize("key,value", [("noise_nT = 40.0", "noise_nT = 1e300"),
+                                       ("lsb_nT = 25.0", "lsb_nT = 1e300"),
+                                       ("lab_field_nT = 51540.0", "lab_field_nT = 1e300")])
+def test_absurd_unit_numbers_are_refused(tmp_path, fm1, unit_text, key, value):
+    """Found by the fuzzer: noise_nT = 1e300 overflowed in check (exit 1)."""
+    unit = tmp_path / "unit.toml"
+    unit.write_text(unit_text.replace(key, value, 1))
+    data = tmp_path / "c.csv"
+    data.write_text(csv_slice(fm1 / "coils.csv", rows=6))
+    assert_bad_input(run(["check", unit, data, "-q"]), value.split()[0], "plausible")

@@ -426,6 +426,8 @@ def direction_coverage(unit_vectors) -> dict:
     scatter matrix mean(u u^T) (1/3 each for a full sphere; the smallest ~0 when the
     directions lie in a plane)."""
     u = np.asarray(unit_vectors, float).reshape(-1, 3)
+    # a direction that could not be told (zero vector, failed offset fit: NaN) covers nothing
+    u = u[np.isfinite(u).all(axis=1)]
     if not len(u):
         return {"n": 0, "icosa_cells": 0, "icosa_fraction": 0.0, "eig": [0.0, 0.0, 0.0],
                 "least_direction": [0.0, 0.0, 0.0], "mean_resultant": 0.0}

@@ -26,6 +26,10 @@ UNIT_KEYS = ("id", "lab_field_nT", "float")
 BOOM_KEYS = ("reference",)
 SENSOR_KEYS = ("name", "part", "frame", "axes", "lsb_nT", "zero_count", "set_reset", "noise_nT")
 
+# A field, field step or noise beyond 1e7 nT (10 mT, twice the largest full scale among
+# the parts, AK8963 4912 uT) describes no magnetometer: the arithmetic would overflow.
+FIELD_LIMIT_nT = 1e7
+
 _TABLE_HEADER_RE = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_-]+)\s*\]\]?\s*(#.*)?$")
 _KEY_RE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
 _TOML_POS_RE = re.compile(r"\s*\(at line (\d+), column (\d+)\)$")
@@ -68,7 +72,8 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
 
     unit_tbl = _Table.top(path, lines, doc, "unit", required=True)
     unit_id = unit_tbl.name("id")
-    lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True)
+    lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True,
+                                   at_most=FIELD_LIMIT_nT)
     float_type = unit_tbl.choice("float", FLOAT_TYPES, default="float32")
     unit_tbl.keep_unknown(UNIT_KEYS, extra, "unit")
 
@@ -124,7 +129,7 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     part = t.choice("part", tuple(PARTS))
     frame = t.choice("frame", FRAMES)
     axes = _read_axes(t)
-    lsb_nT = t.number("lsb_nT", positive=True)
+    lsb_nT = t.number("lsb_nT", positive=True, at_most=FIELD_LIMIT_nT)
     zero_count = t.integer("zero_count")
     lo, hi = PARTS[part]["count_min"], PARTS[part]["count_max"]
     if not lo < zero_count < hi:
@@ -132,7 +137,7 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     set_reset = t.boolean("set_reset", default=False)
     if set_reset and not PARTS[part]["set_reset_capable"]:
         t.fail("set_reset", f"the {part} has no SET/RESET; set_reset must be false")
-    noise_nT = t.number("noise_nT", required=False, positive=True)
+    noise_nT = t.number("noise_nT", required=False, positive=True, at_most=FIELD_LIMIT_nT)
     unknown = {k: v for k, v in t.d.items() if k not in SENSOR_KEYS}
     spec = SensorSpec(name=name, part=part, frame=frame, axes=axes, lsb_nT=lsb_nT,
                       zero_count=zero_count, set_reset=set_reset, noise_nT=noise_nT)
@@ -258,7 +263,7 @@ class _Table:
             self.fail(key, f"{v!r} is not one of {', '.join(allowed)}")
         return v
 
-    def number(self, key, required=True, positive=False):
+    def number(self, key, required=True, positive=False, at_most=None):
         v = self.get(key, required)
         if v is None:
             return None
@@ -266,6 +271,8 @@ class _Table:
             self.fail(key, f"{v!r} is not a finite number")
         if positive and not v > 0:
             self.fail(key, f"{v!r} must be positive")
+        if at_most is not None and abs(v) > at_most:
+            self.fail(key, f"{v!r} is beyond the plausible {at_most:g}")
         return float(v)
 
     def integer(self, key):
