@@ -21,12 +21,14 @@ from generator.io.unitfile import load_unit
 
 
 def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
-                 coils_off: bool = False) -> dict:
+                 coils_off: bool = False, aux_off: bool = False) -> dict:
     """Raw counts, temperature and currents of one sensor as the flight API takes them.
 
     A column the chain needs (coil current, channel, body rate) that the file lacks is
     InputError: never assumed 0. coils_off=True: the caller knows the data were recorded
-    with the magnetorquers off, so absent coil columns are 0 A (cells still count).
+    with the magnetorquers off, so absent coil columns are 0 A (cells still count);
+    aux_off=True: likewise for the chain's telemetry channels and body rates (a heater
+    never on, a unit that stood still).
 
     Returns raw_counts (N, 6|3) int64, temp_C (N,), coil_A (N, ncoil) or None, and
     present (N,) bool: False where a needed cell is missing (those rows are not run
@@ -48,7 +50,7 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
         if not names:
             return None
         if zero_if_absent and not any(c in tel.columns for c in names):
-            return np.zeros((tel.n, len(names)))
+            return np.zeros((tel.n, len(names)))   # the caller states they were 0
         for c in names:
             if c not in tel.columns:
                 raise InputError(tel.path, f"missing from the header: the chain of sensor "
@@ -60,10 +62,10 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
 
     o = spec.opts(s)
     coil = optional(list(spec.coils), "magnetorquer current", zero_if_absent=coils_off)
-    ch = optional(list(o.channels), "telemetry channel")
+    ch = optional(list(o.channels), "telemetry channel", zero_if_absent=aux_off)
     channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
     rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [],
-                    "body rate")
+                    "body rate", zero_if_absent=aux_off)
     dt = None
     if o.thermal_lag:
         t = tel.time_s
