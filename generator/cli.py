@@ -46,6 +46,8 @@ def cmd_fit(args):
     progress = _progress(args)
     check_output_folder(args.output)
     cs = fit(args.unit, args.data, progress=progress, method=args.method)
+    cs.check_plausible(args.data[0] if len(args.data) == 1 else
+                       f"{args.data[0]} (and {len(args.data) - 1} more)")
     extra = []
     if args.compare_methods:
         from generator.report import compare as fit_compare
@@ -143,7 +145,9 @@ def _args_generate(p):
 @verb("demo", "run the whole chain on the bundled example unit")
 def cmd_demo(args):
     from generator.demo import run_demo
+    from generator.io.outputs import check_output_folder
 
+    check_output_folder(args.output)
     if getattr(args, "json", False):   # stdout carries the JSON only
         with contextlib.redirect_stdout(sys.stderr):
             rc = run_demo(Path(args.output), seed=args.seed, progress=_progress(args))

@@ -154,6 +154,18 @@ class CoefficientSet:
             "fit": self.fit_info,
         }
 
+    def check_plausible(self, source) -> "CoefficientSet":
+        """The same checks as a loaded coefficients.json (validate_document and the value
+        ranges) on a set computed here, e.g. fitted from data: InputError naming `source`
+        (the data) when the result is no plausible calibration. Returns self."""
+        d = json.loads(json.dumps(self.to_json_dict(), default=json_default))
+        try:
+            CoefficientSet.from_json_dict(d, None)
+        except InputError as e:
+            raise InputError(source, f"the data give no plausible calibration: "
+                                     f"{e.message}") from None
+        return self
+
     def save(self, path) -> None:
         Path(path).write_text(json.dumps(self.to_json_dict(), indent=1, sort_keys=False,
                                          default=json_default) + "\n")
@@ -441,7 +453,8 @@ def _block_array(section, block, where, path, unit=None):
         raise InputError(path, f"{where}.{block.name}: non-finite value")
     limit = _BLOCK_LIMITS.get(block.name, GENERIC_LIMIT)
     if a.size and np.max(np.abs(a)) > limit:
-        i = np.unravel_index(int(np.argmax(np.abs(a))), a.shape) if a.ndim else ()
+        i = tuple(int(k) for k in np.unravel_index(int(np.argmax(np.abs(a))), a.shape)) \
+            if a.ndim else ()
         raise InputError(path, f"{where}.{block.name}{list(i) if i else ''}: "
                                f"{a[i] if i else float(a):g} is beyond the plausible "
                                f"magnitude {limit:g} {block.unit}")

@@ -23,6 +23,8 @@ def cmd_trace(args) -> int:
     progress = Progress(quiet=getattr(args, "quiet", False))
     check_output_folder(args.output)
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
+    res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
+                                     f"{args.data[0]} (and {len(args.data) - 1} more)")
     with output_folder(args.output) as folder:
         paths = res.write(folder.tmp)
         paths["report"] = write_report(res, folder.tmp)
