@@ -422,12 +422,15 @@ def test_build_cache_is_private_and_verified(tmp_path, monkeypatch):
     lib2, _ = host.cffi_module("_hardening_u", _tiny(2), "t.h", '#include "t.h"\n')
     assert lib2.t_value() == 2
     (other,) = cache.glob("_hardening_u_*/*.so")
-    planted = mod.read_bytes()
-    shutil.copy(other, mod)
+    # plant by rename (a new file): the module loaded above stays mapped from its own
+    # inode, as it would in another process
+    shutil.copy(other, tmp_path / "planted.so")
+    os.replace(tmp_path / "planted.so", mod)
     assert host._verified_module(mod.parent, mod.parent.name) is None
-    assert host._sha256_file(mod) != host._sha256_file(other) or planted != mod.read_bytes()
     host.cffi_module("_hardening_t", _tiny(1), "t.h", '#include "t.h"\n')
-    assert host._verified_module(mod.parent, mod.parent.name) is not None
+    (rebuilt,) = cache.glob("_hardening_t_*/*.so")
+    assert host._verified_module(rebuilt.parent, rebuilt.parent.name) == rebuilt
+    assert host._sha256_file(rebuilt) != host._sha256_file(other)
     # a cache folder others can write to, or a symlink, is refused
     os.chmod(cache, 0o777)
     with pytest.raises(InputError, match="writable by group or others"):
@@ -464,3 +467,11 @@ def test_absurd_unit_numbers_are_refused(tmp_path, fm1, unit_text, key, value):
     data = tmp_path / "c.csv"
     data.write_text(csv_slice(fm1 / "coils.csv", rows=6))
     assert_bad_input(run(["check", unit, data, "-q"]), value.split()[0], "plausible")
+
+
+def test_names_page_lists_every_reserved_name():
+    text = (REPO / "docs" / "names.md").read_text()
+    for w in sorted(names.RESERVED_WORDS | names.RESERVED_FAMILIES | names.C_LIBRARY_NAMES):
+        assert f"`{w}`" in text or f" {w} " in text or f"`{w} " in text or f" {w}`" in text, w
+    for kw in sorted(k for k in names.C_KEYWORDS if k.islower()):
+        assert kw in text, kw

@@ -73,13 +73,20 @@ def reserved_reason(name: str) -> str | None:
     return None
 
 
-def name_fault(name, what: str = "name") -> str | None:
-    """Fault of a unit id or sensor name, or None when it is a usable name."""
+def name_fault(name, kind: str = "sensor") -> str | None:
+    """Fault of a sensor name (kind "sensor") or unit id (kind "unit"), or None when it
+    is usable. A unit id prefixes every identifier, so only keywords and the library's
+    names are reserved for it; a sensor name follows the prefix, so the API's are too."""
     if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
         return f"{_short(name)} does not match {NAME_PATTERN}"
     if len(name) > MAX_NAME_CHARS:
         return f"{_short(name)} is longer than {MAX_NAME_CHARS} characters"
-    why = reserved_reason(name)
+    if kind == "unit":
+        why = ("is a C keyword" if name in C_KEYWORDS else
+               "is a name the C library or the generated code's runtime defines"
+               if name in C_LIBRARY_NAMES else None)
+    else:
+        why = reserved_reason(name)
     if why:
         return f"'{name}' {why}"
     return None

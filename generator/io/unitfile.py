@@ -71,7 +71,7 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
     extra: dict = {}
 
     unit_tbl = _Table.top(path, lines, doc, "unit", required=True)
-    unit_id = unit_tbl.name("id")
+    unit_id = unit_tbl.name("id", kind="unit")
     lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True,
                                    at_most=FIELD_LIMIT_nT)
     float_type = unit_tbl.choice("float", FLOAT_TYPES, default="float32")
@@ -246,11 +246,11 @@ class _Table:
             return None
         return self.d[key]
 
-    def name(self, key, required=True):
+    def name(self, key, required=True, kind="sensor"):
         v = self.get(key, required)
         if v is None:
             return None
-        fault = name_fault(v)
+        fault = name_fault(v, kind)
         if fault:
             self.fail(key, fault)
         return v
