@@ -475,3 +475,12 @@ def test_names_page_lists_every_reserved_name():
         assert f"`{w}`" in text or f" {w} " in text or f"`{w} " in text or f" {w}`" in text, w
     for kw in sorted(k for k in names.C_KEYWORDS if k.islower()):
         assert kw in text, kw
+
+
+@pytest.mark.parametrize("value", ["1e300", "inf", "nan", "-1", "0"])
+def test_check_noise_option_is_bounded(tmp_path, fm1, value):
+    """--noise-nT 1e300 overflowed in the prediction (exit 1)."""
+    data = tmp_path / "c.csv"
+    data.write_text(csv_slice(fm1 / "coils.csv", rows=6))
+    assert_bad_input(run(["check", fm1 / "unit.toml", data, "--noise-nT", value, "-q"]),
+                     "--noise-nT")

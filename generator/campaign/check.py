@@ -1005,8 +1005,11 @@ def run_check(args, progress) -> tuple:
     for name, v in (("--limit-b-nT", args.limit_b_nT), ("--limit-m", args.limit_m)):
         if not (v > 0 and math.isfinite(v)):
             raise InputError(None, f"{name} must be a positive number, got {v}")
-    if args.noise_nT is not None and not (args.noise_nT > 0 and math.isfinite(args.noise_nT)):
-        raise InputError(None, f"--noise-nT must be a positive number, got {args.noise_nT}")
+    # beyond 1e7 nT (twice the largest full scale among the parts) a noise describes no
+    # magnetometer, and its square overflows in the prediction
+    if args.noise_nT is not None and not (0 < args.noise_nT <= 1e7):
+        raise InputError(None, f"--noise-nT must be a positive number up to 1e7 nT, got "
+                               f"{args.noise_nT}")
     if args.min_samples is not None and args.min_samples < 1:
         raise InputError(None, f"--min-samples must be at least 1, got {args.min_samples}")
     result = check_campaign(unit, args.data, profile, noise_nT=args.noise_nT,

@@ -130,7 +130,7 @@ def cmd_table(args) -> int:
         try:
             parts = chunk_table(table, args.chunk)
         except InputError as e:
-            raise InputError(None, f"--chunk {args.chunk}: {e.message}") from None
+            raise InputError(args.output, f"--chunk {args.chunk}: {e.message}") from None
         if join_parts(parts, src.spec) != table:   # the ground checks its own parts
             raise RuntimeError("chunked parts do not reassemble into the table")
         for i, part in enumerate(parts):
