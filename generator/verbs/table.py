@@ -109,8 +109,6 @@ def cmd_table(args) -> int:
         raise InputError(args.output, "-o: the table must not end in .txt (its text dump "
                                       "TABLE.txt is written beside it)")
     check_output_file(txt)
-    if not 0 <= args.serial <= 0xFFFFFFFF:
-        raise InputError(None, f"--serial {args.serial}: not a u32 (0..4294967295)")
     src = CoefficientSet.load(args.coeffs_json)
     created = args.created_s
     if created is None:
