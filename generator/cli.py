@@ -144,16 +144,16 @@ def _args_generate(p):
 
 @verb("demo", "run the whole chain on the bundled example unit")
 def cmd_demo(args):
-    from generator.demo import run_demo
+    from generator.demo import run_demo_atomic
     from generator.io.outputs import check_output_folder
 
     check_output_folder(args.output)
     if getattr(args, "json", False):   # stdout carries the JSON only
         with contextlib.redirect_stdout(sys.stderr):
-            rc = run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
+            rc = run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
         return rc, {"output": str(Path(args.output)),
                     "report": str(Path(args.output) / "report.html"), "exit": rc}
-    return run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
+    return run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
 
 
 def _args_demo(p):

@@ -65,6 +65,30 @@ def _rms_angle_deg(B, B_true) -> float:
     return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2))))
 
 
+def run_demo_atomic(out: Path, seed: int = 1, progress=None) -> int:
+    """run_demo built in a temporary folder beside `out` and renamed into place (nothing is
+    left on an error); its text outputs and printed lines name `out`, not the temporary
+    folder."""
+    import contextlib
+    import io
+    import sys
+
+    from generator.io.outputs import output_folder
+
+    buf = io.StringIO()
+    with output_folder(out) as folder:
+        with contextlib.redirect_stdout(buf):
+            rc = run_demo(folder.tmp, seed=seed, progress=progress)
+        tmp, target = str(folder.tmp), str(folder.target)
+        for f in folder.tmp.rglob("*"):
+            if f.suffix in (".md", ".html", ".json") and f.is_file():
+                text = f.read_text(encoding="utf-8")
+                if tmp in text:
+                    f.write_text(text.replace(tmp, target), encoding="utf-8")
+    sys.stdout.write(buf.getvalue().replace(tmp, target))
+    return rc
+
+
 def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     from generator.flight import codegen
     from generator import pipeline

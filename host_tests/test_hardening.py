@@ -202,7 +202,8 @@ def test_output_paths_that_cannot_be_outputs(tmp_path, fm1):
              ["apply", c, fm1 / "coils.csv", "-o", adir],
              ["plan", fm1 / "unit.toml", "-o", afile],
              ["fit", fm1 / "unit.toml", fm1 / "coils.csv", "-o", afile / "x"],
-             ["trace", fm1 / "unit.toml", fm1 / "coils.csv", "-o", afile]]
+             ["trace", fm1 / "unit.toml", fm1 / "coils.csv", "-o", afile],
+             ["demo", "-o", afile], ["demo", "-o", afile / "d"]]
     for argv in cases:
         assert_bad_input(run(argv + ["-q"]), "output")
     assert listing(tmp_path) == ["adir", "afile"]
