@@ -312,6 +312,7 @@ def main(argv=None) -> int:
         return int(e.code or 0) if not isinstance(e.code, str) else 2
     if not getattr(args, "func", None):
         parser.print_help()
+        print("magcal: no verb given (see magcal --help)", file=sys.stderr)
         return 2
     want_json = getattr(args, "json", False)
     try:

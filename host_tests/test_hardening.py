@@ -399,6 +399,8 @@ def test_bad_usage_is_one_line(tmp_path):
     assert rc == 2 and len(err) == 1, err
     rc, _, err = run(["nosuchverb"])
     assert rc == 2 and len(err) == 1, err
+    rc, _, err = run([])
+    assert rc == 2 and len(err) == 1, err
 
 
 # ---- the build cache (issue 14 item 4) -----------------------------------------------------
