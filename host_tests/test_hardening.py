@@ -487,3 +487,24 @@ def test_check_noise_option_is_bounded(tmp_path, fm1, value):
     data.write_text(csv_slice(fm1 / "coils.csv", rows=6))
     assert_bad_input(run(["check", fm1 / "unit.toml", data, "--noise-nT", value, "-q"]),
                      "--noise-nT")
+
+
+def test_folders_and_deep_nesting_where_files_go(tmp_path, fm1):
+    """Found by probing: a folder as COEFFS.json or plan.json, and JSON or TOML nested
+    100,000 deep, crashed (IsADirectoryError, RecursionError)."""
+    adir = tmp_path / "adir"
+    adir.mkdir()
+    deep_json = tmp_path / "deep.json"
+    deep_json.write_text("[" * 100000 + "]" * 100000)
+    deep_toml = tmp_path / "deep.toml"
+    deep_toml.write_text("a = " + "[" * 100000 + "]" * 100000 + "\n")
+    data = tmp_path / "c.csv"
+    data.write_text(csv_slice(fm1 / "coils.csv", rows=6))
+    for argv in (["table", adir, "-o", tmp_path / "t.bin"],
+                 ["table", deep_json, "-o", tmp_path / "t.bin"],
+                 ["check", fm1 / "unit.toml", data, "--plan", adir, "-q"],
+                 ["check", fm1 / "unit.toml", data, "--plan", deep_json, "-q"],
+                 ["check", deep_toml, data, "-q"]):
+        assert_bad_input(run(argv))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "c.csv", "deep.json",
+                                                          "deep.toml"]

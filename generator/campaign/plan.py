@@ -373,8 +373,12 @@ def load_profile(path) -> PlanProfile:
         d = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror or e}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(path, f"not a JSON test plan: {e}") from None
+    except RecursionError:
+        raise InputError(path, "not a test plan: nested too deeply") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
     if d.get("format_version") != FORMAT_VERSION:

@@ -174,11 +174,15 @@ class CoefficientSet:
     def load(path) -> "CoefficientSet":
         path = Path(path)
         try:
-            d = json.loads(path.read_text())
+            d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(path, "file not found") from None
+        except OSError as e:
+            raise InputError(path, f"cannot read: {e.strerror or e}") from None
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise InputError(path, f"not a JSON coefficient file: {e}") from None
+        except RecursionError:
+            raise InputError(path, "not a coefficient file: nested too deeply") from None
         return CoefficientSet.from_json_dict(d, path)
 
     @staticmethod

@@ -56,6 +56,8 @@ def load_unit(path) -> Unit:
                          line=raw.count(b"\n", 0, e.start) + 1) from None
     try:
         doc = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(path, "TOML syntax: nested too deeply") from None
     except tomllib.TOMLDecodeError as e:
         msg = str(e)
         m = _TOML_POS_RE.search(msg)
