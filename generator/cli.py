@@ -29,8 +29,46 @@ def verb(name, help_text):
 
 
 def _progress(args):
-    from generator.progress import Progress
-    return Progress(quiet=getattr(args, "quiet", False))
+    """The verb's progress lines (one object per run, see _HeldProgress)."""
+    held = getattr(args, "progress", None)
+    if held is None:
+        held = args.progress = _HeldProgress(quiet=getattr(args, "quiet", False))
+    return held
+
+
+class _HeldProgress:
+    """Progress lines (generator.progress.Progress) of which those of the first HOLD_S
+    seconds are held back: a verb that fails on its input in that time prints only its
+    one error line; once the time has passed, or when the verb succeeds, they are shown."""
+
+    HOLD_S = 1.0
+
+    def __init__(self, quiet=False):
+        from generator.progress import Progress
+
+        self.inner = Progress(quiet=quiet)
+        self.held = []
+
+    def __call__(self, message: str):
+        if self.inner.quiet:
+            return
+        import time
+
+        t = time.perf_counter() - self.inner.t0
+        line = f"[{t:6.1f} s] {message}"
+        if self.held is not None and t < self.HOLD_S:
+            self.held.append(line)
+            return
+        self.release()
+        print(line, file=self.inner.stream, flush=True)
+
+    def release(self):
+        for line in self.held or ():
+            print(line, file=self.inner.stream, flush=True)
+        self.held = None
+
+    def discard(self):
+        self.held = None
 
 
 # ---- verbs --------------------------------------------------------------------------------
@@ -315,21 +353,25 @@ def main(argv=None) -> int:
         print("magcal: no verb given (see magcal --help)", file=sys.stderr)
         return 2
     want_json = getattr(args, "json", False)
+    progress = _progress(args)
     try:
         with warnings.catch_warnings():
             if not debug:   # numeric warnings of bad data: the outcome says it, in one line
                 warnings.simplefilter("ignore", RuntimeWarning)
             result = args.func(args)
     except InputError as e:
+        progress.discard()
         print(f"magcal {args.verb}: {_one_line(str(e))}", file=sys.stderr)
         if want_json:
             _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
     except KeyboardInterrupt:
+        progress.release()
         print("magcal: interrupted", file=sys.stderr)
         return 1
     except Exception as e:           # a genuine internal fault: one line, or the traceback
         if debug:
+            progress.release()
             import traceback
             traceback.print_exc(file=sys.stderr)
         print(f"magcal {args.verb}: internal error: {type(e).__name__}: "
@@ -341,6 +383,10 @@ def main(argv=None) -> int:
     if isinstance(result, tuple):
         result, payload = result
     rc = int(result or 0)
+    if rc == 2:            # a verb's own verdict on its input (check): its one line only
+        progress.discard()
+    else:
+        progress.release()
     if want_json:
         _print_json(payload if payload is not None else {"verb": args.verb, "exit": rc})
     return rc

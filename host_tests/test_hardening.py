@@ -508,3 +508,16 @@ def test_folders_and_deep_nesting_where_files_go(tmp_path, fm1):
         assert_bad_input(run(argv))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "c.csv", "deep.json",
                                                           "deep.toml"]
+
+
+def test_bad_input_is_one_line_even_with_progress(tmp_path, fm1):
+    """Without -q the verbs print progress on stderr; a fault found early in the input
+    (the lines of the first second are held back) still leaves exactly one line."""
+    lines = csv_slice(fm1 / "coils.csv", rows=6).splitlines()
+    lines[-1] = lines[-1].replace(",", ",abc,", 1).rsplit(",", 1)[0]
+    data = tmp_path / "d.csv"
+    data.write_text("\n".join(lines) + "\n")
+    assert_bad_input(run(["fit", fm1 / "unit.toml", data, "-o", tmp_path / "o"]), "d.csv")
+    assert_bad_input(run(["check", fm1 / "unit.toml", data]), "d.csv")
+    rc, _, err = run(["table", BASE_COEFFS, "-o", tmp_path / "t.bin"])
+    assert rc == 0

@@ -20,7 +20,7 @@ def add_trace_args(p):
 
 
 def cmd_trace(args) -> int:
-    progress = Progress(quiet=getattr(args, "quiet", False))
+    progress = getattr(args, "progress", None) or Progress(quiet=getattr(args, "quiet", False))
     check_output_folder(args.output)
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
     res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
