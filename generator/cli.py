@@ -12,6 +12,7 @@ import argparse
 import contextlib
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from generator import __version__
@@ -28,8 +29,46 @@ def verb(name, help_text):
 
 
 def _progress(args):
-    from generator.progress import Progress
-    return Progress(quiet=getattr(args, "quiet", False))
+    """The verb's progress lines (one object per run, see _HeldProgress)."""
+    held = getattr(args, "progress", None)
+    if held is None:
+        held = args.progress = _HeldProgress(quiet=getattr(args, "quiet", False))
+    return held
+
+
+class _HeldProgress:
+    """Progress lines (generator.progress.Progress) of which those of the first HOLD_S
+    seconds are held back: a verb that fails on its input in that time prints only its
+    one error line; once the time has passed, or when the verb succeeds, they are shown."""
+
+    HOLD_S = 1.0
+
+    def __init__(self, quiet=False):
+        from generator.progress import Progress
+
+        self.inner = Progress(quiet=quiet)
+        self.held = []
+
+    def __call__(self, message: str):
+        if self.inner.quiet:
+            return
+        import time
+
+        t = time.perf_counter() - self.inner.t0
+        line = f"[{t:6.1f} s] {message}"
+        if self.held is not None and t < self.HOLD_S:
+            self.held.append(line)
+            return
+        self.release()
+        print(line, file=self.inner.stream, flush=True)
+
+    def release(self):
+        for line in self.held or ():
+            print(line, file=self.inner.stream, flush=True)
+        self.held = None
+
+    def discard(self):
+        self.held = None
 
 
 # ---- verbs --------------------------------------------------------------------------------
@@ -40,11 +79,13 @@ def cmd_fit(args):
     from generator.pipeline import fit
     from generator.report.report import write_fit_report
 
+    from generator.io.outputs import check_output_folder, output_folder
+
     progress = _progress(args)
+    check_output_folder(args.output)
     cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    cs.save(out / "coefficients.json")
+    cs.check_plausible(args.data[0] if len(args.data) == 1 else
+                       f"{args.data[0]} (and {len(args.data) - 1} more)")
     extra = []
     if args.compare_methods:
         from generator.report import compare as fit_compare
@@ -58,8 +99,11 @@ def cmd_fit(args):
             unit, [t for t in tels if t.has("ref_x_nT", "ref_y_nT", "ref_z_nT")] or tels,
             truth=args.truth, evaluate=[t for t in tels if not t.has("ref_x_nT")],
             progress=progress))
-    report = write_fit_report(cs, out, data_paths=args.data, progress=progress,
-                              extra_sections=extra)
+    with output_folder(args.output) as folder:
+        cs.save(folder.tmp / "coefficients.json")
+        report = write_fit_report(cs, folder.tmp, data_paths=args.data, progress=progress,
+                                  extra_sections=extra)
+    out, report = folder.target, folder.final(report)
     progress(f"wrote {out / 'coefficients.json'} and {report}")
     from generator.report.report import fit_summary
     return 0, fit_summary(cs, out / "coefficients.json", report)
@@ -90,10 +134,13 @@ def cmd_apply(args):
     from generator.flight.coeffs import CoefficientSet
     from generator.pipeline import apply
 
+    from generator.io.outputs import check_output_file
+
+    check_output_file(args.output)
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
-    apply(cs, args.data, args.output, progress=_progress(args))
+    apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off)
     return 0
 
 
@@ -103,6 +150,10 @@ def _args_apply(p):
     p.add_argument("-o", "--output", required=True, help="output CSV")
     p.add_argument("--boom-stowed", action="store_true",
                    help="the data were taken with the boom stowed (ground jig): H = identity")
+    p.add_argument("--coils-off", action="store_true",
+                   help="the data were recorded with the magnetorquers off: coil current "
+                        "columns absent from the file are 0 A (without it, a coil column "
+                        "the chain needs and the file lacks is an error)")
 
 
 @verb("generate", "write the unit's flight C sources and header")
@@ -110,15 +161,19 @@ def cmd_generate(args):
     from generator.flight.codegen import generate
     from generator.flight.coeffs import CoefficientSet
 
+    from generator.io.outputs import check_output_folder, output_folder
+
+    check_output_folder(args.output)
     cs = CoefficientSet.load(args.coeffs)
-    paths = generate(cs, args.output)
     progress = _progress(args)
+    with output_folder(args.output) as folder:
+        paths = generate(cs, folder.tmp)
+        if args.compile:     # before the folder is committed: no C left that fails to build
+            from generator.flight.host import HostUnit
+            HostUnit(cs)
+            progress("compiled on the host (-std=c99 -O2 -ffp-contract=off -Werror)")
     for p in paths:
-        progress(f"wrote {p}")
-    if args.compile:
-        from generator.flight.host import HostUnit
-        HostUnit(cs)
-        progress("compiled on the host (-std=c99 -O2 -ffp-contract=off -Werror)")
+        progress(f"wrote {folder.final(p)}")
     return 0
 
 
@@ -130,14 +185,16 @@ def _args_generate(p):
 
 @verb("demo", "run the whole chain on the bundled example unit")
 def cmd_demo(args):
-    from generator.demo import run_demo
+    from generator.demo import run_demo_atomic
+    from generator.io.outputs import check_output_folder
 
+    check_output_folder(args.output)
     if getattr(args, "json", False):   # stdout carries the JSON only
         with contextlib.redirect_stdout(sys.stderr):
-            rc = run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
+            rc = run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
         return rc, {"output": str(Path(args.output)),
                     "report": str(Path(args.output) / "report.html"), "exit": rc}
-    return run_demo(Path(args.output), seed=args.seed, progress=_progress(args))
+    return run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
 
 
 def _args_demo(p):
@@ -257,10 +314,23 @@ ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "dem
         "trace": _args_trace, "import": _args_import}
 
 
+class _UsageError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad usage is one line on stderr (exit 2), like any other bad input."""
+
+    def error(self, message):
+        raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="magcal", description="Magnetometer calibration toolchain: fit, flight C, tables.")
     parser.add_argument("--version", action="version", version=f"magcal {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an internal fault (exit 1), print the Python traceback")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     for name, (fn, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -273,30 +343,77 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_PARSER = []
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The parser, built once per process (main may be called many times in-process)."""
+    if not _PARSER:
+        _PARSER.append(build_parser())
+    return _PARSER[0]
+
+
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    parser = _parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # --debug is global; accepted anywhere on the line so `magcal fit ... --debug` works too
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as e:
+        print(_one_line(str(e)), file=sys.stderr)
+        return 2
+    except SystemExit as e:          # argparse: --help and --version
+        return int(e.code or 0) if not isinstance(e.code, str) else 2
     if not getattr(args, "func", None):
         parser.print_help()
+        print("magcal: no verb given (see magcal --help)", file=sys.stderr)
         return 2
     want_json = getattr(args, "json", False)
+    progress = _progress(args)
     try:
-        result = args.func(args)
+        with warnings.catch_warnings():
+            if not debug:   # numeric warnings of bad data: the outcome says it, in one line
+                warnings.simplefilter("ignore", RuntimeWarning)
+            result = args.func(args)
     except InputError as e:
-        print(f"magcal {args.verb}: {e}", file=sys.stderr)
+        progress.discard()
+        print(f"magcal {args.verb}: {_one_line(str(e))}", file=sys.stderr)
         if want_json:
             _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
     except KeyboardInterrupt:
+        progress.release()
         print("magcal: interrupted", file=sys.stderr)
+        return 1
+    except Exception as e:           # a genuine internal fault: one line, or the traceback
+        if debug:
+            progress.release()
+            import traceback
+            traceback.print_exc(file=sys.stderr)
+        print(f"magcal {args.verb}: internal error: {type(e).__name__}: "
+              f"{_one_line(str(e))} (run with --debug for the traceback)", file=sys.stderr)
+        if want_json:
+            _print_json({"verb": args.verb, "exit": 1, "error": f"{type(e).__name__}: {e}"})
         return 1
     payload = None
     if isinstance(result, tuple):
         result, payload = result
     rc = int(result or 0)
+    if rc == 2:            # a verb's own verdict on its input (check): its one line only
+        progress.discard()
+    else:
+        progress.release()
     if want_json:
         _print_json(payload if payload is not None else {"verb": args.verb, "exit": rc})
     return rc
+
+
+def _one_line(text: str, limit: int = 400) -> str:
+    """A message as one line of bounded length (stderr carries exactly one line)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _print_json(obj):

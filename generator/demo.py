@@ -22,9 +22,10 @@ def _same_bits(a: dict, b: dict) -> bool:
                               np.ascontiguousarray(b[k]).view(np.uint8)) for k in a)
 
 
-def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
+def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed, coils_off=False):
     """Per sensor: valid samples, C == Python, |B| RMS raw / calibrated / true parameters,
-    and the angle to the true field (calibrated and true parameters)."""
+    and the angle to the true field (calibrated and true parameters). coils_off: the
+    campaign was simulated with the magnetorquers off (its file has no coil columns)."""
     from generator import pipeline
     from generator.io import truth as truth_mod
     from generator.io.telemetry_csv import preprocess, read_telemetry
@@ -37,7 +38,7 @@ def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
                      ("coil_x_A", "coil_y_A", "coil_z_A")], axis=1)
     rows, identical = [], True
     for s in cs.unit.sensors:
-        inp = pipeline.chain_inputs(tel, cs.spec, s.name)
+        inp = pipeline.chain_inputs(tel, cs.spec, s.name, coils_off=coils_off)
         aux = dict(channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
         c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
         py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
@@ -62,6 +63,30 @@ def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed):
 def _rms_angle_deg(B, B_true) -> float:
     cos = np.sum(B * B_true, axis=1) / np.linalg.norm(B, axis=1) / np.linalg.norm(B_true, axis=1)
     return float(np.degrees(np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2))))
+
+
+def run_demo_atomic(out: Path, seed: int = 1, progress=None) -> int:
+    """run_demo built in a temporary folder beside `out` and renamed into place (nothing is
+    left on an error); its text outputs and printed lines name `out`, not the temporary
+    folder."""
+    import contextlib
+    import io
+    import sys
+
+    from generator.io.outputs import output_folder
+
+    buf = io.StringIO()
+    with output_folder(out) as folder:
+        with contextlib.redirect_stdout(buf):
+            rc = run_demo(folder.tmp, seed=seed, progress=progress)
+        tmp, target = str(folder.tmp), str(folder.target)
+        for f in folder.tmp.rglob("*"):
+            if f.suffix in (".md", ".html", ".json") and f.is_file():
+                text = f.read_text(encoding="utf-8")
+                if tmp in text:
+                    f.write_text(text.replace(tmp, target), encoding="utf-8")
+    sys.stdout.write(buf.getvalue().replace(tmp, target))
+    return rc
 
 
 def run_demo(out: Path, seed: int = 1, progress=None) -> int:
@@ -101,7 +126,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     stowed = cs.with_boom_stowed()      # the jig campaign: H not applied
     thermal_tel, thermal_rows, ok_thermal = _campaign_rows(
         stowed, HostUnit(stowed), paths["thermal_12pos"],
-        paths["thermal_12pos_truth"], truth, deployed=False)
+        paths["thermal_12pos_truth"], truth, deployed=False, coils_off=True)
     flight_tel, flight_rows, ok_flight = _campaign_rows(
         cs, host, paths["flight"], paths["flight_truth"], truth, deployed=True)
     all_identical = ok_thermal and ok_flight

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-from pathlib import Path
 
 import numpy as np
 
@@ -12,6 +11,7 @@ from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
 from generator.io.telemetry import Telemetry
+from generator.io.outputs import atomic_file
 from generator.io.telemetry_csv import read_telemetry
 from generator.io.unit import Unit
 from generator.io.unitfile import load_unit
@@ -20,8 +20,15 @@ from generator.io.unitfile import load_unit
 # ---- raw inputs of the chain from telemetry --------------------------------------------
 
 
-def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
+def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
+                 coils_off: bool = False, aux_off: bool = False) -> dict:
     """Raw counts, temperature and currents of one sensor as the flight API takes them.
+
+    A column the chain needs (coil current, channel, body rate) that the file lacks is
+    InputError: never assumed 0. coils_off=True: the caller knows the data were recorded
+    with the magnetorquers off, so absent coil columns are 0 A (cells still count);
+    aux_off=True: likewise for the chain's telemetry channels and body rates (a heater
+    never on, a unit that stood still).
 
     Returns raw_counts (N, 6|3) int64 (a physical-input sensor: its readings, float64 in
     its input unit; HostUnit rounds them once to the flight float type, as the reference
@@ -42,21 +49,29 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str) -> dict:
         raw = np.where(np.isfinite(counts), counts, 0.0)
     else:
         raw = np.where(np.isfinite(counts), counts, s.zero_count).astype(np.int64)
-    def optional(names):
-        """Columns as (N, k), zeros where absent from the file; rows with a missing cell
-        are not present."""
+    def optional(names, what, zero_if_absent=False):
+        """Columns as (N, k); rows with a missing cell are not present. A column the chain
+        needs that the file lacks is bad input: a current or channel is never assumed 0."""
         nonlocal present
         if not names:
             return None
-        cols = np.stack([tel.columns.get(c, np.zeros(tel.n)) for c in names], axis=1)
+        if zero_if_absent and not any(c in tel.columns for c in names):
+            return np.zeros((tel.n, len(names)))   # the caller states they were 0
+        for c in names:
+            if c not in tel.columns:
+                raise InputError(tel.path, f"missing from the header: the chain of sensor "
+                                           f"'{s.name}' needs this {what} (it is never "
+                                           "assumed to be 0)", column=c)
+        cols = np.stack([tel.columns[c] for c in names], axis=1)
         present &= np.all(np.isfinite(cols), axis=1)
         return np.where(np.isfinite(cols), cols, 0.0)
 
     o = spec.opts(s)
-    coil = optional(list(spec.coils))
-    ch = optional(list(o.channels))
+    coil = optional(list(spec.coils), "magnetorquer current", zero_if_absent=coils_off)
+    ch = optional(list(o.channels), "telemetry channel", zero_if_absent=aux_off)
     channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
-    rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [])
+    rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [],
+                    "body rate", zero_if_absent=aux_off)
     dt = None
     if o.thermal_lag:
         t = tel.time_s
@@ -91,8 +106,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     follow it: a flight-side change).
     """
     from generator.fit.alignment import align_boom
-    from generator.fit.coils import fit_coils, has_coil_steps
+    from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
     from generator.fit.sanity import check_rotation
+    from generator.io.names import column_fault
     from generator.fit.thermal import fit_unit
 
     def _load_prior(path, unit) -> dict:
@@ -131,6 +147,11 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
         tels.append(tel)
+    for t in tels:          # coil names reach the flight C: C identifiers only, checked first
+        for c in coil_columns(t):
+            fault = column_fault(c)
+            if fault:
+                raise InputError(t.path, f"header: coil column {fault}")
     cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],
@@ -172,8 +193,10 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
 # ---- apply --------------------------------------------------------------------------------
 
 
-def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> dict:
+def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
+          coils_off=False) -> dict:
     """Correct a telemetry file through the compiled flight C; write the ICD output CSV.
+    coils_off: the data were recorded with the magnetorquers off (see chain_inputs).
 
     Returns per-sensor outputs (field_body_nT, status, valid) for callers and tests.
     """
@@ -184,7 +207,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     host = host or HostUnit(cs)
     results = {}
     for s in cs.unit.sensors:
-        inp = chain_inputs(tel, cs.spec, s.name)
+        inp = chain_inputs(tel, cs.spec, s.name, coils_off=coils_off)
         out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                            channels=inp["channels"], rate_dps=inp["rate_dps"],
                            dt_s=inp["dt_s"])
@@ -197,7 +220,9 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     sel = host.select(fields, statuses)
     for k, s in enumerate(cs.unit.sensors):
         r = results[s.name]
-        r["status"] = np.where(r["present"], sel["status"][:, k], r["status"])
+        # a sample missing from the file carries the ABSENT bit: valid is status 0 exactly
+        r["status"] = np.where(r["present"], sel["status"][:, k],
+                               np.asarray(r["status"], dtype=np.uint16) | STATUS_ABSENT)
         r["valid"] = (r["status"] == 0) & r["present"]
         progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
     results["selected"] = sel
@@ -223,10 +248,7 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
     reasons = {v: k for k, v in SELECT_REASONS.items()}
     names = [s.name for s in unit.sensors]
     sel = results["selected"]
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(out_path.suffix + ".part")
-    with open(tmp, "w", newline="") as f:
+    with atomic_file(out_path, "w", newline="") as f:
         f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
         f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
                 + f" ABSENT={STATUS_ABSENT}; valid = status 0\n")
@@ -255,7 +277,6 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
                 row += ["", "", "", ""]
             row.append(reasons[int(sel["reason"][i])])
             w.writerow(row)
-    tmp.replace(out_path)   # nothing half-written
 
 
 def _fmt(v) -> str:

@@ -310,6 +310,9 @@ def _coil_on(tel):
                   axis=1)
 
 
+MIN_REF_nT = 1.0
+
+
 def gather_samples(unit, tels, pres=None) -> dict:
     """{sensor: SensorSamples} from telemetry files (and their preprocess() results).
 
@@ -342,6 +345,14 @@ def gather_samples(unit, tels, pres=None) -> dict:
                 ref = np.stack([tel.columns[f"ref_{c}_nT"] for c in AXES], 1).astype(float)
             else:
                 ref = np.full((n, 3), np.nan)
+            # below 1 nT a reference vector has no direction (every part resolves coarser):
+            # such rows are not reference vectors, and are counted
+            with np.errstate(invalid="ignore"):
+                zero = np.isfinite(ref).all(axis=1) & (np.linalg.norm(
+                    np.nan_to_num(ref), axis=1) < MIN_REF_nT)
+            excluded["zero reference"] = excluded.get("zero reference", 0) + int(
+                (zero & use).sum())
+            ref[zero] = np.nan
             has_vec = np.isfinite(ref).all(axis=1)
             norm = tel.get("ref_norm_nT")
             norm = np.asarray(norm, float) if norm is not None else np.full(
@@ -415,6 +426,8 @@ def direction_coverage(unit_vectors) -> dict:
     scatter matrix mean(u u^T) (1/3 each for a full sphere; the smallest ~0 when the
     directions lie in a plane)."""
     u = np.asarray(unit_vectors, float).reshape(-1, 3)
+    # a direction that could not be told (zero vector, failed offset fit: NaN) covers nothing
+    u = u[np.isfinite(u).all(axis=1)]
     if not len(u):
         return {"n": 0, "icosa_cells": 0, "icosa_fraction": 0.0, "eig": [0.0, 0.0, 0.0],
                 "least_direction": [0.0, 0.0, 0.0], "mean_resultant": 0.0}
@@ -647,13 +660,22 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
             pos_rows[int(q)] = pos_rows.get(int(q), 0) + int((p == q).sum())
     planned = {p["number"]: p for p in profile.positions}
     positions_out = []
-    ref_dir, renumbered = {}, []
+    ref_dir, renumbered, no_ref = {}, [], []
     if plan_applies:
         for name, S in samples.items():
             v = S.is_vec
             for q in np.unique(S.position[v & (S.position > 0)]):
                 m = v & (S.position == q)
-                ref_dir.setdefault(int(q), S.ref[m].mean(axis=0))
+                r = S.ref[m].mean(axis=0)
+                # below 1 nT no direction can be told (every part resolves coarser): a
+                # zero reference is flagged, not divided by
+                if not np.linalg.norm(r) >= 1.0:
+                    if int(q) not in ref_dir and int(q) not in no_ref:
+                        no_ref.append(int(q))
+                        notes.append(f"position {int(q)}: the reference vector is zero "
+                                     "(|ref| < 1 nT): no direction recorded")
+                    continue
+                ref_dir.setdefault(int(q), r)
         for num, p in planned.items():
             row = {"position": num, "label": p.get("label", ""), "rows": pos_rows.get(num, 0),
                    "planned_up": p.get("up"),
@@ -813,6 +835,9 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
               "temperature_range_C": [float(S.T.min()), float(S.T.max())] if S.n else None,
               "segments": len(S.segments)}
         total = sum(t.n for t in tels)
+        if S.excluded.get("zero reference"):
+            notes.append(f"{s.name}: {S.excluded['zero reference']} samples with a zero "
+                         "reference vector (|ref| < 1 nT) used as magnitude-only or left out")
         if S.excluded["saturated"]:
             where = []
             for fi, fl in enumerate(S.file_flags):
@@ -980,8 +1005,11 @@ def run_check(args, progress) -> tuple:
     for name, v in (("--limit-b-nT", args.limit_b_nT), ("--limit-m", args.limit_m)):
         if not (v > 0 and math.isfinite(v)):
             raise InputError(None, f"{name} must be a positive number, got {v}")
-    if args.noise_nT is not None and not (args.noise_nT > 0 and math.isfinite(args.noise_nT)):
-        raise InputError(None, f"--noise-nT must be a positive number, got {args.noise_nT}")
+    # beyond 1e7 nT (twice the largest full scale among the parts) a noise describes no
+    # magnetometer, and its square overflows in the prediction
+    if args.noise_nT is not None and not (0 < args.noise_nT <= 1e7):
+        raise InputError(None, f"--noise-nT must be a positive number up to 1e7 nT, got "
+                               f"{args.noise_nT}")
     if args.min_samples is not None and args.min_samples < 1:
         raise InputError(None, f"--min-samples must be at least 1, got {args.min_samples}")
     result = check_campaign(unit, args.data, profile, noise_nT=args.noise_nT,

@@ -249,6 +249,11 @@ def settle_time_s(step_C: float, board_tau_s: float, tolerance_C: float) -> floa
     return float(board_tau_s) * math.log(step / tolerance_C)
 
 
+MAX_RECORD_S = 86400.0
+MAX_GRID_POINTS = 200_000
+MAX_CYCLE_ROWS = 2e6
+
+
 def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DEG,
               levels_C=DEFAULT_LEVELS_C, board_tau_min=DEFAULT_BOARD_TAU_MIN,
               settle_tol_C=DEFAULT_SETTLE_TOL_C, ramp_C_per_min=DEFAULT_RAMP_C_PER_MIN,
@@ -280,6 +285,12 @@ def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DE
         raise InputError(src, f"plan: repeated temperature level in {levels}")
     tau_s = 60.0 * float(board_tau_min)
     record_s = int(samples_per_segment) * float(sample_period_s)
+    # each parameter may be in range and their product still absurd: a position held more
+    # than a day at one level is no ground test (the program would run for years)
+    if record_s > MAX_RECORD_S:
+        raise InputError(src, f"plan: {int(samples_per_segment)} samples x "
+                              f"{float(sample_period_s):g} s = {record_s:g} s of recording "
+                              f"per position and level; at most {MAX_RECORD_S:g} s (one day)")
     rate = float(ramp_C_per_min) / 60.0
     steps = []
     prev = room_C
@@ -312,13 +323,22 @@ def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DE
         f"lab field {F:.1f} nT, inclination {inclination_deg:g} deg, headings magnetic; the "
         "jig's reference edge is aligned with magnetic north to within a few degrees",
     ]
-    return TestPlan(unit_id=unit.id, lab_field_nT=float(F), inclination_deg=float(inclination_deg),
+    plan = TestPlan(unit_id=unit.id, lab_field_nT=float(F), inclination_deg=float(inclination_deg),
                     positions=positions(F, inclination_deg), levels_C=levels, room_C=float(room_C),
                     board_tau_s=tau_s, settle_tolerance_C=float(settle_tol_C),
                     ramp_C_per_min=float(ramp_C_per_min), sample_period_s=float(sample_period_s),
                     samples_per_segment=int(samples_per_segment),
                     reposition_s=60.0 * float(reposition_min), steps=steps,
                     return_ramp_s=abs(levels[-1] - room_C) / rate, assumptions=assumptions)
+    # the campaign file the program describes: one row per sample period over a position's
+    # cycle (the profile figure's grid) must stay a file a lab can record and a tool read
+    rows = plan.position_duration_s / float(sample_period_s)
+    if rows > MAX_CYCLE_ROWS:
+        raise InputError(src, f"plan: one position's cycle ({_hms(plan.position_duration_s)}) "
+                              f"at {float(sample_period_s):g} s per sample is {rows:.3g} rows; "
+                              f"at most {MAX_CYCLE_ROWS:g} (a longer sample period, faster "
+                              "ramps or a shorter time constant)")
+    return plan
 
 
 # =======================================================================================
@@ -353,8 +373,12 @@ def load_profile(path) -> PlanProfile:
         d = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(path, "file not found") from None
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror or e}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(path, f"not a JSON test plan: {e}") from None
+    except RecursionError:
+        raise InputError(path, "not a test plan: nested too deeply") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
     if d.get("format_version") != FORMAT_VERSION:
@@ -406,6 +430,8 @@ def window_check(plan: TestPlan, step_s=10.0) -> dict:
     """Board temperature predicted over the whole program (first-order lag of the chamber
     set-point, starting settled at room temperature): per level, the largest distance from
     the level inside any position's recording window, and the window in a cycle (min)."""
+    # at most MAX_GRID_POINTS points, however long the program (memory stays bounded)
+    step_s = max(step_s, plan.total_duration_s / MAX_GRID_POINTS)
     t = np.arange(0.0, plan.total_duration_s + step_s, step_s)
     _, board = predicted_board_temperature(plan, t, one_position=False)
     out = {}

@@ -22,6 +22,7 @@ import jinja2
 from generator import __version__
 from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
                     is_physical, lag_kernel, range_nT, saturation_limit, sensor_kernel)
+from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
 from generator.flight.tables import table_context
@@ -181,6 +182,16 @@ def boom_alignment_note(cs: CoefficientSet) -> str | None:
     return note if isinstance(note, str) else None
 
 
+def _literals(values, float_type, where, unit) -> list:
+    """C literals of coefficient values; a value with no literal in the flight type (NaN,
+    inf, beyond float32) is bad input naming the coefficient (exit 2), not a crash."""
+    try:
+        return [c_literal(v, float_type) for v in values]
+    except ValueError as e:
+        raise InputError(unit.path, f"{where}: {e}: it cannot be written into the flight "
+                                    "C") from None
+
+
 def _lines(literals, per_line=6) -> list:
     """Initializer rows of at most per_line literals, each ending in a comma."""
     return [", ".join(literals[i:i + per_line]) + "," for i in range(0, len(literals), per_line)]
@@ -209,7 +220,8 @@ def template_context(cs: CoefficientSet) -> dict:
             vals = flat[k:k + b.size]
             blocks.append({"name": b.name, "macro": b.name.upper(), "offset": k,
                            "shape": b.shape, "size": b.size, "unit": b.unit, "doc": b.doc,
-                           "lines": _lines([c_literal(v, ft) for v in vals])})
+                           "lines": _lines(_literals(vals, ft, f"sensors.{s.name}.{b.name}",
+                                                     unit))})
             k += b.size
         sensors.append({
             "index": len(sensors),
@@ -255,7 +267,8 @@ def template_context(cs: CoefficientSet) -> dict:
     for b in spec.unit_blocks():
         ublocks.append({"name": b.name, "macro": b.name.upper(), "offset": k, "shape": b.shape,
                         "size": b.size, "unit": b.unit, "doc": b.doc,
-                        "lines": _lines([c_literal(v, ft) for v in flat_u[k:k + b.size]])})
+                        "lines": _lines(_literals(flat_u[k:k + b.size], ft,
+                                                  f"unit_coefficients.{b.name}", unit))})
         k += b.size
     kernels_text, sizes, _ = casadi_sources(spec)
     ctx = {

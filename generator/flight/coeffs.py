@@ -49,6 +49,22 @@ class CoefficientSet:
     uncertainty: dict = field(default_factory=dict)   # name -> {block: 1-sigma ndarray}
     fit_info: dict = field(default_factory=dict)      # JSON-able: methods, stats, sources
 
+    def __post_init__(self):
+        # Coil and channel names come from telemetry headers and reach the generated C as
+        # macros and comments: only C identifiers pass, whatever built the set.
+        from generator.io.names import column_fault, macro_collision
+
+        cols = (*self.spec.coils, *self.spec.aux_channels)
+        for col in cols:
+            fault = column_fault(col)
+            if fault:
+                raise InputError(self.unit.path, f"telemetry column {fault}: it cannot name a "
+                                                 "coil or channel of the flight C")
+        clash = macro_collision(cols)
+        if clash:
+            raise InputError(self.unit.path, f"telemetry columns '{clash[0]}' and "
+                                             f"'{clash[1]}' give the same C macro")
+
     @property
     def unit(self) -> Unit:
         return self.spec.unit
@@ -158,6 +174,18 @@ class CoefficientSet:
             "fit": self.fit_info,
         }
 
+    def check_plausible(self, source) -> "CoefficientSet":
+        """The same checks as a loaded coefficients.json (validate_document and the value
+        ranges) on a set computed here, e.g. fitted from data: InputError naming `source`
+        (the data) when the result is no plausible calibration. Returns self."""
+        d = json.loads(json.dumps(self.to_json_dict(), default=json_default))
+        try:
+            CoefficientSet.from_json_dict(d, None)
+        except InputError as e:
+            raise InputError(source, f"the data give no plausible calibration: "
+                                     f"{e.message}") from None
+        return self
+
     def save(self, path) -> None:
         Path(path).write_text(json.dumps(self.to_json_dict(), indent=1, sort_keys=False,
                                          default=json_default) + "\n")
@@ -166,59 +194,301 @@ class CoefficientSet:
     def load(path) -> "CoefficientSet":
         path = Path(path)
         try:
-            d = json.loads(path.read_text())
+            d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(path, "file not found") from None
+        except OSError as e:
+            raise InputError(path, f"cannot read: {e.strerror or e}") from None
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise InputError(path, f"not a JSON coefficient file: {e}") from None
+        except RecursionError:
+            raise InputError(path, "not a coefficient file: nested too deeply") from None
         return CoefficientSet.from_json_dict(d, path)
 
     @staticmethod
     def from_json_dict(d: dict, path=None) -> "CoefficientSet":
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
-        if d.get("format_version") != FORMAT_VERSION:
-            raise InputError(path, f"format_version {d.get('format_version')!r} is not "
-                                   f"supported (this is {FORMAT_VERSION})")
-        try:
-            unit = Unit.from_dict(d["unit"])
-            spec = ChainSpec.from_dict(unit, d.get("chain", {}))
-        except (KeyError, TypeError, ValueError) as e:
-            raise InputError(path, f"bad 'unit' or 'chain' section: {e!r}") from None
+        """A coefficient set from a parsed coefficients.json: untrusted input, checked
+        against the schema (validate_document) before any use."""
+        unit, spec = validate_document(d, path)
         sensors = {}
         for s in unit.sensors:
-            sv = d.get("sensors", {}).get(s.name)
-            if sv is None:
-                raise InputError(path, f"sensors.{s.name}: missing")
-            vals = {}
-            for b in spec.sensor_blocks(s):
-                vals[b.name] = _block_array(sv, b, f"sensors.{s.name}", path)
-            sensors[s.name] = vals
+            sv = d["sensors"][s.name]
+            sensors[s.name] = {b.name: _block_array(sv, b, f"sensors.{s.name}", path, unit)
+                               for b in spec.sensor_blocks(s)}
         unit_values = {b.name: _block_array(d.get("unit_coefficients", {}), b,
-                                            "unit_coefficients", path)
+                                            "unit_coefficients", path, unit)
                        for b in spec.unit_blocks()}
-        unc = {n: {k: np.asarray(a, float) for k, a in v.items()}
-               for n, v in d.get("uncertainty_1sigma", {}).items()}
+        for s in unit.sensors:
+            _check_sensor_values(sensors[s.name], f"sensors.{s.name}", path)
+        _check_unit_values(unit_values, path)
+        unc = _uncertainty(d.get("uncertainty_1sigma", {}), unit, path)
         cs = CoefficientSet(spec, sensors, unit_values, unc, d.get("fit", {}))
         want = d.get("layout_hash")
         if want is not None and want != f"0x{spec.layout_hash():08x}":
-            raise InputError(path, f"layout_hash {want} does not match the chain structure "
-                                   f"in the file (0x{spec.layout_hash():08x}): written for another chain version, or edited by hand")
+            raise InputError(path, f"layout_hash {_short(want)} does not match the chain "
+                                   f"structure in the file (0x{spec.layout_hash():08x}): "
+                                   "written for another chain version, or edited by hand")
         return cs
 
 
-def _block_array(section, block, where, path):
+# ---- schema of coefficients.json (untrusted input) ---------------------------------------
+
+# Plausible magnitudes of the coefficients, by block; anything beyond is not a calibration
+# of a magnetometer but a corrupted or hostile file. Reasoning per bound:
+#  * fields and offsets: the parts in use saturate below 5e6 nT (AK8963 +-4912 uT), so an
+#    offset, coupling or tolerance beyond 1e8 nT (0.1 T) is not a sensor property;
+#  * M(T): a gain beyond a factor 1e3 from 1 is a wrong lsb_nT, not a calibration;
+#  * temperatures: above absolute zero and below 300 degC (no part survives solder reflow
+#    temperatures of about 250 degC for long);
+#  * every value must also be finite in float32 (the flight type), which 1e8 ensures.
+FIELD_LIMIT_nT = 1e8
+GAIN_LIMIT = 1e3
+TEMP_RANGE_C = (-273.15, 300.0)
+GENERIC_LIMIT = 1e8
+# H must be a rotation: |H H^T - I| below 1e-4 (0.006 deg, far below the ~0.05 deg
+# accuracy of a boom alignment; a JSON float64 Wahba solution is exact to ~1e-15).
+ORTHO_TOL = 1e-4
+INPUT_KINDS = ("counts", "nT", "uT", "mG", "G")
+OPTION_KEYS = ("channels", "thermal_lag", "nonlinear", "sr_compensation")
+_BLOCK_LIMITS = {"lsb_nT": FIELD_LIMIT_nT, "zero_count": 2.0 ** 31, "b_poly_nT": FIELD_LIMIT_nT,
+                 "M_poly": GAIN_LIMIT, "K_nT_per_A": FIELD_LIMIT_nT, "agree_nT": FIELD_LIMIT_nT,
+                 "C_nT_per_unit": FIELD_LIMIT_nT, "field_min_nT": FIELD_LIMIT_nT,
+                 "field_max_nT": FIELD_LIMIT_nT, "H_boom_to_body": 1.0 + ORTHO_TOL,
+                 "t_ref_C": 300.0, "t_min_C": 300.0, "t_max_C": 300.0}
+
+
+def validate_document(d, path=None):
+    """(Unit, ChainSpec) of a parsed coefficients.json, or InputError naming the key.
+
+    Checked: format and version; the unit section with the same rules as a unit file
+    (names, parts, frames, axes, numbers); the chain section (degree, coil and channel
+    names as C identifiers, options known and typed, for known sensors only); `sensors`
+    a table of exactly the unit's sensors, each holding exactly its chain's blocks."""
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
+    if d.get("format_version") != FORMAT_VERSION:
+        raise InputError(path, f"format_version {_short(d.get('format_version'))} is not "
+                               f"supported (this is {FORMAT_VERSION})")
+    unit = _validate_unit(d.get("unit"), path)
+    spec = _validate_chain(d.get("chain", {}), unit, path)
+    sensors = d.get("sensors")
+    if not isinstance(sensors, dict):
+        raise InputError(path, "sensors: must be an object {sensor name: coefficients}, "
+                               f"not {type(sensors).__name__}")
+    for name in sensors:
+        if name not in unit.sensor_names:
+            raise InputError(path, f"sensors.{_short(name)}: not a sensor of the unit "
+                                   f"({', '.join(unit.sensor_names)})")
+    for s in unit.sensors:
+        sv = sensors.get(s.name)
+        if sv is None:
+            raise InputError(path, f"sensors.{s.name}: missing")
+        if not isinstance(sv, dict):
+            raise InputError(path, f"sensors.{s.name}: must be an object of coefficient "
+                                   f"blocks, not {type(sv).__name__}")
+        known = [b.name for b in spec.sensor_blocks(s)]
+        for k in sv:
+            if k not in known:
+                raise InputError(path, f"sensors.{s.name}.{_short(k)}: not a coefficient of "
+                                       f"this chain ({', '.join(known)})")
+    uc = d.get("unit_coefficients", {})
+    if not isinstance(uc, dict):
+        raise InputError(path, "unit_coefficients: must be an object")
+    known = [b.name for b in spec.unit_blocks()]
+    for k in uc:
+        if k not in known:
+            raise InputError(path, f"unit_coefficients.{_short(k)}: not a unit coefficient of "
+                                   f"this chain ({', '.join(known)})")
+    if not isinstance(d.get("fit", {}), dict):
+        raise InputError(path, "fit: must be an object")
+    return unit, spec
+
+
+def _validate_unit(u, path) -> Unit:
+    from generator.io.unitfile import unit_from_doc
+
+    if not isinstance(u, dict):
+        raise InputError(path, "unit: missing, or not an object")
+    sensors = u.get("sensors")
+    if not isinstance(sensors, list) or not all(isinstance(x, dict) for x in sensors):
+        raise InputError(path, "unit.sensors: must be a list of sensor objects")
+    doc = {"unit": {k: u[k] for k in ("id", "lab_field_nT", "float")
+                    if u.get(k) is not None},
+           "sensor": [{k: v for k, v in x.items() if v is not None} for x in sensors]}
+    if u.get("boom_reference") is not None:
+        doc["boom"] = {"reference": u["boom_reference"]}
+    try:
+        unit_from_doc(path, doc)
+    except InputError as e:
+        raise InputError(path, f"unit: {e.message}") from None
+    for i, x in enumerate(sensors, start=1):
+        where = f"unit.sensors #{i}"
+        if x.get("input", "counts") not in INPUT_KINDS:
+            raise InputError(path, f"{where}: input: {_short(x.get('input'))} is not one of "
+                                   f"{', '.join(INPUT_KINDS)}")
+        if not isinstance(x.get("temperature", True), bool):
+            raise InputError(path, f"{where}: temperature: not true or false")
+        r = x.get("range_nT")
+        if r is not None and not (_is_number(r) and 0 < r <= FIELD_LIMIT_nT):
+            raise InputError(path, f"{where}: range_nT: {_short(r)} is not a positive "
+                                   f"number up to {FIELD_LIMIT_nT:g}")
+    try:
+        return Unit.from_dict(u)
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(path, f"unit: {_short(str(e))}") from None
+
+
+def _validate_chain(c, unit: Unit, path) -> ChainSpec:
+    from generator.flight.chain import MAX_POLY_DEGREE, SensorOptions
+    from generator.io.names import column_fault, macro_collision
+
+    if not isinstance(c, dict):
+        raise InputError(path, "chain: must be an object")
+    deg = c.get("poly_degree", 3)
+    if isinstance(deg, bool) or not isinstance(deg, int) or not 0 <= deg <= MAX_POLY_DEGREE:
+        raise InputError(path, f"chain.poly_degree: {_short(deg)} is not an integer "
+                               f"0..{MAX_POLY_DEGREE}")
+    coils = _column_list(c.get("coils", []), "chain.coils", path)
+    so = c.get("sensor_options", {})
+    if not isinstance(so, dict):
+        raise InputError(path, "chain.sensor_options: must be an object {sensor: options}")
+    opts = []
+    for name, o in so.items():
+        where = f"chain.sensor_options.{_short(name)}"
+        if name not in unit.sensor_names:
+            raise InputError(path, f"{where}: not a sensor of the unit")
+        if not isinstance(o, dict):
+            raise InputError(path, f"{where}: must be an object")
+        for k, v in o.items():
+            if k not in OPTION_KEYS:
+                raise InputError(path, f"{where}.{_short(k)}: unknown option "
+                                       f"({', '.join(OPTION_KEYS)})")
+            if k != "channels" and not isinstance(v, bool):
+                raise InputError(path, f"{where}.{k}: not true or false")
+        chans = _column_list(o.get("channels", []), f"{where}.channels", path)
+        if o.get("sr_compensation") and not unit.sensor(name).set_reset:
+            raise InputError(path, f"{where}.sr_compensation: the sensor has no SET/RESET")
+        opts.append((name, SensorOptions(chans, o.get("thermal_lag", False),
+                                         o.get("nonlinear", False),
+                                         o.get("sr_compensation", False))))
+    spec = ChainSpec(unit, poly_degree=deg, coils=coils, sensor_options=tuple(opts))
+    clash = macro_collision([*spec.coils, *spec.aux_channels])
+    if clash:
+        raise InputError(path, f"chain: columns '{clash[0]}' and '{clash[1]}' give the same "
+                               "C macro")
+    for col in (*spec.coils, *spec.aux_channels):
+        fault = column_fault(col)
+        if fault:
+            raise InputError(path, f"chain: column {fault}")
+    return spec
+
+
+def _column_list(v, where, path) -> tuple:
+    from generator.io.names import column_fault
+
+    if not isinstance(v, list):
+        raise InputError(path, f"{where}: must be a list of column names")
+    for c in v:
+        fault = column_fault(c)
+        if fault:
+            raise InputError(path, f"{where}: {fault}")
+    if len(set(v)) != len(v):
+        raise InputError(path, f"{where}: a column is named twice")
+    return tuple(v)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def _short(v, limit: int = 40) -> str:
+    r = repr(v)
+    return r if len(r) <= limit else r[:limit] + "..."
+
+
+def _check_sensor_values(v: dict, where, path) -> None:
+    t_min, t_max, t_ref = float(v["t_min_C"]), float(v["t_max_C"]), float(v["t_ref_C"])
+    for k, t in (("t_min_C", t_min), ("t_max_C", t_max), ("t_ref_C", t_ref)):
+        if not TEMP_RANGE_C[0] <= t <= TEMP_RANGE_C[1]:
+            raise InputError(path, f"{where}.{k}: {t:g} degC is outside the physical range "
+                                   f"{TEMP_RANGE_C[0]:g}..{TEMP_RANGE_C[1]:g} degC")
+    if not t_min <= t_max:
+        raise InputError(path, f"{where}.t_min_C: {t_min:g} is above t_max_C {t_max:g}")
+    if not float(v["lsb_nT"]) > 0:
+        raise InputError(path, f"{where}.lsb_nT: must be positive")
+    if not float(v["agree_nT"]) > 0:
+        raise InputError(path, f"{where}.agree_nT: must be positive")
+    M0 = np.asarray(v["M_poly"])[0]
+    sv = np.linalg.svd(M0, compute_uv=False)
+    if not np.linalg.det(M0) > 0 or sv[-1] < 1.0 / GAIN_LIMIT or sv[0] > GAIN_LIMIT:
+        raise InputError(path, f"{where}.M_poly: M(t_ref) must have det > 0 and gains within "
+                               f"{1 / GAIN_LIMIT:g}..{GAIN_LIMIT:g} (det {np.linalg.det(M0):.3g}, "
+                               f"singular values {sv[-1]:.3g}..{sv[0]:.3g})")
+
+
+def _check_unit_values(v: dict, path) -> None:
+    lo, hi = float(v["field_min_nT"]), float(v["field_max_nT"])
+    if not 0 <= lo < hi:
+        raise InputError(path, f"unit_coefficients.field_min_nT: need 0 <= field_min_nT "
+                               f"< field_max_nT ({lo:g}, {hi:g})")
+    if "H_boom_to_body" in v:
+        H = np.asarray(v["H_boom_to_body"])
+        err = float(np.max(np.abs(H @ H.T - np.eye(3))))
+        if err > ORTHO_TOL or not np.linalg.det(H) > 0:
+            raise InputError(path, f"unit_coefficients.H_boom_to_body: not a rotation "
+                                   f"(|H H^T - I| = {err:.3g}, tolerance {ORTHO_TOL:g}; "
+                                   f"det {np.linalg.det(H):.6g})")
+
+
+def _uncertainty(u, unit: Unit, path) -> dict:
+    if not isinstance(u, dict):
+        raise InputError(path, "uncertainty_1sigma: must be an object")
+    out = {}
+    for n, v in u.items():
+        if n not in unit.sensor_names or not isinstance(v, dict):
+            raise InputError(path, f"uncertainty_1sigma.{_short(n)}: not an object of a "
+                                   "sensor of the unit")
+        out[n] = {}
+        for k, a in v.items():
+            try:
+                arr = np.asarray(a, dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = None
+            if arr is None or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+                raise InputError(path, f"uncertainty_1sigma.{n}.{_short(k)}: not finite "
+                                       "non-negative numbers")
+            out[n][k] = arr
+    return out
+
+
+def _block_array(section, block, where, path, unit=None):
     if block.name not in section:
         raise InputError(path, f"{where}.{block.name}: missing")
+    raw = section[block.name]
+    if _has_bool(raw):
+        raise InputError(path, f"{where}.{block.name}: true/false where numbers go")
     try:
-        a = np.asarray(section[block.name], dtype=np.float64)
-    except (TypeError, ValueError):
+        a = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
         raise InputError(path, f"{where}.{block.name}: not numbers") from None
     if a.shape != tuple(block.shape):
         raise InputError(path, f"{where}.{block.name}: shape {a.shape}, expected {block.shape}")
     if not np.all(np.isfinite(a)):
         raise InputError(path, f"{where}.{block.name}: non-finite value")
+    limit = _BLOCK_LIMITS.get(block.name, GENERIC_LIMIT)
+    if a.size and np.max(np.abs(a)) > limit:
+        i = tuple(int(k) for k in np.unravel_index(int(np.argmax(np.abs(a))), a.shape)) \
+            if a.ndim else ()
+        raise InputError(path, f"{where}.{block.name}{list(i) if i else ''}: "
+                               f"{a[i] if i else float(a):g} is beyond the plausible "
+                               f"magnitude {limit:g} {block.unit}")
     return a
+
+
+def _has_bool(v) -> bool:
+    if isinstance(v, bool):
+        return True
+    return isinstance(v, list) and any(_has_bool(x) for x in v)
 
 
 def _tolist(a):

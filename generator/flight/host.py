@@ -5,7 +5,9 @@ The flight sources are compiled exactly as the standards require
 -Wall -Wextra -Werror -pedantic. A host-only batch shim (templates/host_shim.*.j2) loops
 over samples so that `magcal apply` and the tests run the flight code itself.
 
-Builds are cached by the hash of their sources, flags and compiler.
+Builds are cached by the hash of their sources, flags and compiler, in a private per-user
+folder (cache_dir); a cached module is loaded only when its sha256 matches the sidecar
+written after its build.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import hashlib
 import importlib.util
 import os
 import shutil
+import stat
 import subprocess
 import sys
 import tempfile
@@ -24,6 +27,7 @@ import numpy as np
 from generator.flight.chain import ChainSpec, is_physical, np_dtype
 from generator.flight.codegen import _env, render, template_context
 from generator.flight.coeffs import CoefficientSet
+from generator.errors import InputError
 
 CC = os.environ.get("CC", "gcc")
 FP_FLAGS = ["-std=c99", "-O2", "-ffp-contract=off", "-fno-fast-math"]
@@ -31,9 +35,78 @@ STRICT_FLAGS = ["-Wall", "-Wextra", "-Werror", "-pedantic"]
 
 
 def cache_dir() -> Path:
-    d = Path(os.environ.get("MAGCAL_CACHE", Path(tempfile.gettempdir()) / "magcal-build"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    """The per-user build cache: $MAGCAL_CACHE, else $XDG_CACHE_HOME/magcal or
+    ~/.cache/magcal, else <tempdir>/magcal-<uid>; created with mode 0700.
+
+    Compiled modules are loaded (run) from here, so a folder that another user owns or
+    can write to is refused (InputError naming it), never used."""
+    env = os.environ.get("MAGCAL_CACHE")
+    if env:
+        candidates = [Path(env)]
+    else:
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".cache"
+        candidates = [base / "magcal",
+                      Path(tempfile.gettempdir()) / f"magcal-{os.getuid()}"]
+    last = None
+    for d in candidates:
+        try:
+            d.parent.mkdir(parents=True, exist_ok=True)
+            d.mkdir(mode=0o700, exist_ok=True)
+        except OSError as e:
+            last = e
+            continue
+        _check_private(d)
+        return d
+    raise InputError(candidates[-1], f"build cache: cannot create: {last}")
+
+
+def _check_private(path: Path) -> None:
+    """InputError unless path is a real folder (no symlink) owned by this user and not
+    writable by group or others."""
+    try:
+        st = os.lstat(path)
+    except OSError as e:
+        raise InputError(path, f"build cache: {e.strerror or e}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise InputError(path, "build cache: not a folder (a symlink or a file): refused")
+    if st.st_uid != os.getuid():
+        raise InputError(path, f"build cache: owned by uid {st.st_uid}, not by this user "
+                               f"(uid {os.getuid()}): refused (set MAGCAL_CACHE to a private "
+                               "folder)")
+    if st.st_mode & 0o022:
+        raise InputError(path, f"build cache: writable by group or others (mode "
+                               f"{stat.S_IMODE(st.st_mode):03o}): refused (chmod 700, or set "
+                               "MAGCAL_CACHE to a private folder)")
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _verified_module(build_dir: Path, module_name: str):
+    """The module file of a cached build when its sha256 matches the sidecar written
+    after the build (and folder and file are private), else None."""
+    if not build_dir.is_dir():
+        return None
+    mods = sorted(build_dir.glob(f"{module_name}*.so"))
+    if len(mods) != 1:
+        return None
+    mod = mods[0]
+    side = mod.with_name(mod.name + ".sha256")
+    try:
+        _check_private(build_dir)
+        st = os.lstat(mod)
+        if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o022:
+            return None
+        want = side.read_text().strip()
+    except (OSError, InputError):
+        return None
+    return mod if want == _sha256_file(mod) else None
 
 
 def compiler_id() -> str:
@@ -64,15 +137,27 @@ def cffi_module(prefix: str, files: dict, cdef_file: str, source: str):
     key = hashlib.sha256()
     for name in sorted(files):
         key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
+    key.update(cdef_file.encode() + b"\0" + source.encode() + b"\0")
     key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
     key.update(compiler_id().encode())
     key.update(sys.version.encode())
     module_name = f"{prefix}_{key.hexdigest()[:16]}"
     build_dir = cache_dir() / module_name
-    mod_path = next(build_dir.glob(f"{module_name}*.so"), None) if build_dir.is_dir() else None
+    mod_path = _verified_module(build_dir, module_name)
     if mod_path is None:
+        if build_dir.exists() or build_dir.is_symlink():
+            # a build without a matching sidecar (interrupted, or tampered with): set aside
+            stale = build_dir.with_name(f"{module_name}.stale-{os.getpid()}")
+            try:
+                os.rename(build_dir, stale)
+                shutil.rmtree(stale, ignore_errors=True)
+            except OSError:
+                pass
         _build_cffi(module_name, files, cdef_file, source)
-        mod_path = next(build_dir.glob(f"{module_name}*.so"))
+        mod_path = _verified_module(build_dir, module_name)
+        if mod_path is None:
+            raise HostBuildError(f"the build of {module_name} in {build_dir} does not match "
+                                 "its recorded sha256 after building: refusing to load it")
     spec = importlib.util.spec_from_file_location(module_name, mod_path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -97,8 +182,11 @@ def _build_cffi(module_name, files, cdef_file, source):
     built = next(tmp.glob(f"{module_name}*.so"))
     final = tmp.parent / module_name
     if not final.exists():
-        (tmp / "final").mkdir()
+        (tmp / "final").mkdir(mode=0o700)
         shutil.move(str(built), tmp / "final" / built.name)
+        # the sidecar: what a later load verifies before running the module
+        (tmp / "final" / (built.name + ".sha256")).write_text(
+            _sha256_file(tmp / "final" / built.name) + "\n")
         try:
             os.rename(tmp / "final", final)
         except OSError:

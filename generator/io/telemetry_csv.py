@@ -30,8 +30,23 @@ from generator.io.telemetry import SensorData, Telemetry
 TIME_COLUMN = "time_s"
 POSITION_COLUMN = "position"
 
-_META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.-]*)\s*:\s*(.*?)\s*$")  # '# key: value'
-_NUMBER_RE = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+# '# key: value' (the value is stripped in code: a lazy group before \s*$ is quadratic)
+_META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.-]*)\s*:(.*)")
+# linear: no two adjacent runs of digits that could share a digit (\d+\.?\d* backtracks
+# quadratically on a long cell of digits that ends in a letter)
+_NUMBER_RE = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?")
+
+# Physical bounds of cells (bad input beyond them, exit 2 naming the row):
+# * temperatures: the parts are rated -40..+85/+125 degC (automotive grade 0: 150 degC);
+#   a reported temperature outside -150..+200 degC is a corrupted cell, not a temperature
+#   the sensor worked at;
+# * reference field: a reference is a field the sensor measured, and the parts saturate
+#   below 5e6 nT (AK8963: 4912 uT full scale), so |ref| beyond 1e7 nT is not a reference;
+# * any other cell: beyond 1e15 in the units the columns carry (s, A, V, deg/s, ...) there
+#   is no physical meaning, and squares must stay far from float64 overflow.
+TEMP_RANGE_C = (-150.0, 200.0)
+REF_LIMIT_nT = 1e7
+CELL_LIMIT = 1e15
 _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 
 
@@ -63,6 +78,7 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     _check_counts(path, columns, line_numbers, unit)
     _check_position(path, columns, line_numbers)
     _check_geo(path, columns, line_numbers)
+    _check_physical(path, columns, line_numbers)
     return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
                      meta=meta, comments=comments)
 
@@ -100,7 +116,7 @@ def _split_lines(path, text: str):
             if header is None:
                 m = _META_RE.match(line.strip())
                 if m:
-                    meta[m.group(1)] = m.group(2)
+                    meta[m.group(1)] = m.group(2).strip()
                 else:
                     comments.append(line)
             continue
@@ -263,6 +279,28 @@ def _check_geo(path, columns: dict, line_numbers: np.ndarray) -> None:
         if bad.size:
             i = bad[0]
             raise InputError(path, f"{_fmt(v[i])} is outside [{_fmt(lo)}, {_fmt(hi)}]",
+                             line=int(line_numbers[i]), column=name)
+
+
+def _physical_bounds(name: str):
+    """(low, high, unit) a cell of this column must lie within."""
+    if name.endswith("_temp_C"):
+        return TEMP_RANGE_C[0], TEMP_RANGE_C[1], " degC"
+    if name.startswith("ref_") and name.endswith("_nT"):
+        return (0.0 if name == "ref_norm_nT" else -REF_LIMIT_nT), REF_LIMIT_nT, " nT"
+    return -CELL_LIMIT, CELL_LIMIT, ""
+
+
+def _check_physical(path, columns: dict, line_numbers: np.ndarray) -> None:
+    """Every cell inside its column's physical bounds (_physical_bounds)."""
+    for name, v in columns.items():
+        lo, hi, unit = _physical_bounds(name)
+        with np.errstate(invalid="ignore"):
+            bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            i = bad[0]
+            raise InputError(path, f"{_fmt(v[i])}{unit} is outside the physical range "
+                                   f"{_fmt(lo)}..{_fmt(hi)}{unit}",
                              line=int(line_numbers[i]), column=name)
 
 

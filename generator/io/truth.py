@@ -30,6 +30,8 @@ def load_truth(path) -> dict:
         raw = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
         raise InputError(path, f"cannot read truth file: {e}") from None
+    except RecursionError:
+        raise InputError(path, "truth file: nested too deeply") from None
     try:
         sensors = {}
         for name, s in raw["sensors"].items():

@@ -23,10 +23,9 @@ if sys.version_info >= (3, 11):
 else:                                   # Python 3.10: the same parser, as a package
     import tomli as tomllib
 from generator.io import parts as P
+from generator.io.names import name_fault, prefix_collision
 from generator.io.unit import FLOAT_TYPES, FRAMES, SensorSpec, Unit
 
-NAME_PATTERN = "[a-z][a-z0-9_]*"
-_NAME_RE = re.compile(NAME_PATTERN)
 AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 UNIT_KEYS = ("id", "lab_field_nT", "float")
@@ -36,6 +35,10 @@ SENSOR_KEYS = ("name", "part", "frame", "axes", "lsb_nT", "zero_count", "set_res
 ORBIT_KEYS = ("epoch_utc", "tle")
 REQUIREMENT_KEYS = ("field_error_nT", "angle_deg")
 _EPOCH_RE = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?(Z|[+-]\d{2}:\d{2})")
+
+# A field, field step or noise beyond 1e7 nT (10 mT, twice the largest full scale among
+# the parts, AK8963 4912 uT) describes no magnetometer: the arithmetic would overflow.
+FIELD_LIMIT_nT = 1e7
 
 _TABLE_HEADER_RE = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_-]+)\s*\]\]?\s*(#.*)?$")
 _KEY_RE = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
@@ -65,18 +68,26 @@ def load_unit(path) -> Unit:
                          line=raw.count(b"\n", 0, e.start) + 1) from None
     try:
         doc = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(path, "TOML syntax: nested too deeply") from None
     except tomllib.TOMLDecodeError as e:
         msg = str(e)
         m = _TOML_POS_RE.search(msg)
         line = int(m.group(1)) if m else None
         raise InputError(path, f"TOML syntax: {_TOML_POS_RE.sub('', msg)}", line=line) from None
+    return unit_from_doc(path, doc, text)
 
+
+def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
+    """Validate a parsed unit document (the TOML tables as dicts) into a Unit; the same
+    checks as load_unit. text: the file's text, for line numbers in messages (optional)."""
     lines = _LineFinder(text)
     extra: dict = {}
 
     unit_tbl = _Table.top(path, lines, doc, "unit", required=True)
-    unit_id = unit_tbl.name("id")
-    lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True)
+    unit_id = unit_tbl.name("id", kind="unit")
+    lab_field_nT = unit_tbl.number("lab_field_nT", required=False, positive=True,
+                                   at_most=FIELD_LIMIT_nT)
     float_type = unit_tbl.choice("float", FLOAT_TYPES, default="float32")
     unit_tbl.keep_unknown(UNIT_KEYS, extra, "unit")
 
@@ -147,10 +158,11 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     frame = t.choice("frame", FRAMES)
     axes = _read_axes(t)
     inp = t.choice("input", P.INPUTS, default="counts")
-    range_nT = t.number("range_nT", required=part.generic, positive=True)
+    range_nT = t.number("range_nT", required=part.generic, positive=True,
+                        at_most=FIELD_LIMIT_nT)
     temperature = t.boolean("temperature", default=True)
     if inp == "counts":
-        lsb_nT = t.number("lsb_nT", positive=True)
+        lsb_nT = t.number("lsb_nT", positive=True, at_most=FIELD_LIMIT_nT)
         zero_count = t.integer("zero_count")
         lo, hi = P.count_range(part, lsb_nT, zero_count, range_nT)
         if not lo < zero_count < hi:
@@ -166,7 +178,7 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     set_reset = t.boolean("set_reset", default=False)
     if set_reset and not part.set_reset:
         t.fail("set_reset", f"the {part_name} has no SET/RESET; set_reset must be false")
-    noise_nT = t.number("noise_nT", required=False, positive=True)
+    noise_nT = t.number("noise_nT", required=False, positive=True, at_most=FIELD_LIMIT_nT)
     unknown = {k: v for k, v in t.d.items() if k not in SENSOR_KEYS}
     spec = SensorSpec(name=name, part=part_name, frame=frame, axes=axes, lsb_nT=lsb_nT,
                       zero_count=zero_count, set_reset=set_reset, noise_nT=noise_nT,
@@ -248,6 +260,13 @@ def _check_unique_names_and_columns(path, lines, sensors) -> None:
                 raise InputError(path, f"{where}: name: telemetry column '{col}' would also "
                                        f"belong to sensor '{owner[col]}'", line=line)
             owner[col] = s.name
+    clash = prefix_collision(s.name for s in sensors)
+    if clash:
+        a, b = clash
+        i = [s.name for s in sensors].index(b) + 1
+        raise InputError(path, f"[[sensor]] #{i} '{b}': name: starts with the name of sensor "
+                               f"'{a}' and an '_': their C identifiers could collide after "
+                               "prefixing (docs/names.md)", line=lines.key("sensor", i, "name"))
 
 
 class _LineFinder:
@@ -319,12 +338,13 @@ class _Table:
             return None
         return self.d[key]
 
-    def name(self, key, required=True):
+    def name(self, key, required=True, kind="sensor"):
         v = self.get(key, required)
         if v is None:
             return None
-        if not isinstance(v, str) or not _NAME_RE.fullmatch(v):
-            self.fail(key, f"{v!r} does not match {NAME_PATTERN}")
+        fault = name_fault(v, kind)
+        if fault:
+            self.fail(key, fault)
         return v
 
     def choice(self, key, allowed, default=None):
@@ -335,7 +355,7 @@ class _Table:
             self.fail(key, f"{v!r} is not one of {', '.join(allowed)}")
         return v
 
-    def number(self, key, required=True, positive=False):
+    def number(self, key, required=True, positive=False, at_most=None):
         v = self.get(key, required)
         if v is None:
             return None
@@ -343,6 +363,8 @@ class _Table:
             self.fail(key, f"{v!r} is not a finite number")
         if positive and not v > 0:
             self.fail(key, f"{v!r} must be positive")
+        if at_most is not None and abs(v) > at_most:
+            self.fail(key, f"{v!r} is beyond the plausible {at_most:g}")
         return float(v)
 
     def integer(self, key):

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from generator.campaign.plan import TestPlan, _hms, make_plan
+from generator.io.outputs import check_output_folder, output_folder
 from generator.io.unitfile import load_unit
 from generator.report.plan_report import plan_report
 
@@ -24,6 +25,7 @@ def write_plan(plan: TestPlan, out_dir) -> dict:
 
 def run_plan(args, progress) -> tuple:
     """`magcal plan`: exit status and the JSON result (the profile and the paths)."""
+    check_output_folder(args.output)
     unit = load_unit(args.unit)
     plan = make_plan(unit, lab_field_nT=args.lab_field_nT, inclination_deg=args.inclination_deg,
                      levels_C=args.levels, board_tau_min=args.board_tau_min,
@@ -33,7 +35,10 @@ def run_plan(args, progress) -> tuple:
                      reposition_min=args.reposition_min)
     progress(f"unit {unit.id}: {len(plan.positions)} positions x {len(plan.levels_C)} levels, "
              f"{_hms(plan.total_duration_s)} in all")
-    paths = write_plan(plan, args.output)
+    with output_folder(args.output) as folder:
+        paths = write_plan(plan, folder.tmp)
+    paths = {k: ([folder.final(p) for p in v] if isinstance(v, list) else folder.final(v))
+             for k, v in paths.items()}
     progress(f"wrote {paths['html']}, {paths['markdown']} and {paths['json']}")
     result = plan.to_json_dict()
     result["files"] = {k: ([str(p) for p in v] if isinstance(v, list) else str(v))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from generator.errors import InputError
 from generator.flight.coeffs import CoefficientSet
+from generator.io.outputs import check_output_file, write_bytes
 from generator.flight.table_host import TableHost
 from generator.flight.tables import (NO_INDEX, TableError, TableStatus, check_table,
                                      chunk_table, diff_tables, dump_table, encode_table,
@@ -98,10 +99,16 @@ def cmd_table(args) -> int:
         say(f"{args.check}: accepted by the flight validator of {cs.unit.id} "
             f"(layout 0x{cs.spec.layout_hash():08x})")
         return 0
-    # encode
+    # encode: everything is computed and checked first, then written (each file atomically)
     if not args.coeffs_json or not args.output:
         raise InputError(None, "usage: magcal table COEFFS.json -o TABLE.bin "
                                "(or --decode, --diff, --check)")
+    out = check_output_file(args.output)
+    txt = out.with_suffix(".txt")
+    if txt == out:
+        raise InputError(args.output, "-o: the table must not end in .txt (its text dump "
+                                      "TABLE.txt is written beside it)")
+    check_output_file(txt)
     src = CoefficientSet.load(args.coeffs_json)
     created = args.created_s
     if created is None:
@@ -114,19 +121,25 @@ def cmd_table(args) -> int:
         table = encode_table(src, args.serial, created)
     except TableError as e:
         raise e.at(args.coeffs_json) from None
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_bytes(table)
-    txt = out.with_suffix(".txt")
-    txt.write_text(dump_table(table, src.spec, title=out.name))
-    say(f"wrote {out} ({len(table)} bytes, serial {args.serial}) and {txt}")
+    dump = dump_table(table, src.spec, title=out.name)
+    files = [(out, table), (txt, dump.encode("utf-8"))]
+    parts = []
     if args.chunk is not None:
-        parts = chunk_table(table, args.chunk)
+        try:
+            parts = chunk_table(table, args.chunk)
+        except InputError as e:
+            raise InputError(args.output, f"--chunk {args.chunk}: {e.message}") from None
         if join_parts(parts, src.spec) != table:   # the ground checks its own parts
             raise RuntimeError("chunked parts do not reassemble into the table")
         for i, part in enumerate(parts):
-            p = out.with_name(f"{out.stem}.part{i:03d}.bin")
-            p.write_bytes(part)
+            p = check_output_file(out.with_name(f"{out.stem}.part{i:03d}.bin"))
+            if p in (out, txt):
+                raise InputError(args.output, f"-o: part {p.name} would overwrite the table")
+            files.append((p, part))
+    for path, data in files:
+        write_bytes(path, data)
+    say(f"wrote {out} ({len(table)} bytes, serial {args.serial}) and {txt}")
+    if parts:
         say(f"wrote {len(parts)} parts {out.stem}.part000.bin .. "
             f"{out.stem}.part{len(parts) - 1:03d}.bin of at most {args.chunk} bytes")
     return 0

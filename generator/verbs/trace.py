@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from generator.io.outputs import check_output_folder, output_folder
 from generator.progress import Progress
 from generator.report.trace_report import write_report
 from generator.trace.tracer import trace
@@ -19,10 +20,15 @@ def add_trace_args(p):
 
 
 def cmd_trace(args) -> int:
-    progress = Progress(quiet=getattr(args, "quiet", False))
+    progress = getattr(args, "progress", None) or Progress(quiet=getattr(args, "quiet", False))
+    check_output_folder(args.output)
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
-    paths = res.write(args.output)
-    paths["report"] = write_report(res, paths["trace"].parent)
+    res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
+                                     f"{args.data[0]} (and {len(args.data) - 1} more)")
+    with output_folder(args.output) as folder:
+        paths = res.write(folder.tmp)
+        paths["report"] = write_report(res, folder.tmp)
+    paths = {k: folder.final(v) for k, v in paths.items()}
     for n, tr in res.traces.items():
         found = ", ".join(st.effect.label() for st in tr.steps) or "nothing significant"
         progress(f"{n}: {tr.baseline_rms_nT:.2f} -> {tr.final_rms_nT:.2f} nT held-out RMS; "

@@ -1,0 +1,210 @@
+"""Outputs written whole or not at all.
+
+A file is written to a temporary file in its own folder, flushed to disk (fsync) and
+renamed over the target (os.replace: atomic on POSIX). A folder of outputs is built in a
+temporary folder beside the target; on success it is renamed to the target, or (when the
+target folder exists) its files are renamed into it one by one; on any error the
+temporary folder is removed. An output path that names an existing folder where a file is
+needed, an existing file where a folder is needed, or lies under a file, is bad input
+(InputError, exit 2) found before anything is computed or written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from generator.errors import InputError
+
+
+def _first_file_above(path: Path):
+    """The first existing ancestor of path that is not a folder, or None."""
+    for parent in list(path.parents)[::-1]:
+        if parent.exists() and not parent.is_dir():
+            return parent
+    return None
+
+
+def check_output_file(path) -> Path:
+    """Path of an output file, or InputError when it cannot be one."""
+    p = Path(path)
+    if str(path) == "" or p.name in ("", ".", ".."):
+        raise InputError(path, "output file: not a file name")
+    blocker = _first_file_above(p)
+    if blocker is not None:
+        raise InputError(path, f"output file: '{blocker}' is a file, not a folder")
+    if p.is_dir():
+        raise InputError(path, "output file: is an existing folder")
+    return p
+
+
+def check_output_folder(path) -> Path:
+    """Path of an output folder, or InputError when it cannot be one."""
+    p = Path(path)
+    if str(path) == "":
+        raise InputError(path, "output folder: empty name")
+    blocker = _first_file_above(p)
+    if blocker is not None:
+        raise InputError(path, f"output folder: '{blocker}' is a file, not a folder")
+    if p.exists() and not p.is_dir():
+        raise InputError(path, "output folder: is an existing file")
+    return p
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _makedirs(folder: Path) -> list:
+    """mkdir -p; returns the folders it created (outermost first) so they can be removed."""
+    made = []
+    for parent in [*list(folder.parents)[::-1], folder]:
+        if not parent.exists():
+            try:
+                parent.mkdir()
+            except FileExistsError:
+                continue
+            except OSError as e:
+                raise InputError(parent, f"cannot create the output folder: "
+                                         f"{e.strerror or e}") from None
+            made.append(parent)
+    return made
+
+
+def _remove_made(made) -> None:
+    for d in reversed(made):
+        try:
+            d.rmdir()
+        except OSError:
+            pass
+
+
+@contextlib.contextmanager
+def atomic_file(path, mode: str = "w", **open_kw):
+    """Open a temporary file beside `path`; on normal exit it becomes `path` (fsync +
+    os.replace), on an exception it is removed and `path` is untouched."""
+    p = check_output_file(path)
+    made = _makedirs(p.parent) if str(p.parent) not in ("", ".") else []
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    except OSError as e:
+        _remove_made(made)
+        raise InputError(path, f"cannot write: {e.strerror or e}") from None
+    try:
+        if "encoding" not in open_kw and "b" not in mode:
+            open_kw["encoding"] = "utf-8"
+        with os.fdopen(fd, mode, **open_kw) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, p)
+        _fsync_dir(p.parent)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        _remove_made(made)
+        raise
+
+
+def write_bytes(path, data: bytes) -> Path:
+    with atomic_file(path, "wb") as f:
+        f.write(data)
+    return Path(path)
+
+
+def write_text(path, text: str) -> Path:
+    with atomic_file(path, "w", newline="") as f:
+        f.write(text)
+    return Path(path)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+class OutputFolder:
+    """A folder being built: `.tmp` is where to write; `final(p)` maps a path under
+    `.tmp` to where it will be once committed."""
+
+    def __init__(self, target: Path, tmp: Path):
+        self.target, self.tmp = target, tmp
+
+    def final(self, p) -> Path:
+        p = Path(p)
+        try:
+            return self.target / p.relative_to(self.tmp)
+        except ValueError:
+            return p
+
+
+@contextlib.contextmanager
+def output_folder(path):
+    """Build a folder of outputs in a temporary folder beside `path` (yields an
+    OutputFolder); commit it on normal exit, remove it on an exception."""
+    target = check_output_folder(path)
+    parent = target.parent
+    made = _makedirs(parent) if str(parent) not in ("", ".") else []
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent))
+    except OSError as e:
+        _remove_made(made)
+        raise InputError(path, f"cannot create the output folder: {e.strerror or e}") from None
+    try:
+        yield OutputFolder(target, tmp)
+        _commit(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_made(made)
+        raise
+
+
+def _commit(tmp: Path, target: Path) -> None:
+    os.chmod(tmp, 0o777 & ~_umask())
+    for f in tmp.rglob("*"):
+        if f.is_file():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+    if not target.exists():
+        try:
+            os.rename(tmp, target)
+            _fsync_dir(target.parent)
+            return
+        except OSError:
+            pass           # created meanwhile: merge below
+    _merge(tmp, target)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _merge(src: Path, dst: Path) -> None:
+    """Rename every file of src into dst (folders merged); an existing file is replaced,
+    a folder where a file goes (or the reverse) is an error found before any rename."""
+    moves = []
+    for f in sorted(src.rglob("*")):
+        rel = f.relative_to(src)
+        d = dst / rel
+        if f.is_dir():
+            if d.exists() and not d.is_dir():
+                raise InputError(d, "output: is an existing file where a folder goes")
+        else:
+            if d.is_dir():
+                raise InputError(d, "output: is an existing folder where a file goes")
+            moves.append((f, d))
+    for f, d in moves:
+        d.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(f, d)
+    _fsync_dir(dst)
