@@ -21,6 +21,7 @@ from pathlib import Path
 
 import casadi as ca
 
+from generator.flight import host
 from generator.flight.chain import ChainSpec
 from generator.flight.codegen import TEMPLATE_DIR, _env, build_kernel, render, template_context
 from generator.flight.coeffs import CoefficientSet
@@ -135,9 +136,11 @@ def qemu_version() -> tuple:
 
 
 def cache_dir() -> Path:
-    d = Path(os.environ.get("MAGCAL_CACHE", Path(tempfile.gettempdir()) / "magcal-build"))
-    d = d / "arm"
-    d.mkdir(parents=True, exist_ok=True)
+    """The per-user build cache of the host build (host.cache_dir: private, owned by this
+    user), its folder arm/: the test runner's images are built and run from here too."""
+    d = host.cache_dir() / "arm"
+    d.mkdir(mode=0o700, exist_ok=True)
+    host._check_private(d)
     return d
 
 
