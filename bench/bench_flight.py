@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Benchmark of the flight code on the flight processor: instructions per call of each
 entry point on the emulated Cortex-M4F divided by the minimum floating-point operations
-of its chain, with code size and worst-case stack (generator/target_arm.py measures; the
+of its chain, with code size and worst-case stack (generator/flight/target.py measures; the
 method and its calibration are in docs/flight_target.md).
 
 Targets (issue 7): instructions <= 2 x min flops per sensor call, < 16 KiB code for a

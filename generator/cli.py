@@ -223,7 +223,7 @@ def _args_plan(p):
     p.add_argument("--board-tau-min", type=float, default=P.DEFAULT_BOARD_TAU_MIN,
                    help=f"thermal time constant of the slowest board (flight computer, "
                         f"boom board), min (default {P.DEFAULT_BOARD_TAU_MIN:g}: an "
-                        f"assumption, see generator/plan.py; measure it on the first step)")
+                        f"assumption, see generator/campaign/plan.py; measure it on the first step)")
     p.add_argument("--settle-tol-C", type=float, default=P.DEFAULT_SETTLE_TOL_C,
                    help=f"settled: within this of the level, degC (default "
                         f"{P.DEFAULT_SETTLE_TOL_C:g})")

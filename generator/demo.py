@@ -1,6 +1,6 @@
 """`magcal demo`: the whole chain on a simulated example unit, with no arguments.
 
-The project's own simulator (generator/simulate.py) makes a unit, its truth and its
+The project's own simulator (generator/campaign/simulate.py) makes a unit, its truth and its
 ground and orbit campaigns; then fit (temperature model, coil coupling, boom alignment)
 -> generate -> compile -> every sample through the flight C and the Python reference,
 bit for bit -> accuracy against the simulator's truth on the ground and in orbit ->

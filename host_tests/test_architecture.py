@@ -192,3 +192,17 @@ def test_the_wheel_lists_every_package_and_ships_the_templates():
         assert pkg in listed and (REPO / folder).is_dir()
         assert any((REPO / folder).glob("*.j2")), folder
     assert cfg["package-dir"]["generator.templates"] == "templates"
+
+
+PATH_RE = re.compile(r"\bgenerator/(?:[a-z_]+/)*[a-z_]+\.(?:py|toml)\b")
+
+
+def test_every_module_path_named_in_the_docs_and_code_exists():
+    """Docs, templates (and so the generated C's comments), benchmarks and the package's
+    own strings name modules by path: after a move, none may point at a file that is gone."""
+    places = [REPO / "README.md", *(REPO / "docs").glob("*.md"), *(REPO / "templates").rglob("*.j2"),
+              *PKG.rglob("*.py"), *(REPO / "bench").rglob("*.py"), *(REPO / "bench").rglob("*.md")]
+    stale = sorted({f"{p.relative_to(REPO)}: {m}" for p in places
+                    for m in PATH_RE.findall(p.read_text(errors="replace"))
+                    if not (REPO / m).exists()})
+    assert not stale, "paths that do not exist:\n" + "\n".join(stale)

@@ -12,7 +12,7 @@ with its first error line. Data: the shared simulated unit samsat_fm1 (truth kno
 project's simulator (full sphere and caps of orientations, several seeds) and real
 full-sphere recordings by others in ../shared/realdata (no truth: held-out |B| scatter).
 Figures: offset and matrix error against the truth, the offset error relative to the
-Cramér-Rao bound (generator/crb.py) and a Monte Carlo of the efficiency, the |B| error over
+Cramér-Rao bound (generator/fit/bounds.py) and a Monte Carlo of the efficiency, the |B| error over
 the whole sphere, held-out |B| scatter, fit time relative to ours; and the PX4 temperature
 model (cubic offsets, constant matrix) against ours on the thermal campaigns.
 
@@ -662,7 +662,7 @@ def failures_section(run: Run) -> list:
 METHOD_NOTES = """## How to read this
 
 * **Error / CRB** columns divide each fit's squared error by the Cramér-Rao bound of that
-  very fit (generator/crb.py: Fisher information of |M (x - b)| = |B| + noise with
+  very fit (generator/fit/bounds.py: Fisher information of |M (x - b)| = |B| + noise with
   Gaussian per-axis reading noise sigma propagated into the residual, variance
   sigma^2 |M^T u|^2, and the six entries of M as nuisance parameters, so the bound on b is
   the marginal one) and take the square root of the mean over the fits the method
@@ -710,7 +710,7 @@ def credits_section(run: Run) -> list:
     lines = ["## Data credits", "",
              "* samsat_fm1: simulated unit in ../shared/data/samsat_fm1 (made by a simulator "
              "that is not part of the project).",
-             "* Simulated campaigns: this project's generator/simulate.py."]
+             "* Simulated campaigns: this project's generator/campaign/simulate.py."]
     for name, r in datasets.REAL_RECORDINGS.items():
         lines.append(f"* {name}: {r['credit']}; read from ../shared/realdata/{r['folder']}, "
                      "not copied into the project.")

@@ -288,7 +288,7 @@ class SensorSamples:
     position: np.ndarray       # (N,) int, 0 where none / moving
     file: np.ndarray           # (N,) int, index of the file
     time_s: np.ndarray         # (N,)
-    segments: list             # fit_thermal.Segment, index into these arrays; .file added
+    segments: list             # generator.fit.segments.Segment, index into these arrays; .file added
     excluded: dict             # reason -> count (missing, saturated, coil current, no reference)
     # per file, per sample of the file: missing / saturated flags (for per-cell counts)
     file_flags: list = field(default_factory=list)

@@ -169,7 +169,7 @@ long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uin
 # prints "column code count" lines (columns: validate, load, receive, commit).
 # File: u32 n, then n times (u32 length, u8 actions, bytes); all little-endian.
 SANITIZER_DRIVER_C = """\
-/* HOST ONLY: sanitizer driver for {{ unit }}_table.c (see generator/tables.py). */
+/* HOST ONLY: sanitizer driver for {{ unit }}_table.c (see generator/flight/tables.py). */
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>

@@ -8,7 +8,7 @@ translates it "RMS"):
     raw 63845.06 / 25809.33,  rotation 51539.62 / 571.19,  twelve positions 52292.39 / 1985.77
 
 Twelve static positions left about 3.5 times the scatter of a rotation through all
-orientations.  Here the methods of fit_thermal.fit_unit are fitted to the same files and
+orientations.  Here the methods of generator.fit.thermal.fit_unit are fitted to the same files and
 compared on them:
 
 * "ellipsoid": seed 000 from the magnitudes only, per temperature level (M symmetric,

@@ -93,7 +93,7 @@ def _first(d, *keys):
 
 
 def method_section(cs) -> Section | None:
-    """The held-out comparison of the temperature models (fit_thermal stats)."""
+    """The held-out comparison of the temperature models (generator.fit.thermal stats)."""
     rows = []
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}

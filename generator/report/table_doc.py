@@ -59,7 +59,7 @@ def format_doc() -> str:
       "table in use stays in use (double buffer, switched by one assignment after "
       "validation). The definitions live in `generator/flight/tables.py` (`HEADER_FIELDS`, "
       "`PART_FIELDS`, `ERRORS`, `PLAUSIBLE_RANGES`) and the chain's blocks in "
-      "`generator/chain.py`; the encoder, the ground decoder, the flight C "
+      "`generator/flight/chain.py`; the encoder, the ground decoder, the flight C "
       "(`<unit>_table.h/.c`) and this page are all made from them.")
     a("")
     a("## Header")

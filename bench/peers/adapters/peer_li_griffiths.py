@@ -1,7 +1,7 @@
 """Li & Griffiths (2004), "Least squares ellipsoid specific fitting", Proc. Geometric
 Modeling and Processing, pp. 335-340: a reimplementation from the paper's description
 for this benchmark (no PyPI package provides it as a library call). Written independently
-of generator/fit_ellipsoid.py and, like the paper, on the readings as they come (no
+of generator/fit/ellipsoid.py and, like the paper, on the readings as they come (no
 centring or scaling of the coordinates).
 
 The paper. Quadric a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2q y + 2r z
