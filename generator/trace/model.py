@@ -1,0 +1,292 @@
+"""The float64 model of the extended flight chain for one sensor (the order of
+generator.flight.chain.sensor_kernel, see generator.trace.effects), batched over
+parameter rows, with its Levenberg-Marquardt fit.
+
+Its parameters are deviations from the baseline (the core fit or a supplied
+coefficients.json), in scaled internal units: b and M in all rows of the baseline degree
+(M symmetric where only magnitudes are known; M fixed and b0 absorbed by B_p where only
+positions are), K where the data drive the coils, B_p per static position, and each
+effect's own parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+
+from generator.fit.ellipsoid import sym_from6
+from generator.flight.coeffs import CoefficientSet
+from generator.trace import effects as fx
+from generator.trace.samples import NORM, POS, VEC, SensorSamples
+
+M_UNIT = 1e-4             # internal unit of M deviations (~5 nT at 50 uT)
+FD_STEP = 1e-3            # finite-difference step, internal units (~1e-3 nT)
+BATCH_ELEMENTS = 400_000  # batch x samples per model evaluation (memory)
+
+
+@dataclass
+class BaseFit:
+    """The baseline's structure and values for one sensor (physical units)."""
+    name: str
+    degree: int
+    t_ref_C: float
+    t_min_C: float
+    t_max_C: float
+    b_poly: np.ndarray            # (degree+1, 3)
+    M_poly: np.ndarray            # (degree+1, 3, 3)
+    K: np.ndarray | None          # (3, ncoil)
+    H: np.ndarray                 # (3, 3) boom -> body
+
+    @property
+    def t_scale_C(self) -> float:
+        return max(abs(self.t_min_C - self.t_ref_C), abs(self.t_max_C - self.t_ref_C), 1.0)
+
+
+def base_from_coefficients(cs: CoefficientSet, name: str, degree: int | None = None) -> BaseFit:
+    v = cs.sensors[name]
+    b = np.asarray(v["b_poly_nT"], float)
+    M = np.asarray(v["M_poly"], float)
+    if degree is None:
+        degree = declared_degree(cs, name)
+    degree = int(min(degree, b.shape[0] - 1))
+    K = np.asarray(v["K_nT_per_A"], float) if "K_nT_per_A" in v else None
+    H = np.asarray(cs.unit_values.get("H_boom_to_body", np.eye(3)), float)
+    return BaseFit(name, degree, float(v["t_ref_C"]), float(v["t_min_C"]), float(v["t_max_C"]),
+                   b[:degree + 1].copy(), M[:degree + 1].copy(), K, H)
+
+
+def declared_degree(cs: CoefficientSet, name: str) -> int:
+    """The degree a sensor's fit used (fit stats), else its highest non-zero row."""
+    st = cs.fit_info.get("sensors", {}).get(name, {}).get("stats", {}) or {}
+    if isinstance(st.get("degree"), int):
+        return st["degree"]
+    v = cs.sensors[name]
+    b = np.asarray(v["b_poly_nT"])
+    M = np.asarray(v["M_poly"])
+    nz = [k for k in range(b.shape[0]) if np.any(b[k] != 0) or np.any(M[k] != 0)]
+    return max([0] + [k for k in nz])
+
+
+class SensorModel:
+    """B_cal of one sensor from the extended chain, float64, batched over parameters.
+
+    theta: internal parameters, deviations from the baseline: b rows (nT at the edge of
+    the temperature range), M rows (M_UNIT), K (nT at the rms current), B_p (nT), then
+    each effect's parameters (see generator.trace.effects)."""
+
+    def __init__(self, base: BaseFit, *, free_b, free_M, free_K, groups, Bp0, i_rms=1.0,
+                 effects=(), theta=None):
+        self.base = base
+        self.free_b = list(free_b)            # rows of b that are free
+        self.free_M = free_M                  # "full" | "sym" | None
+        self.free_K = bool(free_K) and base.K is not None
+        self.groups = np.asarray(groups, np.int64)
+        self.Bp0 = np.asarray(Bp0, float).reshape(-1, 3)
+        self.i_rms = float(i_rms)
+        self.effects = list(effects)
+        D = base.degree
+        sc = base.t_scale_C ** np.arange(D + 1)
+        self.b_scaled = base.b_poly * sc[:, None]
+        self.M_scaled = base.M_poly * sc[:, None, None]
+        sizes = [("b", 3 * len(self.free_b)),
+                 ("M", {"full": 9, "sym": 6, None: 0}[free_M] * (D + 1)),
+                 ("K", base.K.size if self.free_K else 0),
+                 ("Bp", 3 * len(self.groups))]
+        sizes += [(f"e{i}", e.n_params) for i, e in enumerate(self.effects)]
+        self.sl, k = {}, 0
+        for name, size in sizes:
+            self.sl[name] = slice(k, k + size)
+            k += size
+        self.P = k
+        self.theta = np.zeros(k) if theta is None else np.asarray(theta, float).copy()
+        assert self.theta.shape == (k,), (self.theta.shape, k)
+
+    # ---- structure -------------------------------------------------------------------
+    @staticmethod
+    def for_samples(base: BaseFit, S: SensorSamples, effects=(), params=()):
+        """The model whose free blocks the samples determine, B_p at the group means."""
+        kinds = S.kinds_present()
+        if VEC in kinds:
+            free_b, free_M = list(range(base.degree + 1)), "full"
+        elif NORM in kinds:
+            free_b, free_M = list(range(base.degree + 1)), "sym"
+        else:
+            free_b, free_M = list(range(1, base.degree + 1)), None
+        free_K = base.K is not None and S.coil is not None and np.any(S.coil != 0)
+        i_rms = float(np.sqrt(np.mean(S.coil ** 2))) if free_K else 1.0
+        groups = np.unique(S.group[S.kind == POS])
+        m = SensorModel(base, free_b=free_b, free_M=free_M, free_K=free_K, groups=groups,
+                        Bp0=np.zeros((len(groups), 3)), i_rms=max(i_rms, 1e-9))
+        for e, p in zip(effects, params):
+            m = m.with_effect(e, p)
+        if len(groups):
+            B = m.field(S)
+            ip = S.kind == POS
+            m.Bp0 = np.array([B[ip & (S.group == g)].mean(axis=0) for g in groups])
+        return m
+
+    def with_effect(self, effect, p0) -> "SensorModel":
+        return SensorModel(self.base, free_b=self.free_b, free_M=self.free_M,
+                           free_K=self.free_K, groups=self.groups, Bp0=self.Bp0,
+                           i_rms=self.i_rms, effects=self.effects + [effect],
+                           theta=np.concatenate([self.theta, np.asarray(p0, float)]))
+
+    def copy(self) -> "SensorModel":
+        return SensorModel(self.base, free_b=self.free_b, free_M=self.free_M,
+                           free_K=self.free_K, groups=self.groups, Bp0=self.Bp0,
+                           i_rms=self.i_rms, effects=list(self.effects), theta=self.theta)
+
+    @property
+    def degree(self) -> int:
+        extra = [e.degree for e in self.effects if isinstance(e, fx.TemperaturePolynomial)]
+        return max([self.base.degree] + extra)
+
+    @property
+    def t_scale_C(self) -> float:
+        return self.base.t_scale_C
+
+    def effect_params(self, i, theta=None):
+        th = self.theta if theta is None else theta
+        return th[self.sl[f"e{i}"]]
+
+    # ---- evaluation --------------------------------------------------------------------
+    def evaluate(self, th, S: SensorSamples):
+        """B_cal (Bt, n, 3) and the reference shift (Bt, n, 3) or None, for parameter
+        rows th (Bt, P), in the chain's order."""
+        th = np.atleast_2d(th)
+        Bt = th.shape[0]
+        base = self.base
+        D = base.degree
+        T = S.temp_C[None, :]
+        for i, e in enumerate(self.effects):
+            if e.stage == "temperature":
+                T = e.temperature(th[:, self.sl[f"e{i}"]], S, S.temp_C)
+        Tc = np.clip(T, base.t_min_C, base.t_max_C)
+        s = (Tc - base.t_ref_C) / base.t_scale_C
+        st = SimpleNamespace(T=Tc, s=s)
+        powers = [np.ones_like(s)]
+        for _ in range(D):
+            powers.append(powers[-1] * s)
+        b_s = np.broadcast_to(self.b_scaled, (Bt, D + 1, 3)).copy()
+        if self.free_b:
+            b_s[:, self.free_b, :] += th[:, self.sl["b"]].reshape(Bt, len(self.free_b), 3)
+        x = S.x[None, :, :] - sum(powers[k][:, :, None] * b_s[:, k, None, :]
+                                  for k in range(D + 1))
+        if base.K is not None and S.coil is not None:
+            K = np.broadcast_to(base.K, (Bt,) + base.K.shape)
+            if self.free_K:
+                K = K + th[:, self.sl["K"]].reshape((Bt,) + base.K.shape) / self.i_rms
+            x = x - np.matmul(S.coil, np.transpose(K, (0, 2, 1)))
+        x = np.broadcast_to(x, (Bt, S.n, 3))
+        for i, e in enumerate(self.effects):
+            if e.stage == "offset":
+                x = x - e.offset(th[:, self.sl[f"e{i}"]], S, st)
+        for i, e in sorted(enumerate(self.effects), key=lambda ie: ie[1].order):
+            if e.stage == "transform":
+                x = e.transform(th[:, self.sl[f"e{i}"]], S, x, st)
+        M_s = np.broadcast_to(self.M_scaled, (Bt, D + 1, 3, 3))
+        if self.free_M == "full":
+            M_s = M_s + M_UNIT * th[:, self.sl["M"]].reshape(Bt, D + 1, 3, 3)
+        elif self.free_M == "sym":
+            M_s = M_s + M_UNIT * sym_from6(th[:, self.sl["M"]].reshape(Bt, D + 1, 6))
+        B = sum(powers[k][:, :, None] * np.matmul(x, np.transpose(M_s[:, k], (0, 2, 1)))
+                for k in range(D + 1))
+        for i, e in enumerate(self.effects):
+            if e.stage == "calibrated":
+                B = e.calibrated(th[:, self.sl[f"e{i}"]], S, B, st)
+        shift = None
+        for i, e in enumerate(self.effects):
+            if e.stage == "reference":
+                d = e.reference_shift(th[:, self.sl[f"e{i}"]], S)
+                shift = d if shift is None else shift + d
+        return B, shift
+
+    def field(self, S, theta=None) -> np.ndarray:
+        """B_cal (n, 3) at theta (default: the fitted parameters)."""
+        th = self.theta if theta is None else theta
+        return self.evaluate(th[None], S)[0][0]
+
+    def residual(self, th, S: SensorSamples) -> np.ndarray:
+        """Residual rows (Bt, R): vector rows, magnitude rows, position rows."""
+        th = np.atleast_2d(th)
+        Bt = th.shape[0]
+        B, shift = self.evaluate(th, S)
+        iv, im, ip = S.idx
+        parts = []
+        if len(iv):
+            ref = S.ref[iv][None]
+            if shift is not None:
+                ref = ref + shift[:, iv]
+            parts.append((B[:, iv] - ref).reshape(Bt, -1))
+        if len(im):
+            parts.append(np.linalg.norm(B[:, im], axis=2) - S.norm[im][None])
+        if len(ip):
+            g = S.group[ip]
+            k = np.searchsorted(self.groups, g)
+            k = np.minimum(k, max(len(self.groups) - 1, 0))
+            known = (self.groups[k] == g) if len(self.groups) else np.zeros(len(g), bool)
+            target = np.empty((Bt, len(ip), 3))
+            if known.any():
+                Bp = th[:, self.sl["Bp"]].reshape(Bt, -1, 3) + self.Bp0[None]
+                target[:, known] = Bp[:, k[known]]
+            for gg in np.unique(g[~known]):      # an unseen position: its own mean
+                sel = g == gg
+                target[:, sel] = B[:, ip[sel]].mean(axis=1, keepdims=True)
+            parts.append((B[:, ip] - target).reshape(Bt, -1))
+        return np.concatenate(parts, axis=1) if parts else np.zeros((Bt, 0))
+
+    def jacobian(self, S, theta=None, cols=None):
+        """(r (R,), J (R, len(cols))) by forward differences at theta."""
+        th0 = self.theta if theta is None else np.asarray(theta, float)
+        cols = np.arange(self.P) if cols is None else np.asarray(cols)
+        r0 = self.residual(th0[None], S)[0]
+        J = np.empty((len(r0), len(cols)))
+        chunk = max(1, BATCH_ELEMENTS // max(S.n, 1))
+        for a in range(0, len(cols), chunk):
+            sub = cols[a:a + chunk]
+            th = np.repeat(th0[None], len(sub), axis=0)
+            th[np.arange(len(sub)), sub] += FD_STEP
+            J[:, a:a + len(sub)] = (self.residual(th, S) - r0[None]).T / FD_STEP
+        return r0, J
+
+    def fit(self, S, max_nfev=60) -> "SensorModel":
+        if self.P == 0:
+            return self
+        fun = lambda th: self.residual(th[None], S)[0]          # noqa: E731
+        jac = lambda th: self.jacobian(S, th)[1]                 # noqa: E731
+        method = "lm" if S.n_rows > self.P else "trf"
+        from scipy.optimize import least_squares
+        res = least_squares(fun, self.theta, jac=jac, method=method, xtol=1e-10, ftol=1e-12,
+                            gtol=1e-12, max_nfev=max_nfev)
+        self.theta = res.x
+        return self
+
+    def sse(self, S) -> float:
+        r = self.residual(self.theta[None], S)[0]
+        return float(r @ r)
+
+    def rms(self, S) -> float:
+        r = self.residual(self.theta[None], S)[0]
+        return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+    # ---- physical values ---------------------------------------------------------------
+    def values(self) -> dict:
+        """b_poly_nT, M_poly (degree of the base), K_nT_per_A (or None): physical."""
+        D = self.base.degree
+        sc = self.base.t_scale_C ** np.arange(D + 1)
+        b = self.b_scaled.copy()
+        th = self.theta
+        if self.free_b:
+            b[self.free_b] += th[self.sl["b"]].reshape(len(self.free_b), 3)
+        M = self.M_scaled.copy()
+        if self.free_M == "full":
+            M = M + M_UNIT * th[self.sl["M"]].reshape(D + 1, 3, 3)
+        elif self.free_M == "sym":
+            M = M + M_UNIT * sym_from6(th[self.sl["M"]].reshape(D + 1, 6))
+        K = self.base.K
+        if self.free_K:
+            K = K + th[self.sl["K"]].reshape(K.shape) / self.i_rms
+        return {"b_poly_nT": b / sc[:, None], "M_poly": M / sc[:, None, None],
+                "K_nT_per_A": None if K is None else np.array(K)}
