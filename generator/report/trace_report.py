@@ -102,7 +102,7 @@ def write_report(res: TraceResult, out: Path) -> Path:
             plot_step(n, tr, st, out / fig)
             e = st.effect
             cand = [[s.effect.label(), s.dof, 100 * s.rel_rms_gain,
-                     f"{s.blocks_improved}/{len(s.block_gain)}", s.t, s.lr,
+                     f"{s.blocks_improved}/{len(s.block_gain)}", s.z, s.lr,
                      "yes" if s.significant else "; ".join(s.reasons)]
                     for s in st.scores[:8]]
             params = e.describe(st.params, st.model_after)
@@ -114,7 +114,7 @@ def write_report(res: TraceResult, out: Path) -> Path:
             if st.runner_up is not None:
                 paras.append("Runner-up: " + runner_up_text(st) + ".")
             rep.add(Section(f"{n}: {e.label()}", paras, [Table(
-                ["candidate", "parameters", "CV RMS gain %", "blocks improved", "t",
+                ["candidate", "parameters", "CV RMS gain %", "blocks improved", "z",
                  "likelihood ratio", "significant"], cand,
                 f"round {i + 1}: candidates by held-out error")],
                 [(fig, f"{n}: held-out residual before and after {e.label()}, and the part "

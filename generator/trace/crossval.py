@@ -115,8 +115,9 @@ class CVEngine:
         return max(sse, 0.0), d, beta
 
     def evaluate(self, d0=None, G=None):
-        """Train SSE per fold (K,), held-out SSE per block (B,), full-data SSE, for the
-        model with offset d0 (R,) and columns G (R, k)."""
+        """Train SSE per fold (K,), held-out SSE per block (B,), full-data SSE and the
+        held-out residual of every row (R,: each row is held out in exactly one fold),
+        for the model with offset d0 (R,) and columns G (R, k)."""
         y = self.r0 if d0 is None else self.r0 + d0
         J = self.J
         yy, Jy = float(y @ y), J.T @ y
@@ -125,6 +126,7 @@ class CVEngine:
             full_G = (J.T @ G, G.T @ G, G.T @ y)
         train = np.empty(len(self.folds))
         block = np.zeros(self.n_blocks)
+        heldout = np.zeros(len(y))
         for f, (te, Jte, bte, Ainv) in enumerate(self.folds):
             y_te = y[te]
             parts = None
@@ -137,9 +139,10 @@ class CVEngine:
             test = y_te + Jte @ d
             if beta is not None:
                 test = test + G_te @ beta
+            heldout[te] = test
             block += np.bincount(bte, weights=test * test, minlength=self.n_blocks)
         sse_full, _, _ = self._solve(self.Ainv_full, yy, Jy, full_G)
-        return train, block, float(sse_full)
+        return train, block, float(sse_full), heldout
 
     def full_residual(self, d0=None, G=None):
         y = self.r0 if d0 is None else self.r0 + d0

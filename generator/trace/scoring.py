@@ -9,8 +9,19 @@ Significance rule (all three; m = candidates in the round, Bonferroni; ALPHA = 1
      autocorrelation of the candidate's residual (correlated noise counts less). A
      useless parameter raises the held-out error on average, so chance alone rarely
      gives a large positive ratio;
-  2. consistent over time: the per-block held-out SSE reductions have a positive mean,
-     one-sided t-test over the blocks, p < BLOCK_LEVEL (0.01): not one lucky block;
+  2. beyond the noise where it acts: a held-out score test with each block's own noise.
+     Per held-out row, u = (residual without) - (residual with the candidate), the
+     candidate's prediction from the training folds, independent of the row's noise;
+     the held-out SSE gain sum(r0^2 - r1^2) = sum(2 r0 u - u^2) has, for a useless
+     candidate, mean -sum(u^2) <= 0 and variance 4 sum_b s_b^2 k sum_{rows of b} u^2
+     (s_b^2: block b's held-out noise with the candidate, k = (1 + rho) / (1 - rho) the
+     AR(1) inflation of correlated noise). z = gain / sqrt(variance), one-sided normal,
+     p * m < ALPHA. A block with a noise burst (unmodelled structure a regressor may
+     match by chance) has a large s_b and counts little; an effect confined to a few
+     blocks (a ramp, a heater switched a few times, one coil run, a switch that happens
+     once) counts in full where it acts, and nothing is diluted by the blocks where its
+     regressor is quiet (there u = 0). This replaced a t-test over the blocks' gains, which
+     treats 49 quiet blocks as evidence against an effect seen in one;
   3. large enough to matter: the held-out RMS falls by at least MIN_REL_GAIN (1 %).
 """
 
@@ -28,7 +39,6 @@ from generator.trace.model import SensorModel
 from generator.trace.samples import SensorSamples
 
 ALPHA = 1e-3              # family-wise level per sensor and round (Bonferroni over candidates)
-BLOCK_LEVEL = 0.01        # consistency over the held-out blocks (one-sided t-test)
 MIN_REL_GAIN = 0.01       # least held-out RMS reduction of an accepted effect
 N_FOLDS = 5               # cross-validation folds (blocks dealt in turn)
 
@@ -41,8 +51,8 @@ class Score:
     sse0_cv: float
     sse1_cv: float
     block_gain: np.ndarray
-    t: float
-    p_t: float
+    z: float                  # held-out score test with per-block noise (rule 2)
+    p_z: float
     sse0_full: float
     sse1_full: float
     n_eff: float
@@ -69,9 +79,9 @@ class Score:
             self.reasons.append(f"held-out likelihood ratio {self.lr:.1f} for {self.dof} "
                                 f"parameters is within chance (p x {m} = "
                                 f"{min(self.p_lr * m, 1):.2g})")
-        if not self.p_t < BLOCK_LEVEL:
-            self.reasons.append(f"held-out gain not consistent over the blocks "
-                                f"(t = {self.t:.2f}, p = {self.p_t:.2g})")
+        if not self.p_z * m < alpha:
+            self.reasons.append(f"held-out gain within the noise of the blocks where it acts "
+                                f"(z = {self.z:.2f}, p x {m} = {min(self.p_z * m, 1):.2g})")
         if not self.rel_rms_gain >= min_gain:
             self.reasons.append(f"held-out RMS gain {100 * self.rel_rms_gain:.2f} % "
                                 f"< {100 * min_gain:g} %")
@@ -82,7 +92,7 @@ class Score:
         return {"effect": self.effect.name, "explained_by": self.effect.explained_by(),
                 "parameters": self.dof, "cv_rms_gain_pct": 100 * self.rel_rms_gain,
                 "blocks_improved": self.blocks_improved,
-                "blocks": int(len(self.block_gain)), "t": _f(self.t), "p_t": _f(self.p_t),
+                "blocks": int(len(self.block_gain)), "z": _f(self.z), "p_z": _f(self.p_z),
                 "heldout_likelihood_ratio": _f(self.lr), "p_lr": _f(self.p_lr),
                 "fit_likelihood_ratio": _f(self.lr_fit),
                 "n_eff": _f(self.n_eff), "candidates_in_round": self.m,
@@ -95,13 +105,14 @@ def _f(v):
 
 
 def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_train,
-                    base_block):
+                    base_test):
     """Held-out score of candidate effect e added to the model (hyper-parameters chosen
     inside each training fold on its own training error)."""
     grid = e.scan_grid(S)
     H = len(grid)
     trains = np.empty((H, len(cv.folds)))
     blocks = np.empty((H, cv.n_blocks))
+    tests = np.empty((H, len(cv.r0)))
     fulls = np.empty(H)
     masked = hasattr(e, "mask") and e.fd_in_scoring
     if masked:   # a linear effect switched on by a row mask: columns once, masked per value
@@ -113,17 +124,16 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
             d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
         else:
             d0, G = candidate_columns(model, S, e, cv.r0)
-        trains[j], blocks[j], fulls[j] = cv.evaluate(d0, G)
+        trains[j], blocks[j], fulls[j], tests[j] = cv.evaluate(d0, G)
     # per fold: the grid value with the least training error
     chosen = np.argmin(trains, axis=0)
-    block1 = np.zeros(cv.n_blocks)
-    for f, (_, _, bte, _) in enumerate(cv.folds):
-        bl = np.unique(bte)
-        block1[bl] = blocks[chosen[f], bl]
+    test1 = np.empty(len(cv.r0))
+    for f, (te, _, _, _) in enumerate(cv.folds):
+        test1[te] = tests[chosen[f], te]
     jbest = int(np.argmin(fulls))
-    if getattr(e, "relinearise", False) and block1.sum() < base_block.sum():
+    if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
         return _rescore_refitted(model, S, cv, e, [grid[j] for j in np.argsort(fulls)[:2]],
-                                 base_block)
+                                 base_test)
     h = grid[jbest]
     e.set_hyper(h)
     if masked:
@@ -131,33 +141,48 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     else:
         d0, G = candidate_columns(model, S, e, cv.r0)
     res_full = cv.full_residual(d0, G)
-    return _make_score(e, h, S, cv.r0, base_block, block1, res_full, float(fulls[jbest]))
+    return _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]))
 
 
-def _make_score(e, h, S, r0, base_block, block1, res_full, sse1_full) -> Score:
-    """The statistics of the significance rule from the held-out block SSEs without
-    (base_block) and with (block1) the candidate, and its fit-data residual."""
+def heldout_z(test0, test1, row_block, n_blocks, kappa) -> float:
+    """The held-out score statistic of rule 2 (module docstring): the held-out SSE gain
+    over its standard deviation for a useless candidate, with each block's own noise."""
+    u = test0 - test1
+    gain = float(test0 @ test0 - test1 @ test1)
+    cnt = np.bincount(row_block, minlength=n_blocks)
+    s2 = np.bincount(row_block, weights=test1 * test1, minlength=n_blocks) / np.maximum(cnt, 1)
+    uu = np.bincount(row_block, weights=u * u, minlength=n_blocks)
+    var = 4.0 * kappa * float(s2 @ uu)
+    if var <= 0:
+        return 0.0 if gain <= 0 else math.inf
+    return gain / math.sqrt(var)
+
+
+def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Score:
+    """The statistics of the significance rule from the held-out residuals without
+    (test0) and with (test1) the candidate, and its fit-data residual."""
     from scipy import stats as sps
+    r0 = cv.r0
+    rb, nb = cv.row_block, cv.n_blocks
+    base_block = np.bincount(rb, weights=test0 * test0, minlength=nb)
+    block1 = np.bincount(rb, weights=test1 * test1, minlength=nb)
     gain = base_block - block1
-    B = len(gain)
-    sd = float(np.std(gain, ddof=1)) if B > 1 else 0.0
-    mean = float(np.mean(gain))
-    t = mean / (sd / math.sqrt(B)) if sd > 0 else (math.inf if mean > 0 else 0.0)
-    p_t = float(sps.t.sf(t, B - 1)) if B > 1 else 1.0
     sse0_full = float(r0 @ r0)
     rho = min(max(_lag1(res_full, S), 0.0), 0.99)
     n_eff = len(r0) * (1 - rho) / (1 + rho)
+    z = heldout_z(test0, test1, rb, nb, (1 + rho) / (1 - rho))
+    p_z = float(sps.norm.sf(z))
     lr_fit = n_eff * math.log(sse0_full / sse1_full) if sse1_full > 0 and sse0_full > 0 \
         else 0.0
     sse0_cv, sse1_cv = float(base_block.sum()), float(block1.sum())
     lr = n_eff * math.log(sse0_cv / sse1_cv) if sse1_cv > 0 and sse0_cv > 0 else 0.0
     dof = e.n_dof
     p_lr = float(sps.chi2.sf(max(lr, 0.0), dof))
-    return Score(e, h, dof, sse0_cv, sse1_cv, gain, t, p_t, sse0_full, sse1_full, n_eff, lr,
+    return Score(e, h, dof, sse0_cv, sse1_cv, gain, z, p_z, sse0_full, sse1_full, n_eff, lr,
                  p_lr, lr_fit, explained=r0 - res_full)
 
 
-def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_block) -> Score:
+def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:
     """Second stage for an effect whose linearisation about the current model is poor
     (a thermal lag moves the temperature the polynomials see by degrees): fit the model
     with the effect from the best scanned values (nonlinear, all parameters), keep the
@@ -174,10 +199,10 @@ def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_block) -> Score:
     e.set_hyper(h)
     r1, J1 = m1.jacobian(S)
     cv1 = CVEngine(r1, J1, cv.row_block, cv.fold_of_block, cv.n_blocks)
-    _, block1, _ = cv1.evaluate()
+    _, _, _, test1 = cv1.evaluate()
     hyper = e.hyper_after_fit(m1.effect_params(len(m1.effects) - 1))
     e.set_hyper(hyper)
-    return _make_score(e, hyper, S, cv.r0, base_block, block1, r1, float(r1 @ r1))
+    return _make_score(e, hyper, S, cv, base_test, test1, r1, float(r1 @ r1))
 
 
 def candidate_columns(model: SensorModel, S, e, r0):
@@ -216,8 +241,8 @@ def score_round(model: SensorModel, S_fit, fold_of_block, n_blocks, alpha, min_g
         return [], why
     r0, J = model.jacobian(S_fit)
     cv = CVEngine(r0, J, S_fit.block[S_fit.row_sample], fold_of_block, n_blocks)
-    base_train, base_block, _ = cv.evaluate()
-    scores = [score_candidate(model, S_fit, cv, e, base_train, base_block) for e in cands]
+    base_train, _, _, base_test = cv.evaluate()
+    scores = [score_candidate(model, S_fit, cv, e, base_train, base_test) for e in cands]
     for s in scores:
         s.judge(len(scores), alpha, min_gain)
     scores.sort(key=lambda s: s.sse1_cv)

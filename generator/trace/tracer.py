@@ -82,7 +82,7 @@ from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
 from generator.trace.scoring import (  # noqa: F401
-    ALPHA, BLOCK_LEVEL, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
+    ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, score_candidate,
     score_round)
 
@@ -223,7 +223,7 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
                     corr_runner_up=_corr(win.explained, runner.explained if runner else None))
         steps.append(step)
         say(f"{name}: + {e.label()}: held-out RMS {before:.2f} -> {after:.2f} nT "
-            f"(CV gain {100 * win.rel_rms_gain:.1f} %, t = {win.t:.1f})")
+            f"(CV gain {100 * win.rel_rms_gain:.1f} %, z = {win.z:.1f})")
         model = m1
         scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain)
     final = model
@@ -368,7 +368,7 @@ def evidence_sentence(name, st: Step) -> str:
     s = (f"Adding {e.title} ({', '.join(e.explained_by())}) cut the held-out RMS of {name} "
          f"from {st.rms_before_nT:.1f} to {st.rms_after_nT:.1f} nT; in cross-validation it "
          f"improved {sc.blocks_improved} of {len(sc.block_gain)} held-out blocks "
-         f"(t = {sc.t:.1f}; held-out likelihood ratio {sc.lr:.0f} for {sc.dof} parameters)")
+         f"(z = {sc.z:.1f}; held-out likelihood ratio {sc.lr:.0f} for {sc.dof} parameters)")
     if ru is not None:
         s += (f", ahead of {ru.effect.label()} ({100 * ru.rel_rms_gain:.1f} % against "
               f"{100 * sc.rel_rms_gain:.1f} %)")
@@ -391,8 +391,10 @@ def protocol_text(evaluated_on) -> dict:
                          f"ln(SSE0_cv/SSE1_cv) against chi^2 with the effect's parameter count "
                          f"(scanned ones included), p x m < {ALPHA:g}, m the candidates in the "
                          f"round (Bonferroni), n_eff the rows deflated by the residual's lag-1 "
-                         f"autocorrelation; (2) one-sided t-test over the blocks' held-out SSE "
-                         f"reductions, p < {BLOCK_LEVEL:g}; (3) held-out RMS reduction >= "
+                         f"autocorrelation; (2) held-out score test: the held-out SSE gain over its "
+                         f"standard deviation for a useless candidate, from each block's own "
+                         f"noise where the candidate acts, one-sided normal, p x m < {ALPHA:g}; "
+                         f"(3) held-out RMS reduction >= "
                          f"{100 * MIN_REL_GAIN:g} %"),
         "refit": ("after each accepted effect all coefficients (b, M, K, position constants "
                   "and every effect) are refitted jointly by Levenberg-Marquardt"),
