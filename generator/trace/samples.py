@@ -243,6 +243,8 @@ def assign_blocks(S: SensorSamples, n_blocks=N_BLOCKS) -> np.ndarray:
     rows, at position changes; a static position gets at least two blocks so that its
     constant is fitted from another block than the one held out."""
     n = S.n
+    if n == 0:
+        return np.zeros(0, int)
     o = np.argsort(S.order, kind="stable")
     key = S.file_index[o] * 10_000_000 + np.where(S.kind[o] == POS, S.group[o] % 1_000_000, -1)
     cut = np.concatenate([[0], np.nonzero(np.diff(key))[0] + 1, [n]])

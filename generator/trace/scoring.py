@@ -59,6 +59,7 @@ class Score:
     lr: float                 # held-out likelihood ratio n_eff ln(SSE0_cv / SSE1_cv)
     p_lr: float
     lr_fit: float             # the same on the fit data (information)
+    file_z: dict = field(default_factory=dict)  # file name -> held-out z on its rows
     m: int = 1
     significant: bool = False
     reasons: list = field(default_factory=list)
@@ -67,6 +68,13 @@ class Score:
     @property
     def rel_rms_gain(self) -> float:
         return 1.0 - math.sqrt(self.sse1_cv / self.sse0_cv) if self.sse0_cv > 0 else 0.0
+
+    def carried_by(self) -> list:
+        """The files whose held-out rows show the effect on their own: held-out z above
+        the one-sided ALPHA point of the normal (the family-wise level of the rule)."""
+        from scipy import stats as sps
+        zc = float(sps.norm.isf(ALPHA))
+        return [f for f, z in self.file_z.items() if z > zc]
 
     @property
     def blocks_improved(self) -> int:
@@ -96,6 +104,7 @@ class Score:
                 "heldout_likelihood_ratio": _f(self.lr), "p_lr": _f(self.p_lr),
                 "fit_likelihood_ratio": _f(self.lr_fit),
                 "n_eff": _f(self.n_eff), "candidates_in_round": self.m,
+                "heldout_z_per_file": {k: _f(v) for k, v in self.file_z.items()},
                 "significant": self.significant, "why_not": list(self.reasons)}
 
 
@@ -170,8 +179,14 @@ def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Sco
     sse0_full = float(r0 @ r0)
     rho = min(max(_lag1(res_full, S), 0.0), 0.99)
     n_eff = len(r0) * (1 - rho) / (1 + rho)
-    z = heldout_z(test0, test1, rb, nb, (1 + rho) / (1 - rho))
+    kappa = (1 + rho) / (1 - rho)
+    z = heldout_z(test0, test1, rb, nb, kappa)
     p_z = float(sps.norm.sf(z))
+    file_z = {}
+    row_file = S.file_index[S.row_sample]
+    for fi in np.unique(row_file):
+        sel = row_file == fi
+        file_z[S.file_names[fi]] = heldout_z(test0[sel], test1[sel], rb[sel], nb, kappa)
     lr_fit = n_eff * math.log(sse0_full / sse1_full) if sse1_full > 0 and sse0_full > 0 \
         else 0.0
     sse0_cv, sse1_cv = float(base_block.sum()), float(block1.sum())
@@ -179,7 +194,7 @@ def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Sco
     dof = e.n_dof
     p_lr = float(sps.chi2.sf(max(lr, 0.0), dof))
     return Score(e, h, dof, sse0_cv, sse1_cv, gain, z, p_z, sse0_full, sse1_full, n_eff, lr,
-                 p_lr, lr_fit, explained=r0 - res_full)
+                 p_lr, lr_fit, file_z=file_z, explained=r0 - res_full)
 
 
 def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:

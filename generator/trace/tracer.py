@@ -74,6 +74,7 @@ from generator.trace import effects as fx  # noqa: F401
 from generator.trace.coefficients import (  # noqa: F401 (the public API lives here too)
     _fixed_model, _json_default, _recentre, _with_any_reference, baseline_coefficients,
     calibrated_field64, initial_effects, model_from_coefficients, to_coefficient_set)
+from generator.trace import residual as rv
 from generator.trace.crossval import CVEngine, LinearSolver, _lag1, _pinv_gram  # noqa: F401
 from generator.trace.model import (  # noqa: F401
     BATCH_ELEMENTS, FD_STEP, M_UNIT, BaseFit, SensorModel, base_from_coefficients,
@@ -83,7 +84,8 @@ from generator.trace.samples import (  # noqa: F401
     candidate_channels, gather_samples)
 from generator.trace.scoring import (  # noqa: F401
     ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
-    _make_score, candidate_columns, candidate_list, choose, equivalent, score_candidate,
+    _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
+    score_candidate,
     score_round)
 
 SPLIT_EVERY = 5           # split mode: every 5th block held out for the figures
@@ -124,6 +126,9 @@ class SensorTrace:
     not_applicable: dict
     stop: str
     initial_effects: list = field(default_factory=list)
+    noise: dict = field(default_factory=dict)         # residual.noise_floor of what is left
+    unexplained: dict | None = None                   # the residual above the noise, if any
+    rejected: list = field(default_factory=list)      # (label, why) refused after the refit
 
     @property
     def final_rms_nT(self) -> float:
@@ -190,11 +195,19 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
     init_p = [p for _, p in initial]
     model0 = SensorModel.for_samples(base, S_fit, init_e, init_p)
     core = model0.rms(S_eval)
+    ref_var, ref_what = rv.reference_variation_nT(S_fit, model0.field(S_fit))
+    rejected = []
     model = model0.copy().fit(S_fit)
+    if rv.shrinks(model.field(S_fit), S_fit, ref_var):
+        rejected.append(("refit of the baseline", _shrink_text(model, S_fit, ref_var, ref_what)))
+        say(f"{name}: the refit of the baseline was rejected: {rejected[-1][1]}")
+        model = model0.copy()
     base_rms = model.rms(S_eval)
     say(f"{name}: baseline held-out RMS {base_rms:.2f} nT (core fit as given {core:.2f} nT)")
     steps, stop = [], ""
+    t0 = time.perf_counter()
     scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain)
+    say(f"{name}: round 1: {len(scores)} candidates scored in {time.perf_counter() - t0:.1f} s")
     while True:
         if steps:
             st = steps[-1]
@@ -206,8 +219,8 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         sig = [s for s in scores if s.significant]
         if not sig:
             stop = ("no candidate applies" if not scores else
-                    f"nothing significant left (best: {scores[0].effect.label()}, "
-                    f"{'; '.join(scores[0].reasons)})")
+                    f"no candidate passes (best: {scores[0].effect.label()}, "
+                    f"{'; '.join(scores[0].reasons) or 'refused after the refit'})")
             break
         if len(steps) >= max_effects:
             stop = f"stopped at {max_effects} effects"
@@ -218,6 +231,13 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         e = win.effect
         m1 = _refine_and_fit(model, S_fit, e, win)
         before, after = model.rms(S_eval), m1.rms(S_eval)
+        refusal = _refusal(model, m1, S_fit, S_eval, ref_var, ref_what)
+        if refusal:             # honesty: never keep an effect the evaluation refutes
+            win.significant = False
+            win.reasons.append(refusal)
+            rejected.append((e.label(), refusal))
+            say(f"{name}: {e.label()} refused: {refusal}")
+            continue
         step = Step(e, m1.effect_params(len(m1.effects) - 1), win, before, after, model, m1,
                     runner_up=runner, scores=scores,
                     corr_runner_up=_corr(win.explained, runner.explained if runner else None))
@@ -225,7 +245,28 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         say(f"{name}: + {e.label()}: held-out RMS {before:.2f} -> {after:.2f} nT "
             f"(CV gain {100 * win.rel_rms_gain:.1f} %, z = {win.z:.1f})")
         model = m1
+        t0 = time.perf_counter()
         scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain)
+        say(f"{name}: round {len(steps) + 1}: {len(scores)} candidates scored in "
+            f"{time.perf_counter() - t0:.1f} s")
+    r_eval = model.residual(model.theta[None], S_eval)[0]
+    noise = rv.noise_floor(S_eval, r_eval)
+    unexplained = None
+    if stop.startswith("no candidate"):
+        if noise["at_noise"]:
+            stop = "nothing significant left: " + stop + _noise_text(noise)
+        else:
+            stop = ("no catalogue effect explains what is left: " + stop + _noise_text(noise))
+    if noise["floor_nT"] and not noise["at_noise"]:
+        unexplained = {"sensor": name,
+                       "rms_above_noise_nT": noise["rms_above_noise_nT"],
+                       "residual_rms_nT": noise["residual_rms_nT"],
+                       "noise_floor_nT": noise["floor_nT"],
+                       "correlates": rv.correlates(S_eval, r_eval, model.field(S_eval))}
+        say(f"{name}: unexplained: {noise['residual_rms_nT']:.2f} nT left, "
+            f"{noise['ratio']:.1f} x the noise floor; follows "
+            + ", ".join(f"{c['quantity']} ({c['eta2']:.2f})"
+                        for c in unexplained["correlates"][:3]))
     final = model
     if S_final is not None and steps:      # split mode: refit on all the data
         effs = [copy.copy(e) for e in model.effects]
@@ -236,7 +277,53 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         _relocate(final, S_final)
         final.fit(S_final)
     return SensorTrace(name, S_fit, S_eval, core, base_rms, model0, steps, final, scores,
-                       why, stop, initial_effects=list(initial))
+                       why, stop, initial_effects=list(initial), noise=noise,
+                       unexplained=unexplained, rejected=rejected)
+
+
+Z_WORSE = 1.6449     # one-sided 5 % point of the normal: "worse beyond chance"
+
+
+def _refusal(model, m1, S_fit, S_eval, ref_var, ref_what) -> str:
+    """Why the refitted model m1 may not replace model ("" if it may): it shrinks the
+    calibrated field below the reference's variation (a degenerate solution), or its
+    error on the evaluation data rose beyond chance (held-out score test of
+    generator.trace.scoring, one block per evaluation file, AR(1) inflation)."""
+    if rv.shrinks(m1.field(S_fit), S_fit, ref_var):
+        return _shrink_text(m1, S_fit, ref_var, ref_what)
+    r0 = model.residual(model.theta[None], S_eval)[0]
+    r1 = m1.residual(m1.theta[None], S_eval)[0]
+    if r1 @ r1 <= r0 @ r0:
+        return ""
+    rho = min(max(_lag1(r1, S_eval), 0.0), 0.99)
+    fb = S_eval.file_index[S_eval.row_sample]
+    z = heldout_z(r0, r1, np.searchsorted(np.unique(fb), fb), len(np.unique(fb)),
+                  (1 + rho) / (1 - rho))
+    if z < -Z_WORSE:
+        return (f"the refit raised the evaluation RMS from {_rms(r0):.2f} to {_rms(r1):.2f} nT "
+                f"(z = {z:.1f}, beyond chance)")
+    return ""
+
+
+def _rms(r) -> float:
+    return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+
+def _shrink_text(m, S, ref_var, ref_what) -> str:
+    v = rv.field_variation_nT(m.field(S)[rv._judged_rows(S)])
+    return (f"a degenerate solution: the calibrated field would vary by {v:.0f} nT rms, "
+            f"below the {ref_var:.0f} nT of {ref_what} (more than {100 * rv.MAX_SHRINK:g} % "
+            "less): the calibration contracts toward a constant vector")
+
+
+def _noise_text(noise) -> str:
+    if not noise.get("floor_nT"):
+        return ""
+    part = (f", part noise {noise['part_noise_nT']:.2f} nT" if noise.get("part_noise_nT")
+            else "")
+    return (f"; the residual is {noise['residual_rms_nT']:.2f} nT, {noise['ratio']:.2f} x the "
+            f"noise floor {noise['floor_nT']:.2f} nT ({noise['source']}'s sample-to-sample "
+            f"noise{part})")
 
 
 # =======================================================================================
@@ -265,6 +352,8 @@ class TraceResult:
                "protocol": protocol_text(self.evaluated_on),
                "baseline": {}, "effects": [], "final": {}, "rounds": {},
                "not_applicable": {}, "skipped": dict(self.skipped), "notes": list(self.notes),
+               "unexplained": [{**tr.unexplained, "plot": unexplained_plot_name(n)}
+                               for n, tr in self.traces.items() if tr.unexplained],
                "elapsed_s": round(self.elapsed_s, 2)}
         for n, tr in self.traces.items():
             out["baseline"][n] = {
@@ -273,6 +362,8 @@ class TraceResult:
                 "model": _model_text(tr.base_model),
                 "effects_already_in_model": [e.label() for e, _ in tr.initial_effects]}
             out["final"][n] = {"rms_nT": tr.final_rms_nT, "stop": tr.stop,
+                               "noise": dict(tr.noise),
+                               "refused": [{"candidate": c, "why": w} for c, w in tr.rejected],
                                "model": _model_text(tr.steps[-1].model_after if tr.steps
                                                     else tr.base_model)}
             out["not_applicable"][n] = dict(tr.not_applicable)
@@ -296,6 +387,22 @@ class TraceResult:
         return {"trace": out / "trace.json", "coefficients": out / "coefficients.json"}
 
 
+def _why_no_samples(spec, tels) -> str:
+    """Why a sensor has no usable sample in the files (an empty temperature column, ...)."""
+    why = []
+    for t in tels:
+        col = getattr(spec, "temp_column", None)
+        if col and col in t.columns and not np.isfinite(np.asarray(t.columns[col], float)).any():
+            why.append(f"{t.path}: column {col} is empty")
+    return "; ".join(why) if why else ("no reading with a temperature and a field reference "
+                                       "or a static position in the data files")
+
+
+def unexplained_plot_name(sensor) -> str:
+    """The report's figure of a sensor's unexplained residual (in the output folder)."""
+    return f"trace_{sensor}_unexplained.png"
+
+
 def _model_text(m: SensorModel) -> str:
     parts = [f"b(T), M(T) degree {m.base.degree}"]
     if m.free_M is None:
@@ -315,6 +422,7 @@ def effect_entry(name, tr: SensorTrace, st: Step) -> dict:
         "sensor": name, "effect": e.name, "explained_by": e.explained_by(),
         "rms_before_nT": st.rms_before_nT, "rms_after_nT": st.rms_after_nT,
         "evidence": evidence_sentence(name, st),
+        "files": carried_by(tr, st),
         "parameters": e.describe(st.params, m),
         "in_flight_chain": e.in_chain, "flight_form": e.flight_form,
         "physics": e.physics,
@@ -334,6 +442,45 @@ def effect_entry(name, tr: SensorTrace, st: Step) -> dict:
             "equivalent": equivalent(st.score, ru),
         }
     return entry
+
+
+def carried_by(tr: SensorTrace, st: Step) -> dict:
+    """Which data files carry the effect. Per file: `acts` - the effect's own term (the
+    model with it against the same fit without it) is detectable there, sqrt(sum c^2)
+    over the file's samples above the one-sided ALPHA point of the normal in units of the
+    noise floor; `heldout_z` - the effect improves that file's held-out rows (score
+    test of generator.trace.scoring). `shown_in`: the files where it acts and improves
+    beyond the ALPHA point; `acts_not_shown_in`: where the model applies it but that file
+    does not ask for it (an effect new in some files, which the model's single set of
+    coefficients carries everywhere: a thermal lag, say). For a channel effect,
+    `channel_in` lists the files that have the channel; the extended coefficients
+    describe those (the channel's offset is theirs)."""
+    from scipy import stats as sps
+    zc = float(sps.norm.isf(ALPHA))
+    S = tr.S_fit
+    m1, m0 = st.model_after, st.model_before
+    off = SensorModel(m0.base, free_b=m0.free_b, free_M=m0.free_M, free_K=m0.free_K,
+                      groups=m0.groups, Bp0=m0.Bp0, i_rms=m0.i_rms, effects=m0.effects,
+                      theta=m1.theta[:m0.P])
+    c = m1.field(S) - off.field(S)
+    floor = tr.noise.get("floor_nT") or rv.data_noise_nT(
+        S, m1.residual(m1.theta[None], S)[0]) or 1.0
+    per = {}
+    for fi in np.unique(S.file_index):
+        sel = S.file_index == fi
+        name = S.file_names[fi]
+        cz = float(np.sqrt(np.sum(c[sel] ** 2))) / floor
+        per[name] = {"acts": bool(cz > zc), "contribution_z": cz,
+                     "heldout_z": st.score.file_z.get(name)}
+    shown = [f for f, v in per.items() if v["acts"] and (v["heldout_z"] or 0) > zc]
+    acts = [f for f, v in per.items() if v["acts"] and f not in shown]
+    out = {"per_file": per, "shown_in": shown, "acts_not_shown_in": acts,
+           "everywhere": len(shown) == len(per)}
+    chans = [ch for ch in st.effect.explained_by() if ch in S.channel_present]
+    if chans:
+        pres = S.channel_present[chans[0]]
+        out["channel_in"] = sorted(set(S.file_names[i] for i in np.unique(S.file_index[pres])))
+    return out
 
 
 def runner_up_text(st: Step) -> str:
@@ -458,6 +605,10 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         if sensors is not None and s.name not in sensors:
             continue
         S = samples[s.name]
+        if S.n == 0 or not np.any(S.role == 0):
+            skipped[s.name] = "no usable sample: " + _why_no_samples(s, allt)
+            say(f"{s.name}: skipped ({skipped[s.name]})")
+            continue
         if evaluated_on == "holdout":
             S_fit, S_eval = S.subset(S.role == 0), S.subset(S.role == 1)
             S_fit.block = assign_blocks(S_fit)
@@ -480,8 +631,10 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                       min_gain=min_gain, max_effects=max_effects,
                                       S_final=S_final, progress=say)
     if not traces:
-        raise InputError(unit.path, "trace: no sensor has enough usable samples with a "
-                                    "field reference or a static position")
+        why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
+        raise InputError(tels[0].path if len(tels) == 1 else unit.path,
+                         "trace: no sensor has enough usable samples with a field reference "
+                         "or a static position" + (f" ({why})" if why else ""))
     info = {"effects": [{"sensor": n, "effect": st.effect.name,
                          "explained_by": st.effect.explained_by(),
                          "parameters": st.effect.describe(st.params, st.model_after),
