@@ -155,6 +155,13 @@ class SensorModel:
     def evaluate(self, th, S: SensorSamples):
         """B_cal (Bt, n, 3) and the reference shift (Bt, n, 3) or None, for parameter
         rows th (Bt, P), in the chain's order."""
+        f = self._forward(th, S)
+        return f["B_out"], f["shift"]
+
+    def _forward(self, th, S: SensorSamples) -> dict:
+        """The chain's intermediates (for one parameter row: powers of the scaled
+        temperature, the reading after offsets and transforms x_final (n, 3), Msum =
+        sum_k s^k M_k (n, 3, 3), B before a calibrated stage) and its outputs."""
         th = np.atleast_2d(th)
         Bt = th.shape[0]
         base = self.base
@@ -193,6 +200,11 @@ class SensorModel:
             M_s = M_s + M_UNIT * sym_from6(th[:, self.sl["M"]].reshape(Bt, D + 1, 6))
         B = sum(powers[k][:, :, None] * np.matmul(x, np.transpose(M_s[:, k], (0, 2, 1)))
                 for k in range(D + 1))
+        out = {}
+        if Bt == 1:
+            out = {"powers": [p[0] for p in powers], "x_final": x[0], "B": B[0],
+                   "Msum": sum(powers[k][0][:, None, None] * M_s[0, k][None]
+                               for k in range(D + 1))}
         for i, e in enumerate(self.effects):
             if e.stage == "calibrated":
                 B = e.calibrated(th[:, self.sl[f"e{i}"]], S, B, st)
@@ -201,7 +213,8 @@ class SensorModel:
             if e.stage == "reference":
                 d = e.reference_shift(th[:, self.sl[f"e{i}"]], S)
                 shift = d if shift is None else shift + d
-        return B, shift
+        out["B_out"], out["shift"] = B, shift
+        return out
 
     def field(self, S, theta=None) -> np.ndarray:
         """B_cal (n, 3) at theta (default: the fitted parameters)."""
@@ -238,10 +251,24 @@ class SensorModel:
         return np.concatenate(parts, axis=1) if parts else np.zeros((Bt, 0))
 
     def jacobian(self, S, theta=None, cols=None):
-        """(r (R,), J (R, len(cols))) by forward differences at theta."""
+        """(r (R,), J (R, len(cols))) at theta: the linear blocks (b, M, K, B_p)
+        analytically where the chain allows it (see _analytic_columns), the rest by
+        forward differences."""
         th0 = self.theta if theta is None else np.asarray(theta, float)
         cols = np.arange(self.P) if cols is None else np.asarray(cols)
-        r0 = self.residual(th0[None], S)[0]
+        r0, done = self._analytic_columns(th0, S, cols)
+        J = np.empty((len(r0), len(cols)))
+        fd = []
+        for k, c in enumerate(cols):
+            if int(c) in done:
+                J[:, k] = done[int(c)]
+            else:
+                fd.append(k)
+        if fd:
+            J[:, fd] = self._fd_columns(th0, S, cols[fd], r0)
+        return r0, J
+
+    def _fd_columns(self, th0, S, cols, r0):
         J = np.empty((len(r0), len(cols)))
         chunk = max(1, BATCH_ELEMENTS // max(S.n, 1))
         for a in range(0, len(cols), chunk):
@@ -249,7 +276,86 @@ class SensorModel:
             th = np.repeat(th0[None], len(sub), axis=0)
             th[np.arange(len(sub)), sub] += FD_STEP
             J[:, a:a + len(sub)] = (self.residual(th, S) - r0[None]).T / FD_STEP
-        return r0, J
+        return J
+
+    def _analytic_columns(self, th0, S, cols):
+        """(r0, {column: dr/dtheta_column}) for the columns of b, M, K and B_p that have
+        a closed form: B = sum_k s^k M_k x'' with x'' the reading after offsets and
+        transforms, so dB/dM_k = s^k x'' exactly; where no transform stage follows the
+        offsets, x' = x - sum_k s^k b_k - K i - offsets gives dB/db_k = -s^k Msum and
+        dB/dK = -Msum i / i_rms (Msum = sum_k s^k M_k). A `calibrated` stage after M, or
+        a static position not among the model's groups, leaves everything to finite
+        differences. Magnitude rows: d|B| = (B / |B|) . dB."""
+        r0 = self.residual(th0[None], S)[0]
+        stages = {e.stage for e in self.effects}
+        iv, im, ip = S.idx
+        if "calibrated" in stages or len(cols) == 0:
+            return r0, {}
+        if len(ip):
+            g = S.group[ip]
+            if not len(self.groups) or not np.isin(g, self.groups).all():
+                return r0, {}
+        want = set(int(c) for c in cols)
+        f = self._forward(th0, S)
+        s_pow, xpp, Msum, B = f["powers"], f["x_final"], f["Msum"], f["B"]
+        u = None
+        if len(im):
+            nb = np.linalg.norm(B[im], axis=1)
+            u = B[im] / np.where(nb > 0, nb, 1.0)[:, None]
+
+        def rows(dB):             # (n, 3) -> residual rows
+            parts = []
+            if len(iv):
+                parts.append(dB[iv].reshape(-1))
+            if len(im):
+                parts.append(np.einsum("ni,ni->n", u, dB[im]))
+            if len(ip):
+                parts.append(dB[ip].reshape(-1))
+            return np.concatenate(parts) if parts else np.zeros(0)
+
+        out = {}
+        D = self.base.degree
+        sl = self.sl["M"]
+        if self.free_M is not None and want & set(range(sl.start, sl.stop)):
+            if self.free_M == "full":
+                basis = np.eye(9).reshape(9, 3, 3)
+            else:
+                basis = sym_from6(np.eye(6))
+            nb_ = len(basis)
+            for k in range(D + 1):
+                sx = s_pow[k][:, None] * xpp                      # (n, 3)
+                for a in range(nb_):
+                    c = sl.start + k * nb_ + a
+                    if c in want:
+                        out[c] = rows(M_UNIT * sx @ basis[a].T)
+        if "transform" not in stages:
+            sl = self.sl["b"]
+            for fi, k in enumerate(self.free_b):
+                for j in range(3):
+                    c = sl.start + 3 * fi + j
+                    if c in want:
+                        out[c] = rows(-s_pow[k][:, None] * Msum[:, :, j])
+            if self.free_K and S.coil is not None:
+                sl = self.sl["K"]
+                nc = self.base.K.shape[1]
+                for a in range(3):
+                    for ci in range(nc):
+                        c = sl.start + a * nc + ci
+                        if c in want:
+                            out[c] = rows(-Msum[:, :, a] * (S.coil[:, ci] / self.i_rms)[:, None])
+        sl = self.sl["Bp"]
+        if len(ip) and want & set(range(sl.start, sl.stop)):
+            k_of = np.searchsorted(self.groups, S.group[ip])
+            base_row = 3 * len(iv) + len(im)
+            for gi in range(len(self.groups)):
+                sel = np.nonzero(k_of == gi)[0]
+                for j in range(3):
+                    c = sl.start + 3 * gi + j
+                    if c in want:
+                        col = np.zeros(len(r0))
+                        col[base_row + 3 * sel + j] = -1.0
+                        out[c] = col
+        return r0, out
 
     def fit(self, S, max_nfev=60) -> "SensorModel":
         if self.P == 0:
