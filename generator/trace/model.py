@@ -69,6 +69,18 @@ def declared_degree(cs: CoefficientSet, name: str) -> int:
     return max([0] + [k for k in nz])
 
 
+def _solve_psd(A, b):
+    """Solve A x = b for a symmetric positive (semi-)definite A: Cholesky, else the
+    eigen-decomposition with the null space dropped."""
+    try:
+        L = np.linalg.cholesky(A)
+        return np.linalg.solve(L.T, np.linalg.solve(L, b))
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(A)
+        keep = w > (w[-1] * 1e-13 if len(w) and w[-1] > 0 else np.inf)
+        return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+
+
 class SensorModel:
     """B_cal of one sensor from the extended chain, float64, batched over parameters.
 
@@ -224,8 +236,11 @@ class SensorModel:
     def residual(self, th, S: SensorSamples) -> np.ndarray:
         """Residual rows (Bt, R): vector rows, magnitude rows, position rows."""
         th = np.atleast_2d(th)
+        f = self._forward(th, S)
+        return self._residual_rows(th, S, f["B_out"], f["shift"])
+
+    def _residual_rows(self, th, S, B, shift) -> np.ndarray:
         Bt = th.shape[0]
-        B, shift = self.evaluate(th, S)
         iv, im, ip = S.idx
         parts = []
         if len(iv):
@@ -286,17 +301,20 @@ class SensorModel:
         dB/dK = -Msum i / i_rms (Msum = sum_k s^k M_k). A `calibrated` stage after M, or
         a static position not among the model's groups, leaves everything to finite
         differences. Magnitude rows: d|B| = (B / |B|) . dB."""
-        r0 = self.residual(th0[None], S)[0]
         stages = {e.stage for e in self.effects}
         iv, im, ip = S.idx
-        if "calibrated" in stages or len(cols) == 0:
-            return r0, {}
-        if len(ip):
+        lin = set()
+        for blk in ("b", "M", "K", "Bp"):
+            lin |= set(range(self.sl[blk].start, self.sl[blk].stop))
+        want = set(int(c) for c in cols) & lin
+        ok = "calibrated" not in stages and bool(want)
+        if ok and len(ip):
             g = S.group[ip]
-            if not len(self.groups) or not np.isin(g, self.groups).all():
-                return r0, {}
-        want = set(int(c) for c in cols)
-        f = self._forward(th0, S)
+            ok = bool(len(self.groups)) and bool(np.isin(g, self.groups).all())
+        if not ok:
+            return self.residual(th0[None], S)[0], {}
+        f = self._forward(th0[None], S)
+        r0 = self._residual_rows(th0[None], S, f["B_out"], f["shift"])[0]
         s_pow, xpp, Msum, B = f["powers"], f["x_final"], f["Msum"], f["B"]
         u = None
         if len(im):
@@ -358,15 +376,51 @@ class SensorModel:
         return r0, out
 
     def fit(self, S, max_nfev=60) -> "SensorModel":
+        """Least squares over all free parameters by Levenberg-Marquardt on the normal
+        equations (column-scaled J^T J + lambda I; BLAS products instead of MINPACK's
+        unblocked QR of the tall Jacobian: the model is linear or nearly so in every
+        block, so a few Gauss-Newton steps converge). More parameters than rows: scipy's
+        trust-region solver."""
         if self.P == 0:
             return self
-        fun = lambda th: self.residual(th[None], S)[0]          # noqa: E731
-        jac = lambda th: self.jacobian(S, th)[1]                 # noqa: E731
-        method = "lm" if S.n_rows > self.P else "trf"
-        from scipy.optimize import least_squares
-        res = least_squares(fun, self.theta, jac=jac, method=method, xtol=1e-10, ftol=1e-12,
-                            gtol=1e-12, max_nfev=max_nfev)
-        self.theta = res.x
+        if S.n_rows <= self.P:
+            fun = lambda th: self.residual(th[None], S)[0]          # noqa: E731
+            jac = lambda th: self.jacobian(S, th)[1]                 # noqa: E731
+            from scipy.optimize import least_squares
+            self.theta = least_squares(fun, self.theta, jac=jac, method="trf", xtol=1e-10,
+                                       ftol=1e-12, gtol=1e-12, max_nfev=max_nfev).x
+            return self
+        th = self.theta.copy()
+        r, J = self.jacobian(S, th)
+        sse = float(r @ r)
+        lam, nfev = 1e-6, 1
+        while nfev < max_nfev:
+            A, g = J.T @ J, J.T @ r
+            d = np.sqrt(np.maximum(np.diag(A), 0.0))
+            d[d == 0] = 1.0
+            As, gs = A / np.outer(d, d), g / d
+            accepted = False
+            while nfev < max_nfev:
+                step = -_solve_psd(As + lam * np.eye(len(d)), gs) / d
+                r_new = self.residual((th + step)[None], S)[0]
+                nfev += 1
+                sse_new = float(r_new @ r_new)
+                if sse_new <= sse:
+                    accepted = True
+                    break
+                lam *= 10.0
+                if lam > 1e12:
+                    break
+            if not accepted:
+                break
+            gain = sse - sse_new
+            th, sse = th + step, sse_new
+            lam = max(lam / 10.0, 1e-12)
+            if gain <= 1e-12 * max(sse, 1e-300) or np.max(np.abs(step * d)) <= 1e-10 * (
+                    1.0 + np.max(np.abs(th * d))):
+                break
+            r, J = self.jacobian(S, th)
+        self.theta = th
         return self
 
     def sse(self, S) -> float:
