@@ -50,21 +50,30 @@ def samples(tmp_path, kind):
     return cs, S
 
 
-@pytest.mark.parametrize("with_effect", [False, True])
+@pytest.mark.parametrize("with_effect", [False, True, "offset"])
 @pytest.mark.parametrize("kind", ["vec", "norm", "pos", "coils"])
 def test_analytic_columns_equal_finite_differences(kind, with_effect, tmp_path):
     cs, S = samples(tmp_path, kind)
     base = tr.base_from_coefficients(cs, "mmc1", 2)
     m = tr.SensorModel.for_samples(base, S)
-    if with_effect:
+    if with_effect is True:
         e = fx.ThermalLag()
         e.set_hyper(60.0)
         m = m.with_effect(e, e.init_params())
+    elif with_effect == "offset":     # offset-stage effects: analytic columns too
+        ch = np.sin(S.time_s / 300.0)
+        S.channels["heater_A"] = ch
+        S.channel_present["heater_A"] = S.time_s > np.median(S.time_s)
+        for e in (fx.ChannelBias("heater_A", 0.5, S.channel_present["heater_A"]),
+                  fx.TimeDrift(1000.0), fx.TemperaturePolynomial(3)):
+            m = m.with_effect(e, e.init_params())
     rng = np.random.default_rng(3)
     th = m.theta + rng.normal(scale=2.0, size=m.P)
     r0, done = m._analytic_columns(th, S, np.arange(m.P))
     assert done, "no analytic column"
     blocks = [b for b in ("b", "M", "K", "Bp") if m.sl[b].stop > m.sl[b].start]
+    if with_effect == "offset":
+        blocks += [f"e{i}" for i in range(len(m.effects))]
     if kind == "coils":
         assert m.free_K
     for b in blocks:                           # every free linear block is analytic here

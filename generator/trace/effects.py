@@ -54,6 +54,8 @@ class Effect:
     n_params = 0              # continuous parameters (internal units, fitted jointly)
     n_hyper = 0               # scanned parameters (a change time, a time constant)
     fd_in_scoring = True      # score with the Jacobian columns of the parameters
+    linear_offset = True      # stage "offset": offset(p) is linear in p (no constant), so
+    #                           its Jacobian columns are analytic (SensorModel.jacobian)
     prior = 0                 # tie-break between statistically equivalent explanations:
     #                           the higher wins (a mechanism the part is known to have)
 
@@ -736,8 +738,85 @@ class TimeOffset(Effect):
         return {"time_offset_s": self.dt_s(p)}
 
 
+class LaggedChannelBias(ChannelBias):
+    """A bias that follows a telemetry channel through a first-order lag: a heater warming
+    a board (the offset follows the heater's temperature, not its current), a load whose
+    field builds up as a part warms or magnetises. Regressor: the channel through the
+    chain's first-order recursion ch_f += dt/(tau + dt) (ch - ch_f), run over each file's
+    whole series; tau scanned on a log grid (chosen inside each training fold), then
+    refined on all the data. Parameters: C (3, nT per unit), and an offset where only
+    some files carry the channel, as ChannelBias. A pure delay of a few samples is a lag
+    of about that time constant to this regressor. Flight form: none yet (a new chain
+    stage, a filter state per channel, see flight_form)."""
+
+    name = "lagged_channel_bias"
+    title = "bias following a telemetry channel through a first-order lag"
+    physics = ("a heater or a load warms a board or a part: the offset follows the channel "
+               "with a time constant, not at once")
+    flight_form = ("needs a chain stage: a first-order filter state per channel, "
+                   "ch_f += dt/(tau + dt) (ch - ch_f) (the thermal lag's recursion), then "
+                   "x -= C ch_f; until the chain has it the flight coefficients leave it "
+                   "out")
+    in_chain = False
+    n_hyper = 1
+    GRID = 10
+
+    def __init__(self, channel, scale, present=None):
+        super().__init__(channel, scale, present)
+        self.hyper = None
+
+    def explained_by(self):
+        return [f"{self.channel} through a first-order lag"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        have = {e.channel for e in ctx.effects if isinstance(e, ChannelBias)}
+        base, why = ChannelBias.candidates(ctx)
+        out = [cls(e.channel, e.scale, ctx.samples.channel_present.get(e.channel)
+                   if e.partial else None) for e in base if e.channel not in have]
+        return out, ("" if out else why or "every varying channel is in the model")
+
+    def scan_grid(self, S):
+        dts = [np.median(np.diff(f.time_s)) for f in S.files if len(f.time_s) > 1]
+        spans = [np.ptp(f.time_s) for f in S.files if len(f.time_s) > 1]
+        lo = max(2.0 * float(np.min(dts)) if dts else 1.0, 0.05)
+        hi = max(0.25 * float(np.max(spans)) if spans else 10 * lo, 4 * lo)
+        return list(np.exp(np.linspace(math.log(lo), math.log(hi), self.GRID)))
+
+    def refine_grid(self, S, best):
+        return list(best * np.exp(np.linspace(-0.3, 0.3, 7)))
+
+    def lagged(self, S):
+        out = np.zeros(S.n)
+        for fi, series in enumerate(S.files):
+            sel = S.file_index == fi
+            v = series.channels.get(self.channel)
+            if not sel.any() or v is None:
+                continue
+            out[sel] = lag_filter(series.time_s, v, self.hyper)[S.file_row[sel]]
+        return out
+
+    def offset(self, p, S, st):
+        ch = self.lagged(S) / self.scale
+        out = p[:, None, :3] * ch[None, :, None]
+        if self.partial:
+            has = S.channel_present[self.channel].astype(float)
+            out = out + p[:, None, 3:6] * has[None, :, None]
+        return out
+
+    def describe(self, p, model=None):
+        return {**super().describe(p, model), "tau_s": float(self.hyper)}
+
+    def to_flight(self, p, values, options, model):
+        """No chain stage yet (flight_form): nothing is written."""
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        return []
+
+
 CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,
-             TimeDrift, SetResetRotation, TimeOffset]
+             TimeDrift, SetResetRotation, TimeOffset, LaggedChannelBias]
 
 
 def catalogue_table() -> list:

@@ -214,7 +214,7 @@ class SensorModel:
                 for k in range(D + 1))
         out = {}
         if Bt == 1:
-            out = {"powers": [p[0] for p in powers], "x_final": x[0], "B": B[0],
+            out = {"powers": [p[0] for p in powers], "x_final": x[0], "B": B[0], "st": st,
                    "Msum": sum(powers[k][0][:, None, None] * M_s[0, k][None]
                                for k in range(D + 1))}
         for i, e in enumerate(self.effects):
@@ -297,8 +297,9 @@ class SensorModel:
         """(r0, {column: dr/dtheta_column}) for the columns of b, M, K and B_p that have
         a closed form: B = sum_k s^k M_k x'' with x'' the reading after offsets and
         transforms, so dB/dM_k = s^k x'' exactly; where no transform stage follows the
-        offsets, x' = x - sum_k s^k b_k - K i - offsets gives dB/db_k = -s^k Msum and
-        dB/dK = -Msum i / i_rms (Msum = sum_k s^k M_k). A `calibrated` stage after M, or
+        offsets, x' = x - sum_k s^k b_k - K i - offsets gives dB/db_k = -s^k Msum,
+        dB/dK = -Msum i / i_rms (Msum = sum_k s^k M_k) and, for an effect of the offset
+        stage (linear in its parameters), dB/dp_a = -Msum offset(e_a). A `calibrated` stage after M, or
         a static position not among the model's groups, leaves everything to finite
         differences. Magnitude rows: d|B| = (B / |B|) . dB."""
         stages = {e.stage for e in self.effects}
@@ -306,6 +307,12 @@ class SensorModel:
         lin = set()
         for blk in ("b", "M", "K", "Bp"):
             lin |= set(range(self.sl[blk].start, self.sl[blk].stop))
+        lin_eff = []
+        if "transform" not in stages:
+            lin_eff = [i for i, e in enumerate(self.effects)
+                       if e.stage == "offset" and e.linear_offset and e.n_params]
+            for i in lin_eff:
+                lin |= set(range(self.sl[f"e{i}"].start, self.sl[f"e{i}"].stop))
         want = set(int(c) for c in cols) & lin
         ok = "calibrated" not in stages and bool(want)
         if ok and len(ip):
@@ -361,6 +368,16 @@ class SensorModel:
                         c = sl.start + a * nc + ci
                         if c in want:
                             out[c] = rows(-Msum[:, :, a] * (S.coil[:, ci] / self.i_rms)[:, None])
+        for i in lin_eff:         # x -= offset(p), linear in p: dB = -Msum offset(e_a)
+            sl = self.sl[f"e{i}"]
+            if not want & set(range(sl.start, sl.stop)):
+                continue
+            e = self.effects[i]
+            dx = np.asarray(e.offset(np.eye(e.n_params), S, f["st"]), float)
+            dx = np.broadcast_to(dx, (e.n_params, S.n, 3))
+            for a in range(e.n_params):
+                if sl.start + a in want:
+                    out[sl.start + a] = rows(-np.einsum("nij,nj->ni", Msum, dx[a]))
         sl = self.sl["Bp"]
         if len(ip) and want & set(range(sl.start, sl.stop)):
             k_of = np.searchsorted(self.groups, S.group[ip])

@@ -27,10 +27,12 @@ N_BLOCKS = 50             # contiguous time blocks over a sensor's data
 @dataclass
 class FileSeries:
     """One file's temperature series of one sensor (all its readings, in time order):
-    what the thermal-lag recursion runs over."""
+    what the thermal-lag recursion runs over; and the candidate channels on the same
+    rows (what a lagged channel's recursion runs over)."""
     name: str
     time_s: np.ndarray
     temp_C: np.ndarray
+    channels: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -206,7 +208,8 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
             files[s.name].append(FileSeries(names[fi], t[series], np.asarray(sd.temp_C,
-                                                                              float)[series]))
+                                                                              float)[series],
+                                            {c: v[series] for c, v in ch.items()}))
             i = np.nonzero(ok)[0]
             w = None
             if rate is not None:
