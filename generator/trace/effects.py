@@ -815,8 +815,73 @@ class LaggedChannelBias(ChannelBias):
         return []
 
 
+class ChannelScale(Effect):
+    """A scale factor that follows a telemetry channel (a supply voltage feeding the
+    bridge, a board's temperature seen through a heater current): after the offsets,
+    x_i -= g_i ch x_i, per axis. Needs an absolute reference (as the cubic: without one,
+    a contraction of the readings shrinks the noise). Parameters: g (3, per unit of the
+    channel), internal unit ~1 nT at the field scale and the channel's spread. Flight
+    form: none yet (a new chain stage, see flight_form)."""
+
+    name = "channel_scale"
+    title = "scale factor following a telemetry channel"
+    physics = ("the sensitivity depends on a telemetry quantity (a supply voltage, a "
+               "current warming the part): each axis reads (1 + g ch) of its field")
+    flight_form = ("needs a chain stage: x_i -= g_i ch x_i after the offsets (a block "
+                   "g_per_unit, 3 x nch, and the channel as an input); until the chain has "
+                   "it the flight coefficients leave it out")
+    in_chain = False
+    stage = "transform"
+    order = 0
+    repeatable = True
+    n_params = 3
+
+    def __init__(self, channel, scale):
+        super().__init__()
+        self.channel = channel
+        self.scale = float(scale)      # the channel's spread
+
+    def key(self):
+        return f"{self.name}:{self.channel}"
+
+    def explained_by(self):
+        return [f"{self.channel} x reading"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        S = ctx.samples
+        if not (S.kind != 2).any():
+            return [], "no field reference (positions only): the scale of the reading is free"
+        have = {e.channel for e in ctx.effects if isinstance(e, ChannelScale)}
+        out = []
+        for name, v in S.channels.items():
+            if name in have:
+                continue
+            v = np.asarray(v, float)
+            sd = float(np.std(v)) if len(v) else 0.0
+            if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
+                continue
+            out.append(cls(name, sd))
+        return out, ("" if out else "no varying telemetry channel besides the modelled ones")
+
+    def g_per_unit(self, p):
+        return np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)
+
+    def transform(self, p, S, x, st):
+        g = np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)          # (batch, 3)
+        ch = S.channels[self.channel]
+        return x - g[:, None, :] * ch[None, :, None] * x
+
+    def describe(self, p, model=None):
+        return {"g_per_unit": self.g_per_unit(p).tolist(), "channel_std": self.scale,
+                "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
+
+    def to_flight(self, p, values, options, model):
+        """No chain stage yet (flight_form): nothing is written."""
+
+
 CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,
-             TimeDrift, SetResetRotation, TimeOffset, LaggedChannelBias]
+             TimeDrift, SetResetRotation, TimeOffset, LaggedChannelBias, ChannelScale]
 
 
 def catalogue_table() -> list:
