@@ -835,6 +835,9 @@ class ChannelScale(Effect):
     order = 0
     repeatable = True
     n_params = 3
+    prior = -1      # where the data cannot tell it from a bias in the same channel (the
+    #                 field held in one direction while the channel moves), the bias, the
+    #                 commoner mechanism, is named
 
     def __init__(self, channel, scale):
         super().__init__()
@@ -853,7 +856,11 @@ class ChannelScale(Effect):
         if not (S.kind != 2).any():
             return [], "no field reference (positions only): the scale of the reading is free"
         have = {e.channel for e in ctx.effects if isinstance(e, ChannelScale)}
-        out = []
+        absolute = S.kind != 2
+        f = np.where((S.kind == 0)[:, None], S.ref, S.x)
+        u = f / np.maximum(np.linalg.norm(f, axis=1), 1e-9)[:, None]
+        from generator.fit.ellipsoid import distinct_rows
+        out, why = [], "no varying telemetry channel besides the modelled ones"
         for name, v in S.channels.items():
             if name in have:
                 continue
@@ -861,8 +868,17 @@ class ChannelScale(Effect):
             sd = float(np.std(v)) if len(v) else 0.0
             if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
                 continue
+            # a scale is told from a bias in the same channel only where the channel
+            # moves while the field takes several directions (as the cubic, 6); else
+            # g ch x is a bias, plus a contraction of the reading's own noise
+            vals, cnt = np.unique(v[absolute], return_counts=True)
+            moved = absolute & (v != vals[np.argmax(cnt)]) if len(vals) else absolute
+            if distinct_rows(u[moved], 0.1, at_most=6) < 6:
+                why = (f"{name}: the field takes fewer than 6 directions while it moves: a "
+                       "scale is not separable from a bias")
+                continue
             out.append(cls(name, sd))
-        return out, ("" if out else "no varying telemetry channel besides the modelled ones")
+        return out, ("" if out else why)
 
     def g_per_unit(self, p):
         return np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)
