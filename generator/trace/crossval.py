@@ -93,11 +93,18 @@ class CVEngine:
         self.J = J
         self.JJ = J.T @ J
         self.Ainv_full = _pinv_gram(self.JJ) if J.shape[1] else np.zeros((0, 0))
-        self.folds = []
+        # the rows fold after fold, contiguous: each fold's rows are a slice (a view)
+        self.perm = np.concatenate(tests) if tests else np.zeros(0, int)
+        self.Jp = J[self.perm]
+        self.folds, self.slices = [], []
+        a = 0
         for te in tests:
-            Jte = J[te]
+            sl = slice(a, a + len(te))
+            a += len(te)
+            Jte = self.Jp[sl]
             Ainv = _pinv_gram(self.JJ - Jte.T @ Jte) if J.shape[1] else np.zeros((0, 0))
             self.folds.append((te, Jte, row_block[te], Ainv))
+            self.slices.append(sl)
 
     @staticmethod
     def _solve(Ainv, yy, Jy, G_parts):
@@ -117,31 +124,40 @@ class CVEngine:
     def evaluate(self, d0=None, G=None):
         """Train SSE per fold (K,), held-out SSE per block (B,), full-data SSE and the
         held-out residual of every row (R,: each row is held out in exactly one fold),
-        for the model with offset d0 (R,) and columns G (R, k)."""
+        for the model with offset d0 (R,) and columns G (R, k). The normal-equation
+        pieces are formed once per fold (on the fold's contiguous rows) and summed for
+        the whole; a training fold's are the whole's minus its own."""
         y = self.r0 if d0 is None else self.r0 + d0
-        J = self.J
-        yy, Jy = float(y @ y), J.T @ y
-        full_G = None
-        if G is not None:
-            full_G = (J.T @ G, G.T @ G, G.T @ y)
+        yp = y[self.perm]
+        Gp = None if G is None else np.ascontiguousarray(G[self.perm])
+        pieces = []
+        for sl, (_, Jte, _, _) in zip(self.slices, self.folds):
+            yf = yp[sl]
+            pc = [float(yf @ yf), Jte.T @ yf]
+            if Gp is not None:
+                Gf = Gp[sl]
+                pc += [Jte.T @ Gf, Gf.T @ Gf, Gf.T @ yf]
+            pieces.append(pc)
+        tot = [sum(pc[i] for pc in pieces) for i in range(len(pieces[0]))] if pieces else \
+            [float(y @ y), self.J.T @ y] + ([] if G is None else
+                                            [self.J.T @ G, G.T @ G, G.T @ y])
         train = np.empty(len(self.folds))
         block = np.zeros(self.n_blocks)
         heldout = np.zeros(len(y))
-        for f, (te, Jte, bte, Ainv) in enumerate(self.folds):
-            y_te = y[te]
+        for f, (sl, (te, Jte, bte, Ainv)) in enumerate(zip(self.slices, self.folds)):
+            pc = pieces[f]
             parts = None
-            if G is not None:
-                G_te = G[te]
-                parts = (full_G[0] - Jte.T @ G_te, full_G[1] - G_te.T @ G_te,
-                         full_G[2] - G_te.T @ y_te)
-            sse, d, beta = self._solve(Ainv, yy - y_te @ y_te, Jy - Jte.T @ y_te, parts)
+            if Gp is not None:
+                parts = (tot[2] - pc[2], tot[3] - pc[3], tot[4] - pc[4])
+            sse, d, beta = self._solve(Ainv, tot[0] - pc[0], tot[1] - pc[1], parts)
             train[f] = sse
-            test = y_te + Jte @ d
+            test = yp[sl] + Jte @ d
             if beta is not None:
-                test = test + G_te @ beta
+                test = test + Gp[sl] @ beta
             heldout[te] = test
             block += np.bincount(bte, weights=test * test, minlength=self.n_blocks)
-        sse_full, _, _ = self._solve(self.Ainv_full, yy, Jy, full_G)
+        full_G = None if G is None else (tot[2], tot[3], tot[4])
+        sse_full, _, _ = self._solve(self.Ainv_full, tot[0], tot[1], full_G)
         return train, block, float(sse_full), heldout
 
     def full_residual(self, d0=None, G=None):

@@ -793,7 +793,14 @@ class LaggedChannelBias(ChannelBias):
             v = series.channels.get(self.channel)
             if not sel.any() or v is None:
                 continue
-            out[sel] = lag_filter(series.time_s, v, self.hyper)[S.file_row[sel]]
+            cache = series.__dict__.setdefault("_chlag_cache", {})
+            key = (self.channel, round(float(self.hyper), 12))
+            f = cache.get(key)
+            if f is None:
+                if len(cache) > 256:
+                    cache.clear()
+                f = cache[key] = lag_filter(series.time_s, v, self.hyper)
+            out[sel] = f[S.file_row[sel]]
         return out
 
     def offset(self, p, S, st):
