@@ -50,7 +50,7 @@ def _table(res) -> str:
             e = st.effect
             params = e.describe(st.params, st.model_after)
             lines.append(f"     + {e.label()}: {st.rms_before_nT:.1f} -> {st.rms_after_nT:.1f} nT"
-                         f", CV gain {100 * st.score.rel_rms_gain:.1f} %, t = {st.score.t:.1f}"
+                         f", CV gain {100 * st.score.rel_rms_gain:.1f} %, z = {st.score.z:.1f}"
                          f"; {json.dumps(params, default=float)[:160]}")
             if st.runner_up is not None:
                 lines.append(f"       runner-up: {tr.runner_up_text(st)}")

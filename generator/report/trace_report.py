@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 
 from generator.report.report import Report, Section, Table
+from generator.trace.residual import per_sample, quantities
 from generator.trace.tracer import (NORM, SensorSamples, SensorTrace, Step, TraceResult,
-                                     evidence_sentence, protocol_text, runner_up_text)
+                                     evidence_sentence, protocol_text, runner_up_text,
+                                     unexplained_plot_name)
 
 
 def _per_sample(S: SensorSamples, r, direction=None):
@@ -73,6 +75,44 @@ def plot_step(name, tr: SensorTrace, st: Step, path) -> str:
     return str(path)
 
 
+def plot_unexplained(name, tr: SensorTrace, path) -> str:
+    """The residual left above the noise: against time, and against what it follows most."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    S = tr.S_eval
+    # the model the residual was judged with (fitted on the fit data only)
+    m = tr.steps[-1].model_after if tr.steps else tr.final_model
+    r = m.residual(m.theta[None], S)[0]
+    v = per_sample(S, r)
+    B = m.field(S)
+    q = quantities(S, B)
+    top = tr.unexplained["correlates"][0]["quantity"] if tr.unexplained["correlates"] else \
+        "time_s"
+    o = np.argsort(S.order, kind="stable")
+    fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
+    for k, c in enumerate(("tab:red", "tab:green", "tab:blue")):
+        if np.isfinite(v[:, k]).any():
+            ax[0].plot(S.time_s[o], v[o, k], ".", ms=2, color=c, label="xyz"[k] if
+                       np.isfinite(v[:, 1]).any() else "|B| residual")
+            ax[1].plot(q[top], v[:, k], ".", ms=2, color=c)
+    fl = tr.noise.get("floor_nT") or 0.0
+    for a in ax:
+        a.axhline(fl, color="0.5", lw=0.8, ls="--")
+        a.axhline(-fl, color="0.5", lw=0.8, ls="--")
+        a.set_ylabel("residual, nT")
+    ax[0].set_xlabel("time, s (evaluation samples)")
+    ax[0].set_title(f"{name}: unexplained, {tr.noise['residual_rms_nT']:.1f} nT rms against "
+                    f"a noise floor of {fl:.1f} nT (dashed)", fontsize=9)
+    ax[0].legend(fontsize=7, loc="best")
+    ax[1].set_xlabel(top)
+    ax[1].set_title(f"against what it follows most ({top})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return str(path)
+
+
 def write_report(res: TraceResult, out: Path) -> Path:
     rep = Report(f"magcal trace: unit {res.unit.id}")
     src = res.sources
@@ -102,7 +142,7 @@ def write_report(res: TraceResult, out: Path) -> Path:
             plot_step(n, tr, st, out / fig)
             e = st.effect
             cand = [[s.effect.label(), s.dof, 100 * s.rel_rms_gain,
-                     f"{s.blocks_improved}/{len(s.block_gain)}", s.t, s.lr,
+                     f"{s.blocks_improved}/{len(s.block_gain)}", s.z, s.lr,
                      "yes" if s.significant else "; ".join(s.reasons)]
                     for s in st.scores[:8]]
             params = e.describe(st.params, st.model_after)
@@ -114,7 +154,7 @@ def write_report(res: TraceResult, out: Path) -> Path:
             if st.runner_up is not None:
                 paras.append("Runner-up: " + runner_up_text(st) + ".")
             rep.add(Section(f"{n}: {e.label()}", paras, [Table(
-                ["candidate", "parameters", "CV RMS gain %", "blocks improved", "t",
+                ["candidate", "parameters", "CV RMS gain %", "blocks improved", "z",
                  "likelihood ratio", "significant"], cand,
                 f"round {i + 1}: candidates by held-out error")],
                 [(fig, f"{n}: held-out residual before and after {e.label()}, and the part "
@@ -128,6 +168,22 @@ def write_report(res: TraceResult, out: Path) -> Path:
     rep.add(Section("What is left", [
         "The best remaining candidate per sensor and why it was not added."],
         [Table(["sensor", "best remaining candidate", "CV RMS gain %", "stop"], quiet)]))
+    for n, tr in res.traces.items():
+        if not tr.unexplained:
+            continue
+        fig = unexplained_plot_name(n)
+        plot_unexplained(n, tr, out / fig)
+        u = tr.unexplained
+        rep.add(Section(f"{n}: unexplained residual", [
+            f"{u['residual_rms_nT']:.2f} nT rms is left, {u['rms_above_noise_nT']:.2f} nT "
+            f"above the noise floor of {u['noise_floor_nT']:.2f} nT, and no effect of the "
+            "catalogue explains it. What it follows most (share of its variance explained "
+            "by its mean in quantile bins of the quantity): " +
+            ", ".join(f"{c['quantity']} {c['eta2']:.2f}" for c in u["correlates"]) + "."],
+            [Table(["quantity", "eta^2"], [[c["quantity"], c["eta2"]] for c in u["correlates"]],
+                   "what the residual follows, strongest first")],
+            [(fig, f"{n}: the residual left, against time and against "
+                       f"{u['correlates'][0]['quantity'] if u['correlates'] else 'time'}")]))
     na = [[n, name, why] for n, tr in res.traces.items() for name, why in tr.not_applicable.items()]
     if na:
         rep.add(Section("Candidates that did not apply", [],

@@ -54,6 +54,8 @@ class Effect:
     n_params = 0              # continuous parameters (internal units, fitted jointly)
     n_hyper = 0               # scanned parameters (a change time, a time constant)
     fd_in_scoring = True      # score with the Jacobian columns of the parameters
+    linear_offset = True      # stage "offset": offset(p) is linear in p (no constant), so
+    #                           its Jacobian columns are analytic (SensorModel.jacobian)
     prior = 0                 # tie-break between statistically equivalent explanations:
     #                           the higher wins (a mechanism the part is known to have)
 
@@ -736,8 +738,173 @@ class TimeOffset(Effect):
         return {"time_offset_s": self.dt_s(p)}
 
 
+class LaggedChannelBias(ChannelBias):
+    """A bias that follows a telemetry channel through a first-order lag: a heater warming
+    a board (the offset follows the heater's temperature, not its current), a load whose
+    field builds up as a part warms or magnetises. Regressor: the channel through the
+    chain's first-order recursion ch_f += dt/(tau + dt) (ch - ch_f), run over each file's
+    whole series; tau scanned on a log grid (chosen inside each training fold), then
+    refined on all the data. Parameters: C (3, nT per unit), and an offset where only
+    some files carry the channel, as ChannelBias. A pure delay of a few samples is a lag
+    of about that time constant to this regressor. Flight form: none yet (a new chain
+    stage, a filter state per channel, see flight_form)."""
+
+    name = "lagged_channel_bias"
+    title = "bias following a telemetry channel through a first-order lag"
+    physics = ("a heater or a load warms a board or a part: the offset follows the channel "
+               "with a time constant, not at once")
+    flight_form = ("needs a chain stage: a first-order filter state per channel, "
+                   "ch_f += dt/(tau + dt) (ch - ch_f) (the thermal lag's recursion), then "
+                   "x -= C ch_f; until the chain has it the flight coefficients leave it "
+                   "out")
+    in_chain = False
+    n_hyper = 1
+    GRID = 10
+
+    def __init__(self, channel, scale, present=None):
+        super().__init__(channel, scale, present)
+        self.hyper = None
+
+    def explained_by(self):
+        return [f"{self.channel} through a first-order lag"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        have = {e.channel for e in ctx.effects if isinstance(e, ChannelBias)}
+        base, why = ChannelBias.candidates(ctx)
+        out = [cls(e.channel, e.scale, ctx.samples.channel_present.get(e.channel)
+                   if e.partial else None) for e in base if e.channel not in have]
+        return out, ("" if out else why or "every varying channel is in the model")
+
+    def scan_grid(self, S):
+        dts = [np.median(np.diff(f.time_s)) for f in S.files if len(f.time_s) > 1]
+        spans = [np.ptp(f.time_s) for f in S.files if len(f.time_s) > 1]
+        lo = max(2.0 * float(np.min(dts)) if dts else 1.0, 0.05)
+        hi = max(0.25 * float(np.max(spans)) if spans else 10 * lo, 4 * lo)
+        return list(np.exp(np.linspace(math.log(lo), math.log(hi), self.GRID)))
+
+    def refine_grid(self, S, best):
+        return list(best * np.exp(np.linspace(-0.3, 0.3, 7)))
+
+    def lagged(self, S):
+        out = np.zeros(S.n)
+        for fi, series in enumerate(S.files):
+            sel = S.file_index == fi
+            v = series.channels.get(self.channel)
+            if not sel.any() or v is None:
+                continue
+            cache = series.__dict__.setdefault("_chlag_cache", {})
+            key = (self.channel, round(float(self.hyper), 12))
+            f = cache.get(key)
+            if f is None:
+                if len(cache) > 256:
+                    cache.clear()
+                f = cache[key] = lag_filter(series.time_s, v, self.hyper)
+            out[sel] = f[S.file_row[sel]]
+        return out
+
+    def offset(self, p, S, st):
+        ch = self.lagged(S) / self.scale
+        out = p[:, None, :3] * ch[None, :, None]
+        if self.partial:
+            has = S.channel_present[self.channel].astype(float)
+            out = out + p[:, None, 3:6] * has[None, :, None]
+        return out
+
+    def describe(self, p, model=None):
+        return {**super().describe(p, model), "tau_s": float(self.hyper)}
+
+    def to_flight(self, p, values, options, model):
+        """No chain stage yet (flight_form): nothing is written."""
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        return []
+
+
+class ChannelScale(Effect):
+    """A scale factor that follows a telemetry channel (a supply voltage feeding the
+    bridge, a board's temperature seen through a heater current): after the offsets,
+    x_i -= g_i ch x_i, per axis. Needs an absolute reference (as the cubic: without one,
+    a contraction of the readings shrinks the noise). Parameters: g (3, per unit of the
+    channel), internal unit ~1 nT at the field scale and the channel's spread. Flight
+    form: none yet (a new chain stage, see flight_form)."""
+
+    name = "channel_scale"
+    title = "scale factor following a telemetry channel"
+    physics = ("the sensitivity depends on a telemetry quantity (a supply voltage, a "
+               "current warming the part): each axis reads (1 + g ch) of its field")
+    flight_form = ("needs a chain stage: x_i -= g_i ch x_i after the offsets (a block "
+                   "g_per_unit, 3 x nch, and the channel as an input); until the chain has "
+                   "it the flight coefficients leave it out")
+    in_chain = False
+    stage = "transform"
+    order = 0
+    repeatable = True
+    n_params = 3
+    prior = -1      # where the data cannot tell it from a bias in the same channel (the
+    #                 field held in one direction while the channel moves), the bias, the
+    #                 commoner mechanism, is named
+
+    def __init__(self, channel, scale):
+        super().__init__()
+        self.channel = channel
+        self.scale = float(scale)      # the channel's spread
+
+    def key(self):
+        return f"{self.name}:{self.channel}"
+
+    def explained_by(self):
+        return [f"{self.channel} x reading"]
+
+    @classmethod
+    def candidates(cls, ctx):
+        S = ctx.samples
+        if not (S.kind != 2).any():
+            return [], "no field reference (positions only): the scale of the reading is free"
+        have = {e.channel for e in ctx.effects if isinstance(e, ChannelScale)}
+        absolute = S.kind != 2
+        f = np.where((S.kind == 0)[:, None], S.ref, S.x)
+        u = f / np.maximum(np.linalg.norm(f, axis=1), 1e-9)[:, None]
+        from generator.fit.ellipsoid import distinct_rows
+        out, why = [], "no varying telemetry channel besides the modelled ones"
+        for name, v in S.channels.items():
+            if name in have:
+                continue
+            v = np.asarray(v, float)
+            sd = float(np.std(v)) if len(v) else 0.0
+            if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
+                continue
+            # a scale is told from a bias in the same channel only where the channel
+            # moves while the field takes several directions (as the cubic, 6); else
+            # g ch x is a bias, plus a contraction of the reading's own noise
+            vals, cnt = np.unique(v[absolute], return_counts=True)
+            moved = absolute & (v != vals[np.argmax(cnt)]) if len(vals) else absolute
+            if distinct_rows(u[moved], 0.1, at_most=6) < 6:
+                why = (f"{name}: the field takes fewer than 6 directions while it moves: a "
+                       "scale is not separable from a bias")
+                continue
+            out.append(cls(name, sd))
+        return out, ("" if out else why)
+
+    def g_per_unit(self, p):
+        return np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)
+
+    def transform(self, p, S, x, st):
+        g = np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)          # (batch, 3)
+        ch = S.channels[self.channel]
+        return x - g[:, None, :] * ch[None, :, None] * x
+
+    def describe(self, p, model=None):
+        return {"g_per_unit": self.g_per_unit(p).tolist(), "channel_std": self.scale,
+                "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
+
+    def to_flight(self, p, values, options, model):
+        """No chain stage yet (flight_form): nothing is written."""
+
+
 CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,
-             TimeDrift, SetResetRotation, TimeOffset]
+             TimeDrift, SetResetRotation, TimeOffset, LaggedChannelBias, ChannelScale]
 
 
 def catalogue_table() -> list:

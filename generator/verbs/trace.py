@@ -30,7 +30,11 @@ def cmd_trace(args) -> int:
         paths["report"] = write_report(res, folder.tmp)
     paths = {k: folder.final(v) for k, v in paths.items()}
     for n, tr in res.traces.items():
-        found = ", ".join(st.effect.label() for st in tr.steps) or "nothing significant"
+        found = ", ".join(st.effect.label() for st in tr.steps) or (
+            "nothing added; " + tr.stop.split(":")[0])
+        if tr.unexplained:
+            found += (f"; unexplained: {tr.unexplained['rms_above_noise_nT']:.1f} nT above the "
+                      "noise floor")
         progress(f"{n}: {tr.baseline_rms_nT:.2f} -> {tr.final_rms_nT:.2f} nT held-out RMS; "
                  f"{found}")
     progress(f"wrote {paths['trace']}, {paths['coefficients']} and {paths['report']}")

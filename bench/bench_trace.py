@@ -1,0 +1,80 @@
+#!/usr/bin/env python3
+"""Benchmark of `magcal trace` against `magcal fit` on the same files, in the same run
+(issue 17: trace within 3 x fit).
+
+Files: the shared SamSat FM1 ground campaigns (thermal_12pos, rotation, coils) plus
+flight_6h.csv. Each command runs in a fresh subprocess (wall time and peak RSS from
+wait4), with this checkout on PYTHONPATH, so imports and I/O count as a user sees them.
+
+    python3 bench/bench_trace.py [--data DIR] [--repeat 1] [--files a.csv b.csv ...]
+
+Prints the walls, the ratio trace / fit, and the trace's own progress lines (per
+sensor and round, with the time each round took) from its stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+CANDIDATES = [REPO.parent / "shared" / "data" / "samsat_fm1",
+              Path("/work/shared/data/samsat_fm1")]
+FILES = ["thermal_12pos.csv", "rotation.csv", "coils.csv", "flight_6h.csv"]
+
+
+def run(cmd) -> tuple[float, float, str]:
+    """(wall seconds, peak RSS MiB, stderr) of one subprocess."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+                         text=True)
+    out = p.stdout.read()
+    _, status, rusage = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{out[-3000:]}")
+    return wall, rusage.ru_maxrss / 1024.0, out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", default=None, help="the samsat_fm1 folder")
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--files", nargs="+", default=FILES)
+    a = ap.parse_args(argv)
+    data = Path(a.data) if a.data else next((p for p in CANDIDATES if p.is_dir()), None)
+    if data is None:
+        print("shared samsat_fm1 data not found; pass --data", file=sys.stderr)
+        return 2
+    files = [str(data / f) for f in a.files]
+    unit = str(data / "unit.toml")
+    py = [sys.executable, "-m", "generator.cli"]
+    fits, traces = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(a.repeat):
+            w, rss, _ = run(py + ["fit", unit, *files, "-o", f"{tmp}/fit{k}"])
+            fits.append((w, rss))
+            w, rss, out = run(py + ["trace", unit, *files, "-o", f"{tmp}/trace{k}"])
+            traces.append((w, rss))
+            print(f"run {k + 1}: fit {fits[-1][0]:.1f} s ({fits[-1][1]:.0f} MiB), "
+                  f"trace {traces[-1][0]:.1f} s ({traces[-1][1]:.0f} MiB)")
+    fit = min(w for w, _ in fits)
+    trace = min(w for w, _ in traces)
+    print("trace progress (last run):")
+    for line in out.splitlines():
+        print("  " + line)
+    print(f"files: {', '.join(a.files)}")
+    print(f"magcal fit   {fit:7.1f} s   (best of {a.repeat})")
+    print(f"magcal trace {trace:7.1f} s   (best of {a.repeat})")
+    print(f"ratio trace / fit = {trace / fit:.1f}   (target <= 3)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,189 @@
+"""What is left after a trace, against the noise floor (issue 17, honesty).
+
+The noise floor of a sensor's residual is the data's own sample-to-sample noise: the
+robust spread of first differences of the residual rows along time (per axis / kind,
+within each file, 1.4826 MAD / sqrt(2): a slow structure or a few jumps hardly move it),
+reported beside the part's noise (the unit's `noise_nT`, divided by sqrt(2) for a
+SET/RESET part, which averages two readings). The floor used is the data's where it can
+be measured (it includes the reference's noise), else the part's.
+
+A residual "well above the noise" is one whose RMS exceeds UNEXPLAINED_RATIO x the floor:
+then at least 1 - 1 / 2^2 = 3/4 of its variance is not sample-to-sample noise. Such a
+residual, with no catalogue effect left that explains it, is listed as `unexplained`
+with what it follows most: for each quantity (time, temperature, the channels, the field
+direction, the body rates, the coil currents) the correlation ratio eta^2, the share of
+the residual's variance explained by its mean in N_BINS quantile bins of the quantity
+(nonlinear relations, steps and jumps included). A quantity that does not vary explains
+nothing; by chance alone eta^2 is about N_BINS / n.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from generator.trace.samples import SensorSamples
+
+UNEXPLAINED_RATIO = 2.0   # residual RMS / noise floor above which the rest is reported
+N_BINS = 10               # quantile bins of a quantity (correlation ratio)
+MAD_TO_SIGMA = 1.4826     # MAD of a normal variable -> its standard deviation
+
+
+def per_sample(S: SensorSamples, r) -> np.ndarray:
+    """Residual rows -> (n, 3) per sample (magnitude rows in column 0, NaN elsewhere)."""
+    out = np.full((S.n, 3), np.nan)
+    iv, im, ip = S.idx
+    nv, nm = 3 * len(iv), len(im)
+    if len(iv):
+        out[iv] = r[:nv].reshape(-1, 3)
+    if len(im):
+        out[im, 0] = r[nv:nv + nm]
+    if len(ip):
+        out[ip] = r[nv + nm:].reshape(-1, 3)
+    return out
+
+
+def data_noise_nT(S: SensorSamples, r) -> float | None:
+    """The residual's own sample-to-sample noise (RMS over rows), from robust first
+    differences along time within each file; None with too few samples."""
+    rs, ax = S.row_sample, S.row_axis
+    var, cnt = 0.0, 0
+    for a in range(4):
+        sel = np.nonzero(ax == a)[0]
+        if len(sel) < 3:
+            continue
+        o = sel[np.argsort(S.order[rs[sel]], kind="stable")]
+        f = S.file_index[rs[o]]
+        d = np.diff(r[o])[f[1:] == f[:-1]]
+        if len(d) < 2:
+            continue
+        mad = float(np.median(np.abs(d - np.median(d))))
+        s = MAD_TO_SIGMA * mad / math.sqrt(2.0)
+        var += s * s * len(sel)
+        cnt += len(sel)
+    return math.sqrt(var / cnt) if cnt else None
+
+
+def part_noise_nT(spec) -> float | None:
+    n = getattr(spec, "noise_nT", None)
+    if n is None:
+        return None
+    return float(n) / math.sqrt(2.0) if getattr(spec, "set_reset", False) else float(n)
+
+
+def noise_floor(S: SensorSamples, r) -> dict:
+    data = data_noise_nT(S, r)
+    part = part_noise_nT(S.spec)
+    floor = data if data is not None else part
+    rms = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+    out = {"residual_rms_nT": rms, "data_noise_nT": data, "part_noise_nT": part,
+           "floor_nT": floor, "source": "data" if data is not None else "part"}
+    out["ratio"] = rms / floor if floor else None
+    out["rms_above_noise_nT"] = math.sqrt(max(rms * rms - floor * floor, 0.0)) if floor \
+        else None
+    out["at_noise"] = bool(floor) and rms <= UNEXPLAINED_RATIO * floor
+    return out
+
+
+def quantities(S: SensorSamples, B_cal=None) -> dict:
+    """The quantities a residual may follow, per sample: name -> (n,)."""
+    q = {"time_s": S.time_s.astype(float), "temperature_C": S.temp_C.astype(float)}
+    for c, v in S.channels.items():
+        q[c] = np.asarray(v, float)
+    if B_cal is not None:
+        nrm = np.linalg.norm(B_cal, axis=1)
+        ok = nrm > 0
+        for k, a in enumerate("xyz"):
+            q[f"field direction {a}"] = np.where(ok, B_cal[:, k] / np.where(ok, nrm, 1), 0.0)
+    if S.rate_frame_dps is not None:
+        w = np.asarray(S.rate_frame_dps, float)
+        q["rate magnitude_dps"] = np.linalg.norm(w, axis=1)
+        for k, a in enumerate("xyz"):
+            q[f"rate {a}_dps"] = w[:, k]
+    if S.coil is not None:
+        for k in range(S.coil.shape[1]):
+            q[f"coil {k}"] = np.asarray(S.coil[:, k], float)
+    return q
+
+
+def correlation_ratio(v, q, n_bins=N_BINS) -> float:
+    """eta^2 of the per-sample residual v (n, k) over the quantity q (n,): the share of
+    its variance (about its mean, all columns) taken by its means in quantile bins of q."""
+    ok = np.isfinite(q) & np.isfinite(v).all(axis=1)
+    v, q = v[ok], q[ok]
+    if len(q) < 2 * n_bins or np.ptp(q) == 0:
+        return 0.0
+    edges = np.unique(np.quantile(q, np.linspace(0, 1, n_bins + 1)))
+    if len(edges) < 2:
+        return 0.0
+    b = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, len(edges) - 2)
+    dev = v - v.mean(axis=0)
+    sst = float(np.sum(dev * dev))
+    if sst <= 0:
+        return 0.0
+    cnt = np.bincount(b)
+    ssb = 0.0
+    for k in range(v.shape[1]):
+        s = np.bincount(b, weights=dev[:, k])
+        nz = cnt > 0
+        ssb += float(np.sum(s[nz] ** 2 / cnt[nz]))
+    return ssb / sst
+
+
+def correlates(S: SensorSamples, r, B_cal=None, top=6) -> list:
+    """What the residual follows most, strongest first: [{quantity, eta2}]."""
+    v = per_sample(S, r)
+    cols = [k for k in range(3) if np.isfinite(v[:, k]).any()]
+    v = np.nan_to_num(v[:, cols])
+    out = [{"quantity": name, "eta2": round(correlation_ratio(v, q), 4)}
+           for name, q in quantities(S, B_cal).items()]
+    out.sort(key=lambda d: -d["eta2"])
+    return out[:top]
+
+
+# ---- degenerate solutions -------------------------------------------------------------
+MAX_SHRINK = 0.05   # least share of the reference's field variation a refit may lose
+#   A trace adds terms to a model whose overall scale the reference already fixes (to
+#   parts in 1e3 with reference vectors, to the magnitude's accuracy with |B| only); none
+#   of the catalogue's effects changes the calibrated field's spread by several percent.
+#   A refit that does is contracting the calibration toward a constant vector, which
+#   shrinks the noise with the field (magnitude-only data: a constant vector of the
+#   reference's length fits |B| perfectly).
+
+
+def field_variation_nT(B) -> float:
+    """RMS deviation of field vectors (n, 3) from their mean."""
+    B = np.asarray(B, float)
+    if len(B) < 2:
+        return 0.0
+    return float(np.sqrt(np.sum(np.var(B, axis=0))))
+
+
+def _judged_rows(S: SensorSamples):
+    """The samples whose calibrated spread is checked: those with reference vectors,
+    else those with a reference magnitude. Static-position rows are not: there the true
+    field is constant, a calibration rightly shrinks their spread, and M is held at the
+    baseline (no contraction is possible)."""
+    iv, im, _ = S.idx
+    return iv if len(iv) >= 2 else im
+
+
+def reference_variation_nT(S: SensorSamples, B_baseline) -> tuple:
+    """(variation, what it is): the reference vectors' own where the samples carry them,
+    else, for magnitude rows, the baseline calibration's (the scale the baseline pinned to
+    the reference magnitude); 0 where neither (no check)."""
+    iv, _, _ = S.idx
+    sel = _judged_rows(S)
+    if len(sel) < 2:
+        return 0.0, "nothing (static positions only)"
+    if len(iv) >= 2:
+        return field_variation_nT(S.ref[iv]), "the reference vectors"
+    return field_variation_nT(np.asarray(B_baseline)[sel]), "the baseline calibration"
+
+
+def shrinks(B_new, S: SensorSamples, ref_var: float) -> bool:
+    sel = _judged_rows(S)
+    if len(sel) < 2 or ref_var <= 0:
+        return False
+    return field_variation_nT(np.asarray(B_new)[sel]) < (1.0 - MAX_SHRINK) * ref_var

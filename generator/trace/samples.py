@@ -1,0 +1,265 @@
+"""The samples a trace works on: per sensor, every usable reading with a field reference
+of some kind (ICD section 2: what is known about the true field decides the residual
+type), in time order, with the channels, coil currents and body rates that may explain
+what is left; and the contiguous time blocks of the cross-validation.
+
+Residual rows per sample:
+* `ref_x/y/z_nT` present: vector rows B_cal - B_ref (3 per sample);
+* else `ref_norm_nT` (or the unit's `lab_field_nT`): magnitude rows |B_cal| - |B|;
+* else a static position (`position` > 0): B_cal - B_p, B_p an unknown constant per
+  (file, position), fitted with the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+VEC, NORM, POS = 0, 1, 2
+KIND_NAMES = {VEC: "vector rows B_cal - B_ref (per axis)",
+              NORM: "magnitude rows |B_cal| - |B|",
+              POS: "deviation from a constant per static position (per axis)"}
+
+N_BLOCKS = 50             # contiguous time blocks over a sensor's data
+
+
+@dataclass
+class FileSeries:
+    """One file's temperature series of one sensor (all its readings, in time order):
+    what the thermal-lag recursion runs over; and the candidate channels on the same
+    rows (what a lagged channel's recursion runs over)."""
+    name: str
+    time_s: np.ndarray
+    temp_C: np.ndarray
+    channels: dict = field(default_factory=dict)
+
+
+@dataclass
+class SensorSamples:
+    """The usable samples of one sensor with a field reference of some kind."""
+    spec: object
+    time_s: np.ndarray
+    file_index: np.ndarray
+    file_row: np.ndarray          # index into files[file_index].time_s
+    order: np.ndarray             # global time order (files in the order given)
+    x: np.ndarray                 # (n, 3) raw field, frame axes, nT
+    temp_C: np.ndarray            # reported temperature
+    kind: np.ndarray              # VEC / NORM / POS
+    ref: np.ndarray               # (n, 3) reference vector (body frame), NaN where none
+    norm: np.ndarray              # (n,) reference magnitude, NaN where none
+    group: np.ndarray             # (n,) static-position id (file * 1e6 + position), -1
+    ref_rate: np.ndarray          # (n, 2, 3) forward / backward slope of the reference, nT/s
+    coil: np.ndarray | None       # (n, ncoil) modelled coil currents
+    rate_frame_dps: np.ndarray | None   # (n, 3) body rate in the sensor's frame
+    channels: dict                # candidate channel -> (n,), 0 where the file lacks it
+    files: list                   # FileSeries per file index
+    file_names: list
+    role: np.ndarray              # 0 data file, 1 holdout file
+    channel_present: dict = field(default_factory=dict)   # channel -> (n,) file has it
+    block: np.ndarray | None = None
+    _rows: tuple | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.time_s)
+
+    def subset(self, mask) -> "SensorSamples":
+        m = np.asarray(mask)
+        return SensorSamples(
+            self.spec, self.time_s[m], self.file_index[m], self.file_row[m], self.order[m],
+            self.x[m], self.temp_C[m], self.kind[m], self.ref[m], self.norm[m], self.group[m],
+            self.ref_rate[m], None if self.coil is None else self.coil[m],
+            None if self.rate_frame_dps is None else self.rate_frame_dps[m],
+            {k: v[m] for k, v in self.channels.items()}, self.files, self.file_names,
+            self.role[m], {k: v[m] for k, v in self.channel_present.items()},
+            None if self.block is None else self.block[m])
+
+    @property
+    def idx(self):
+        """(vector, magnitude, position) sample indices."""
+        if self._rows is None:
+            iv = np.nonzero(self.kind == VEC)[0]
+            im = np.nonzero(self.kind == NORM)[0]
+            ip = np.nonzero(self.kind == POS)[0]
+            row_sample = np.concatenate([np.repeat(iv, 3), im, np.repeat(ip, 3)])
+            row_axis = np.concatenate([np.tile([0, 1, 2], len(iv)), np.full(len(im), 3),
+                                       np.tile([0, 1, 2], len(ip))])
+            self._rows = (iv, im, ip, row_sample, row_axis)
+        return self._rows[:3]
+
+    @property
+    def row_sample(self):
+        self.idx
+        return self._rows[3]
+
+    @property
+    def row_axis(self):
+        """0, 1, 2 for the axis rows, 3 for magnitude rows."""
+        self.idx
+        return self._rows[4]
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.row_sample)
+
+    def kinds_present(self) -> list:
+        return [k for k in (VEC, NORM, POS) if np.any(self.kind == k)]
+
+
+def candidate_channels(unit, tels, coils=()) -> tuple:
+    """Columns that may explain a residual: numeric columns of the data files that are
+    not time, position, sensor (<s>_...), reference (ref_...) or modelled coil columns.
+    Returns (all names in first-seen order, the names only some files carry)."""
+    prefixes = tuple(f"{s.name}_" for s in unit.sensors) + ("ref_",)
+    skip = {"time_s", "position", *coils}
+    per = [[c for c in t.columns if c not in skip and not c.startswith(prefixes)]
+           for t in tels]
+    if not per:
+        return [], []
+    names = list(dict.fromkeys(c for cols in per for c in cols))
+    partial = [c for c in names if not all(c in cols for cols in per)]
+    return names, partial
+
+
+def _ref_rate(time_s, ref, position):
+    """Slopes of the reference vectors to the next and from the previous reference
+    sample, (n, 2, 3) nT/s, within runs of moving samples (position 0 or absent): the
+    reference linearly interpolated a time dt later is ref + dt * slope (forward slope
+    for dt > 0, backward for dt < 0). Zero in static positions and at the ends of runs."""
+    out = np.zeros((len(ref), 2, 3))
+    fin = np.isfinite(ref).all(axis=1)
+    idx = np.nonzero(fin)[0]
+    if len(idx) < 3:
+        return out
+    t = time_s[idx]
+    pos = position[idx]
+    dt = np.diff(t)
+    med = np.median(dt[dt > 0]) if np.any(dt > 0) else 1.0
+    brk = np.concatenate([[True], (pos[1:] != pos[:-1]) | (dt > 10 * med) | (dt <= 0)])
+    run = np.cumsum(brk)
+    for r in np.unique(run):
+        sel = idx[run == r]
+        if len(sel) < 3 or position[sel[0]] > 0:
+            continue
+        slope = np.diff(ref[sel], axis=0) / np.diff(time_s[sel])[:, None]
+        out[sel[:-1], 0] = slope
+        out[sel[1:], 1] = slope
+    return out
+
+
+def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None) -> dict:
+    """{sensor: SensorSamples} over all files (data files then holdout files: the time
+    order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
+    boom -> body rotation (the rate in a boom sensor's frame is H^T w)."""
+    from generator.io.telemetry_csv import preprocess
+    notes = notes if notes is not None else []
+    H = np.eye(3) if H is None else np.asarray(H, float)
+    acc = {s.name: [] for s in unit.sensors}
+    files = {s.name: [] for s in unit.sensors}
+    names = [str(t.path) for t in tels]
+    has_rate = any(all(f"rate_{a}_dps" in t.columns for a in "xyz") for t in tels)
+    order0 = 0
+    for fi, (tel, role) in enumerate(zip(tels, roles)):
+        pre = preprocess(tel, unit)
+        n = tel.n
+        t = np.asarray(tel.time_s, float)
+        pos = tel.get("position")
+        pos = np.zeros(n) if pos is None else np.nan_to_num(np.asarray(pos, float))
+        ref = (np.stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1).astype(float)
+               if tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT") else np.full((n, 3), np.nan))
+        has_vec = np.isfinite(ref).all(axis=1)
+        ref_rate = _ref_rate(t, ref, pos) if has_vec.any() else np.zeros((n, 2, 3))
+        norm = tel.get("ref_norm_nT")
+        norm = np.full(n, np.nan) if norm is None else np.asarray(norm, float)
+        if unit.lab_field_nT is not None and "ref_norm_nT" not in tel.columns:
+            norm = np.full(n, float(unit.lab_field_nT))
+        has_norm = np.isfinite(norm) & (norm > 0)
+        kind = np.where(has_vec, VEC, np.where(has_norm, NORM, np.where(pos > 0, POS, -1)))
+        coil = None
+        if coils:
+            cols = [np.asarray(tel.columns[c], float) if c in tel.columns else np.zeros(n)
+                    for c in coils]
+            coil = np.stack(cols, axis=1)
+        rate = None
+        if has_rate:
+            if all(f"rate_{a}_dps" in tel.columns for a in "xyz"):
+                rate = np.nan_to_num(np.stack([tel.columns[f"rate_{a}_dps"] for a in "xyz"],
+                                              axis=1).astype(float))
+            else:
+                rate = np.zeros((n, 3))
+        ch, present = {}, {}
+        for c in channels:
+            v = tel.get(c)
+            present[c] = v is not None
+            if v is None:
+                v = np.zeros(n)
+            v = np.asarray(v, float)
+            if not np.isfinite(v).all():
+                notes.append(f"{tel.path}: channel {c} has {int((~np.isfinite(v)).sum())} "
+                             "empty cells, taken as 0")
+                v = np.nan_to_num(v)
+            ch[c] = v
+        for s in unit.sensors:
+            sd = pre[s.name]
+            series = sd.usable & np.isfinite(sd.temp_C)
+            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0)
+            if coil is not None:
+                ok &= np.isfinite(coil).all(axis=1)
+            srow = np.cumsum(series) - 1
+            files[s.name].append(FileSeries(names[fi], t[series], np.asarray(sd.temp_C,
+                                                                              float)[series],
+                                            {c: v[series] for c, v in ch.items()}))
+            i = np.nonzero(ok)[0]
+            w = None
+            if rate is not None:
+                w = rate[i] @ H if s.frame == "boom" else rate[i]
+            acc[s.name].append(dict(
+                time_s=t[i], file_index=np.full(len(i), fi), file_row=srow[i],
+                order=order0 + i, x=sd.field_frame_nT[i], temp_C=np.asarray(sd.temp_C)[i],
+                kind=kind[i], ref=ref[i], norm=np.where(has_vec[i], np.linalg.norm(
+                    np.nan_to_num(ref[i]), axis=1), norm[i]),
+                group=np.where(kind[i] == POS, fi * 1_000_000 + pos[i], -1).astype(np.int64),
+                ref_rate=ref_rate[i], coil=None if coil is None else coil[i], rate=w,
+                channels={c: v[i] for c, v in ch.items()}, role=np.full(len(i), role),
+                present={c: np.full(len(i), present[c]) for c in ch}))
+        order0 += n
+    out = {}
+    for s in unit.sensors:
+        parts = acc[s.name]
+
+        def cat(key, parts=parts):
+            vals = [p[key] for p in parts]
+            return None if vals[0] is None else np.concatenate(vals)
+        out[s.name] = SensorSamples(
+            s, cat("time_s"), cat("file_index"), cat("file_row"), cat("order"), cat("x"),
+            cat("temp_C"), cat("kind"), cat("ref"), cat("norm"), cat("group"),
+            cat("ref_rate"), cat("coil"), cat("rate"),
+            {c: np.concatenate([p["channels"][c] for p in parts]) for c in channels},
+            files[s.name], names, cat("role"),
+            {c: np.concatenate([p["present"][c] for p in parts]) for c in channels})
+    return out
+
+
+def assign_blocks(S: SensorSamples, n_blocks=N_BLOCKS) -> np.ndarray:
+    """Contiguous time blocks (sample order), cut at file changes and, for position
+    rows, at position changes; a static position gets at least two blocks so that its
+    constant is fitted from another block than the one held out."""
+    n = S.n
+    if n == 0:
+        return np.zeros(0, int)
+    o = np.argsort(S.order, kind="stable")
+    key = S.file_index[o] * 10_000_000 + np.where(S.kind[o] == POS, S.group[o] % 1_000_000, -1)
+    cut = np.concatenate([[0], np.nonzero(np.diff(key))[0] + 1, [n]])
+    L = max(1.0, n / n_blocks)
+    block = np.empty(n, int)
+    b = 0
+    for a, z in zip(cut[:-1], cut[1:]):
+        m = z - a
+        nb = max(1, int(round(m / L)))
+        if S.kind[o[a]] == POS and m >= 2:
+            nb = max(nb, 2)
+        for chunk in np.array_split(np.arange(a, z), nb):
+            block[o[chunk]] = b
+            b += 1
+    return block
