@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.report.report import Report, Section, Table
+from generator.report.document import Report, Section, Table
 from generator.trace.residual import per_sample, quantities
 from generator.trace.tracer import (NORM, SensorSamples, SensorTrace, Step, TraceResult,
                                      evidence_sentence, protocol_text, runner_up_text,
