@@ -116,8 +116,10 @@ def _expected(cs, cols):
     flat = {s.name: cs.flat_sensor(s.name) for s in cs.unit.sensors}
     sel = reference_select(cs.spec, flat, fields, st)
     for k, s in enumerate(cs.unit.sensors):
+        # a sample missing from the file carries the ABSENT bit (valid = status 0)
         out[s.name]["status"] = np.where(present[s.name], sel["status"][:, k],
-                                         out[s.name]["status"])
+                                         np.asarray(out[s.name]["status"], dtype=np.uint16)
+                                         | pipeline.STATUS_ABSENT)
     return out, present, sel
 
 

@@ -407,14 +407,17 @@ def _short(v, limit: int = 40) -> str:
 
 
 def _check_sensor_values(v: dict, where, path) -> None:
-    t_min, t_max, t_ref = float(v["t_min_C"]), float(v["t_max_C"]), float(v["t_ref_C"])
-    for k, t in (("t_min_C", t_min), ("t_max_C", t_max), ("t_ref_C", t_ref)):
-        if not TEMP_RANGE_C[0] <= t <= TEMP_RANGE_C[1]:
-            raise InputError(path, f"{where}.{k}: {t:g} degC is outside the physical range "
-                                   f"{TEMP_RANGE_C[0]:g}..{TEMP_RANGE_C[1]:g} degC")
-    if not t_min <= t_max:
-        raise InputError(path, f"{where}.t_min_C: {t_min:g} is above t_max_C {t_max:g}")
-    if not float(v["lsb_nT"]) > 0:
+    """Plausibility of one sensor's blocks (the chain decides which it has: a sensor with
+    no temperature has no t_*_C, a physical-input sensor no lsb_nT)."""
+    if "t_min_C" in v:
+        t_min, t_max, t_ref = float(v["t_min_C"]), float(v["t_max_C"]), float(v["t_ref_C"])
+        for k, t in (("t_min_C", t_min), ("t_max_C", t_max), ("t_ref_C", t_ref)):
+            if not TEMP_RANGE_C[0] <= t <= TEMP_RANGE_C[1]:
+                raise InputError(path, f"{where}.{k}: {t:g} degC is outside the physical "
+                                       f"range {TEMP_RANGE_C[0]:g}..{TEMP_RANGE_C[1]:g} degC")
+        if not t_min <= t_max:
+            raise InputError(path, f"{where}.t_min_C: {t_min:g} is above t_max_C {t_max:g}")
+    if "lsb_nT" in v and not float(v["lsb_nT"]) > 0:
         raise InputError(path, f"{where}.lsb_nT: must be positive")
     if not float(v["agree_nT"]) > 0:
         raise InputError(path, f"{where}.agree_nT: must be positive")

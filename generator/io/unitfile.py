@@ -114,12 +114,16 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
 
     boom_reference = None
     boom_sensors = [s.name for s in sensors if s.frame == "boom"]
+    body_sensors = [s.name for s in sensors if s.frame == "body"]
     boom_tbl = _Table.top(path, lines, doc, "boom", required=False)
-    if boom_tbl is None and boom_sensors:
+    # boom sensors and no body-frame sensor: nothing to align them to, H is the identity
+    # (the coefficients and the header say so); with a body-frame sensor the reference
+    # must be named, a forgotten [boom] is not taken as "no alignment"
+    if boom_tbl is None and boom_sensors and body_sensors:
         raise InputError(path, f"[boom]: reference: missing; sensor(s) {', '.join(boom_sensors)} "
                                "have frame = \"boom\" and need a body-frame reference sensor")
     if boom_tbl is not None:
-        boom_reference = boom_tbl.name("reference", required=bool(boom_sensors))
+        boom_reference = boom_tbl.name("reference", required=bool(boom_sensors and body_sensors))
         if boom_reference is not None:
             body = [s.name for s in sensors if s.frame == "body"]
             if boom_reference not in body:
