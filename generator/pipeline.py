@@ -108,6 +108,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
     from generator.fit.sanity import check_rotation
+    from generator.fit.scale_check import check_reading_scale
     from generator.io.names import column_fault
     from generator.fit.thermal import fit_unit
 
@@ -152,6 +153,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             fault = column_fault(c)
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
+    check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
     cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],

@@ -474,7 +474,8 @@ def test_absurd_unit_numbers_are_refused(tmp_path, fm1, unit_text, key, value):
 
 def test_names_page_lists_every_reserved_name():
     text = (REPO / "docs" / "names.md").read_text()
-    for w in sorted(names.RESERVED_WORDS | names.RESERVED_FAMILIES | names.C_LIBRARY_NAMES):
+    for w in sorted(names.RESERVED_WORDS | names.RESERVED_FAMILIES | names.C_LIBRARY_NAMES
+                    | names.ICD_PREFIXES):
         assert f"`{w}`" in text or f" {w} " in text or f"`{w} " in text or f" {w}`" in text, w
     for kw in sorted(k for k in names.C_KEYWORDS if k.islower()):
         assert kw in text, kw

@@ -144,8 +144,6 @@ UNIT_FAULTS = {
                        "[[sensor]] #3 'mpu1': name: duplicate sensor name 'mpu1'", False),
     "column clash": ('name = "mpu1"', 'name = "mmc1_set"',
                      "[[sensor]] #2 'mmc1_set': name: telemetry column 'mmc1_set_x' would also belong to sensor 'mmc1'", True),
-    "boom table missing": ('[boom]\nreference = "mmc1"\n', '',
-                           "[boom]: reference: missing; sensor(s) mpu3 have frame = \"boom\"", False),
     "boom reference missing": ('reference = "mmc1"', 'ref = "mmc1"', "[boom]: reference: missing", False),
     "boom reference is boom": ('reference = "mmc1"', 'reference = "mpu3"',
                                "[boom]: reference: 'mpu3' is a boom-frame sensor; it must name a body-frame sensor", True),
@@ -632,3 +630,39 @@ def test_telemetry_of_another_unit_is_refused(tmp_path, fm1_dir):
     p.write_text(text)
     with pytest.raises(InputError, match="another unit"):
         read_telemetry(p, unit)
+
+
+def test_boom_sensors_without_a_boom_table_are_accepted(tmp_path):
+    """Issue 15: a boom sensor with no [boom] reference is accepted (H is then the
+    identity, and the coefficients and header say so: test_any_unit.py)."""
+    text = UNIT_TOML.replace('[boom]\nreference = "mmc1"\n', '')
+    assert text != UNIT_TOML
+    p = tmp_path / "u.toml"
+    p.write_text(text)
+    unit = load_unit(p)
+    assert unit.boom_reference is None and any(s.frame == "boom" for s in unit.sensors)
+
+
+def test_more_than_eight_sensors_is_refused_at_the_unit_file(tmp_path):
+    block = UNIT_TOML[UNIT_TOML.index("[[sensor]]"):UNIT_TOML.index("[[sensor]]", UNIT_TOML.index("[[sensor]]") + 1)]
+    extra = "".join(block.replace('name = "mmc1"', f'name = "extra{i}"') for i in range(9))
+    p = tmp_path / "u.toml"
+    p.write_text(UNIT_TOML + "\n" + extra)
+    with pytest.raises(InputError, match="1 to 8"):
+        load_unit(p)
+
+
+def test_readings_in_the_wrong_unit_are_refused_before_the_fit(tmp_path, fm1_dir, capsys):
+    """lsb_nT 1000x too small: the fit would 'succeed' with a meaningless calibration."""
+    from generator.cli import main
+    text = (fm1_dir / "unit.toml").read_text()
+    assert "lsb_nT = 25.0" in text
+    unit = tmp_path / "unit.toml"
+    unit.write_text(text.replace("lsb_nT = 25.0", "lsb_nT = 0.025", 1))
+    rows = (fm1_dir / "thermal_12pos.csv").read_text().splitlines()
+    data = tmp_path / "d.csv"
+    data.write_text("\n".join(rows[:400]) + "\n")
+    rc = main(["fit", str(unit), str(data), "-o", str(tmp_path / "out"), "-q"])
+    assert rc == 2 and not (tmp_path / "out").exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not match the data" in err[0] and "lsb_nT = 0.025" in err[0]

@@ -55,8 +55,17 @@ RESERVED_FAMILIES = frozenset("table status select sensor channel unit part".spl
 # `sel` above: the apply output's selected vector (sel_x_nT ...) would get a second column.
 
 
+# Column prefixes the ICD gives a meaning (ref_x_nT, coil_x_A, rate_x_dps, time_s, lat_deg,
+# ecef_x_km, kp_index): a sensor of that name would write or read its columns (apply writes
+# <s>_x_nT: a sensor `ref` would write ref_x_nT, the reference field's column).
+ICD_PREFIXES = frozenset("ref coil rate time position lat lon alt ecef kp".split())
+
+
 def reserved_reason(name: str) -> str | None:
     """Why `name` cannot be a unit or sensor name, or None."""
+    if name.split("_", 1)[0] in ICD_PREFIXES:
+        return (f"starts with '{name.split('_', 1)[0]}', a column prefix of the ICD "
+                "(ref_x_nT, coil_x_A, rate_x_dps, ...): its columns would collide")
     if name in C_KEYWORDS:
         return "is a C keyword"
     if name in C_LIBRARY_NAMES:

@@ -27,6 +27,7 @@ from generator.io.names import name_fault, prefix_collision
 from generator.io.unit import FLOAT_TYPES, FRAMES, SensorSpec, Unit
 
 AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
+MAX_SENSORS = 8           # the flight chain's fixed size (flight/chain.py checks it too)
 
 UNIT_KEYS = ("id", "lab_field_nT", "float")
 BOOM_KEYS = ("reference",)
@@ -99,6 +100,10 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
                          line=lines.table("sensor", 1))
     if not sensor_list:
         raise InputError(path, "[[sensor]]: no sensor (at least one [[sensor]] table is needed)")
+    if len(sensor_list) > MAX_SENSORS:
+        raise InputError(path, f"[[sensor]]: {len(sensor_list)} sensors; a unit has 1 to "
+                               f"{MAX_SENSORS} (the flight code's fixed size)",
+                         line=lines.table("sensor", MAX_SENSORS + 1))
 
     sensors = []
     sensor_extra = {}
@@ -116,12 +121,9 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
     boom_sensors = [s.name for s in sensors if s.frame == "boom"]
     body_sensors = [s.name for s in sensors if s.frame == "body"]
     boom_tbl = _Table.top(path, lines, doc, "boom", required=False)
-    # boom sensors and no body-frame sensor: nothing to align them to, H is the identity
-    # (the coefficients and the header say so); with a body-frame sensor the reference
-    # must be named, a forgotten [boom] is not taken as "no alignment"
-    if boom_tbl is None and boom_sensors and body_sensors:
-        raise InputError(path, f"[boom]: reference: missing; sensor(s) {', '.join(boom_sensors)} "
-                               "have frame = \"boom\" and need a body-frame reference sensor")
+    # boom sensors and no [boom] reference (or no body-frame sensor to name): nothing to
+    # align them to, H is the identity and the coefficients, the header and the report
+    # say so (ICD section 1 names the reference where there is one)
     if boom_tbl is not None:
         boom_reference = boom_tbl.name("reference", required=bool(boom_sensors and body_sensors))
         if boom_reference is not None:
@@ -164,7 +166,9 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
     inp = t.choice("input", P.INPUTS, default="counts")
     range_nT = t.number("range_nT", required=part.generic, positive=True,
                         at_most=FIELD_LIMIT_nT)
-    temperature = t.boolean("temperature", default=True)
+    # default from the part: a part without a temperature sensor (IST8310, HMC5883L, ...)
+    # has no <s>_temp_C column unless the unit file says otherwise
+    temperature = t.boolean("temperature", default=part.temperature)
     if inp == "counts":
         lsb_nT = t.number("lsb_nT", positive=True, at_most=FIELD_LIMIT_nT)
         zero_count = t.integer("zero_count")
