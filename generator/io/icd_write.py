@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from generator.io.names import MAX_NAME_CHARS
+
 
 STANDIN_TEMP_C = 20.0   # --as-counts: the constant temperature of a sensor that reports none
-UNIT_ID_MAX = 31        # the uplink table header holds the id in 32 bytes (flight/tables.py)
+UNIT_ID_MAX = MAX_NAME_CHARS   # the names' limit (io/names.py), within the table header's 32 bytes
 
 
 def unit_id_from(prefix: str, stem: str) -> str:

@@ -284,8 +284,9 @@ def _check_geo(path, columns: dict, line_numbers: np.ndarray) -> None:
 
 def _physical_bounds(name: str):
     """(low, high, unit) a cell of this column must lie within."""
-    if name.endswith("_temp_C"):
-        return TEMP_RANGE_C[0], TEMP_RANGE_C[1], " degC"
+    # a temperature cell is bounded here by CELL_LIMIT only: an impossible reading (1e6
+    # degC) is a fault of that sample, which the fits reject and count
+    # (fit/samples.screen_temperatures) and the flight code clamps and flags
     if name.startswith("ref_") and name.endswith("_nT"):
         return (0.0 if name == "ref_norm_nT" else -REF_LIMIT_nT), REF_LIMIT_nT, " nT"
     return -CELL_LIMIT, CELL_LIMIT, ""
