@@ -81,6 +81,7 @@ from generator.flight.chain import MAX_POLY_DEGREE, ChainSpec, SensorOptions
 from generator.flight.coeffs import CoefficientSet, json_default
 from generator.errors import InputError
 from generator.fit.ellipsoid import sym_from6
+from generator.fit.reference import T_REF_C
 
 VEC, NORM, POS = 0, 1, 2
 KIND_NAMES = {VEC: "vector rows B_cal - B_ref (per axis)",
@@ -279,20 +280,22 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             ch[c] = v
         for s in unit.sensors:
             sd = pre[s.name]
-            series = sd.usable & np.isfinite(sd.temp_C)
+            # a sensor without temperature (temperature = false): the constant stand-in
+            # (its baseline clamps every temperature to dT = 0, so the value is immaterial)
+            temp_C = np.asarray(sd.temp_or(T_REF_C), float)
+            series = sd.usable & np.isfinite(temp_C)
             ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0)
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
-            files[s.name].append(FileSeries(names[fi], t[series], np.asarray(sd.temp_C,
-                                                                              float)[series]))
+            files[s.name].append(FileSeries(names[fi], t[series], temp_C[series]))
             i = np.nonzero(ok)[0]
             w = None
             if rate is not None:
                 w = rate[i] @ H if s.frame == "boom" else rate[i]
             acc[s.name].append(dict(
                 time_s=t[i], file_index=np.full(len(i), fi), file_row=srow[i],
-                order=order0 + i, x=sd.field_frame_nT[i], temp_C=np.asarray(sd.temp_C)[i],
+                order=order0 + i, x=sd.field_frame_nT[i], temp_C=temp_C[i],
                 kind=kind[i], ref=ref[i], norm=np.where(has_vec[i], np.linalg.norm(
                     np.nan_to_num(ref[i]), axis=1), norm[i]),
                 group=np.where(kind[i] == POS, fi * 1_000_000 + pos[i], -1).astype(np.int64),
@@ -1314,6 +1317,8 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             a = v[key]
             if a.shape[0] < degree + 1:
                 v[key] = np.concatenate([a, np.zeros((degree + 1 - a.shape[0],) + shape)])
+            # a sensor without temperature: constant b, M (its model sits at dT = 0)
+            v[key] = v[key][:spec.degree(s) + 1]
         sensors[s.name] = {b.name: np.asarray(v[b.name], float).reshape(b.shape)
                            for b in spec.sensor_blocks(s)}
     fit_info = dict(base.fit_info)
