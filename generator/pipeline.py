@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import STATUS_BITS, ChainSpec, is_physical
+from generator.flight.chain import STATUS_BITS, ChainSpec, SensorOptions, is_physical
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
@@ -86,9 +86,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
       between the reference body sensor and the boom MMC5883 (fit_alignment); checked to
       be a rotation.
     Every calibration passes fit.sanity before anything is written (InputError if not).
-    fit_info["set_reset_compensation"]: per sensor whether the chain should compensate the
-    SET/RESET rotation error with the gyro, and why (the chain's default does not yet
-    follow it: a flight-side change).
+    fit_info["set_reset_compensation"]: per sensor whether the chain compensates the
+    SET/RESET rotation error with the gyro, and why; where enabled, the chain has the
+    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision.
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import fit_coils, has_coil_steps
@@ -138,10 +138,13 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
+    sr_opts, sr_values = {}, {}
     for n, c in cals.items():
         sr = c.stats.get("set_reset_compensation") or {}
         if sr.get("enabled"):
-            progress(f"{n}: SET/RESET gyro compensation advised: {sr['why']}")
+            sr_opts[n] = SensorOptions(sr_compensation=True)
+            sr_values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
+            progress(f"{n}: SET/RESET gyro compensation in the chain: {sr['why']}")
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
@@ -166,7 +169,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             info["notes"].append("no campaign with the boom deployed (one without reference "
                                  "vectors): H is the identity")
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
-                                            coils=coils, fit_info=info)
+                                            coils=coils, fit_info=info,
+                                            sensor_options=sr_opts, option_values=sr_values)
 
 
 # ---- apply --------------------------------------------------------------------------------

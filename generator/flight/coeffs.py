@@ -15,7 +15,7 @@ import numpy as np
 
 from generator import __version__
 from generator.fit.calibration import SensorCalibration
-from generator.flight.chain import ChainSpec, is_physical
+from generator.flight.chain import ChainSpec, SensorOptions, is_physical
 from generator.errors import InputError
 from generator.io.unit import Unit
 
@@ -69,8 +69,14 @@ class CoefficientSet:
     @staticmethod
     def from_calibrations(unit: Unit, cals: dict, H_boom_to_body=None, K_nT_per_A=None,
                           coils=(), fit_info=None, agree_nT=None,
-                          field_band_nT=FIELD_BAND_nT) -> "CoefficientSet":
+                          field_band_nT=FIELD_BAND_nT, sensor_options=None,
+                          option_values=None) -> "CoefficientSet":
         """From fitted SensorCalibration objects (and optional H and coil couplings).
+
+        sensor_options: {sensor: chain.SensorOptions} (optional stages, e.g. the SET/RESET
+        gyro compensation); option_values: {sensor: {block name: value}}, the values of
+        the blocks those options add (e.g. sr_comp_s_per_deg). A block left without a
+        value is a ValueError.
 
         agree_nT: {sensor: tolerance} for the cross-sensor check; by default
         AGREE_SIGMAS x sqrt(3) x the sensor's per-axis scatter (its noise_nT, or the fit's
@@ -79,7 +85,9 @@ class CoefficientSet:
         # none is constant whatever degree its calibration carries)
         with_t = [cals[s.name] for s in unit.sensors if s.temperature]
         degree = with_t[0].b_poly_nT.shape[0] - 1 if with_t else 0
-        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils))
+        opts = tuple((s.name, sensor_options[s.name]) for s in unit.sensors
+                     if (sensor_options or {}).get(s.name) not in (None, SensorOptions()))
+        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils), sensor_options=opts)
         sensors, unc = {}, {}
         for s in unit.sensors:
             cal: SensorCalibration = cals[s.name]
@@ -102,6 +110,12 @@ class CoefficientSet:
                     else np.zeros((3, len(coils)))
             v["agree_nT"] = np.array(float(agree_nT[s.name]) if agree_nT else
                                      default_agree_nT(s, cal))
+            for k, a in (option_values or {}).get(s.name, {}).items():
+                v[k] = np.asarray(a, float)
+            missing = [b.name for b in spec.sensor_blocks(s) if b.name not in v]
+            if missing:
+                raise ValueError(f"sensor '{s.name}': no value for {', '.join(missing)} "
+                                 "(option_values)")
             sensors[s.name] = v
             u = {}
             if cal.b_poly_sigma_nT is not None:
