@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import STATUS_BITS, ChainSpec, SensorOptions, is_physical
+from generator.flight.chain import STATUS_BITS, ChainSpec, SensorOptions, is_physical, is_valid
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
@@ -202,7 +202,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None) -> 
     for k, s in enumerate(cs.unit.sensors):
         r = results[s.name]
         r["status"] = np.where(r["present"], sel["status"][:, k], r["status"])
-        r["valid"] = (r["status"] == 0) & r["present"]
+        r["valid"] = is_valid(r["status"]) & r["present"]
         progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
     results["selected"] = sel
     results["fallback_order"] = cs.spec.fallback_order()
@@ -233,7 +233,7 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
     with open(tmp, "w", newline="") as f:
         f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
         f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
-                + f" ABSENT={STATUS_ABSENT}; valid = status 0\n")
+                + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED\n")
         f.write("# sel_*: the vector for attitude control (fallback order "
                 + " > ".join(names[i] for i in results["fallback_order"]) + ")\n")
         w = csv.writer(f, lineterminator="\n")

@@ -25,9 +25,25 @@ FORMAT_VERSION = 1
 # Plausible |B| for the flight check: LEO spans about 18,000-55,000 nT, the lab ~50,000.
 FIELD_BAND_nT = (15000.0, 70000.0)
 AGREE_SIGMAS = 5.0
+# The largest temp_margin_C written: the span of plausible temperatures (tables.py "temp",
+# -100..150 degC), beyond which a margin means nothing.
+TEMP_MARGIN_MAX_C = 250.0
 # fit_info["boom_alignment"] when no H was fitted (no body-frame reference for the boom)
 NO_BOOM_ALIGNMENT = ("identity, not fitted (no body-frame reference or no boom campaign): "
                      "the boom sensors' field is reported in the boom frame")
+
+
+def temp_margin_C(unit, cal) -> float:
+    """How far outside its calibrated range a sensor's temperature may go with the sample
+    still valid (chain block temp_margin_C): the unit's requirement ([requirements]
+    field_error_nT, ICD section 4) over the error's growth outside the range
+    (stats["extrapolation"]["growth_nT_per_C"], fit.thermal.extrapolation_growth). No
+    requirement or no growth estimate: 0 (every sample outside the range is invalid)."""
+    req = ((unit.extra or {}).get("requirements") or {}).get("field_error_nT")
+    g = ((cal.stats or {}).get("extrapolation") or {}).get("growth_nT_per_C")
+    if not req or not g or not np.isfinite(g) or g <= 0:
+        return 0.0
+    return float(min(float(req) / float(g), TEMP_MARGIN_MAX_C))
 
 
 def default_agree_nT(sensor, cal) -> float:
@@ -103,6 +119,7 @@ class CoefficientSet:
                 v["t_ref_C"] = np.array(cal.t_ref_C)
                 v["t_min_C"] = np.array(cal.t_min_C)
                 v["t_max_C"] = np.array(cal.t_max_C)
+                v["temp_margin_C"] = np.array(temp_margin_C(unit, cal))
             v["b_poly_nT"] = np.asarray(cal.b_poly_nT, float)[:nk]
             v["M_poly"] = np.asarray(cal.M_poly, float)[:nk]
             if coils:
