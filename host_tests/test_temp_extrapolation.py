@@ -100,6 +100,11 @@ def test_margin_is_requirement_over_growth():
     assert temp_margin_C(unit, cal) == 0.0          # no requirement: the old behaviour
     with_req = dataclasses.replace(unit, extra={"requirements": {"field_error_nT": 150.0}})
     assert temp_margin_C(with_req, cal) == pytest.approx(3.0, rel=1e-15)
+    # the calibration's own error comes first: (150 - 50) / 50
+    cal.stats["predicted_error"] = {"field_error_nT": 50.0}
+    assert temp_margin_C(with_req, cal) == pytest.approx(2.0, rel=1e-15)
+    cal.stats["predicted_error"] = {"field_error_nT": 200.0}   # already above it
+    assert temp_margin_C(with_req, cal) == 0.0
     cal.stats = {}
     assert temp_margin_C(with_req, cal) == 0.0      # no growth estimate
 
@@ -152,8 +157,12 @@ def test_fit_writes_a_margin_from_the_unit_requirement(tmp_path):
     data.write_text("\n".join(text) + "\n")
     assert main(["fit", str(unit), str(data), "-o", str(tmp_path / "fit"), "-q"]) == 0
     j = json.loads((tmp_path / "fit" / "coefficients.json").read_text())
-    g = j["fit"]["sensors"]["mpu"]["stats"]["extrapolation"]["growth_nT_per_C"]
-    assert j["sensors"]["mpu"]["temp_margin_C"] == pytest.approx(150.0 / g, rel=1e-12)
+    st = j["fit"]["sensors"]["mpu"]["stats"]
+    g = st["extrapolation"]["growth_nT_per_C"]
+    own = st["predicted_error"]["field_error_nT"]
+    assert 0 < own < 150.0
+    assert j["sensors"]["mpu"]["temp_margin_C"] == pytest.approx((150.0 - own) / g,
+                                                                 rel=1e-12)
     assert 0 < j["sensors"]["mpu"]["temp_margin_C"] < 250.0
 
 

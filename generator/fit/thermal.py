@@ -181,8 +181,9 @@ def extrapolation_growth(cal, field_nT) -> dict:
     A term the fit did not determine (a constant, degree 0, model has no slope at all)
     takes the part's prior 1-sigma for the slope (reference.PART_PRIOR_SIGMA, degree 1):
     not knowing the drift is not a drift of zero. Per end, for a field in a random
-    direction (as predicted_error): g^2 = sum_ij (M'_ij)^2 |B|^2 / 3 + |M b'|^2, with
-    M' = dM/dT, b' = db/dT; the larger end is returned as growth_nT_per_C."""
+    direction (as predicted_error): g^2 = sum_ij (M'_ij)^2 |B|^2 / 3 + | |M| |b'| |^2,
+    with M' = dM/dT, b' = db/dT, each taken as |slope| + 1-sigma and |M| elementwise (an
+    upper bound of |M b'|); the larger end is returned as growth_nT_per_C."""
     from generator.fit.reference import PART_PRIOR_SIGMA
 
     F = float(np.median(field_nT)) if len(field_nT) else None

@@ -35,15 +35,20 @@ NO_BOOM_ALIGNMENT = ("identity, not fitted (no body-frame reference or no boom c
 
 def temp_margin_C(unit, cal) -> float:
     """How far outside its calibrated range a sensor's temperature may go with the sample
-    still valid (chain block temp_margin_C): the unit's requirement ([requirements]
-    field_error_nT, ICD section 4) over the error's growth outside the range
-    (stats["extrapolation"]["growth_nT_per_C"], fit.thermal.extrapolation_growth). No
-    requirement or no growth estimate: 0 (every sample outside the range is invalid)."""
+    still valid (chain block temp_margin_C): the distance d at which the extrapolated
+    error, the calibration's own predicted error (stats["predicted_error"]
+    ["field_error_nT"], from the coefficients' 1-sigma) plus d times the error's growth
+    outside the range (stats["extrapolation"]["growth_nT_per_C"],
+    fit.thermal.extrapolation_growth), reaches the unit's requirement ([requirements]
+    field_error_nT, ICD section 4). No requirement or no growth estimate: 0 (every
+    sample outside the range is invalid)."""
+    st = cal.stats or {}
     req = ((unit.extra or {}).get("requirements") or {}).get("field_error_nT")
-    g = ((cal.stats or {}).get("extrapolation") or {}).get("growth_nT_per_C")
+    g = (st.get("extrapolation") or {}).get("growth_nT_per_C")
     if not req or not g or not np.isfinite(g) or g <= 0:
         return 0.0
-    return float(min(float(req) / float(g), TEMP_MARGIN_MAX_C))
+    own = float((st.get("predicted_error") or {}).get("field_error_nT") or 0.0)
+    return float(min(max(float(req) - own, 0.0) / float(g), TEMP_MARGIN_MAX_C))
 
 
 def default_agree_nT(sensor, cal) -> float:
