@@ -996,6 +996,7 @@ def fit_summary(cs, coefficients_path, report_path) -> dict:
             "samples_used": st.get("samples_used"),
             "rms_vector_nT": fitst.get("rms_vector_nT"),
             "rms_norm_nT": fitst.get("rms_norm_nT"),
+            "temp_margin_C": float(v["temp_margin_C"]) if "temp_margin_C" in v else None,
             "set_reset_compensation": {
                 "in_chain": bool(cs.spec.opts(s).sr_compensation),
                 "why": (st.get("set_reset_compensation") or {}).get("why")},
