@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.flight.chain import reference_sensor
+from generator.flight.chain import is_valid, reference_sensor
 from generator.flight.coeffs import CoefficientSet
 
 
@@ -45,7 +45,7 @@ def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed, coils_off=Fal
                                   inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
         same = _same_bits(c_out, py_out)
         identical &= same
-        ok = inp["present"] & (c_out["status"] == 0)
+        ok = inp["present"] & is_valid(c_out["status"])
         raw_B = data[s.name].field_frame_nT
         B_tp = truth_mod.true_calibrated_frame(truth, s.name, raw_B, data[s.name].temp_C,
                                                coil_A=coil)

@@ -6,7 +6,7 @@ import csv
 
 import numpy as np
 
-from generator.flight.chain import STATUS_BITS, ChainSpec, is_physical
+from generator.flight.chain import STATUS_BITS, ChainSpec, SensorOptions, is_physical, is_valid
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.progress import Progress
@@ -101,9 +101,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
       between the reference body sensor and the boom MMC5883 (fit_alignment); checked to
       be a rotation.
     Every calibration passes fit.sanity before anything is written (InputError if not).
-    fit_info["set_reset_compensation"]: per sensor whether the chain should compensate the
-    SET/RESET rotation error with the gyro, and why (the chain's default does not yet
-    follow it: a flight-side change).
+    fit_info["set_reset_compensation"]: per sensor whether the chain compensates the
+    SET/RESET rotation error with the gyro, and why; where enabled, the chain has the
+    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision.
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
@@ -161,10 +161,13 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
+    sr_opts, sr_values = {}, {}
     for n, c in cals.items():
         sr = c.stats.get("set_reset_compensation") or {}
         if sr.get("enabled"):
-            progress(f"{n}: SET/RESET gyro compensation advised: {sr['why']}")
+            sr_opts[n] = SensorOptions(sr_compensation=True)
+            sr_values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
+            progress(f"{n}: SET/RESET gyro compensation in the chain: {sr['why']}")
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
@@ -189,7 +192,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             info["notes"].append("no campaign with the boom deployed (one without reference "
                                  "vectors): H is the identity")
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
-                                            coils=coils, fit_info=info)
+                                            coils=coils, fit_info=info,
+                                            sensor_options=sr_opts, option_values=sr_values)
 
 
 # ---- apply --------------------------------------------------------------------------------
@@ -222,10 +226,11 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     sel = host.select(fields, statuses)
     for k, s in enumerate(cs.unit.sensors):
         r = results[s.name]
-        # a sample missing from the file carries the ABSENT bit: valid is status 0 exactly
+        # a sample missing from the file carries the ABSENT bit; valid: no status bit but
+        # the informational TEMP_EXTRAPOLATED (chain.is_valid)
         r["status"] = np.where(r["present"], sel["status"][:, k],
                                np.asarray(r["status"], dtype=np.uint16) | STATUS_ABSENT)
-        r["valid"] = (r["status"] == 0) & r["present"]
+        r["valid"] = is_valid(r["status"]) & r["present"]
         progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
     results["selected"] = sel
     results["fallback_order"] = cs.spec.fallback_order()
@@ -253,7 +258,7 @@ def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
     with atomic_file(out_path, "w", newline="") as f:
         f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
         f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
-                + f" ABSENT={STATUS_ABSENT}; valid = status 0\n")
+                + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED\n")
         f.write("# sel_*: the vector for attitude control (fallback order "
                 + " > ".join(names[i] for i in results["fallback_order"]) + ")\n")
         w = csv.writer(f, lineterminator="\n")

@@ -37,11 +37,6 @@ import pytest
 from conftest import REALDATA
 from generator.cli import main
 
-NEEDS_FIT_WITHOUT_TEMPERATURE = pytest.mark.xfail(
-    strict=True, reason="physical-unit, temperature-less sensors: the fit does not yet take "
-                        "a sensor without temperature (issue 15 item 4, fits)")
-
-
 def _need(path):
     if not path.exists():
         msg = f"real recording not found at {path}"
@@ -177,7 +172,6 @@ def test_ck_explorer_fit_generate_apply(tmp_path):
                         _norm_spread(tel, unit, CK_FIELD_nT))
 
 
-@NEEDS_FIT_WITHOUT_TEMPERATURE
 def test_ck_explorer_physical_units(tmp_path):
     unit, data, (tel,) = _import_ck(tmp_path)
     _fit_generate_apply(tmp_path, tmp_path / "imp" / "unit.toml", data, CK_FIELD_nT,
@@ -429,7 +423,6 @@ def test_px4_ecl_office_trace_generate_apply(tmp_path):
 
 
 @pytest.mark.slow
-@NEEDS_FIT_WITHOUT_TEMPERATURE
 def test_px4_ecl_office_physical_units(tmp_path):
     """The same log in gauss (input = "G"; vmag without temperature): trace, then the C."""
     unit, data, (tel,) = _import_ecl(tmp_path)

@@ -330,9 +330,10 @@ def gather_samples(unit, tels, pres=None) -> dict:
         for fi, (tel, pre) in enumerate(zip(tels, pres)):
             sd = pre[s.name]
             n = tel.n
+            temp_C = sd.temp_or(T_REF_C)    # a sensor without temperature: the constant t_ref
             cnt = np.stack([np.asarray(sd.counts.get(c, np.full(n, np.nan)), float)
                             for c in s.count_columns], 1) if sd.counts else np.full((n, 1), np.nan)
-            missing = ~np.isfinite(cnt).all(axis=1) | ~np.isfinite(sd.temp_C)
+            missing = ~np.isfinite(cnt).all(axis=1) | ~np.isfinite(temp_C)
             saturated = ~sd.usable & ~missing
             flags.append({"missing": missing, "saturated": saturated})
             use = sd.usable & np.isfinite(sd.field_frame_nT).all(axis=1)
@@ -366,7 +367,7 @@ def gather_samples(unit, tels, pres=None) -> dict:
                 np.asarray(pos, float), nan=0).astype(int)
             keep = np.nonzero(use)[0]
             has_pos = tel.get("position") is not None
-            fsegs = find_segments(tel.time_s, sd.temp_C, tel.get("position"), use)
+            fsegs = find_segments(tel.time_s, temp_C, tel.get("position"), use)
             remap = -np.ones(n, int)
             remap[keep] = offset + np.arange(len(keep))
             for sg in fsegs:
@@ -376,7 +377,7 @@ def gather_samples(unit, tels, pres=None) -> dict:
                     sg.position = 0          # a moving campaign: no static position
                 segs.append(sg)
             parts["x"].append(sd.field_frame_nT[keep])
-            parts["T"].append(sd.temp_C[keep])
+            parts["T"].append(temp_C[keep])
             parts["ref"].append(ref[keep])
             parts["norm"].append(norm[keep])
             parts["pos"].append(pos[keep])

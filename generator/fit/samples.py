@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from generator.errors import InputError
+from generator.fit.reference import T_REF_C
 from generator.fit.segments import find_segments
 
 CV_FOLDS = 4
@@ -76,6 +77,9 @@ class FitData:
     coil_A: np.ndarray | None = None          # (N, n_coils)
     reference_kind: str = ""                  # description for stats
     noise_nT: float | None = None             # stated noise of one axis of field_frame_nT
+    # False: the sensor reports no temperature (temperature = false); temp_C is then the
+    # constant T_REF_C (SensorData.temp_or), so the fit is the constant (degree 0) model
+    has_temperature: bool = True
 
 
 def field_noise_nT(spec) -> float | None:
@@ -113,11 +117,12 @@ def fit_data_from(tel, sensor_data, unit) -> FitData:
     pos = tel.get("position")
     return FitData(source=tel.path, time_s=np.asarray(tel.time_s, float),
                    field_frame_nT=np.asarray(sensor_data.field_frame_nT, float),
-                   temp_C=np.asarray(sensor_data.temp_C, float),
+                   temp_C=np.asarray(sensor_data.temp_or(T_REF_C), float),
                    usable=np.asarray(sensor_data.usable, bool),
                    position=None if pos is None else np.asarray(pos, float),
                    ref_body_nT=ref, ref_norm_nT=norm, coil_A=coil,
-                   reference_kind=" + ".join(kind) or "none", noise_nT=field_noise_nT(spec))
+                   reference_kind=" + ".join(kind) or "none", noise_nT=field_noise_nT(spec),
+                   has_temperature=bool(sensor_data.has_temperature))
 
 
 @dataclass
@@ -153,6 +158,9 @@ def _gather(name, datas, notes, per_file):
     gbase = 0
     for d in datas:
         n = len(d.time_s)
+        if not d.has_temperature and not any("no temperature sensor" in m for m in notes):
+            notes.append("no temperature sensor (temperature = false): a constant, "
+                         "temperature-independent calibration")
         use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
         n_unusable = int((~use).sum())
         t_ok, t_rej = screen_temperatures(d.temp_C, use)

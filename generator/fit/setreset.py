@@ -502,7 +502,11 @@ def compensation_decision(spec, rate_dps, field_nT: float = DEFAULT_FIELD_NT,
            f"(RMS {float(np.sqrt(np.mean(rate ** 2))):.2f} deg/s, delay {delay:g} ms, |B| "
            f"{field_nT:.0f} nT) {'passes' if enabled else 'is below'} {SR_NOISE_FRACTION:g} x "
            f"the noise ({noise:.1f} nT)")
-    return {"enabled": bool(enabled), "why": why, "error_rms_nT": err_rms,
+    # the chain's coefficient c = delay / 2 * pi / 180 (s rad/deg, chain.SensorOptions), at
+    # the delay the decision assumed (the unit file does not state t_TM; trace refines c)
+    c = delay * 1e-3 / 2.0 * np.pi / 180.0
+    return {"enabled": bool(enabled), "why": why, "sr_comp_s_per_deg": float(c),
+            "error_rms_nT": err_rms,
             "error_p95_nT": float(np.percentile(err, 95)), "noise_nT": noise,
             "threshold_nT": limit, "rate_rms_dps": float(np.sqrt(np.mean(rate ** 2))),
             "delay_ms": delay, "field_nT": float(field_nT)}

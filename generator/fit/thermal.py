@@ -168,6 +168,53 @@ def _finish(cal, S):
         "note": "every coefficient from the data (this method has no prior); 1-sigma in "
                 "uncertainty_1sigma"}
     st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
+    st["extrapolation"] = extrapolation_growth(cal, S.norm[np.isfinite(S.norm)])
+
+
+def extrapolation_growth(cal, field_nT) -> dict:
+    """How fast the calibration's error grows with the temperature's distance outside the
+    calibrated range, nT per degC, at the unit's field (median reference magnitude).
+
+    Beyond an end the chain holds b and M at their values there (the clamp), while the
+    sensor goes on drifting; its drift is taken as the fitted polynomial's slope at that
+    end plus the slope's 1-sigma (from the coefficients' 1-sigma, correlations ignored).
+    A term the fit did not determine (a constant, degree 0, model has no slope at all)
+    takes the part's prior 1-sigma for the slope (reference.PART_PRIOR_SIGMA, degree 1):
+    not knowing the drift is not a drift of zero. Per end, for a field in a random
+    direction (as predicted_error): g^2 = sum_ij (M'_ij)^2 |B|^2 / 3 + | |M| |b'| |^2,
+    with M' = dM/dT, b' = db/dT, each taken as |slope| + 1-sigma and |M| elementwise (an
+    upper bound of |M b'|); the larger end is returned as growth_nT_per_C."""
+    from generator.fit.reference import PART_PRIOR_SIGMA
+
+    F = float(np.median(field_nT)) if len(field_nT) else None
+    if not F:
+        return {"note": "no reference magnitude: no growth estimate"}
+    K = cal.b_poly_nT.shape[0]
+    deg = int(max([k for k in range(K) if np.any(cal.b_poly_nT[k] != 0)
+                   or np.any(cal.M_poly[k] != 0)] + [0]))
+    prior = PART_PRIOR_SIGMA["default"]
+    bs = cal.b_poly_sigma_nT if cal.b_poly_sigma_nT is not None else np.zeros_like(
+        cal.b_poly_nT)
+    Ms = cal.M_poly_sigma if cal.M_poly_sigma is not None else np.zeros_like(cal.M_poly)
+    ends = {}
+    for where, T in (("low", cal.t_min_C), ("high", cal.t_max_C)):
+        d = float(T) - cal.t_ref_C
+        dk = np.array([k * d ** (k - 1) if k else 0.0 for k in range(K)])   # d(dT^k)/dT
+        db = np.einsum("k,ki->i", dk, cal.b_poly_nT)
+        dM = np.einsum("k,kij->ij", dk, cal.M_poly)
+        sdb = np.sqrt(np.einsum("k,ki->i", dk ** 2, bs ** 2))
+        sdM = np.sqrt(np.einsum("k,kij->ij", dk ** 2, Ms ** 2))
+        if deg == 0:    # no slope fitted: the part's prior 1-sigma of the slope
+            sdb = np.full(3, float(prior["b_nT"][1]))
+            sdM = np.full((3, 3), float(prior["M"][1]))
+        gb, gM = np.abs(db) + sdb, np.abs(dM) + sdM
+        M = cal.M_at(T)
+        g = float(np.sqrt(np.sum(gM ** 2) * F ** 2 / 3.0 + np.sum((np.abs(M) @ gb) ** 2)))
+        ends[where] = g
+    return {"growth_nT_per_C": max(ends.values()), "per_end_nT_per_C": ends,
+            "at_field_nT": F,
+            "from": ("slope of the fitted polynomial at the range's ends plus its 1-sigma"
+                     if deg else "the part's prior 1-sigma of the slope (constant model)")}
 
 
 def predicted_error(cal, field_nT) -> dict:

@@ -54,9 +54,14 @@ reproducible bit for bit on any IEEE-754 machine that rounds each operation to n
 Status bits (the wrapper, C and Python alike): a sample with a non-finite temperature or
 current (or physical reading) gets zeros and STATUS_NONFINITE; a count at a rail of the
 part's range, or a physical reading with |value| beyond the full scale, gets
-STATUS_SATURATED; a temperature outside the calibrated range is clamped and gets
-STATUS_TEMP_CLAMPED; |B| outside the band gets STATUS_IMPLAUSIBLE; `select` adds
-STATUS_DISAGREE. ``valid`` is ``status == 0``.
+STATUS_SATURATED; a temperature outside the calibrated range is clamped to it for the
+polynomials and gets STATUS_TEMP_EXTRAPOLATED, informational: the sample stays valid; it
+also gets STATUS_TEMP_CLAMPED (invalid) when it lies further outside than the sensor's
+temp_margin_C, the distance at which the error's growth outside the range (estimated by
+the fit, fit.thermal.extrapolation_growth) reaches the unit's requirement ([requirements]
+field_error_nT; none stated: margin 0, every sample outside is invalid); |B| outside the
+band gets STATUS_IMPLAUSIBLE; `select` adds STATUS_DISAGREE. ``valid`` is
+``status & ~STATUS_INFO_MASK == 0`` (is_valid): informational bits do not invalidate.
 """
 
 from __future__ import annotations
@@ -77,6 +82,9 @@ STATUS_TEMP_CLAMPED = 0x04   # temperature outside the calibrated range, clamped
 STATUS_IMPLAUSIBLE = 0x08    # |B| outside [field_min_nT, field_max_nT]
 STATUS_DISAGREE = 0x10       # disagrees with most other valid sensors (set by select)
 STATUS_NO_OFFSET = 0x20      # SET-only reading with no stored SET/RESET offset yet
+STATUS_TEMP_EXTRAPOLATED = 0x40   # temperature outside the calibrated range (informational)
+# Bits that say something about a sample without making it invalid.
+STATUS_INFO_MASK = STATUS_TEMP_EXTRAPOLATED
 STATUS_BITS = {
     "NONFINITE": STATUS_NONFINITE,
     "SATURATED": STATUS_SATURATED,
@@ -84,6 +92,7 @@ STATUS_BITS = {
     "IMPLAUSIBLE": STATUS_IMPLAUSIBLE,
     "DISAGREE": STATUS_DISAGREE,
     "NO_OFFSET": STATUS_NO_OFFSET,
+    "TEMP_EXTRAPOLATED": STATUS_TEMP_EXTRAPOLATED,
 }
 
 # Reason codes of the selected vector for attitude control (see select_reference).
@@ -155,6 +164,12 @@ MAX_SENSORS = 8   # the flight API's int8/uint8 indices and the C's pair tables 
 # float32, so "value x scale" is one correctly rounded multiplication, C and Python alike.
 INPUT_SCALE_nT = {"nT": 1.0, "uT": 1000.0, "mG": 100.0, "G": 100000.0}
 INPUT_KINDS = ("counts",) + tuple(INPUT_SCALE_nT)
+
+
+def is_valid(status):
+    """ICD valid: no status bit but the informational ones (STATUS_INFO_MASK); works on
+    scalars and arrays."""
+    return (np.asarray(status).astype(np.int64) & ~STATUS_INFO_MASK) == 0
 
 
 def is_physical(sensor: SensorSpec) -> bool:
@@ -277,6 +292,9 @@ class ChainSpec:
                 Block("t_ref_C", (), "degC", "temp", "reference temperature of the polynomials"),
                 Block("t_min_C", (), "degC", "temp", "lowest calibrated temperature (clamp)"),
                 Block("t_max_C", (), "degC", "temp", "highest calibrated temperature (clamp)"),
+                Block("temp_margin_C", (), "degC", "temp_margin",
+                      "distance outside [t_min_C, t_max_C] still valid (TEMP_EXTRAPOLATED); "
+                      "beyond it TEMP_CLAMPED"),
                 Block("b_poly_nT", (n, 3), "nT/degC^k", "offset_poly",
                       "offset b(T) = sum_k b_poly_nT[k] dT^k, frame axes"),
                 Block("M_poly", (n, 3, 3), "1/degC^k", "matrix_poly",
@@ -607,7 +625,7 @@ def agreement_kernel(fields, agree):
 def select_logic(n_sensors, order, valid, agrees):
     """Disagreement flags and the selected sensor, from validity and pairwise agreement.
 
-    valid[i]: status == 0 before this step; agrees(i, j): margin >= 0. A valid sensor that
+    valid[i]: is_valid(status) before this step; agrees(i, j): margin >= 0. A valid sensor that
     has at least two valid others and agrees with fewer than half of them disagrees. The
     selected sensor is the first in `order` that is valid and does not disagree.
     Returns (disagree list, selected index or -1, reason, rank in order or -1).
@@ -767,9 +785,15 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     t = np.where(zeroed, ft(0), t)
     if sensor.temperature:
         t_min, t_max = c.scalar("t_min_C"), c.scalar("t_max_C")
+        margin = c.scalar("temp_margin_C")
         below, above = t < t_min, t > t_max
+        # C: the distance outside, one float subtraction, against the margin
+        with np.errstate(invalid="ignore", over="ignore"):
+            far = (below & ((t_min - t).astype(ft) > margin)) | \
+                (above & ((t - t_max).astype(ft) > margin))
         t = np.where(below, t_min, np.where(above, t_max, t)).astype(ft)
-        status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED
+        status[(below | above) & ~zeroed] |= STATUS_TEMP_EXTRAPOLATED
+        status[far & ~zeroed] |= STATUS_TEMP_CLAMPED
 
     with np.errstate(all="ignore"):
         out = sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), c, u, ft(0.5),
@@ -826,7 +850,7 @@ def reference_select(spec: ChainSpec, coeffs_by_sensor: dict, fields, statuses):
     rank = np.full(n, -1, dtype=np.int64)
     reason = np.full(n, SELECT_NONE, dtype=np.int64)
     for r in range(n):   # the selection logic is branchy; it is cheap per sample
-        valid = [statuses[r, i] == 0 for i in range(S)]
+        valid = [is_valid(statuses[r, i]) for i in range(S)]
         disagree, chosen, why, rk = select_logic(
             S, order, valid, lambda i, j: margins[r, pair_index[(i, j)]] >= 0)
         for i in range(S):

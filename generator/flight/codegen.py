@@ -20,7 +20,7 @@ import casadi as ca
 import jinja2
 
 from generator import __version__
-from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, ChainSpec, CoeffView, agreement_kernel,
+from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec, CoeffView, agreement_kernel,
                     is_physical, lag_kernel, range_nT, saturation_limit, sensor_kernel)
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
@@ -292,6 +292,7 @@ def template_context(cs: CoefficientSet) -> dict:
         "unit_blocks": ublocks,
         "n_unit_coeffs": k,
         "status_bits": sorted(STATUS_BITS.items(), key=lambda kv: kv[1]),
+        "status_info_mask": STATUS_INFO_MASK,
         "select_reasons": sorted(SELECT_REASONS.items(), key=lambda kv: kv[1]),
         "fallback_order": list(spec.fallback_order()),
         "boom_note": boom_alignment_note(cs) if spec.has_boom else None,

@@ -15,7 +15,7 @@ import numpy as np
 
 from generator import __version__
 from generator.fit.calibration import SensorCalibration
-from generator.flight.chain import ChainSpec, is_physical
+from generator.flight.chain import ChainSpec, SensorOptions, is_physical
 from generator.errors import InputError
 from generator.io.unit import Unit
 
@@ -25,9 +25,30 @@ FORMAT_VERSION = 1
 # Plausible |B| for the flight check: LEO spans about 18,000-55,000 nT, the lab ~50,000.
 FIELD_BAND_nT = (15000.0, 70000.0)
 AGREE_SIGMAS = 5.0
+# The largest temp_margin_C written: the span of plausible temperatures (tables.py "temp",
+# -100..150 degC), beyond which a margin means nothing.
+TEMP_MARGIN_MAX_C = 250.0
 # fit_info["boom_alignment"] when no H was fitted (no body-frame reference for the boom)
 NO_BOOM_ALIGNMENT = ("identity, not fitted (no body-frame reference or no boom campaign): "
                      "the boom sensors' field is reported in the boom frame")
+
+
+def temp_margin_C(unit, cal) -> float:
+    """How far outside its calibrated range a sensor's temperature may go with the sample
+    still valid (chain block temp_margin_C): the distance d at which the extrapolated
+    error, the calibration's own predicted error (stats["predicted_error"]
+    ["field_error_nT"], from the coefficients' 1-sigma) plus d times the error's growth
+    outside the range (stats["extrapolation"]["growth_nT_per_C"],
+    fit.thermal.extrapolation_growth), reaches the unit's requirement ([requirements]
+    field_error_nT, ICD section 4). No requirement or no growth estimate: 0 (every
+    sample outside the range is invalid)."""
+    st = cal.stats or {}
+    req = ((unit.extra or {}).get("requirements") or {}).get("field_error_nT")
+    g = (st.get("extrapolation") or {}).get("growth_nT_per_C")
+    if not req or not g or not np.isfinite(g) or g <= 0:
+        return 0.0
+    own = float((st.get("predicted_error") or {}).get("field_error_nT") or 0.0)
+    return float(min(max(float(req) - own, 0.0) / float(g), TEMP_MARGIN_MAX_C))
 
 
 def default_agree_nT(sensor, cal) -> float:
@@ -85,8 +106,14 @@ class CoefficientSet:
     @staticmethod
     def from_calibrations(unit: Unit, cals: dict, H_boom_to_body=None, K_nT_per_A=None,
                           coils=(), fit_info=None, agree_nT=None,
-                          field_band_nT=FIELD_BAND_nT) -> "CoefficientSet":
+                          field_band_nT=FIELD_BAND_nT, sensor_options=None,
+                          option_values=None) -> "CoefficientSet":
         """From fitted SensorCalibration objects (and optional H and coil couplings).
+
+        sensor_options: {sensor: chain.SensorOptions} (optional stages, e.g. the SET/RESET
+        gyro compensation); option_values: {sensor: {block name: value}}, the values of
+        the blocks those options add (e.g. sr_comp_s_per_deg). A block left without a
+        value is a ValueError.
 
         agree_nT: {sensor: tolerance} for the cross-sensor check; by default
         AGREE_SIGMAS x sqrt(3) x the sensor's per-axis scatter (its noise_nT, or the fit's
@@ -95,7 +122,9 @@ class CoefficientSet:
         # none is constant whatever degree its calibration carries)
         with_t = [cals[s.name] for s in unit.sensors if s.temperature]
         degree = with_t[0].b_poly_nT.shape[0] - 1 if with_t else 0
-        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils))
+        opts = tuple((s.name, sensor_options[s.name]) for s in unit.sensors
+                     if (sensor_options or {}).get(s.name) not in (None, SensorOptions()))
+        spec = ChainSpec(unit, poly_degree=degree, coils=tuple(coils), sensor_options=opts)
         sensors, unc = {}, {}
         for s in unit.sensors:
             cal: SensorCalibration = cals[s.name]
@@ -111,6 +140,7 @@ class CoefficientSet:
                 v["t_ref_C"] = np.array(cal.t_ref_C)
                 v["t_min_C"] = np.array(cal.t_min_C)
                 v["t_max_C"] = np.array(cal.t_max_C)
+                v["temp_margin_C"] = np.array(temp_margin_C(unit, cal))
             v["b_poly_nT"] = np.asarray(cal.b_poly_nT, float)[:nk]
             v["M_poly"] = np.asarray(cal.M_poly, float)[:nk]
             if coils:
@@ -118,6 +148,12 @@ class CoefficientSet:
                     else np.zeros((3, len(coils)))
             v["agree_nT"] = np.array(float(agree_nT[s.name]) if agree_nT else
                                      default_agree_nT(s, cal))
+            for k, a in (option_values or {}).get(s.name, {}).items():
+                v[k] = np.asarray(a, float)
+            missing = [b.name for b in spec.sensor_blocks(s) if b.name not in v]
+            if missing:
+                raise ValueError(f"sensor '{s.name}': no value for {', '.join(missing)} "
+                                 "(option_values)")
             sensors[s.name] = v
             u = {}
             if cal.b_poly_sigma_nT is not None:

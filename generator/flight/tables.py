@@ -248,6 +248,7 @@ PLAUSIBLE_RANGES = {r.kind: r for r in (
     KindRange("zero_count", None, None, "count at zero field: inside the part's raw range",
               part_counts=True),
     KindRange("temp", -100.0, 150.0, "degC, beyond any qualification range of the parts"),
+    KindRange("temp_margin", 0.0, 250.0, "degC, not negative, at most the plausible span"),
     KindRange("offset_poly", -2e5, 2e5, "nT: each term b_k dT^k within 4x the Earth's field",
               poly_span_C=50.0),
     KindRange("matrix_poly", -3.0, 3.0, "each term M_k dT^k within +-3 (scale factors ~1)",

@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 from generator.flight import chain
-from generator.flight.coeffs import CoefficientSet
+from generator.fit.thermal import extrapolation_growth
+from generator.flight.coeffs import CoefficientSet, temp_margin_C
 
 # The defaults name the source checkout's files; an installed package has no docs/ and no
 # generated/ of its own, so there both arguments must be given.
@@ -57,14 +58,23 @@ def chain_markdown(cs: CoefficientSet) -> str:
     meanings = {
         "NONFINITE": "a non-finite temperature or auxiliary input: the outputs are zeros",
         "SATURATED": "a count at a rail of the part's range",
-        "TEMP_CLAMPED": "temperature outside the calibrated range, clamped to it",
+        "TEMP_CLAMPED": "temperature further outside the calibrated range than the sensor's "
+                        "temp_margin_C (the extrapolated error passes the unit's requirement): "
+                        "invalid",
         "IMPLAUSIBLE": "field magnitude outside [field_min_nT, field_max_nT]",
         "DISAGREE": "disagrees with most (and at least two) other valid sensors",
         "NO_OFFSET": "SET-only reading before any SET/RESET pair stored an offset",
+        "TEMP_EXTRAPOLATED": "temperature outside the calibrated range (the polynomials see "
+                             "the end of the range): informational, the sample stays valid",
     }
     for name, bit in sorted(chain.STATUS_BITS.items(), key=lambda kv: kv[1]):
         lines.append(f"| 0x{bit:02x} | {name} | {meanings[name]} |")
-    lines += ["", "A sample is valid when its status is 0.", "",
+    lines += ["", "A sample is valid (ICD valid = 1) when its status has no bit but the "
+              f"informational ones (STATUS_INFO_MASK 0x{chain.STATUS_INFO_MASK:02x}: "
+              "TEMP_EXTRAPOLATED).", "",
+              "### Outside the calibrated temperature range", "",
+              inspect.getdoc(extrapolation_growth), "",
+              inspect.getdoc(temp_margin_C), "",
               "## Selection for the attitude system", "",
               inspect.getdoc(chain.ChainSpec.fallback_order), "",
               "| reason | code | meaning |", "|---|---|---|"]

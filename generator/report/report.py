@@ -702,6 +702,16 @@ def _setreset_sections(cs, out_dir) -> list:
         "second order in the angle turned (B (1 - cos phi) / 2); for any other direction the "
         "projection changes to first order (B sin theta phi), hence the general worst case. "
         "The chain can compensate it with the gyro rate (SensorOptions.sr_compensation).")
+    sr = cs.fit_info.get("set_reset_compensation") or {}
+    rows = [[s.name, "yes" if cs.spec.opts(s).sr_compensation else "no",
+             float(cs.sensors[s.name]["sr_comp_s_per_deg"])
+             if cs.spec.opts(s).sr_compensation else "-",
+             (sr.get(s.name) or {}).get("why", "not decided by the fit")]
+            for s in cs.unit.sensors if s.set_reset]
+    sec.tables.append(Table(["sensor", "gyro compensation in the chain", "c s rad/deg", "why"],
+                            rows, "SET/RESET gyro compensation per sensor (decided by the fit: "
+                            "the error over the recorded rates against a fraction of the "
+                            "noise, generator.fit.setreset.compensation_decision)"))
     return [sec]
 
 
@@ -792,6 +802,10 @@ def fit_summary(cs, coefficients_path, report_path) -> dict:
             "samples_used": st.get("samples_used"),
             "rms_vector_nT": fitst.get("rms_vector_nT"),
             "rms_norm_nT": fitst.get("rms_norm_nT"),
+            "temp_margin_C": float(v["temp_margin_C"]) if "temp_margin_C" in v else None,
+            "set_reset_compensation": {
+                "in_chain": bool(cs.spec.opts(s).sr_compensation),
+                "why": (st.get("set_reset_compensation") or {}).get("why")},
         }
     return {"unit": cs.unit.id, "coefficients": str(coefficients_path),
             "report": str(report_path), "sensors": sensors,

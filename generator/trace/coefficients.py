@@ -184,6 +184,8 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             a = v[key]
             if a.shape[0] < degree + 1:
                 v[key] = np.concatenate([a, np.zeros((degree + 1 - a.shape[0],) + shape)])
+            # a sensor without temperature: constant b, M (its model sits at dT = 0)
+            v[key] = v[key][:spec.degree(s) + 1]
         sensors[s.name] = {b.name: np.asarray(v[b.name], float).reshape(b.shape)
                            for b in spec.sensor_blocks(s)}
     fit_info = dict(base.fit_info)

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from generator.fit.reference import T_REF_C
+
 VEC, NORM, POS = 0, 1, 2
 KIND_NAMES = {VEC: "vector rows B_cal - B_ref (per axis)",
               NORM: "magnitude rows |B_cal| - |B|",
@@ -202,13 +204,15 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             ch[c] = v
         for s in unit.sensors:
             sd = pre[s.name]
-            series = sd.usable & np.isfinite(sd.temp_C)
+            # a sensor without temperature (temperature = false): the constant stand-in
+            # (its baseline clamps every temperature to dT = 0, so the value is immaterial)
+            temp_C = np.asarray(sd.temp_or(T_REF_C), float)
+            series = sd.usable & np.isfinite(temp_C)
             ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0)
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
-            files[s.name].append(FileSeries(names[fi], t[series], np.asarray(sd.temp_C,
-                                                                              float)[series],
+            files[s.name].append(FileSeries(names[fi], t[series], temp_C[series],
                                             {c: v[series] for c, v in ch.items()}))
             i = np.nonzero(ok)[0]
             w = None
@@ -216,7 +220,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                 w = rate[i] @ H if s.frame == "boom" else rate[i]
             acc[s.name].append(dict(
                 time_s=t[i], file_index=np.full(len(i), fi), file_row=srow[i],
-                order=order0 + i, x=sd.field_frame_nT[i], temp_C=np.asarray(sd.temp_C)[i],
+                order=order0 + i, x=sd.field_frame_nT[i], temp_C=temp_C[i],
                 kind=kind[i], ref=ref[i], norm=np.where(has_vec[i], np.linalg.norm(
                     np.nan_to_num(ref[i]), axis=1), norm[i]),
                 group=np.where(kind[i] == POS, fi * 1_000_000 + pos[i], -1).astype(np.int64),
