@@ -134,9 +134,10 @@ def cmd_apply(args):
     from generator.flight.coeffs import CoefficientSet
     from generator.pipeline import apply
 
-    from generator.io.outputs import check_output_file
+    from generator.io.outputs import check_output_file, refuse_inputs
 
     check_output_file(args.output)
+    refuse_inputs(args.output, [args.coeffs, args.data])
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
@@ -197,9 +198,20 @@ def cmd_demo(args):
     return run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
 
 
+def _seed(text):
+    """A simulator seed: a whole number 0 .. 2**32 - 1 (numpy's range)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 <= v < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"{v} is outside 0 .. 2**32-1")
+    return v
+
+
 def _args_demo(p):
     p.add_argument("-o", "--output", default="magcal_demo", help="output folder")
-    p.add_argument("--seed", type=int, default=1, help="simulator seed")
+    p.add_argument("--seed", type=_seed, default=1, help="simulator seed (0 .. 2**32-1)")
 
 
 @verb("plan", "write the ground-test program of a unit (positions, temperature profile)")

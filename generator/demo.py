@@ -22,10 +22,11 @@ def _same_bits(a: dict, b: dict) -> bool:
                               np.ascontiguousarray(b[k]).view(np.uint8)) for k in a)
 
 
-def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed, coils_off=False):
+def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed, static=False):
     """Per sensor: valid samples, C == Python, |B| RMS raw / calibrated / true parameters,
-    and the angle to the true field (calibrated and true parameters). coils_off: the
-    campaign was simulated with the magnetorquers off (its file has no coil columns)."""
+    and the angle to the true field (calibrated and true parameters). static: the chamber
+    campaign, simulated standing still with the magnetorquers off (its file has no coil
+    or body-rate columns: they are 0, as the simulator made them)."""
     from generator import pipeline
     from generator.io import truth as truth_mod
     from generator.io.telemetry_csv import preprocess, read_telemetry
@@ -38,7 +39,7 @@ def _campaign_rows(cs, host, csv_path, truth_npz, truth, deployed, coils_off=Fal
                      ("coil_x_A", "coil_y_A", "coil_z_A")], axis=1)
     rows, identical = [], True
     for s in cs.unit.sensors:
-        inp = pipeline.chain_inputs(tel, cs.spec, s.name, coils_off=coils_off)
+        inp = pipeline.chain_inputs(tel, cs.spec, s.name, coils_off=static, aux_off=static)
         aux = dict(channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
         c_out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"], **aux)
         py_out = reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
@@ -126,7 +127,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     stowed = cs.with_boom_stowed()      # the jig campaign: H not applied
     thermal_tel, thermal_rows, ok_thermal = _campaign_rows(
         stowed, HostUnit(stowed), paths["thermal_12pos"],
-        paths["thermal_12pos_truth"], truth, deployed=False, coils_off=True)
+        paths["thermal_12pos_truth"], truth, deployed=False, static=True)
     flight_tel, flight_rows, ok_flight = _campaign_rows(
         cs, host, paths["flight"], paths["flight_truth"], truth, deployed=True)
     all_identical = ok_thermal and ok_flight

@@ -377,6 +377,8 @@ def load_profile(path) -> PlanProfile:
         raise InputError(path, f"cannot read: {e.strerror or e}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(path, f"not a JSON test plan: {e}") from None
+    except ValueError as e:              # an integer of more than 4300 digits
+        raise InputError(path, f"not a test plan: {e}") from None
     except RecursionError:
         raise InputError(path, "not a test plan: nested too deeply") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT:

@@ -62,6 +62,10 @@ def default_agree_nT(sensor, cal) -> float:
     return AGREE_SIGMAS * np.sqrt(3.0) * per_axis
 
 
+# A coefficients.json of 8 sensors with every optional stage is a few hundred kB.
+MAX_JSON_BYTES = 16 * 2 ** 20
+
+
 @dataclass
 class CoefficientSet:
     spec: ChainSpec
@@ -230,6 +234,9 @@ class CoefficientSet:
     def load(path) -> "CoefficientSet":
         path = Path(path)
         try:
+            if path.is_file() and path.stat().st_size > MAX_JSON_BYTES:
+                raise InputError(path, f"{path.stat().st_size} bytes: larger than any "
+                                       f"coefficient file ({MAX_JSON_BYTES} bytes at most)")
             d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(path, "file not found") from None
@@ -237,6 +244,8 @@ class CoefficientSet:
             raise InputError(path, f"cannot read: {e.strerror or e}") from None
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise InputError(path, f"not a JSON coefficient file: {e}") from None
+        except ValueError as e:          # an integer of more than 4300 digits
+            raise InputError(path, f"not a coefficient file: {e}") from None
         except RecursionError:
             raise InputError(path, "not a coefficient file: nested too deeply") from None
         return CoefficientSet.from_json_dict(d, path)

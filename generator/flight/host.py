@@ -42,7 +42,7 @@ def cache_dir() -> Path:
     can write to is refused (InputError naming it), never used."""
     env = os.environ.get("MAGCAL_CACHE")
     if env:
-        candidates = [Path(env)]
+        candidates = [Path(env).absolute()]   # the build runs in other folders
     else:
         xdg = os.environ.get("XDG_CACHE_HOME")
         base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".cache"
@@ -168,30 +168,32 @@ def _build_cffi(module_name, files, cdef_file, source):
     import cffi
 
     tmp = Path(tempfile.mkdtemp(prefix=module_name + "-", dir=cache_dir()))
-    src = tmp / "src"
-    src.mkdir()
-    for name, text in files.items():
-        (src / name).write_text(text)
-    objs = [str(_compile(src / n, tmp / (n[:-2] + ".o"), STRICT_FLAGS, src))
-            for n in sorted(files) if n.endswith(".c")]
-    ffi = cffi.FFI()
-    ffi.cdef(files[cdef_file])
-    ffi.set_source(module_name, source, include_dirs=[str(src)], extra_objects=objs,
-                   extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
-    ffi.compile(tmpdir=str(tmp), verbose=False)
-    built = next(tmp.glob(f"{module_name}*.so"))
-    final = tmp.parent / module_name
-    if not final.exists():
-        (tmp / "final").mkdir(mode=0o700)
-        shutil.move(str(built), tmp / "final" / built.name)
-        # the sidecar: what a later load verifies before running the module
-        (tmp / "final" / (built.name + ".sha256")).write_text(
-            _sha256_file(tmp / "final" / built.name) + "\n")
-        try:
-            os.rename(tmp / "final", final)
-        except OSError:
-            pass          # another process won the race; use theirs
-    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        src = tmp / "src"
+        src.mkdir()
+        for name, text in files.items():
+            (src / name).write_text(text)
+        objs = [str(_compile(src / n, tmp / (n[:-2] + ".o"), STRICT_FLAGS, src))
+                for n in sorted(files) if n.endswith(".c")]
+        ffi = cffi.FFI()
+        ffi.cdef(files[cdef_file])
+        ffi.set_source(module_name, source, include_dirs=[str(src)], extra_objects=objs,
+                       extra_compile_args=["-std=c99", "-O2", "-ffp-contract=off"])
+        ffi.compile(tmpdir=str(tmp), verbose=False)
+        built = next(tmp.glob(f"{module_name}*.so"))
+        final = tmp.parent / module_name
+        if not final.exists():
+            (tmp / "final").mkdir(mode=0o700)
+            shutil.move(str(built), tmp / "final" / built.name)
+            # the sidecar: what a later load verifies before running the module
+            (tmp / "final" / (built.name + ".sha256")).write_text(
+                _sha256_file(tmp / "final" / built.name) + "\n")
+            try:
+                os.rename(tmp / "final", final)
+            except OSError:
+                pass          # another process won the race; use theirs
+    finally:           # on every path: no half-built folder is left in the cache
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 class HostUnit:

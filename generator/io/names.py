@@ -39,7 +39,12 @@ _Alignas _Alignof _Atomic _Generic _Noreturn _Static_assert _Thread_local
 
 # Names a generated header or program would also define (stdbool, stddef, stdint macros
 # that are spelled in lower case, and the CasADi runtime's own prefix).
-C_LIBRARY_NAMES = frozenset("bool true false casadi".split())
+C_LIBRARY_NAMES = frozenset("""
+bool true false casadi errno math_errhandling assert offsetof static_assert alignas alignof
+noreturn complex imaginary isfinite isnan isinf isnormal fpclassify signbit isgreater
+isgreaterequal isless islessequal islessgreater isunordered setjmp va_start va_arg va_end
+va_copy unix linux i386 stdin stdout stderr
+""".split())
 
 # Identifiers of the generated API after the `<unit>_` / `<UNIT>_` prefix (templates/*.j2).
 # A sensor name equal to one of them, or to its beginning up to an '_', would produce the
@@ -51,7 +56,7 @@ magcal_h n_coils n_sensors real_t selection_t sel
 # Families: the API builds names `<UNIT>_<family>_<anything>` (status bits, select reasons,
 # sensor indices, channel macros, unit-wide blocks, the table API and its constants, the
 # part (chunk) protocol); every sensor name `<family>` or `<family>_...` is reserved.
-RESERVED_FAMILIES = frozenset("table status select sensor channel unit part".split())
+RESERVED_FAMILIES = frozenset("table status select sensor channel unit part casadi".split())
 # `sel` above: the apply output's selected vector (sel_x_nT ...) would get a second column.
 
 

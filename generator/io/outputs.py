@@ -38,7 +38,23 @@ def check_output_file(path) -> Path:
         raise InputError(path, f"output file: '{blocker}' is a file, not a folder")
     if p.is_dir():
         raise InputError(path, "output file: is an existing folder")
+    if p.is_symlink() and not p.exists():
+        raise InputError(path, "output file: a symbolic link to nothing: refused")
+    if p.exists() and not p.is_file():
+        # a device, a pipe, a socket: renaming over it would replace it (/dev/null!)
+        raise InputError(path, "output file: exists and is not a regular file: refused")
     return p
+
+
+def refuse_inputs(output, inputs) -> None:
+    """InputError when the output would overwrite one of the command's own inputs."""
+    out = Path(output)
+    if not out.exists():
+        return
+    for i in inputs:
+        if i is not None and Path(i).exists() and os.path.samefile(out, i):
+            raise InputError(output, f"output file: is the input {i}: refused (it would be "
+                                     "overwritten)")
 
 
 def check_output_folder(path) -> Path:
@@ -49,6 +65,8 @@ def check_output_folder(path) -> Path:
     blocker = _first_file_above(p)
     if blocker is not None:
         raise InputError(path, f"output folder: '{blocker}' is a file, not a folder")
+    if p.is_symlink() and not p.exists():
+        raise InputError(path, "output folder: a symbolic link to nothing: refused")
     if p.exists() and not p.is_dir():
         raise InputError(path, "output folder: is an existing file")
     return p

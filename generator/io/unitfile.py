@@ -27,6 +27,7 @@ from generator.io.names import name_fault, prefix_collision
 from generator.io.unit import FLOAT_TYPES, FRAMES, SensorSpec, Unit
 
 AXIS_TOKENS = ("+x", "-x", "+y", "-y", "+z", "-z")
+MAX_UNIT_FILE_BYTES = 2 ** 20   # a unit file of 8 sensors is a few kB
 MAX_SENSORS = 8           # the flight chain's fixed size (flight/chain.py checks it too)
 
 UNIT_KEYS = ("id", "lab_field_nT", "float")
@@ -59,6 +60,9 @@ def load_unit(path) -> Unit:
     that is not a body-frame sensor, float not in FLOAT_TYPES.
     """
     try:
+        if Path(path).is_file() and Path(path).stat().st_size > MAX_UNIT_FILE_BYTES:
+            raise InputError(path, f"larger than any unit file ({MAX_UNIT_FILE_BYTES} bytes "
+                                   "at most)")
         raw = Path(path).read_bytes()
     except OSError as e:
         raise InputError(path, f"cannot read unit file: {e.strerror or e}") from None
@@ -76,6 +80,8 @@ def load_unit(path) -> Unit:
         m = _TOML_POS_RE.search(msg)
         line = int(m.group(1)) if m else None
         raise InputError(path, f"TOML syntax: {_TOML_POS_RE.sub('', msg)}", line=line) from None
+    except ValueError as e:              # an integer of more than 4300 digits
+        raise InputError(path, f"TOML: {e}") from None
     return unit_from_doc(path, doc, text)
 
 

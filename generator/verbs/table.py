@@ -7,7 +7,7 @@ from pathlib import Path
 
 from generator.errors import InputError
 from generator.flight.coeffs import CoefficientSet
-from generator.io.outputs import check_output_file, write_bytes
+from generator.io.outputs import check_output_file, refuse_inputs, write_bytes
 from generator.flight.table_host import TableHost
 from generator.flight.tables import (NO_INDEX, TableError, TableStatus, check_table,
                                      chunk_table, diff_tables, dump_table, encode_table,
@@ -109,6 +109,11 @@ def cmd_table(args) -> int:
         raise InputError(args.output, "-o: the table must not end in .txt (its text dump "
                                       "TABLE.txt is written beside it)")
     check_output_file(txt)
+    refuse_inputs(out, [args.coeffs_json, args.coeffs])
+    refuse_inputs(txt, [args.coeffs_json, args.coeffs])
+    if args.serial == 0:
+        raise InputError(None, "--serial: 0 is the compiled-in default's serial; the flight "
+                               "code never accepts it from the ground (docs/table_format.md)")
     src = CoefficientSet.load(args.coeffs_json)
     created = args.created_s
     if created is None:
