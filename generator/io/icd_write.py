@@ -35,14 +35,21 @@ class Staging:
         self.dir = self.out / f".import-{os.getpid()}"
 
     def __enter__(self):
+        self.made = [q for q in (self.out, *self.out.parents) if not q.exists()]
         self.out.mkdir(parents=True, exist_ok=True)
         self.dir.mkdir(exist_ok=True)
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, *exc):
         for p in self.dir.glob("*"):
             p.unlink()
         self.dir.rmdir()
+        if exc_type is not None:         # a failed import leaves no folder it made
+            for q in self.made:
+                try:
+                    q.rmdir()
+                except OSError:
+                    break
         return False
 
     def commit(self, unit_name: str, data_names: list) -> dict:

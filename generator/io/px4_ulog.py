@@ -95,8 +95,13 @@ def topics_from_ulog(path) -> tuple[dict, dict]:
     """({topic: {instance: {field: array}}}, info) of a ULog file."""
     from pyulog import ULog
 
+    import contextlib
+    import io
+
+    chatter = io.StringIO()      # pyulog prints its warnings on stdout: keep them off it
     try:
-        u = ULog(str(path))
+        with contextlib.redirect_stdout(chatter):
+            u = ULog(str(path))
     except FileNotFoundError:
         raise InputError(path, "cannot read PX4 log: no such file") from None
     except Exception as e:       # pyulog raises plain exceptions on a corrupt file
