@@ -15,13 +15,13 @@ between the host and the target would flip a verdict.
 
 from __future__ import annotations
 
-import os
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
 from chain_fixtures import random_coeffs, random_rotation, samsat_unit, with_float
+from ci import require
 from generator.flight import table_physics, tables
 from generator.flight import target as ta
 from generator.flight.arm_tables import ArmTables, host_results, python_results
@@ -31,18 +31,13 @@ from generator.flight.tables import TableStatus, chunk_table, encode_table
 
 pytestmark = pytest.mark.arm
 S = TableStatus
-IN_CI = os.environ.get("CI", "").lower() not in ("", "0", "false", "no")
 
 
 @pytest.fixture(scope="module")
 def toolchain():
     missing = ta.missing_tools()
-    if missing:
-        msg = (f"missing {', '.join(missing)}: install the Debian packages "
-               f"{' '.join(ta.DEBIAN_PACKAGES)}")
-        if IN_CI:
-            pytest.fail(f"CI is set: {msg}")
-        pytest.skip(msg)
+    require(not missing, f"missing {', '.join(missing)}: install the Debian packages "
+                         f"{' '.join(ta.DEBIAN_PACKAGES)}")
 
 
 def _edit(cs, sensor=None, **blocks):

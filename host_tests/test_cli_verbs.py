@@ -1,4 +1,4 @@
-"""README promise: every verb has --help, -q/--quiet and --json, through `generator.cli.main`.
+"""README promise: every verb (for `import`, each of its sub-commands) has --help, -q/--quiet and --json, through `generator.cli.main`.
 
 Each verb runs for real once with -q --json (stdout is exactly one JSON document, stderr
 carries no progress) and once without -q (progress appears on stderr). `table` and `trace`
@@ -9,32 +9,60 @@ simulated chamber campaign with one injected heater coupling).
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
 
 from chain_fixtures import EXAMPLE_COEFFS
 from ci import require
+from conftest import REPO
 from generator.campaign import simulate as sim
 from generator.cli import VERBS, main
 from generator.io.unit import Unit
 
-ALL_VERBS = ("fit", "apply", "generate", "demo", "plan", "check", "table", "trace")
+ALL_VERBS = ("fit", "apply", "generate", "demo", "plan", "check", "table", "trace", "import")
+# `magcal import` is a group: its sub-commands are the commands, and they carry -q and --json
+SUBCOMMANDS = {"import": ("px4", "csv")}
+HELP_CASES = [(v,) + ((s,) if s else ()) for v in ALL_VERBS for s in SUBCOMMANDS.get(v, (None,))]
+
+
+def _readme_verbs() -> set:
+    """The verbs of the README's verb table (`| verb | what it does |`): every
+    `magcal VERB` in its first column."""
+    lines = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    start = next(i for i, ln in enumerate(lines)
+                 if re.match(r"^\|\s*verb\s*\|\s*what it does\s*\|", ln))
+    verbs = set()
+    for ln in lines[start + 2:]:
+        if not ln.startswith("|"):
+            break
+        verbs |= set(re.findall(r"`magcal ([a-z]+)\b", ln.split("|")[1]))
+    return verbs
 
 
 def test_the_readme_verbs_are_the_cli_verbs():
-    assert set(VERBS) == set(ALL_VERBS)
+    assert _readme_verbs() == set(ALL_VERBS) == set(VERBS)
 
 
-@pytest.mark.parametrize("verb", ALL_VERBS)
-def test_help_names_quiet_and_json(verb, capsys):
-    with pytest.raises(SystemExit) as e:
-        main([verb, "--help"])
-    assert e.value.code == 0
-    out = capsys.readouterr().out
-    assert out.startswith("usage: magcal " + verb)
+@pytest.mark.parametrize("argv", HELP_CASES, ids=" ".join)
+def test_help_names_quiet_and_json(argv, capsys):
+    """`--help` is a successful run (exit 0, cli.main returns it) with the usage on stdout
+    and nothing on stderr."""
+    assert main(list(argv) + ["--help"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out.startswith("usage: magcal " + " ".join(argv))
+    assert cap.err == ""
     for flag in ("-q, --quiet", "--json"):
-        assert flag in out, (verb, flag)
+        assert flag in cap.out, (argv, flag)
+
+
+def test_import_help_names_its_subcommands(capsys):
+    assert main(["import", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: magcal import")
+    for sub in SUBCOMMANDS["import"]:
+        assert sub in out
 
 
 def _run(capsys, argv, quiet=True):

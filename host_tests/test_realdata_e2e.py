@@ -29,20 +29,17 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
-import os
 
 import numpy as np
 import pytest
 
+from ci import require
 from conftest import REALDATA
 from generator.cli import main
 
 def _need(path):
-    if not path.exists():
-        msg = f"real recording not found at {path}"
-        if os.environ.get("CI"):
-            pytest.fail(msg + " (CI must have ../shared beside the checkout)")
-        pytest.skip(msg)
+    require(path.exists(), f"real recording not found at {path} "
+                           "(CI must have ../shared beside the checkout)")
     return path
 
 

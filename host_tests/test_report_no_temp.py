@@ -2,9 +2,10 @@
 sensors that have no temperature (ICD section 4): no crash on the missing t_ref_C /
 t_min_C / t_max_C, and the report says the model of those sensors is constant.
 
-`magcal fit` itself cannot yet read such a unit (the unit-file reader and the telemetry
-reader of this branch still ask every sensor for a temperature), so the report is built
-from a coefficient set here, the way `magcal fit` builds it after fitting.
+The report is built here from a coefficient set (random coefficients of such a unit), the
+way `magcal fit` builds it after fitting, so the report is checked on its own; the whole
+path of a temperature-free unit through `magcal fit`, `generate` and `apply` is
+host_tests/test_fit_no_temperature.py.
 """
 
 from __future__ import annotations
