@@ -57,7 +57,7 @@ MAX_REF_COND = 1e10        # condition number of the column-scaled reference-fit
 # ~20 nT/degC and sensitivity drift up to ~0.1 %/degC, their curvature a few % of that per
 # degC. The simulator's units (campaign.simulate.random_truth) lie within 1 sigma.
 PART_PRIOR_SIGMA = {
-    "default": {"b_nT": (1.0e4, 20.0, 0.5, 0.01), "M": (0.1, 1.0e-3, 2.0e-5, 5.0e-7)},
+    "default": {"b_nT": (1.0e5, 20.0, 0.5, 0.01), "M": (0.1, 1.0e-3, 2.0e-5, 5.0e-7)},
 }
 # Whitened eigenvalue at and above which a direction is taken from the data: there the
 # data's information equals the prior's (posterior variance at most half the prior's).
@@ -69,6 +69,9 @@ DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in 
 # is below half its noise (rms) is not "determined" by a misstated noise level.
 NOISE_VAR_UNCERTAINTY = 0.25
 GN_MAX_ITER = 30
+# Serial correlation of residuals at most this (n_eff >= n / 199): beyond it the residual is
+# a constant offset, which b takes, not a sample-to-sample statistic.
+MAX_RHO = 0.99
 
 
 @dataclass
@@ -272,6 +275,15 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         return th[:3 * K].reshape(K, 3), th[3 * K:].reshape(K, 3, 3)
 
     eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
+    # Where the information is judged: the prior's M with the offset that fits the mean
+    # (degree 0; the rest at the prior). Not the linear start: a regression of the reference
+    # on noisy readings that hardly move shrinks M towards 0 (regression dilution), and at
+    # such an M the offset looks undetermined and M determined -- the reverse of the truth.
+    b0_obs, M0_obs = unpack(theta0.copy())
+    M_T0 = np.einsum("nk,kij->nij", P, M0_obs)
+    b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - np.linalg.solve(M_T0, B[:, :, None])[:, :, 0],
+                        axis=0)
+    theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
     v_grp = np.ones(n_grp)
     theta = None
@@ -290,8 +302,11 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # the data miss is rarely one coefficient, and holding a whole coefficient would
         # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
-        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ, S, _noise_margin(P, w, eiv_var))
+        split = _eig_split(vector_normal(P, x, B, *unpack(theta_obs), True, w, eiv_var)[1],
+                           S, _noise_margin(P, w, eiv_var))
+        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
+                                            eiv_var, split)
+        ev, EV, fitted = split
         if _pass == 1:
             break
         # errors-in-variables: each file's effective variance (sensor noise through M plus
@@ -299,18 +314,17 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
         for g in range(n_grp):
             m = grp == g
-            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6)
+            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
+                * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
     # covariance of the posterior (module docstring), in scaled units; held: the prior's
     margin = _noise_margin(P, w, eiv_var)
-    for _ in range(3):   # the held directions turn a little with theta: settle them
-        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ, S, margin)
-        Vf, Vp = EV[:, fitted], EV[:, ~fitted]
-        zp = Vp.T @ ((theta - theta0) / S)
-        if not len(zp) or np.max(np.abs(zp)) < 1e-9:
-            break
-        theta = theta - S * (Vp @ zp)
+    ev, EV, fitted = _eig_split(vector_normal(P, x, B, *unpack(theta_obs), True, w,
+                                              eiv_var)[1], S, margin)
+    Vf, Vp = EV[:, fitted], EV[:, ~fitted]
+    zp = Vp.T @ ((theta - theta0) / S)
+    theta = theta - S * (Vp @ zp)      # exactly at the prior where held
+    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     C = (Vf @ np.linalg.solve(Fv, Vf.T) + Vp @ Vp.T) * np.outer(S, S)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
@@ -366,6 +380,23 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     return b_poly, M_poly, info
 
 
+def _correlation_inflation(r):
+    """Variance inflation of a file's residuals for their serial correlation: with lag-1
+    autocorrelation rho (samples in time order), n samples carry the information of
+    n (1 - rho) / (1 + rho) independent ones (AR(1) effective sample size; exact for a
+    slowly varying regressor, a lower bound of the information otherwise), so the
+    effective variance is v (1 + rho) / (1 - rho). White residuals (rho ~ 0, the model
+    right and the noise white) leave v as it is; a residual that drifts (disturbance,
+    an estimator's attitude error, a model that does not hold) does not count as n
+    independent samples. rho is clipped to [0, MAX_RHO]."""
+    r = r - np.mean(r, axis=0)
+    den = float(np.sum(r[:-1] * r[:-1]))
+    if len(r) < 3 or den <= 0:
+        return 1.0
+    rho = min(max(float(np.sum(r[1:] * r[:-1])) / den, 0.0), MAX_RHO)
+    return (1.0 + rho) / (1.0 - rho)
+
+
 def _eig_split(JTJ, S, margin=None):
     """Eigen-split of the whitened information; margin: information to take off first
     (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables)."""
@@ -384,7 +415,7 @@ def _noise_margin(P, w, eiv_var):
     return out
 
 
-def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
+def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split=None):
     """Gauss-Newton on the weighted cost in whitened coordinates z = (theta - theta0)/S of
     the free parameters (the others stay at the prior), restricted to the directions the
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
@@ -403,7 +434,10 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
     first = True
     for _ in range(GN_MAX_ITER):
         cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
+        if split is not None and len(f) == len(S):
+            ev, EV, fitted = split          # judged once, at the prior (reference_fit)
+        else:
+            ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
         Vf = EV[:, fitted]
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
