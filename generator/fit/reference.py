@@ -24,16 +24,27 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    file whose reference is noisier counts less.
 4. Observability: with the prior sigma s (`Prior`: a ground calibration, or the part's
    nominal M = I, b = 0 with `PART_PRIOR_SIGMA`), the whitened Fisher information
-   F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. A direction with
-   lambda >= 1 carries more information from the data than from the prior and is fitted;
-   a direction with lambda < 1 (the data determine it worse than the prior already does)
-   is held at the prior: the start is projected onto the fitted subspace and the
-   Gauss-Newton steps stay in it. Each parameter's data fraction is the squared length of
-   its whitened unit vector in the fitted subspace; >= 0.5 reads "data", else "prior"
-   (that parameter is then mostly the prior's value). The covariance is
-   S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's where held.
+   F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. It is judged once, at the
+   prior's M with the offset that fits the mean, and from the spread of the TRUE reading:
+   the cross-moments of the reading x and of the reading the reference implies,
+   x_hat = b + M0^-1 B (_split_information; their noises are independent, so neither
+   the reading's noise nor the reference's counts as signal -- on a near-static record
+   the regression of B on x would otherwise fit M to the reading's noise, det M ~ 0). The
+   effective variance V counts serially correlated residuals as fewer samples
+   (_correlation_inflation). A direction with lambda >= 1 carries more information from
+   the data than from the prior and is fitted; a direction with lambda < 1 (the data
+   determine it worse than the prior already does, or contradict it weakly) is held at
+   the prior: the start is projected onto the fitted subspace and the Gauss-Newton steps
+   stay in it. Exception: where the data alone determine a mirrored M of plausible size
+   (linear start det M <= -min_abs_det), nothing is held, so that sanity refuses the
+   reflection instead of the split hiding it. Each parameter's data fraction is the
+   squared length of its whitened unit vector in the fitted subspace; >= 0.5 reads
+   "data", else "prior" (that parameter is then mostly the prior's value). The
+   covariance is S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's
+   where held. With no stated reading noise, it is estimated from the first differences
+   of the first pass's residuals (_reading_noise_var) for the errors-in-variables term.
 
-Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names.
+Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
 
 from __future__ import annotations
