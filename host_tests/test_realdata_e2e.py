@@ -208,15 +208,7 @@ def test_broad_import(tmp_path, trial):
     assert {"gyr_x_rad_s", "movement"} <= set(tel.columns)
 
 
-FIT_WORSE_THAN_IDENTITY = pytest.mark.xfail(
-    strict=True, reason="magcal fit (ellipsoid) returns a calibration whose |B| spread is "
-                        "worse than the identity's on this trial (a magnet 1 cm from the "
-                        "sensor): a defect of the fitter, reported; not owned by this branch")
-
-
-@pytest.mark.parametrize("trial", [
-    pytest.param(t, marks=FIT_WORSE_THAN_IDENTITY) if t.startswith("32_") else t
-    for t in BROAD_TRIALS])
+@pytest.mark.parametrize("trial", BROAD_TRIALS)
 def test_broad_fit(tmp_path, trial):
     F = _berlin_field_nT()
     unit, data, (tel,) = _import_broad(tmp_path, trial, "--as-counts", 1.0)

@@ -37,6 +37,13 @@ MIN_SAMPLES = 9
 MAX_OFFSET_SIGMA_REL = 0.02     # offset sigma / |B|
 MAX_MATRIX_SIGMA = 0.02         # sigma of an entry of M (M ~ identity)
 MAX_COND = 1e8                  # condition number of the scaled geometric Jacobian
+# The noise-normalised residual (maximum likelihood for reading noise) is used while at
+# least half of the residual's variance is sample-to-sample (white): then the reading
+# noise, whose size through the fit is |M^T u| sigma, is what the residual mostly is.
+# Below, the residual is mostly model error (a smooth function of the orientation), whose
+# size does not scale with |M^T u|: plain |B| residuals are tried and taken when they
+# determine the ellipsoid and fit |B| better (_white_fraction, ellipsoid_fit).
+MIN_WHITE_FRACTION = 0.5
 _AXES = "xyz"
 
 
@@ -400,6 +407,18 @@ def _undetermined_message(cond, R_mean, b_sig, M_sig, x):
             + " and ".join(what) + ": " + _plane_hint(x))
 
 
+def _white_fraction(r) -> float:
+    """Fraction of the residual's variance that changes from sample to sample (samples in
+    time order): var(diff r) / (2 var r), 1 for white noise, -> 0 for a residual that
+    varies slowly (with the orientation: a field that is not an ellipsoid, a model that
+    does not hold). Clipped to [0, 1]."""
+    r = np.asarray(r, float) - np.mean(r)
+    v = float(np.mean(r * r))
+    if len(r) < 3 or v <= 0:
+        return 1.0
+    return float(min(max(np.mean(np.diff(r) ** 2) / (2.0 * v), 0.0), 1.0))
+
+
 def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=None,
                   residual="normalised"):
     """Fit b (offset, nT) and symmetric M with |M (B~ - b)| = |B| (seed 000 eq. 5-6).
@@ -432,6 +451,29 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
     if refine:
         p, cost, JTJ, lm = lm_solve(model, p0)
         info["lm"] = lm
+        if residual == "normalised":
+            white = _white_fraction(np.linalg.norm((x - p[:3]) @ sym_from6(p[3:]).T, axis=1)
+                                    - R)
+            info["residual_white_fraction"] = white
+            if white < MIN_WHITE_FRACTION:
+                # the misfit is not reading noise: the 1/|M^T u| weighting has no basis
+                # (it rewards an M stretched where the misfit is). Plain |B| residuals
+                # instead, where they determine the ellipsoid (on part of the sphere they
+                # can run off to a large far sphere) and fit |B| better
+                gmodel = residual_model(lambda q: _geo_resid_jac(q, x, R, w))
+                pg, cost_g, JTJ_g, lm_g = lm_solve(gmodel, p0)
+                Mg = sym_from6(pg[3:])
+                ok = (np.linalg.eigvalsh(Mg)[0] > 0
+                      and _undetermined(JTJ_g, cost_g, len(x), float(R.mean())) is None
+                      and rms(pg[:3], Mg) < rms(p[:3], sym_from6(p[3:])))
+                info["residual_switch"] = (
+                    f"normalised residuals {white:.0%} white (sample-to-sample): the misfit is "
+                    "model error, not reading noise; plain |B| residuals "
+                    + ("taken (determined, smaller |B| misfit)" if ok else
+                       "tried, not taken (not determined, or no smaller |B| misfit)"))
+                if ok:
+                    residual, model, p, cost, JTJ = "geometric", gmodel, pg, cost_g, JTJ_g
+                    info["lm"] = lm_g
     else:
         p = p0
         cost, JTJ, _, _ = model(p, True)
@@ -453,8 +495,19 @@ def ellipsoid_fit(field_nT, ref_norm_nT, *, refine=True, weights=None, source=No
                                                 "residual": residual}
     info.update({"b_sigma_nT": b_sig, "M_sigma": M_sig, "cov": cov, "cond": cond,
                  "residual_sigma_nT": float(np.sqrt(s2)), "coverage": coverage(u)})
-    R_mean = float(R.mean())
+    bad = _undetermined(JTJ, cost, len(x), float(R.mean()))
+    if bad is not None:
+        raise InputError(source, _undetermined_message(*bad, x))
+    return b, M, info
+
+
+def _undetermined(JTJ, cost, m, R_mean):
+    """None when the fit determines the ellipsoid (the limits above), else the figures
+    for _undetermined_message: (cond, R_mean, b_sigma, m_sigma)."""
+    cov, cond, _ = covariance(JTJ, cost, m)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0))
+    b_sig, m_sig = sig[:3], sig[3:]
     if (cond > MAX_COND or not np.all(np.isfinite(sig))
             or np.any(b_sig > MAX_OFFSET_SIGMA_REL * R_mean) or np.any(m_sig > MAX_MATRIX_SIGMA)):
-        raise InputError(source, _undetermined_message(cond, R_mean, b_sig, m_sig, x))
-    return b, M, info
+        return cond, R_mean, b_sig, m_sig
+    return None

@@ -24,16 +24,27 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    file whose reference is noisier counts less.
 4. Observability: with the prior sigma s (`Prior`: a ground calibration, or the part's
    nominal M = I, b = 0 with `PART_PRIOR_SIGMA`), the whitened Fisher information
-   F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. A direction with
-   lambda >= 1 carries more information from the data than from the prior and is fitted;
-   a direction with lambda < 1 (the data determine it worse than the prior already does)
-   is held at the prior: the start is projected onto the fitted subspace and the
-   Gauss-Newton steps stay in it. Each parameter's data fraction is the squared length of
-   its whitened unit vector in the fitted subspace; >= 0.5 reads "data", else "prior"
-   (that parameter is then mostly the prior's value). The covariance is
-   S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's where held.
+   F~ = S J^T V^-1 J S (S = diag s) is split by its eigenvalues. It is judged once, at the
+   prior's M with the offset that fits the mean, and from the spread of the TRUE reading:
+   the cross-moments of the reading x and of the reading the reference implies,
+   x_hat = b + M0^-1 B (_split_information; their noises are independent, so neither
+   the reading's noise nor the reference's counts as signal -- on a near-static record
+   the regression of B on x would otherwise fit M to the reading's noise, det M ~ 0). The
+   effective variance V counts serially correlated residuals as fewer samples
+   (_correlation_inflation). A direction with lambda >= 1 carries more information from
+   the data than from the prior and is fitted; a direction with lambda < 1 (the data
+   determine it worse than the prior already does, or contradict it weakly) is held at
+   the prior: the start is projected onto the fitted subspace and the Gauss-Newton steps
+   stay in it. Exception: where the data alone determine a mirrored M of plausible size
+   (linear start det M <= -min_abs_det), nothing is held, so that sanity refuses the
+   reflection instead of the split hiding it. Each parameter's data fraction is the
+   squared length of its whitened unit vector in the fitted subspace; >= 0.5 reads
+   "data", else "prior" (that parameter is then mostly the prior's value). The
+   covariance is S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's
+   where held. With no stated reading noise, it is estimated from the first differences
+   of the first pass's residuals (_reading_noise_var) for the errors-in-variables term.
 
-Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names.
+Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
 
 from __future__ import annotations
@@ -50,14 +61,16 @@ T_REF_C = 25.0
 MAX_REF_COND = 1e10        # condition number of the column-scaled reference-fit design
 
 # The part's nominal calibration M = I, b = 0 and its 1-sigma per polynomial degree k
-# (units nT/degC^k and 1/degC^k). Degree 0: offsets up to ~1e4 nT (hard iron of a
-# vehicle plus the MPU-9255 factory offset; the MMC5883 bridge offset is removed by
-# SET/RESET), sensitivity and cross-axis terms within ~10 % (datasheet sensitivity
+# (units nT/degC^k and 1/degC^k). Degree 0: offsets up to ~1e5 nT (1 G: the hard iron
+# of a vehicle next to motors or a magnet, which reaches a few G, plus the MPU-9255
+# factory offset; the MMC5883 bridge offset is removed by SET/RESET). A narrower offset
+# prior makes a large mean mismatch look like a change of M: where M is not determined
+# (a near-static record) the offset of the mean must go to b, not into M), sensitivity and cross-axis terms within ~10 % (datasheet sensitivity
 # tolerance and axis alignment, with soft iron). Temperature terms: offset drift up to
 # ~20 nT/degC and sensitivity drift up to ~0.1 %/degC, their curvature a few % of that per
 # degC. The simulator's units (campaign.simulate.random_truth) lie within 1 sigma.
 PART_PRIOR_SIGMA = {
-    "default": {"b_nT": (1.0e4, 20.0, 0.5, 0.01), "M": (0.1, 1.0e-3, 2.0e-5, 5.0e-7)},
+    "default": {"b_nT": (1.0e5, 20.0, 0.5, 0.01), "M": (0.1, 1.0e-3, 2.0e-5, 5.0e-7)},
 }
 # Whitened eigenvalue at and above which a direction is taken from the data: there the
 # data's information equals the prior's (posterior variance at most half the prior's).
@@ -69,6 +82,9 @@ DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in 
 # is below half its noise (rms) is not "determined" by a misstated noise level.
 NOISE_VAR_UNCERTAINTY = 0.25
 GN_MAX_ITER = 30
+# Serial correlation of residuals at most this (n_eff >= n / 199): beyond it the residual is
+# a constant offset, which b takes, not a sample-to-sample statistic.
+MAX_RHO = 0.99
 
 
 @dataclass
@@ -271,7 +287,24 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     def unpack(th):
         return th[:3 * K].reshape(K, 3), th[3 * K:].reshape(K, 3, 3)
 
+    # Where the information is judged: at the prior's M with the offset that fits the mean
+    # (degree 0; the rest at the prior), from the spread of the TRUE reading (errors in
+    # variables). The reading x carries its noise, the reading the reference implies,
+    # x_hat = b + M0(T)^-1 B, carries the reference's (attitude, field model); each alone
+    # counts its noise as signal. Their cross-covariance does not (the two noises are
+    # independent): _split_information. Not at the linear start either: a
+    # regression of the reference on noisy readings that hardly move shrinks M towards 0
+    # (regression dilution), and at such an M the offset looks undetermined and M
+    # determined -- the reverse of the truth.
+    b0_obs, M0_obs = unpack(theta0.copy())
+    M_T0 = np.einsum("nk,kij->nij", P, M0_obs)
+    ref_read = np.linalg.solve(M_T0, B[:, :, None])[:, :, 0]          # M0(T)^-1 B
+    b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - ref_read, axis=0)
+    x_hat = P @ b0_obs + ref_read
+    # the reading noise: stated, else estimated after the first pass (_reading_noise_var)
     eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
+    noise_from = "stated" if noise_nT else "none"
+    theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
     v_grp = np.ones(n_grp)
     theta = None
@@ -286,31 +319,41 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             w = np.full(n, 1.0 / v0)
             bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
             theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
+            # a mirrored reference (swapped or negated columns) gives a cross-information
+            # with strongly negative directions, which the split would hold at the prior
+            # and so hide: where the data alone determine a plausible-size reflection,
+            # nothing is held and the reflection is returned (sanity gives it exit 2)
+            mirrored = np.linalg.det(Ms0[0]) <= -min_abs_det()
         # unobservable directions held at the prior (not single parameters: the combination
         # the data miss is rarely one coefficient, and holding a whole coefficient would
         # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
-        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ, S, _noise_margin(P, w, eiv_var))
+        split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w), S,
+                           everything=mirrored)
+        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
+                                            eiv_var, split)
+        ev, EV, fitted = split
         if _pass == 1:
             break
+        if not noise_nT:
+            M_T = np.einsum("nk,kij->nij", P, unpack(theta)[1])
+            eiv_var = _reading_noise_var(np.linalg.solve(M_T, r[:, :, None])[:, :, 0], grp)
+            noise_from = "estimated from first differences of the first pass's residuals"
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
         for g in range(n_grp):
             m = grp == g
-            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6)
+            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
+                * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
     # covariance of the posterior (module docstring), in scaled units; held: the prior's
-    margin = _noise_margin(P, w, eiv_var)
-    for _ in range(3):   # the held directions turn a little with theta: settle them
-        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ, S, margin)
-        Vf, Vp = EV[:, fitted], EV[:, ~fitted]
-        zp = Vp.T @ ((theta - theta0) / S)
-        if not len(zp) or np.max(np.abs(zp)) < 1e-9:
-            break
-        theta = theta - S * (Vp @ zp)
+    ev, EV, fitted = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w), S,
+                                everything=mirrored)
+    Vf, Vp = EV[:, fitted], EV[:, ~fitted]
+    zp = Vp.T @ ((theta - theta0) / S)
+    theta = theta - S * (Vp @ zp)      # exactly at the prior where held
+    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     C = (Vf @ np.linalg.solve(Fv, Vf.T) + Vp @ Vp.T) * np.outer(S, S)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
@@ -358,6 +401,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         "parameters": params, "unobservable": unobs,
         "prior_source": pr.source,
         "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
+                  "reading_nT": float(np.sqrt(eiv_var)), "reading_from": noise_from,
                   "effective_per_file_nT": np.sqrt(v_grp).tolist()},
         "estimator": "calibrated-minus-reference least squares (linear start, Gauss-Newton), "
                      "per-file errors-in-variables weights, unobservable directions held at "
@@ -366,12 +410,68 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     return b_poly, M_poly, info
 
 
-def _eig_split(JTJ, S, margin=None):
+def _split_information(P, x, x_hat, B, bM, w):
+    """J^T W J with the regressor's second moments replaced by the symmetrised cross
+    moments of x and x_hat (two readings of the same true reading with independent
+    noises: their cross-covariance is the true reading's). J^T W J is a constant plus a
+    linear plus a quadratic form in the regressor, so with m = (x + x_hat) / 2 the
+    cross version is 2 J(m) - (J(x) + J(x_hat)) / 2. Not positive definite where the
+    two disagree (a negative cross-covariance: the reading does not follow the
+    reference); such directions fall below FISHER_THRESHOLD and are held."""
+    J = [vector_normal(P, u, B, *bM, True, w)[1] for u in (x, x_hat, 0.5 * (x + x_hat))]
+    return 2.0 * J[2] - 0.5 * (J[0] + J[1])
+
+
+def _reading_noise_var(d, grp):
+    """Variance of the reading noise per axis when none is stated: from the first
+    differences of d, the first pass's residuals mapped back to the reading (M^-1 r),
+    within each file, robustly (MAD, 1.4826 for a normal), and /2 for a difference of two
+    samples. Only what changes from sample to sample counts: a slow drift (of the
+    reading, or of a fit that is still diluted) is not noise of the reading (it goes to
+    the residual's correlation, _correlation_inflation). The reference's own noise is
+    counted in too: an overestimate, whose adjusted-least-squares bias is that variance
+    over the reading's spread -- negligible where M is determined, and where it is not,
+    observability holds M at the prior."""
+    dd = [np.diff(d[grp == g], axis=0) for g in np.unique(grp)]
+    dd = np.concatenate([a for a in dd if len(a)]) if any(len(a) for a in dd) else None
+    if dd is None or len(dd) < 3:
+        return 0.0
+    mad = np.median(np.abs(dd - np.median(dd, axis=0)), axis=0) * 1.4826
+    return float(np.mean(mad ** 2) / 2.0)
+
+
+def _correlation_inflation(r):
+    """Variance inflation of a file's residuals for their serial correlation: with lag-1
+    autocorrelation rho (samples in time order), n samples carry the information of
+    n (1 - rho) / (1 + rho) independent ones (AR(1) effective sample size; exact for a
+    slowly varying regressor, a lower bound of the information otherwise), so the
+    effective variance is v (1 + rho) / (1 - rho). White residuals (rho ~ 0, the model
+    right and the noise white) leave v as it is; a residual that drifts (disturbance,
+    an estimator's attitude error, a model that does not hold) does not count as n
+    independent samples. rho is clipped to [0, MAX_RHO]."""
+    r = r - np.mean(r, axis=0)
+    den = float(np.sum(r[:-1] * r[:-1]))
+    if len(r) < 3 or den <= 0:
+        return 1.0
+    rho = min(max(float(np.sum(r[1:] * r[:-1])) / den, 0.0), MAX_RHO)
+    return (1.0 + rho) / (1.0 - rho)
+
+
+def _eig_split(JTJ, S, margin=None, everything=False):
     """Eigen-split of the whitened information; margin: information to take off first
-    (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables)."""
+    (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables); everything: fit all
+    directions (a mirrored reference, reference_fit)."""
     F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
     ev, EV = np.linalg.eigh(F)
-    return ev, EV, ev >= FISHER_THRESHOLD
+    return ev, EV, (ev >= FISHER_THRESHOLD) | everything
+
+
+def min_abs_det(part="default") -> float:
+    """Smallest |det M| plausible for the part: singular values at least 1 - 3 s (s the
+    prior's 1-sigma of M). A negative det of that size is a mirrored reference (a
+    reflection); one nearer 0 is a degenerate fit (M not determined by the data)."""
+    s = PART_PRIOR_SIGMA.get(part, PART_PRIOR_SIGMA["default"])["M"][0]
+    return (1.0 - 3.0 * s) ** 3
 
 
 def _noise_margin(P, w, eiv_var):
@@ -384,7 +484,7 @@ def _noise_margin(P, w, eiv_var):
     return out
 
 
-def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
+def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split=None):
     """Gauss-Newton on the weighted cost in whitened coordinates z = (theta - theta0)/S of
     the free parameters (the others stay at the prior), restricted to the directions the
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
@@ -403,7 +503,10 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0):
     first = True
     for _ in range(GN_MAX_ITER):
         cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
-        ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
+        if split is not None and len(f) == len(S):
+            ev, EV, fitted = split          # judged once, at the prior (reference_fit)
+        else:
+            ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
         Vf = EV[:, fitted]
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior

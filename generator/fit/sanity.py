@@ -3,7 +3,10 @@
 * det M(T) > 0 over the calibrated range: a magnetometer calibration is a proper linear
   map; a negative determinant is a reflection, i.e. the reference vectors are mirrored
   against the readings (two reference columns swapped, one negated, or a wrong axis
-  mapping in the unit file). It is never a property of a real sensor.
+  mapping in the unit file). It is never a property of a real sensor. A det near 0
+  (|det M| < (1 - 3 s)^3, 0.343 for s = 0.1, s below) is not a reflection but a degenerate
+  fit: M not determined by the data (observability in generator.fit.reference holds such
+  directions at the prior, so this is a guard); the message says "degenerate".
 * cond M(T) plausible for the part: with the prior's 1-sigma s on every element of M
   (generator.fit.reference.PART_PRIOR_SIGMA, 0.1), singular values within 1 +- 3 s, so
   cond <= (1 + 3 s) / (1 - 3 s) (1.86 for s = 0.1). Beyond it the fit has most likely
@@ -20,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from generator.errors import InputError
-from generator.fit.reference import PART_PRIOR_SIGMA
+from generator.fit.reference import PART_PRIOR_SIGMA, min_abs_det
 
 ORTHO_TOL = 1e-6
 
@@ -53,6 +56,14 @@ def check_calibration(cal, spec, source=None) -> dict:
         raise InputError(source, f"sensor '{name}': the fit gave non-finite coefficients")
     if np.min(det) <= 0:
         k = int(np.argmin(det))
+        if abs(det[k]) < min_abs_det(spec.part):
+            raise InputError(source, f"sensor '{name}': the fitted matrix M is degenerate "
+                                     f"(det M = {det[k]:.3g} at {T[k]:.1f} degC, implausible "
+                                     f"for a {spec.part}: |det M| >= "
+                                     f"{min_abs_det(spec.part):.3f}): the data do not "
+                                     "determine M (readings that hardly move, or a reference "
+                                     "that does not follow them); record a rotation, or give "
+                                     "a ground calibration with --prior")
         raise InputError(source, f"sensor '{name}': the fitted matrix M is a reflection "
                                  f"(det M = {det[k]:.3f} at {T[k]:.1f} degC): the reference "
                                  "vectors are mirrored against the readings; likely cause: "
