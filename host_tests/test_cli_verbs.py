@@ -141,14 +141,6 @@ def test_table_through_main(example_coeffs, tmp_path, capsys):
     assert rc != 0
 
 
-TABLE_JSON_BUG = ("bug in generator/verbs/table.py: --decode and --diff print their text on "
-                  "stdout even with --json, and say() prints progress on stdout, so stdout "
-                  "is not one JSON document (cli.py: human output goes to stderr under "
-                  "--json). Fix: with args.json print text to stderr and return (0, "
-                  "{'verb': 'table', 'exit': 0, 'text'|'changes': ...})")
-
-
-@pytest.mark.xfail(strict=True, reason=TABLE_JSON_BUG)
 @pytest.mark.parametrize("mode", ["decode", "diff", "encode_verbose"])
 def test_table_json_stdout_is_only_json(example_coeffs, tmp_path, capsys, mode):
     table = tmp_path / "t.bin"

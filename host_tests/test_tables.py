@@ -913,7 +913,8 @@ def _cli(argv):
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
     try:
-        return verbs_table.cmd_table(args)
+        rc = verbs_table.cmd_table(args)
+        return rc[0] if isinstance(rc, tuple) else rc     # (status, JSON result), as cli.main
     except InputError as e:
         print(f"magcal table: {e}")
         return 2

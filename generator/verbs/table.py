@@ -49,11 +49,15 @@ def _load_coeffs(path):
 
 def cmd_table(args) -> int:
     """`magcal table`: encode, --decode, --diff or --check (see add_table_args)."""
+    import sys
+
     quiet = getattr(args, "quiet", False)
+    want_json = getattr(args, "json", False)
+    human = sys.stderr if want_json else sys.stdout   # under --json stdout is the JSON only
 
     def say(text):
         if not quiet:
-            print(text)
+            print(text, file=human)
 
     cs = _load_coeffs(getattr(args, "coeffs", None))
     spec = cs.spec if cs is not None else None
@@ -64,10 +68,11 @@ def cmd_table(args) -> int:
     if args.decode:
         data = _read_bytes(args.decode)
         try:
-            print(dump_table(data, spec, title=str(args.decode)), end="")
+            text = dump_table(data, spec, title=str(args.decode))
         except TableError as e:
             raise e.at(args.decode) from None
-        return 0
+        print(text, end="", file=human)
+        return 0, {"verb": "table", "exit": 0, "decode": str(args.decode), "text": text}
     if args.diff:
         tables = []
         for path in args.diff:
@@ -79,10 +84,11 @@ def cmd_table(args) -> int:
             tables.append(data)
         changes = diff_tables(tables[0], tables[1], spec)
         for c in changes:
-            print(c)
+            print(c, file=human)
         if not changes:
-            print("no differences")
-        return 0
+            print("no differences", file=human)
+        return 0, {"verb": "table", "exit": 0, "diff": [str(p) for p in args.diff],
+                   "changes": [str(c) for c in changes]}
     if args.check:
         if cs is None:
             raise InputError(None, "--check needs --coeffs COEFFS.json (the unit and chain "
