@@ -77,3 +77,14 @@ def test_negative_demo_seed_is_bad_usage(tmp_path, capsys):
                                   "ref", "coil_x", "rate"])
 def test_names_that_break_the_c_or_the_columns_are_refused(name):
     assert names.name_fault(name) is not None
+
+
+def test_numbers_written_as_text_are_refused(tmp_path, coeffs, capsys):
+    text = coeffs.read_text()
+    import re
+    m = re.search(r'"agree_nT": ([0-9.e+-]+)', text)
+    assert m
+    bad = tmp_path / "s.json"
+    bad.write_text(text.replace(m.group(0), f'"agree_nT": "{m.group(1)}"', 1))
+    rc, err = run(["generate", bad, "-o", tmp_path / "g", "-q"], capsys)
+    assert rc == 2 and len(err) == 1 and "text where numbers go" in err[0]

@@ -515,6 +515,9 @@ def _block_array(section, block, where, path, unit=None):
     raw = section[block.name]
     if _has_bool(raw):
         raise InputError(path, f"{where}.{block.name}: true/false where numbers go")
+    if _has_str(raw):
+        raise InputError(path, f"{where}.{block.name}: text where numbers go (write the "
+                               "number itself, not in quotes)")
     try:
         a = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
@@ -537,6 +540,12 @@ def _has_bool(v) -> bool:
     if isinstance(v, bool):
         return True
     return isinstance(v, list) and any(_has_bool(x) for x in v)
+
+
+def _has_str(v) -> bool:
+    if isinstance(v, str):
+        return True
+    return isinstance(v, list) and any(_has_str(x) for x in v)
 
 
 def _tolist(a):
