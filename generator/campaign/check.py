@@ -21,6 +21,10 @@ confidence band of the fitted cubic. A coefficient whose predicted 1-sigma anywh
 target temperature range exceeds the limit (b: 50 nT, m: 1e-3 by default, with each
 sensor's noise_nT from the unit file) is reported as poorly determined; one the design
 does not determine at all (J^T J singular along it) as undetermined.
+
+Size: one verb's analysis (coverage of the plan, settled segments, the predicted
+coefficient covariance); the report reuses its pieces. A split of the covariance
+prediction into its own module is the natural next cut.
 """
 
 from __future__ import annotations

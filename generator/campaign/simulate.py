@@ -26,6 +26,11 @@ Use:
 
 Everything is deterministic for the generator passed in. Effects never draw random
 numbers, so a campaign with and without an effect differs by the effect alone.
+
+Size: one module of one idea, the simulated unit and how it is observed; the campaign
+kinds (chamber twelve positions, rotation, coils, orbit, yaw flight, planar turntable)
+share its sensor and environment models. Splitting the campaign kinds into their own
+module is the next step when another is added.
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@ minimum flops of the chain's CasADi algorithm, the static checks of the generate
 measured variant P1, and the Markdown report:
 
     python -m generator.flight.target report COEFFS.json -o docs/flight_target.md
+
+Size: the measurements of one target (size, stack, instructions per call, the flops
+bound) and their report; split out of target.py already.
 """
 
 from __future__ import annotations

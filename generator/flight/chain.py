@@ -62,6 +62,10 @@ the fit, fit.thermal.extrapolation_growth) reaches the unit's requirement ([requ
 field_error_nT; none stated: margin 0, every sample outside is invalid); |B| outside the
 band gets STATUS_IMPLAUSIBLE; `select` adds STATUS_DISAGREE. ``valid`` is
 ``status & ~STATUS_INFO_MASK == 0`` (is_valid): informational bits do not invalidate.
+
+Size: the chain's one definition (the arithmetic, the layout, the options, the status
+rules and the float32 reference); keeping it in one module is the point: nothing is
+written twice.
 """
 
 from __future__ import annotations

@@ -22,6 +22,13 @@ Everything that knows the table format reads it from this module, from ONE defin
 Layout of a table (all little-endian): header (72 bytes), payload (the coefficients as
 IEEE float32 or float64 per unit.float_type, in layout order: exactly the flat
 ``<unit>_coeffs_t`` contents), CRC-32 (IEEE 802.3, ``zlib.crc32``) of everything before it.
+
+Size: one module on purpose. The table format is ONE definition (header fields, status
+codes in check order, plausible ranges), and the encoder, the ground validator (which
+must run the flight checks in the flight order, bit for bit), the diff, the parts and
+the dump all read it; splitting them would put the order of the checks in two places.
+The host build, the physics of the checks and the manager model live beside it
+(table_host.py, table_physics.py, table_manager.py).
 """
 
 from __future__ import annotations

@@ -12,6 +12,10 @@ blocks for the verbs:
   (fig. 10), setreset_section (fig. 12-13), coil_distance_section (fig. 5-6),
   residual_causes_section (residuals against their traced causes);
 * write_fit_report(cs, out_dir, data_paths): the whole `magcal fit` report.
+
+Size: the fit report, section by section (summary, coefficients, temperature, RMS, H,
+coils, SET/RESET, inputs); the document model is report/document.py and the figures
+report/figures.py.
 """
 
 from __future__ import annotations

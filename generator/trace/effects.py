@@ -25,6 +25,9 @@ Hooks are batched: p has shape (Bt, n_params) (a batch of parameter vectors, use
 finite-difference Jacobian), the samples S are shared, arrays returned are (Bt, n, ...).
 
 Adding an effect: write one subclass (see docs/effects.md) and append it to CATALOGUE.
+
+Size: the catalogue, one class per effect; they share the Effect protocol and are listed
+once in CATALOGUE, which trace and the tests import.
 """
 
 from __future__ import annotations
