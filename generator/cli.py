@@ -141,7 +141,8 @@ def cmd_apply(args):
     cs = CoefficientSet.load(args.coeffs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
-    apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off)
+    apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off,
+          at_rest=args.at_rest)
     return 0
 
 
@@ -154,6 +155,10 @@ def _args_apply(p):
     p.add_argument("--coils-off", action="store_true",
                    help="the data were recorded with the magnetorquers off: coil current "
                         "columns absent from the file are 0 A (without it, a coil column "
+                        "the chain needs and the file lacks is an error)")
+    p.add_argument("--at-rest", action="store_true",
+                   help="the data were recorded standing still (a ground jig): body-rate and "
+                        "channel columns absent from the file are 0 (without it, a column "
                         "the chain needs and the file lacks is an error)")
 
 

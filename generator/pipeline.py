@@ -188,9 +188,14 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                  "sanity": check_rotation(H, source=deployed[0].path)}
             progress(f"boom alignment H from {deployed[0].path}: {al.result.angle_deg:.3f} "
                      f"+- {al.result.sigma_angle_deg:.3f} deg")
+        elif not unit.boom_reference:
+            info["notes"].append("the unit file names no [boom] reference sensor: nothing "
+                                 "to align the boom sensors to, H is the identity")
         else:
             info["notes"].append("no campaign with the boom deployed (one without reference "
                                  "vectors): H is the identity")
+        if H is None:
+            progress(info["notes"][-1])
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
                                             coils=coils, fit_info=info,
                                             sensor_options=sr_opts, option_values=sr_values)
@@ -200,9 +205,10 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
 
 
 def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
-          coils_off=False) -> dict:
+          coils_off=False, at_rest=False) -> dict:
     """Correct a telemetry file through the compiled flight C; write the ICD output CSV.
-    coils_off: the data were recorded with the magnetorquers off (see chain_inputs).
+    coils_off: the data were recorded with the magnetorquers off; at_rest: standing still,
+    absent rate and channel columns are 0 (see chain_inputs, aux_off).
 
     Returns per-sensor outputs (field_body_nT, status, valid) for callers and tests.
     """
@@ -213,7 +219,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     host = host or HostUnit(cs)
     results = {}
     for s in cs.unit.sensors:
-        inp = chain_inputs(tel, cs.spec, s.name, coils_off=coils_off)
+        inp = chain_inputs(tel, cs.spec, s.name, coils_off=coils_off, aux_off=at_rest)
         out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                            channels=inp["channels"], rate_dps=inp["rate_dps"],
                            dt_s=inp["dt_s"])

@@ -48,7 +48,7 @@ def _write(tmp_path, x_nT, ref, input_unit):
     spec = ('input = "counts"\nlsb_nT = 1.0\nzero_count = 0\nrange_nT = 4912000.0\n'
             if input_unit == "counts" else 'input = "uT"\nrange_nT = 4912000.0\n')
     unit = tmp_path / "unit.toml"
-    unit.write_text('[unit]\nid = "static"\n\n[[sensor]]\nname = "m"\npart = "generic"\n'
+    unit.write_text('[unit]\nid = "stillsat"\n\n[[sensor]]\nname = "m"\npart = "generic"\n'
                     'frame = "body"\naxes = ["+x", "+y", "+z"]\n' + spec)
     csv = tmp_path / "static.csv"
     rows = ["time_s,m_x,m_y,m_z,m_temp_C,ref_x_nT,ref_y_nT,ref_z_nT"]

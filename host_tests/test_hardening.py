@@ -303,7 +303,7 @@ def test_missing_samples_are_not_status_zero(tmp_path, flight_slice):
 
 @pytest.mark.parametrize("column,value,verb", [("ref_x_nT", "1e300", "fit"),
                                                ("mmc1_temp_C", "1e300", "trace"),
-                                               ("mmc1_temp_C", "1e6", "fit"),
+                                               ("mmc1_temp_C", "-1e6", "fit"),
                                                ("mpu1_temp_C", "-300", "check"),
                                                ("ref_z_nT", "-2e7", "check"),
                                                ("time_s", "1e300", "fit")])

@@ -95,7 +95,7 @@ def test_compensation_removes_the_rate_following_error():
 
     def field(c, name):
         s = c.unit.sensor(name)
-        inp = chain_inputs(tel, c.spec, name)
+        inp = chain_inputs(tel, c.spec, name, coils_off=True)   # magnetorquers off
         return np.asarray(reference_sensor(c.spec, s, c.flat_sensor(name), c.flat_unit(),
                                            inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                                            rate_dps=inp["rate_dps"])["field_body_nT"], float)

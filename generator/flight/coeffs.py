@@ -52,12 +52,22 @@ def temp_margin_C(unit, cal) -> float:
 
 
 def default_agree_nT(sensor, cal) -> float:
-    """Tolerance of one sensor in the cross-sensor check (nT)."""
-    per_axis = float(sensor.noise_nT or 0.0)
-    resid = (cal.stats or {}).get("rms_vector_nT")
+    """Tolerance of one sensor in the cross-sensor check (nT): AGREE_SIGMAS x the larger of
+    the sensor's noise (the unit file's noise_nT, else the part's typical noise from the
+    catalogue) and its fit residual per axis; with neither, a few counts (counts input)."""
+    from generator.io import parts as catalogue
+
+    part = catalogue.find(sensor.part)
+    per_axis = float(sensor.noise_nT or (part.noise_nT if part and part.noise_nT else 0.0))
+    stats = cal.stats or {}
+    resid = (stats.get("fit") or {}).get("rms_vector_nT", stats.get("rms_vector_nT"))
     if resid is not None and np.isfinite(resid):
         per_axis = max(per_axis, float(resid) / np.sqrt(3.0))
     if per_axis <= 0:
+        if sensor.input != "counts":
+            raise ValueError(f"sensor '{sensor.name}': no noise figure (noise_nT), no part "
+                             "noise and no fit residual: the cross-sensor tolerance is "
+                             "undefined")
         per_axis = 50.0 * sensor.lsb_nT / 25.0   # no noise figure: a few counts
     return AGREE_SIGMAS * np.sqrt(3.0) * per_axis
 

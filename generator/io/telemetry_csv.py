@@ -45,6 +45,7 @@ _NUMBER_RE = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?")
 # * any other cell: beyond 1e15 in the units the columns carry (s, A, V, deg/s, ...) there
 #   is no physical meaning, and squares must stay far from float64 overflow.
 TEMP_RANGE_C = (-150.0, 200.0)
+ABSOLUTE_ZERO_C = -273.15
 REF_LIMIT_nT = 1e7
 CELL_LIMIT = 1e15
 _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
@@ -284,9 +285,12 @@ def _check_geo(path, columns: dict, line_numbers: np.ndarray) -> None:
 
 def _physical_bounds(name: str):
     """(low, high, unit) a cell of this column must lie within."""
-    # a temperature cell is bounded here by CELL_LIMIT only: an impossible reading (1e6
-    # degC) is a fault of that sample, which the fits reject and count
+    # a temperature below absolute zero is no reading at all (a broken column or unit):
+    # bad input; above it the cell is bounded by CELL_LIMIT only: an impossible reading
+    # (1e6 degC) is a fault of that sample, which the fits reject and count
     # (fit/samples.screen_temperatures) and the flight code clamps and flags
+    if name.endswith("_temp_C"):
+        return ABSOLUTE_ZERO_C, CELL_LIMIT, " degC"
     if name.startswith("ref_") and name.endswith("_nT"):
         return (0.0 if name == "ref_norm_nT" else -REF_LIMIT_nT), REF_LIMIT_nT, " nT"
     return -CELL_LIMIT, CELL_LIMIT, ""
