@@ -43,7 +43,6 @@ Default assumptions (all overridable on the command line):
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from generator.errors import InputError
+from generator.io.json_input import load_json
 
 FORMAT = "magcal-test-plan"
 FORMAT_VERSION = 1
@@ -369,18 +369,7 @@ class PlanProfile:
 def load_profile(path) -> PlanProfile:
     """Read a plan.json written by `magcal plan` (InputError on anything malformed)."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except OSError as e:
-        raise InputError(path, f"cannot read: {e.strerror or e}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(path, f"not a JSON test plan: {e}") from None
-    except ValueError as e:              # an integer of more than 4300 digits
-        raise InputError(path, f"not a test plan: {e}") from None
-    except RecursionError:
-        raise InputError(path, "not a test plan: nested too deeply") from None
+    d = load_json(path, "test plan")
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
     if d.get("format_version") != FORMAT_VERSION:

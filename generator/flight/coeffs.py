@@ -17,6 +17,7 @@ from generator import __version__
 from generator.fit.calibration import SensorCalibration
 from generator.flight.chain import ChainSpec, SensorOptions, is_physical
 from generator.errors import InputError
+from generator.io.json_input import load_json
 from generator.io.unit import Unit
 
 FORMAT = "magcal-coefficients"
@@ -70,10 +71,6 @@ def default_agree_nT(sensor, cal) -> float:
                              "undefined")
         per_axis = 50.0 * sensor.lsb_nT / 25.0   # no noise figure: a few counts
     return AGREE_SIGMAS * np.sqrt(3.0) * per_axis
-
-
-# A coefficients.json of 8 sensors with every optional stage is a few hundred kB.
-MAX_JSON_BYTES = 16 * 2 ** 20
 
 
 @dataclass
@@ -243,21 +240,7 @@ class CoefficientSet:
     @staticmethod
     def load(path) -> "CoefficientSet":
         path = Path(path)
-        try:
-            if path.is_file() and path.stat().st_size > MAX_JSON_BYTES:
-                raise InputError(path, f"{path.stat().st_size} bytes: larger than any "
-                                       f"coefficient file ({MAX_JSON_BYTES} bytes at most)")
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError(path, "file not found") from None
-        except OSError as e:
-            raise InputError(path, f"cannot read: {e.strerror or e}") from None
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise InputError(path, f"not a JSON coefficient file: {e}") from None
-        except ValueError as e:          # an integer of more than 4300 digits
-            raise InputError(path, f"not a coefficient file: {e}") from None
-        except RecursionError:
-            raise InputError(path, "not a coefficient file: nested too deeply") from None
+        d = load_json(path, "coefficient file")
         return CoefficientSet.from_json_dict(d, path)
 
     @staticmethod
