@@ -61,15 +61,22 @@ def default_agree_nT(sensor, cal) -> float:
     part = catalogue.find(sensor.part)
     per_axis = float(sensor.noise_nT or (part.noise_nT if part and part.noise_nT else 0.0))
     stats = cal.stats or {}
-    resid = (stats.get("fit") or {}).get("rms_vector_nT", stats.get("rms_vector_nT"))
+    fit = stats.get("fit") or {}
+    resid = fit.get("rms_vector_nT", stats.get("rms_vector_nT"))
     if resid is not None and np.isfinite(resid):
         per_axis = max(per_axis, float(resid) / np.sqrt(3.0))
+    else:          # magnitudes only: the |B| residual is one axis's worth of error
+        resid = fit.get("rms_norm_nT")
+        if resid is not None and np.isfinite(resid):
+            per_axis = max(per_axis, float(resid))
     if per_axis <= 0:
-        if sensor.input != "counts":
-            raise ValueError(f"sensor '{sensor.name}': no noise figure (noise_nT), no part "
-                             "noise and no fit residual: the cross-sensor tolerance is "
-                             "undefined")
-        per_axis = 50.0 * sensor.lsb_nT / 25.0   # no noise figure: a few counts
+        if sensor.input == "counts":
+            per_axis = 50.0 * sensor.lsb_nT / 25.0   # no noise figure: a few counts
+        else:
+            # real-number readings and nothing known of their noise: a thousandth of the
+            # full scale, the resolution of a 10..12-bit converter (coarser than any part
+            # in the catalogue, so the check does not reject good sensors)
+            per_axis = 1e-3 * float(sensor.full_scale_nT)
     return AGREE_SIGMAS * np.sqrt(3.0) * per_axis
 
 
