@@ -128,3 +128,22 @@ def random_aux(rng, spec, n, nan_fraction=0.0):
             if a is not None:
                 a[rng.random(a.shape[0]) < nan_fraction] = np.nan
     return channels, rate, dt
+
+
+def edit_coeffs(cs: CoefficientSet, sensor=None, **blocks) -> CoefficientSet:
+    """A copy of cs with blocks replaced (sensor blocks if sensor is given, else unit)."""
+    sensors = {k: dict(v) for k, v in cs.sensors.items()}
+    unit_values = dict(cs.unit_values)
+    target = sensors[sensor] if sensor else unit_values
+    for name, value in blocks.items():
+        target[name] = np.array(value, dtype=np.float64)
+    return CoefficientSet(cs.spec, sensors, unit_values, cs.uncertainty, cs.fit_info)
+
+
+def m_poly(m0, m1=None, orders=4):
+    """M_poly with constant term m0 (3x3), first-order term m1, higher orders zero."""
+    p = np.zeros((orders, 3, 3))
+    p[0] = m0
+    if m1 is not None:
+        p[1] = m1
+    return p

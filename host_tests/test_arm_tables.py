@@ -20,7 +20,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from chain_fixtures import random_coeffs, random_rotation, samsat_unit, with_float
+from chain_fixtures import (edit_coeffs, m_poly, random_coeffs, random_rotation, samsat_unit,
+                            with_float)
 from ci import require
 from generator.flight import table_physics, tables
 from generator.flight import target as ta
@@ -40,21 +41,6 @@ def toolchain():
                          f"{' '.join(ta.DEBIAN_PACKAGES)}")
 
 
-def _edit(cs, sensor=None, **blocks):
-    sensors = {k: dict(v) for k, v in cs.sensors.items()}
-    unit_values = dict(cs.unit_values)
-    target = sensors[sensor] if sensor else unit_values
-    for name, value in blocks.items():
-        target[name] = np.array(value, dtype=np.float64)
-    return CoefficientSet(cs.spec, sensors, unit_values, cs.uncertainty, cs.fit_info)
-
-
-def _m_poly(m0, m1=None, orders=4):
-    p = np.zeros((orders, 3, 3))
-    p[0] = m0
-    if m1 is not None:
-        p[1] = m1
-    return p
 
 
 def _scan(dtype, centre, n=48):
@@ -112,7 +98,7 @@ def discriminating(cs, n=12, seed=77):
         m[k] = m[k] + dt.type(rng.integers(-3, 4)) * np.spacing(m[k])
         m = [dt.type(x) for x in m]
         if len({bool(x >= lo) for x in _det_alternatives(m, dt)}) > 1:
-            dets.append(_edit(cs, "mpu2", M_poly=_m_poly(np.array(m, np.float64)
+            dets.append(edit_coeffs(cs, "mpu2", M_poly=m_poly(np.array(m, np.float64)
                                                           .reshape(3, 3))))
     for _ in range(5000):
         if len(rots) >= n:
@@ -129,7 +115,7 @@ def discriminating(cs, n=12, seed=77):
         for h01 in (below, np.nextafter(below, dt.type(1))):
             h[1] = h01
             if len({bool(g <= tol) for g in _g01_alternatives(h, dt)}) > 1:
-                rots.append(_edit(cs, H_boom_to_body=np.array(h, np.float64).reshape(3, 3)))
+                rots.append(edit_coeffs(cs, H_boom_to_body=np.array(h, np.float64).reshape(3, 3)))
     return dets, rots
 
 
@@ -142,40 +128,40 @@ def _validation_sets(cs):
     for m0 in (np.eye(3), np.zeros((3, 3)), np.diag([1.0, 1, -1]), np.diag([0.3] * 3),
                np.diag([0.34] * 3), np.diag([3.0] * 3),
                np.array([[3, -1, 0], [1, 3, 0], [0, 0, 3.0]])):
-        out.append(_edit(cs, "mpu1", M_poly=_m_poly(m0)))
+        out.append(edit_coeffs(cs, "mpu1", M_poly=m_poly(m0)))
     for m1 in (-np.eye(3) / 30, np.eye(3) / 45, -np.eye(3) / 60):
-        out.append(_edit(cs, "mmc2", M_poly=_m_poly(np.eye(3), m1), t_ref_C=25.0,
+        out.append(edit_coeffs(cs, "mmc2", M_poly=m_poly(np.eye(3), m1), t_ref_C=25.0,
                          t_min_C=-20.0, t_max_C=55.0))
     shear = np.zeros((3, 3))
     shear[0, 1] = 1e-4
     for H in (np.eye(3), 1.0005 * np.eye(3), 1.2 * np.eye(3), np.eye(3) + shear,
               np.eye(3) + shear / 20, np.diag([1.0, -1, 1]), np.zeros((3, 3)),
               random_rotation(np.random.default_rng(5), 0.5)):
-        out.append(_edit(cs, H_boom_to_body=H))
+        out.append(edit_coeffs(cs, H_boom_to_body=H))
     # random M0 (any determinant, sign included) and H near a rotation
     rng = np.random.default_rng(41)
     for _ in range(40):
         s = cs.unit.sensors[rng.integers(len(cs.unit.sensors))].name
-        out.append(_edit(cs, s, M_poly=_m_poly(rng.uniform(-1.5, 1.5, (3, 3)))))
+        out.append(edit_coeffs(cs, s, M_poly=m_poly(rng.uniform(-1.5, 1.5, (3, 3)))))
         H = random_rotation(rng, 1.0) + rng.normal(0, 10 ** rng.uniform(-7, -3), (3, 3))
-        out.append(_edit(cs, H_boom_to_body=np.clip(H, -1.0, 1.0)))
+        out.append(edit_coeffs(cs, H_boom_to_body=np.clip(H, -1.0, 1.0)))
     dets, rots = discriminating(cs)
     out += dets + rots
     # det M0 = c^3 det(A) around the lower bound, c one float at a time
     A = np.eye(3) + rng.normal(0, 0.05, (3, 3))
     c0 = (lim.det_M_lo / np.linalg.det(A)) ** (1 / 3)
     for c in _scan(dt, c0):
-        out.append(_edit(cs, "mpu2", M_poly=_m_poly((A * float(c)).astype(dt))))
+        out.append(edit_coeffs(cs, "mpu2", M_poly=m_poly((A * float(c)).astype(dt))))
     # det M(t_max) = (1 + 30 m)^3 around 1/27: m around -1/45
     for m in _scan(dt, -1 / 45):
-        out.append(_edit(cs, "mpu2", M_poly=_m_poly(np.eye(3), float(m) * np.eye(3)),
+        out.append(edit_coeffs(cs, "mpu2", M_poly=m_poly(np.eye(3), float(m) * np.eye(3)),
                          t_ref_C=25.0, t_min_C=-20.0, t_max_C=55.0))
     # (H^T H)_01 around the tolerance: a rotation with H[0][1] moved by ~tol / H[0][0]
     R = random_rotation(rng, 0.3).astype(dt)
     for h01 in _scan(dt, float(R[0, 1]) + lim.rotation_tol / float(R[0, 0])):
         H = R.astype(np.float64)
         H[0, 1] = float(h01)
-        out.append(_edit(cs, H_boom_to_body=H))
+        out.append(edit_coeffs(cs, H_boom_to_body=H))
     return out
 
 
@@ -198,7 +184,7 @@ def unit(request, toolchain):
 def _ops(cs):
     """The operations: validations, the serial rule through load and parts, init with
     broken defaults and the fallback, the active coefficients along the way."""
-    other = _edit(cs, "mpu1", lsb_nT=151.0)
+    other = edit_coeffs(cs, "mpu1", lsb_nT=151.0)
     sets = _validation_sets(cs)
     ops = [("init",)]
     ops += [("validate", encode_table(x, 3, 0, check=False)) for x in sets]
@@ -210,9 +196,9 @@ def _ops(cs):
     ops += [("receive_part", p) for p in chunk_table(encode_table(cs, 6, 0), 400)]
     ops += [("commit",), ("active",)]
     flat = tables.flat_values(cs).astype(tables.value_dtype(cs.spec))
-    for bad in (_edit(cs, H_boom_to_body=1.0005 * np.eye(3)),
-                _edit(cs, "mmc1", M_poly=_m_poly(np.zeros((3, 3)))),
-                _edit(cs, H_boom_to_body=1.2 * np.eye(3))):
+    for bad in (edit_coeffs(cs, H_boom_to_body=1.0005 * np.eye(3)),
+                edit_coeffs(cs, "mmc1", M_poly=m_poly(np.zeros((3, 3)))),
+                edit_coeffs(cs, H_boom_to_body=1.2 * np.eye(3))):
         bflat = tables.flat_values(bad).astype(flat.dtype)
         ops += [("init_values", bflat), ("active",), ("load", encode_table(cs, 0, 0)),
                 ("load", encode_table(cs, 2, 0)), ("active",)]

@@ -16,7 +16,7 @@ import functools
 import numpy as np
 import pytest
 
-from chain_fixtures import (assert_bit_identical, bits, random_coeffs, random_inputs,
+from chain_fixtures import (edit_coeffs, m_poly, assert_bit_identical, bits, random_coeffs, random_inputs,
                             random_rotation, samsat_unit, with_float, with_options)
 from generator.flight import chain, tables
 from generator.flight.chain import SensorOptions, SensorState, reference_sensor
@@ -35,23 +35,6 @@ def _base(unit_id="rulesat", float_type="float32", seed=14):
     return with_float(cs, float_type) if float_type == "float64" else cs
 
 
-def _edit(cs: CoefficientSet, sensor=None, **blocks) -> CoefficientSet:
-    """A copy of cs with blocks replaced (sensor blocks if sensor is given, else unit)."""
-    sensors = {k: dict(v) for k, v in cs.sensors.items()}
-    unit_values = dict(cs.unit_values)
-    target = sensors[sensor] if sensor else unit_values
-    for name, value in blocks.items():
-        target[name] = np.array(value, dtype=np.float64)
-    return CoefficientSet(cs.spec, sensors, unit_values, cs.uncertainty, cs.fit_info)
-
-
-def _m_poly(m0, m1=None, orders=4):
-    """M_poly with constant term m0 (3x3), first-order term m1, higher orders zero."""
-    p = np.zeros((orders, 3, 3))
-    p[0] = m0
-    if m1 is not None:
-        p[1] = m1
-    return p
 
 
 BASE = {"f32": _base(), "f64": _base("rule64", "float64")}
@@ -106,7 +89,7 @@ DET_CASES = [
 def test_determinant_of_the_constant_term(label, name, m0, want):
     base = BASE[label]
     for sensor in ("mmc1", "mpu3"):      # a body and a boom sensor
-        cs = _edit(base, sensor, M_poly=_m_poly(m0))
+        cs = edit_coeffs(base, sensor, M_poly=m_poly(m0))
         st, bad = _verdict(label, cs)
         assert st == want, (name, sensor, st)
         if want != S.OK:
@@ -122,14 +105,14 @@ def test_determinant_at_the_ends_of_the_temperature_range(label):
     cases = [(-np.eye(3) / 30.0, S.BAD_DETERMINANT), (np.eye(3) / 45.0, S.BAD_DETERMINANT),
              (-np.eye(3) / 60.0, S.OK)]
     for m1, want in cases:
-        cs = _edit(base, "mpu1", M_poly=_m_poly(np.eye(3), m1), t_ref_C=25.0, t_min_C=-20.0,
+        cs = edit_coeffs(base, "mpu1", M_poly=m_poly(np.eye(3), m1), t_ref_C=25.0, t_min_C=-20.0,
                    t_max_C=55.0)
         st, bad = _verdict(label, cs)
         assert st == want, (m1[0, 0], st)
         if want != S.OK:
             assert bad == _m_index(cs.spec, "mpu1")
     # the values computed are those expected: det M(55) = (1 - 30/60)^3 = 1/8, exactly
-    cs = _edit(base, "mpu1", M_poly=_m_poly(np.eye(3), -np.eye(3) / 60.0), t_ref_C=25.0,
+    cs = edit_coeffs(base, "mpu1", M_poly=m_poly(np.eye(3), -np.eye(3) / 60.0), t_ref_C=25.0,
                t_min_C=-20.0, t_max_C=55.0)
     vals = tables.flat_values(cs).astype(tables.value_dtype(cs.spec))
     dets = dict(tables.physical_values(cs.spec, vals)["det_M"])["mpu1"]
@@ -159,7 +142,7 @@ def test_boom_alignment_must_be_a_rotation(label, name, H, want, where):
     base = BASE[label]
     if H is None:
         H = random_rotation(np.random.default_rng(5), max_angle_rad=0.5)
-    cs = _edit(base, H_boom_to_body=H)
+    cs = edit_coeffs(base, H_boom_to_body=H)
     st, bad = _verdict(label, cs)
     assert st == want, (name, st)
     h0 = tables._rotation_index(cs.spec)
@@ -180,7 +163,7 @@ def test_rotation_tolerance_is_the_stated_one(label):
                     (-tol, S.OK), (np.nextafter(-tol, dt.type(-1)), S.NOT_A_ROTATION)):
         H = np.eye(3)
         H[0, 1] = float(x)
-        st, bad = _verdict(label, _edit(base, H_boom_to_body=H))
+        st, bad = _verdict(label, edit_coeffs(base, H_boom_to_body=H))
         assert st == want, (x, st)
     # 1e-5 < tol < 1.1e-5: the allowance plus 2^-21
     assert 1.0e-5 < float(tol) < 1.1e-5
@@ -195,7 +178,7 @@ def test_a_unit_without_boom_has_no_rotation_check():
     h = TableHost(cs)
     table = encode_table(cs, 1, 0)
     assert h.validate(table) == S.OK
-    bad = _edit(cs, "mpu2", M_poly=_m_poly(np.zeros((3, 3))))
+    bad = edit_coeffs(cs, "mpu2", M_poly=m_poly(np.zeros((3, 3))))
     t = encode_table(bad, 1, 0, check=False)
     assert h.validate_detail(t) == _python_status(t, cs.spec) == \
         (S.BAD_DETERMINANT, _m_index(cs.spec, "mpu2"))
@@ -205,20 +188,20 @@ def test_order_of_the_physical_checks():
     """Range before determinant before rotation: a table failing all three says range;
     without the range fault, det; the first sensor in unit order is named."""
     base = BASE["f32"]
-    cs = _edit(_edit(_edit(base, "mpu2", M_poly=_m_poly(np.zeros((3, 3)))), "mmc2",
-                     M_poly=_m_poly(-np.eye(3))), H_boom_to_body=1.0005 * np.eye(3))
+    cs = edit_coeffs(edit_coeffs(edit_coeffs(base, "mpu2", M_poly=m_poly(np.zeros((3, 3)))), "mmc2",
+                     M_poly=m_poly(-np.eye(3))), H_boom_to_body=1.0005 * np.eye(3))
     assert _verdict("f32", cs) == (S.BAD_DETERMINANT, _m_index(cs.spec, "mpu2"))
-    cs2 = _edit(cs, "mpu1", lsb_nT=0.0)
+    cs2 = edit_coeffs(cs, "mpu1", lsb_nT=0.0)
     assert _verdict("f32", cs2)[0] == S.VALUE_OUT_OF_RANGE
 
 
 def test_encoder_refuses_physically_wrong_coefficients():
     base = BASE["f32"]
     with pytest.raises(TableError) as e:
-        encode_table(_edit(base, H_boom_to_body=1.0005 * np.eye(3)), 1, 0)
+        encode_table(edit_coeffs(base, H_boom_to_body=1.0005 * np.eye(3)), 1, 0)
     assert e.value.status == S.NOT_A_ROTATION and "H^T H - I" in str(e.value)
     with pytest.raises(TableError) as e:
-        encode_table(_edit(base, "mmc1", M_poly=_m_poly(np.zeros((3, 3)))), 1, 0)
+        encode_table(edit_coeffs(base, "mmc1", M_poly=m_poly(np.zeros((3, 3)))), 1, 0)
     assert e.value.status == S.BAD_DETERMINANT and "mmc1 det M at t_ref_C = 0" in str(e.value)
 
 
@@ -313,7 +296,7 @@ def test_a_refused_table_checks_before_the_serial():
     h = host("f32")
     mgr = h.manager()
     assert h.load(mgr, encode_table(other, 9, 0)) == S.OK
-    bad = encode_table(_edit(base, H_boom_to_body=1.0005 * np.eye(3)), 3, 0, check=False)
+    bad = encode_table(edit_coeffs(base, H_boom_to_body=1.0005 * np.eye(3)), 3, 0, check=False)
     assert h.load(mgr, bad) == S.NOT_A_ROTATION
 
 
@@ -323,14 +306,14 @@ def test_a_refused_table_checks_before_the_serial():
 BAD_DEFAULTS = [
     ("H scaled by 1.2", dict(H_boom_to_body=1.2 * np.eye(3)), None, S.VALUE_OUT_OF_RANGE),
     ("H scaled by 1.0005", dict(H_boom_to_body=1.0005 * np.eye(3)), None, S.NOT_A_ROTATION),
-    ("mpu2 M all zero", dict(M_poly=_m_poly(np.zeros((3, 3)))), "mpu2", S.BAD_DETERMINANT),
+    ("mpu2 M all zero", dict(M_poly=m_poly(np.zeros((3, 3)))), "mpu2", S.BAD_DETERMINANT),
 ]
 
 
 @functools.lru_cache(maxsize=None)
 def _bad_default_unit(i):
     name, blocks, sensor, want = BAD_DEFAULTS[i]
-    cs = _edit(_base(f"baddef{i}"), sensor, **blocks)
+    cs = edit_coeffs(_base(f"baddef{i}"), sensor, **blocks)
     return cs, TableHost(cs)
 
 
@@ -454,7 +437,7 @@ def test_check_command_names_the_physical_fault(tmp_path, capsys):
     coeffs = tmp_path / "coefficients.json"
     base.save(coeffs)
     bad = tmp_path / "bad.bin"
-    bad.write_bytes(encode_table(_edit(base, H_boom_to_body=1.0005 * np.eye(3)), 2, 0,
+    bad.write_bytes(encode_table(edit_coeffs(base, H_boom_to_body=1.0005 * np.eye(3)), 2, 0,
                                  check=False))
     p = argparse.ArgumentParser()
     verbs_table.add_table_args(p)
