@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -389,6 +391,7 @@ def main(argv=None) -> int:
         return 2
     want_json = getattr(args, "json", False)
     progress = _progress(args)
+    previous_term = _raise_on_sigterm()
     try:
         with warnings.catch_warnings():
             if not debug:   # numeric warnings of bad data: the outcome says it, in one line
@@ -400,10 +403,13 @@ def main(argv=None) -> int:
         if want_json:
             _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, _Terminated) as e:
+        # Unwinding runs every output's cleanup: nothing half-written stays behind. The
+        # exit status is the shell's convention for death by that signal (128 + number).
         progress.release()
-        print("magcal: interrupted", file=sys.stderr)
-        return 1
+        term = isinstance(e, _Terminated)
+        print(f"magcal: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if term else signal.SIGINT)
     except Exception as e:           # a genuine internal fault: one line, or the traceback
         if debug:
             progress.release()
@@ -414,6 +420,8 @@ def main(argv=None) -> int:
         if want_json:
             _print_json({"verb": args.verb, "exit": 1, "error": f"{type(e).__name__}: {e}"})
         return 1
+    finally:
+        _restore_sigterm(previous_term)
     payload = None
     if isinstance(result, tuple):
         result, payload = result
@@ -425,6 +433,27 @@ def main(argv=None) -> int:
     if want_json:
         _print_json(payload if payload is not None else {"verb": args.verb, "exit": rc})
     return rc
+
+
+class _Terminated(BaseException):
+    """SIGTERM as an exception, so `with` blocks remove their temporary outputs."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def _raise_on_sigterm():
+    """Turn SIGTERM into _Terminated while a verb runs (main thread only: a library
+    caller in another thread keeps its own handling)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+def _restore_sigterm(previous) -> None:
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _one_line(text: str, limit: int = 400) -> str:
