@@ -80,8 +80,11 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     _check_position(path, columns, line_numbers)
     _check_geo(path, columns, line_numbers)
     _check_physical(path, columns, line_numbers)
-    return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
-                     meta=meta, comments=comments)
+    tel = Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
+                    meta=meta, comments=comments)
+    # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
+    from generator.io.orbit import attach_field_reference
+    return attach_field_reference(tel, unit)
 
 
 def _read_text(path) -> str:
