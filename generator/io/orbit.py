@@ -332,13 +332,17 @@ def attach_field_reference(tel, unit):
 
 
 def _years_after_last_epoch(times) -> float:
-    """Years from the last 5-year main-field epoch before the samples to their middle
-    (the predictive secular variation's age)."""
+    """Years from the model's last main-field epoch (IGRF-14: 2025.0; before it the model
+    interpolates between main-field models, after it the secular variation is a
+    prediction) to the middle of the samples; 0 before that epoch."""
+    from generator.io import geomag
+
     if not len(times):
         return 0.0
     mid = times[len(times) // 2].astype(_dt.datetime)
-    epoch_year = mid.year - mid.year % 5
-    return (mid - _dt.datetime(epoch_year, 1, 1)).total_seconds() / (365.25 * 86400.0)
+    _, end = geomag.model_span()
+    last_main = _dt.datetime(end.year - 5, 1, 1)          # the SV covers the last 5 years
+    return max(0.0, (mid - last_main).total_seconds() / (365.25 * 86400.0))
 
 
 def describe(prov: dict) -> str:
