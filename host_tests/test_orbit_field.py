@@ -253,3 +253,23 @@ def test_file_with_a_reference_is_left_alone(tmp_path):
     tel = read_telemetry(csv, load_unit(u))
     assert "field_reference" not in tel.meta
     assert tel.columns["ref_norm_nT"][0] == 40000.0
+
+
+def test_ecef_in_metres_is_bad_input_naming_the_line(tmp_path):
+    from generator.io.telemetry_csv import read_telemetry
+    from generator.io.unitfile import load_unit
+    u, csv = _write_orbit_case(tmp_path, "ecef_x_km,ecef_y_km,ecef_z_km",
+                               ["6878.0,0,0", "6878000.0,0,0"],
+                               '[orbit]\nepoch_utc = "2026-03-01T00:00:00Z"\n')
+    with pytest.raises(InputError, match="from the Earth's centre") as e:
+        read_telemetry(csv, load_unit(u))
+    assert e.value.line == 3 and e.value.column == "ecef_x_km"
+
+
+def test_cli_fit_on_bad_orbit_input_is_one_line_exit_2(tmp_path, capsys):
+    from generator.cli import main
+    u, csv = _write_orbit_case(tmp_path, "lat_deg,lon_deg,alt_km", ["45,10,500"])
+    assert main(["fit", str(u), str(csv), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "epoch_utc" in err[0]
+    assert not (tmp_path / "o").exists()

@@ -229,6 +229,7 @@ def track_of(tel, unit) -> Track:
         if present:
             if kind == "ECEF":
                 ecef = np.stack([tel.columns[c] for c in cols], axis=1).astype(float)
+                _check_radius(tel, ecef, cols[0])
             else:
                 ecef = geodetic_to_ecef_km(*(tel.columns[c] for c in cols))
             return Track(times, ecef, f"GNSS {kind} columns ({where} + time_s)")
@@ -248,6 +249,24 @@ def track_of(tel, unit) -> Track:
     return Track(times, ecef, f"SGP4 from the [orbit] TLE (catalogue {tle[0][2:7].strip()}, "
                               f"TLE age {age_d.min():+.2f} .. {age_d.max():+.2f} days; "
                               f"{where} + time_s)", tuple(notes))
+
+
+# An Earth-fixed position must lie between the deepest point below the WGS-84 ellipsoid
+# (the polar radius 6356.75 km less ~11 km of ocean trench) and the highest altitude the
+# geodetic columns accept (telemetry_csv.GEO_LIMITS, 100,000 km).
+ECEF_RADIUS_KM = (6345.0, WGS84_A_KM + 100000.0)
+
+
+def _check_radius(tel, ecef, column) -> None:
+    r = np.linalg.norm(ecef, axis=1)
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(np.isfinite(r) & ((r < ECEF_RADIUS_KM[0]) | (r > ECEF_RADIUS_KM[1])))
+    if bad.size:
+        i = bad[0]
+        raise InputError(tel.path, f"the position is {r[i]:.3f} km from the Earth's centre, "
+                                   f"outside {ECEF_RADIUS_KM[0]:g} .. {ECEF_RADIUS_KM[1]:g} km "
+                                   "(not kilometres?)", line=int(tel.line_numbers[i]),
+                         column=column)
 
 
 # ---- the field along the track, cached -------------------------------------------------
