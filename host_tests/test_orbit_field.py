@@ -273,3 +273,27 @@ def test_cli_fit_on_bad_orbit_input_is_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "epoch_utc" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_tle_sgp4_cannot_use_is_bad_input(tmp_path, monkeypatch):
+    """Checksums right, but a mean motion of 0 rev/day: SGP4 refuses the elements."""
+    from generator.io.telemetry_csv import read_telemetry
+    from generator.io.unitfile import _tle_checksum, load_unit
+    monkeypatch.setenv("MAGCAL_CACHE", str(tmp_path / "cache"))
+    l2 = ISS_TLE[1][:52] + "00.00000000" + ISS_TLE[1][63:68]
+    l2 += _tle_checksum(l2 + "0")
+    toml = f'[orbit]\nepoch_utc = "2008-09-21T00:00:00Z"\ntle = ["{ISS_TLE[0]}", "{l2}"]\n'
+    u, csv = _write_orbit_case(tmp_path, "", [""], toml)
+    with pytest.raises(InputError, match=r"\[orbit\] tle"):
+        read_telemetry(csv, load_unit(u))
+
+
+def test_time_far_beyond_any_model_is_bad_input(tmp_path):
+    from generator.io.telemetry_csv import read_telemetry
+    from generator.io.unitfile import load_unit
+    u, csv = _write_orbit_case(tmp_path, "lat_deg,lon_deg,alt_km", ["45,10,500"],
+                               '[orbit]\nepoch_utc = "2026-03-01T00:00:00Z"\n')
+    csv.write_text(csv.read_text().replace("\n0.0,", "\n1e15,"))
+    with pytest.raises(InputError, match="200 years") as e:
+        read_telemetry(csv, load_unit(u))
+    assert e.value.column == "time_s"

@@ -51,6 +51,7 @@ WGS84_A_KM = 6378.137
 WGS84_F = 1.0 / 298.257223563
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 
+MAX_TIME_FROM_EPOCH_S = 200 * 365.25 * 86400.0   # beyond any field model's span
 GEODETIC_COLUMNS = ("lat_deg", "lon_deg", "alt_km")
 ECEF_COLUMNS = ("ecef_x_km", "ecef_y_km", "ecef_z_km")
 REF_COLUMNS = ("ref_x_nT", "ref_y_nT", "ref_z_nT", "ref_norm_nT")
@@ -219,7 +220,15 @@ def track_of(tel, unit) -> Track:
         raise InputError(tel.path, "a position but no ref_* column, and no [orbit] "
                                    "epoch_utc in the unit file (nor a '# epoch_utc:' line): "
                                    "the field model needs the UTC of time_s = 0")
-    times = epoch + np.round(np.asarray(tel.time_s, float) * 1e6).astype("timedelta64[us]")
+    t_s = np.asarray(tel.time_s, float)
+    with np.errstate(invalid="ignore"):
+        far = np.flatnonzero(np.abs(t_s) > MAX_TIME_FROM_EPOCH_S)
+    if far.size:
+        i = far[0]
+        raise InputError(tel.path, f"{t_s[i]:g} s from {where} is more than 200 years: "
+                                   "no field model covers it", line=int(tel.line_numbers[i]),
+                         column="time_s")
+    times = epoch + np.round(np.nan_to_num(t_s) * 1e6).astype("timedelta64[us]")
     for cols, kind in ((GEODETIC_COLUMNS, "lat/lon/alt"), (ECEF_COLUMNS, "ECEF")):
         present = [c for c in cols if c in tel.columns]
         if present and len(present) < 3:
@@ -237,11 +246,12 @@ def track_of(tel, unit) -> Track:
     ok = np.isfinite(tel.time_s)
     try:
         teme = sgp4_teme_km(tle, times[ok])
-    except ValueError as e:
+        tle_epoch = tle_epoch_utc(tle)
+    except (ValueError, ArithmeticError, IndexError) as e:   # elements SGP4 cannot use
         raise InputError(unit.path, f"[orbit] tle: {e}") from None
     ecef = np.full((tel.n, 3), np.nan)
     ecef[ok] = teme_to_ecef_km(teme, times[ok])
-    age_d = (times[ok] - tle_epoch_utc(tle)) / np.timedelta64(86400, "s")
+    age_d = (times[ok] - tle_epoch) / np.timedelta64(86400, "s")
     notes = []
     if age_d.size and np.max(np.abs(age_d)) > 3.0:
         notes.append(f"the TLE is up to {np.max(np.abs(age_d)):.1f} days from the samples: "
