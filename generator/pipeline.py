@@ -270,10 +270,12 @@ def _orbit_notes(unit, tels, cals, info) -> None:
         if noise is None or s.name not in cals:
             continue
         floor = float(np.hypot(noise, model))
+        reached = (cals[s.name].stats.get("fit") or {}).get("rms_norm_nT")
         info["notes"].append(
             f"{s.name}: against the field model the |B| residual cannot go below "
             f"~{floor:.0f} nT rms = sqrt(noise {noise:.0f}^2 + model {model:.0f}^2) "
-            "(docs/orbit.md)")
+            "(docs/orbit.md)" + (f"; the fit reached {reached:.0f} nT on its own samples"
+                                 if reached is not None else ""))
         cals[s.name].stats["field_model_floor_nT"] = floor
 
 
