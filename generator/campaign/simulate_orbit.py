@@ -8,9 +8,11 @@ module adds what differs in orbit:
 * position: SGP4 from a real two-line element set (ISS_TLE, VANGUARD1_TLE below, sources
   cited) through generator.io.orbit (TEME -> ECEF by GMST), the file written with the TLE
   in the unit file's [orbit] table, or with GNSS columns (lat/lon/alt or ECEF);
-* field: IGRF-14 along the track (generator.io.geomag) plus what the model lacks: a
-  smooth crustal + external field along the orbit of `model_error_nT` rms per axis, and
-  during a disturbed interval (`storm`) a larger one, flagged in the kp_index column;
+* field: IGRF-14 along the track (generator.io.geomag) plus what the model lacks
+  (model_error_field): `model_error_nT` rms per axis, half fixed to the Earth (main-field
+  error, crustal field), half fixed to the Sun (external fields, which repeat from orbit
+  to orbit like the thermal cycle); during a disturbed interval (`storm`) a larger
+  field fixed to the orbit, flagged in the kp_index column;
 * attitude: a slow tumble (B-dot currents on every other sample, as the project's
   `flight` campaign);
 * temperature: sunlit / eclipse from a low-precision solar position (Astronomical
@@ -102,13 +104,45 @@ def new_current(sensor, nT_per_A, *, period_s=1800.0, duty=0.3, current_A=0.5, p
 
 
 def _along_track_error(phase, rng, rms_per_axis, harmonics=6):
-    """A smooth field along the orbit (crustal + external, what IGRF lacks): a sum of
-    harmonics of the orbital phase with random amplitudes, rms_per_axis per ECEF axis."""
+    """A smooth field along the orbit, fixed to the orbit (harmonics of the orbital phase
+    with random amplitudes), rms_per_axis per axis: a storm's disturbance."""
     k = np.arange(1, harmonics + 1)
     amp = rng.normal(size=(harmonics, 3)) / k[:, None]
     ph = rng.uniform(0, 2 * math.pi, size=(harmonics, 3))
     amp *= rms_per_axis / math.sqrt(0.5 * np.sum(amp ** 2) / 3.0)
     return np.sum(amp[None] * np.sin(k[None, :, None] * phase[:, None, None] + ph[None]), axis=1)
+
+
+def _field_on_sphere(u, rng, rms_per_axis, waves=12, wavenumber=(2.0, 8.0)):
+    """A smooth random field over directions u (N, 3 unit vectors): a sum of plane waves
+    sin(s k.u + phi) with random directions k, wavenumbers s (per Earth radius: 2 .. 8,
+    wavelengths ~5,000 - 20,000 km, the scale of the main-field and the large crustal
+    errors at LEO), random amplitudes per axis; scaled to rms_per_axis over u."""
+    k = rng.normal(size=(waves, 3))
+    k /= np.linalg.norm(k, axis=1, keepdims=True)
+    k *= rng.uniform(*wavenumber, size=(waves, 1))
+    amp = rng.normal(size=(waves, 3))
+    ph = rng.uniform(0, 2 * math.pi, size=waves)
+    f = np.sin(u @ k.T + ph) @ amp
+    return f * (rms_per_axis / max(float(np.sqrt(np.mean(f ** 2))), 1e-12))
+
+
+def model_error_field(e_ecef_km, r_teme_km, sun_eci, rng, rms_per_axis):
+    """What IGRF lacks along the track, (N, 3) in ECEF axes, rms_per_axis per axis, half
+    the variance in each of two parts: fixed to the Earth (the main field's error and the
+    crustal field: a function of the Earth-fixed position, so the Earth turning under the
+    orbit makes it differ from orbit to orbit) and fixed to the Sun (external fields:
+    ring current, magnetopause, ionosphere; a function of the position in a frame with x
+    towards the Sun, so it repeats from orbit to orbit like the thermal cycle)."""
+    u_e = e_ecef_km / np.linalg.norm(e_ecef_km, axis=1, keepdims=True)
+    x = sun_eci / np.linalg.norm(sun_eci, axis=1, keepdims=True)
+    z = np.cross(x, np.array([0.0, 0.0, 1.0]))
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    u_t = r_teme_km / np.linalg.norm(r_teme_km, axis=1, keepdims=True)
+    u_s = np.stack([np.sum(u_t * x, 1), np.sum(u_t * y, 1), np.sum(u_t * z, 1)], axis=1)
+    part = rms_per_axis / math.sqrt(2.0)
+    return _field_on_sphere(u_e, rng, part) + _field_on_sphere(u_s, rng, part)
 
 
 def orbit_scenario(unit, truth, rng, *, tle=ISS_TLE, epoch_utc=None, duration_s=6 * 3600.0,
@@ -147,7 +181,8 @@ def orbit_scenario(unit, truth, rng, *, tle=ISS_TLE, epoch_utc=None, duration_s=
     x0 = teme_grid[0] / np.linalg.norm(teme_grid[0])
     y0 = np.cross(h, x0)
     phase = np.unwrap(np.arctan2(teme_grid @ y0, teme_grid @ x0))
-    err = _along_track_error(phase, rng, model_error_nT)
+    err = model_error_field(e_grid, teme_grid, sun_direction_eci(utc(grid)), rng,
+                            model_error_nT)
     kp = np.full(grid.shape, 1.7)
     if storm is not None:
         s0, sd, extra, kp_storm = storm
