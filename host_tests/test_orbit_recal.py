@@ -133,3 +133,21 @@ def test_uplink_of_what_changed(recal):
     assert "b_poly_nT" in changed           # the shifted offsets are in the diff
     assert "K_nT_per_A" not in changed      # the ground's coil coupling is kept
     assert all(len(p) <= 128 for p in up["parts"]) and s["parts"] == len(up["parts"])
+
+
+def test_uplink_through_magcal_table(recal, tmp_path, capsys):
+    """The same uplink from the command line (docs/orbit.md): both tables, the new one
+    in parts, and the diff named by the new set's chain."""
+    gj, nj = tmp_path / "ground.json", tmp_path / "new.json"
+    recal["ground"].save(gj)
+    recal["new"].save(nj)
+    assert main(["table", str(gj), "-o", str(tmp_path / "onboard.bin"), "--serial", "1",
+                 "-q"]) == 0
+    assert main(["table", str(nj), "-o", str(tmp_path / "new.bin"), "--serial", "2",
+                 "--chunk", "200", "-q"]) == 0
+    assert sorted(p.name for p in tmp_path.glob("new.part*.bin"))[0] == "new.part000.bin"
+    capsys.readouterr()
+    assert main(["table", "--diff", str(tmp_path / "onboard.bin"), str(tmp_path / "new.bin"),
+                 "--coeffs", str(nj)]) == 0
+    out = capsys.readouterr().out
+    assert "header table_serial: 1 -> 2" in out and "b_poly_nT[0]" in out
