@@ -29,7 +29,7 @@ too much of the external field and the sample gets no reference (left out of the
 counted in the provenance).
 
 The computed reference is cached (cache_path: keyed by a SHA-256 of the Earth-fixed
-positions, the times and the model's coefficient file) and its provenance kept in
+positions, the times, the model's coefficient file and the package's version) and its provenance kept in
 Telemetry.meta["field_reference"] for the fit's report.
 """
 
@@ -302,7 +302,8 @@ def field_along(track: Track, *, use_cache: bool = True, path=None) -> tuple:
     info = geomag.model_info()
     ok = np.all(np.isfinite(track.ecef_km), axis=1)
     h = hashlib.sha256()
-    h.update(info["coefficient_sha256"].encode())
+    h.update(f"{info['coefficient_sha256']} {info['package']} {info['package_version']}"
+             .encode())
     h.update(np.ascontiguousarray(track.time_utc.astype("int64")).tobytes())
     h.update(np.ascontiguousarray(np.where(ok[:, None], track.ecef_km, 0.0)).tobytes())
     key = h.hexdigest()
