@@ -99,20 +99,23 @@ def geodetic_to_ecef_km(lat_deg, lon_deg, alt_km) -> np.ndarray:
 
 
 def ecef_to_geodetic(ecef_km):
-    """(N, 3) ECEF km -> (lat_deg, lon_deg, alt_km), WGS-84 (Bowring's iteration;
-    converges to < 1 mm in four steps for any point above the Earth's centre region)."""
+    """(N, 3) ECEF km -> (lat_deg, lon_deg, alt_km), WGS-84, by fixed-point iteration on
+    the latitude (converges to < 1e-9 deg in a few steps anywhere above the ellipsoid's
+    centre region; seven are taken)."""
     x, y, z = (np.asarray(ecef_km, float)[..., k] for k in range(3))
     p = np.hypot(x, y)
-    lat = np.arctan2(z, p * (1.0 - WGS84_E2))
-    for _ in range(6):
+
+    def height(lat):
         n = WGS84_A_KM / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-        h = np.where(np.abs(np.cos(lat)) > 1e-9, p / np.maximum(np.cos(lat), 1e-300) - n,
-                     np.abs(z) - n * (1.0 - WGS84_E2))
+        polar = np.abs(np.cos(lat)) <= 1e-9          # at a pole: |z| - b
+        return n, np.where(polar, np.abs(z) - n * (1.0 - WGS84_E2),
+                           p / np.where(polar, 1.0, np.cos(lat)) - n)
+
+    lat = np.arctan2(z, p * (1.0 - WGS84_E2))
+    for _ in range(7):
+        n, h = height(lat)
         lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
-    n = WGS84_A_KM / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-    h = np.where(np.abs(np.cos(lat)) > 1e-9, p / np.maximum(np.cos(lat), 1e-300) - n,
-                 np.abs(z) - n * (1.0 - WGS84_E2))
-    return np.degrees(lat), np.degrees(np.arctan2(y, x)), h
+    return np.degrees(lat), np.degrees(np.arctan2(y, x)), height(lat)[1]
 
 
 def ecef_to_spherical(ecef_km):
