@@ -136,9 +136,9 @@ def test_sgp4_verification_vector():
 
 def test_geodetic_round_trip():
     rng = np.random.default_rng(3)
-    lat = rng.uniform(-89.9, 89.9, 200)
-    lon = rng.uniform(-180, 180, 200)
-    h = rng.uniform(-1, 2000, 200)
+    lat = np.concatenate([rng.uniform(-89.9, 89.9, 200), [90.0, -90.0, 0.0]])
+    lon = np.concatenate([rng.uniform(-180, 180, 200), [0.0, 0.0, 180.0]])
+    h = np.concatenate([rng.uniform(-1, 2000, 200), [500.0, 0.0, 0.0]])
     la, lo, hh = orbit.ecef_to_geodetic(orbit.geodetic_to_ecef_km(lat, lon, h))
     np.testing.assert_allclose(la, lat, atol=1e-9)
     np.testing.assert_allclose(lo, lon, atol=1e-9)
