@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 
@@ -173,7 +174,12 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             sr_values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
             progress(f"{n}: SET/RESET gyro compensation in the chain: {sr['why']}")
     if prior:     # the chain on board is fixed: its optional stages stay (values too)
-        sr_opts, sr_values = _prior_stages(prior, unit, info, progress)
+        kept, kept_values = _prior_stages(prior, unit, info, progress)
+        for n, o in kept.items():
+            if n in sr_opts and not o.sr_compensation:   # the data's own decision stays
+                o = dataclasses.replace(o, sr_compensation=True)
+                kept_values[n] = {**kept_values[n], **sr_values[n]}
+            sr_opts[n], sr_values[n] = o, kept_values[n]
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
