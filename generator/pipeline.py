@@ -148,6 +148,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     for p in data_paths:
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
+        from generator.io.orbit import require_field_reference
+        require_field_reference(tel)          # ICD section 4: orbit data need the model
         if "field_reference" in tel.meta:     # ICD section 4: |B| from the field model
             from generator.io.orbit import describe
             progress(f"{p}: {describe(tel.meta['field_reference'])}")

@@ -218,12 +218,16 @@ def test_read_telemetry_from_the_tle(tmp_path, monkeypatch):
     assert np.all((B > 18000) & (B < 60000))       # |B| at 350 km is 20,000 - 55,000 nT
 
 
-def test_position_without_epoch_is_bad_input(tmp_path):
+def test_position_without_epoch_reads_but_cannot_be_fitted(tmp_path):
+    """Read: the positions are channels (apply needs no reference); the fit refuses the
+    file instead of taking the unit's lab_field_nT for orbit data."""
     from generator.io.telemetry_csv import read_telemetry
     from generator.io.unitfile import load_unit
     u, csv = _write_orbit_case(tmp_path, "lat_deg,lon_deg,alt_km", ["45,10,500"])
+    tel = read_telemetry(csv, load_unit(u))
+    assert "ref_norm_nT" not in tel.columns
     with pytest.raises(InputError, match="epoch_utc"):
-        read_telemetry(csv, load_unit(u))
+        orbit.require_field_reference(tel)
 
 
 def test_partial_position_is_bad_input(tmp_path):
@@ -297,3 +301,12 @@ def test_time_far_beyond_any_model_is_bad_input(tmp_path):
     with pytest.raises(InputError, match="200 years") as e:
         read_telemetry(csv, load_unit(u))
     assert e.value.column == "time_s"
+
+
+def test_cli_trace_on_orbit_input_without_epoch_is_one_line_exit_2(tmp_path, capsys):
+    from generator.cli import main
+    u, csv = _write_orbit_case(tmp_path, "lat_deg,lon_deg,alt_km", ["45,10,500"] * 3)
+    assert main(["trace", str(u), str(csv), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "epoch_utc" in err[0]
+    assert not (tmp_path / "o").exists()

@@ -216,13 +216,22 @@ def wants_field_model(tel, unit) -> bool:
             or bool(orbit.get("tle")))
 
 
+NO_EPOCH = ("a position but no ref_* column, and no [orbit] epoch_utc in the unit file (nor "
+            "a '# epoch_utc:' line): the field model needs the UTC of time_s = 0")
+
+
+def require_field_reference(tel) -> None:
+    """InputError when the file needs the field model's reference and could not get it
+    (a fit must not fall back to the unit's lab field for orbit data)."""
+    if "field_reference_missing" in tel.meta:
+        raise InputError(tel.path, tel.meta["field_reference_missing"])
+
+
 def track_of(tel, unit) -> Track:
     """Times and Earth-fixed positions of every sample (see the module docstring)."""
     epoch, where = epoch_of(tel, unit)
     if epoch is None:
-        raise InputError(tel.path, "a position but no ref_* column, and no [orbit] "
-                                   "epoch_utc in the unit file (nor a '# epoch_utc:' line): "
-                                   "the field model needs the UTC of time_s = 0")
+        raise InputError(tel.path, NO_EPOCH)
     t_s = np.asarray(tel.time_s, float)
     with np.errstate(invalid="ignore"):
         far = np.flatnonzero(np.abs(t_s) > MAX_TIME_FROM_EPOCH_S)
@@ -347,6 +356,11 @@ def attach_field_reference(tel, unit):
     KP_DISTURBED); tel.meta["field_reference"] holds the provenance. Other files are
     returned unchanged. Returns tel."""
     if not wants_field_model(tel, unit):
+        return tel
+    if epoch_of(tel, unit)[0] is None:
+        # positions are still channels (apply, check need no reference); a fit refuses
+        # the file (require_field_reference) rather than take the lab field for orbit data
+        tel.meta["field_reference_missing"] = NO_EPOCH
         return tel
     track = track_of(tel, unit)
     field, prov = field_along(track, path=tel.path)
