@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 
@@ -147,6 +148,11 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     for p in data_paths:
         tel = read_telemetry(p, unit)
         progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
+        from generator.io.orbit import require_field_reference
+        require_field_reference(tel)          # ICD section 4: orbit data need the model
+        if "field_reference" in tel.meta:     # ICD section 4: |B| from the field model
+            from generator.io.orbit import describe
+            progress(f"{p}: {describe(tel.meta['field_reference'])}")
         tels.append(tel)
     for t in tels:          # coil names reach the flight C: C identifiers only, checked first
         for c in coil_columns(t):
@@ -161,6 +167,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
+    _orbit_notes(unit, tels, cals, info)
     sr_opts, sr_values = {}, {}
     for n, c in cals.items():
         sr = c.stats.get("set_reset_compensation") or {}
@@ -168,6 +175,13 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             sr_opts[n] = SensorOptions(sr_compensation=True)
             sr_values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
             progress(f"{n}: SET/RESET gyro compensation in the chain: {sr['why']}")
+    if prior:     # the chain on board is fixed: its optional stages stay (values too)
+        kept, kept_values = _prior_stages(prior, unit, info, progress)
+        for n, o in kept.items():
+            if n in sr_opts and not o.sr_compensation:   # the data's own decision stays
+                o = dataclasses.replace(o, sr_compensation=True)
+                kept_values[n] = {**kept_values[n], **sr_values[n]}
+            sr_opts[n], sr_values[n] = o, kept_values[n]
 
     K, coils = None, ()
     coil_tels = [t for t in tels if has_coil_steps(t)]
@@ -176,6 +190,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
         K, coils = cf.K(), tuple(cf.coils)
         info["coils"] = cf.to_dict()
         progress(f"coil coupling K from {', '.join(t.path for t in coil_tels)}")
+
+    if K is None and prior:                 # in flight: the ground's coil coupling stays
+        K, coils = _prior_coils(prior, unit, info, progress)
 
     H = None
     if any(s.frame == "boom" for s in unit.sensors):
@@ -199,6 +216,75 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
                                             coils=coils, fit_info=info,
                                             sensor_options=sr_opts, option_values=sr_values)
+
+
+def _prior_coils(prior, unit, info, progress):
+    """(K, coils) of the prior coefficient set when the data step no coil (orbit
+    telemetry): the coupling is kept, not dropped (None, () if the prior has none)."""
+    cs = CoefficientSet.load(prior)
+    if not cs.spec.coils:
+        return None, ()
+    K = {s.name: np.asarray(cs.sensors[s.name]["K_nT_per_A"], float) for s in unit.sensors
+         if s.name in cs.sensors and "K_nT_per_A" in cs.sensors[s.name]}
+    if len(K) != len(unit.sensors):
+        return None, ()
+    info["coils"] = {"source": f"{prior} (the prior: no file steps the magnetorquers)"}
+    progress(f"coil coupling K kept from the prior {prior}")
+    return K, tuple(cs.spec.coils)
+
+
+def _prior_stages(prior, unit, info, progress):
+    """(sensor_options, option_values) of the prior coefficient set: the flight code on
+    board was built for that chain, and a table must match its layout, so a
+    recalibration against a prior keeps the prior's optional stages (SET/RESET
+    compensation, traced channels, lag, nonlinearity) with their values; only b(T) and
+    M(T) (and what the data determine of the rest, elsewhere) are new."""
+    cs = CoefficientSet.load(prior)
+    opts, values = {}, {}
+    for s in unit.sensors:
+        if s.name not in cs.sensors:
+            continue
+        o = cs.spec.opts(s)
+        if o == SensorOptions():
+            continue
+        base = {b.name for b in ChainSpec(unit, poly_degree=cs.spec.poly_degree,
+                                          coils=cs.spec.coils).sensor_blocks(s)}
+        opts[s.name] = o
+        values[s.name] = {b.name: np.asarray(cs.sensors[s.name][b.name], float)
+                          for b in cs.spec.sensor_blocks(s) if b.name not in base}
+        progress(f"{s.name}: the chain's optional stages kept from the prior ({prior})")
+    if opts:
+        info["notes"].append(f"optional chain stages kept from the prior {prior} (the "
+                             "flight code on board has them): "
+                             + ", ".join(sorted(opts)))
+    return opts, values
+
+
+def _orbit_notes(unit, tels, cals, info) -> None:
+    """Provenance of a reference computed from the field model (ICD section 4) and, per
+    sensor, the floor a calibration against it cannot beat: sqrt(noise^2 + model^2)
+    (the sensor's per-axis noise as the fit sees it, the model's |B| error)."""
+    from generator.fit.samples import field_noise_nT
+    from generator.io.orbit import describe
+
+    refs = {t.path: t.meta["field_reference"] for t in tels if "field_reference" in t.meta}
+    if not refs:
+        return
+    info["field_reference"] = refs
+    info["notes"].extend(f"{p}: {describe(v)}" for p, v in refs.items())
+    model = max(v["model_floor_nT"] for v in refs.values())
+    for s in unit.sensors:
+        noise = field_noise_nT(s)
+        if noise is None or s.name not in cals:
+            continue
+        floor = float(np.hypot(noise, model))
+        reached = (cals[s.name].stats.get("fit") or {}).get("rms_norm_nT")
+        info["notes"].append(
+            f"{s.name}: against the field model the |B| residual cannot go below "
+            f"~{floor:.0f} nT rms = sqrt(noise {noise:.0f}^2 + model {model:.0f}^2) "
+            "(docs/orbit.md)" + (f"; the fit reached {reached:.0f} nT on its own samples"
+                                 if reached is not None else ""))
+        cals[s.name].stats["field_model_floor_nT"] = floor
 
 
 # ---- apply --------------------------------------------------------------------------------

@@ -313,7 +313,7 @@ def test_px4_attitude_reference_known_answer(tmp_path):
     u = load_unit(tmp_path / "o" / "unit.toml")
     tel = read_telemetry(tmp_path / "o" / "log.csv", u)
     assert tel.meta["utc_at_time_0"] == "2023-11-14T22:13:20.000000Z"
-    ned = field_ned_nT(52.5, 13.3, 0.1, dt.datetime(2023, 11, 14))[0]
+    ned = field_ned_nT(52.5, 13.3, 0.1, dt.datetime(2023, 11, 14, 22, 13, 20))[0]  # the sample's UTC
     ref = np.stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1)
     np.testing.assert_allclose(ref[0], [ned[1], -ned[0], ned[2]], rtol=0, atol=1e-4)
     np.testing.assert_allclose(tel.columns["ref_norm_nT"][0], np.linalg.norm(ned), atol=1e-4)

@@ -61,6 +61,10 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     not a number, a literal NaN/inf cell, time going backwards, a row with the wrong
     number of cells, a count outside the part's raw range. Empty cells are missing values
     (NaN) and are allowed. Extra columns are kept as channels.
+
+    ICD section 4: a file with a position (columns, or the unit's [orbit] TLE) and no ref_*
+    column gets ref_norm_nT from the field model along its track (io/orbit.py; its
+    provenance in meta["field_reference"]).
     """
     text = _read_text(path)
     header, header_line, rows, row_lines, meta, comments = _split_lines(path, text)
@@ -80,8 +84,11 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     _check_position(path, columns, line_numbers)
     _check_geo(path, columns, line_numbers)
     _check_physical(path, columns, line_numbers)
-    return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
-                     meta=meta, comments=comments)
+    tel = Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
+                    meta=meta, comments=comments)
+    # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
+    from generator.io.orbit import attach_field_reference
+    return attach_field_reference(tel, unit)
 
 
 def _read_text(path) -> str:

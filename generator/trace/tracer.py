@@ -551,11 +551,13 @@ def protocol_text(evaluated_on) -> dict:
 
 
 def _read(unit, items):
+    from generator.io.orbit import require_field_reference
     from generator.io.telemetry import Telemetry
     from generator.io.telemetry_csv import read_telemetry
     out = []
     for it in items:
         out.append(it if isinstance(it, Telemetry) else read_telemetry(it, unit))
+        require_field_reference(out[-1])   # ICD section 4: orbit data need the field model
     return out
 
 
