@@ -45,7 +45,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from generator.campaign.board_thermal import first_order_lag
-from generator.campaign.plan import twelve_positions   # the jig positions of the test program
+from generator.campaign.plan import (TestPlan, lab_field_ned, make_plan,
+                                     twelve_positions)   # the test program
 from generator.io.unit import PARTS, SensorSpec, Unit
 
 CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")   # make_example's campaigns
@@ -463,12 +464,59 @@ def _ref_vector_columns(b_body_nT, field_nT):
             "ref_z_nT": (b_body_nT[:, 2], 1), "ref_norm_nT": (np.full(n, field_nT), 1)}
 
 
-def _thermal_12pos(unit, truth, rng, *, levels_C=(-20.0, -5.0, 10.0, 25.0, 40.0, 55.0),
-                   hold_s=1800.0, sample_period_s=5.0, lab_field_nT=LAB_FIELD_nT,
-                   inclination_deg=LAB_INCLINATION_deg, room_C=25.0, board_tau_scale=1.0):
-    """Jig in a chamber, boom stowed; in each of the twelve positions the chamber steps
-    through the levels, the boards lagging it (time constants times board_tau_scale, for
-    shortened holds)."""
+def _field_nT(unit, lab_field_nT) -> float:
+    """The lab field magnitude of a campaign: the one given, else the unit file's
+    lab_field_nT, else seed 000's lab."""
+    if lab_field_nT is not None:
+        return float(lab_field_nT)
+    return float(unit.lab_field_nT) if unit.lab_field_nT else LAB_FIELD_nT
+
+
+def boards_of(unit) -> tuple:
+    """The boards (frames) that carry one of the unit's sensors."""
+    return tuple(b for b in ("body", "boom") if any(s.frame == b for s in unit.sensors))
+
+
+def plan_for(unit, truth, *, board_tau_scale=1.0, **plan_options) -> TestPlan:
+    """The test program `magcal plan` writes for this unit, its holds computed from the
+    slowest board's true time constant (what a lab measures on the first step and
+    re-plans with); plan_options go to plan.make_plan (levels_C, sample_period_s,
+    samples_per_segment, ...). The lab field is the unit's (else seed 000's)."""
+    opts = {k: v for k, v in plan_options.items() if v is not None}
+    tau_s = max(truth.board_tau_s[b] for b in boards_of(unit)) * board_tau_scale
+    opts.setdefault("board_tau_min", tau_s / 60.0)
+    opts["lab_field_nT"] = _field_nT(unit, opts.get("lab_field_nT"))
+    return make_plan(unit, **opts)
+
+
+def _thermal_12pos(unit, truth, rng, *, plan: TestPlan | None = None, levels_C=None,
+                   hold_s=None, sample_period_s=None, samples_per_segment=None,
+                   lab_field_nT=None, inclination_deg=None, room_C=None, board_tau_scale=1.0,
+                   ramp_C_per_min=None, reposition_min=None, settle_tol_C=None):
+    """Jig in a chamber, boom stowed, twelve static positions and the chamber's levels.
+
+    Without hold_s: the program of `magcal plan` (`plan`, else plan_for the unit and truth
+    with the options given): per position the ramps, the holds computed from the boards'
+    time constants, and the return to room temperature, the set-point linear on the ramps,
+    the boards lagging it with the truth's time constants; recording paused while the jig
+    is turned (a time gap). With hold_s: the older shortened program, every level held
+    hold_s (default levels -20..55 degC, 5 s samples), stepping without ramps, the boards'
+    time constants times board_tau_scale (for quick tests whose holds are too short to
+    settle)."""
+    if hold_s is None:
+        if plan is None:
+            plan = plan_for(unit, truth, board_tau_scale=board_tau_scale, levels_C=levels_C,
+                            sample_period_s=sample_period_s,
+                            samples_per_segment=samples_per_segment, lab_field_nT=lab_field_nT,
+                            inclination_deg=inclination_deg, room_C=room_C,
+                            ramp_C_per_min=ramp_C_per_min, reposition_min=reposition_min,
+                            settle_tol_C=settle_tol_C)
+        return _thermal_program(truth, plan, board_tau_scale)
+    levels_C = (-20.0, -5.0, 10.0, 25.0, 40.0, 55.0) if levels_C is None else levels_C
+    sample_period_s = 5.0 if sample_period_s is None else sample_period_s
+    inclination_deg = LAB_INCLINATION_deg if inclination_deg is None else inclination_deg
+    room_C = 25.0 if room_C is None else room_C
+    lab_field_nT = _field_nT(unit, lab_field_nT)
     n_hold = max(1, int(round(hold_s / sample_period_s)))
     positions = twelve_positions()
     b_lab = _lab_field_nT(lab_field_nT, inclination_deg)
@@ -489,6 +537,46 @@ def _thermal_12pos(unit, truth, rng, *, levels_C=(-20.0, -5.0, 10.0, 25.0, 40.0,
                      "board_tau_s": np.array([truth.board_tau_s["body"] * board_tau_scale,
                                               truth.board_tau_s["boom"] * board_tau_scale])})
 
+
+def _thermal_program(truth, plan: TestPlan, board_tau_scale=1.0) -> Scenario:
+    """The thermal twelve-position campaign as the plan's chamber program runs it."""
+    dt = float(plan.sample_period_s)
+    t_all = np.arange(0.0, plan.total_duration_s, dt)
+    tc, Tc = plan.setpoint_profile(one_position=False)
+    chamber_all = np.interp(t_all, tc, Tc)
+    pos_all = np.zeros(len(t_all), dtype=int)
+    for it in plan.chamber_program():
+        if it["action"] != "reposition":            # the jig stands still in a position
+            sel = (t_all >= it["start_s"]) & (t_all < it["start_s"] + it["duration_s"])
+            pos_all[sel] = it["position"]
+    scaled = Truth(truth.t_ref_C, truth.H_boom_to_body, truth.sensors,
+                   {b: v * board_tau_scale for b, v in truth.board_tau_s.items()},
+                   truth.board_self_heating_C)
+    temps = _board_temps(scaled, t_all, chamber_all, 1.0, plan.room_C)
+    keep = pos_all > 0                               # recording paused while turning
+    time_s, position = t_all[keep], pos_all[keep]
+    b_lab = lab_field_ned(plan.lab_field_nT, plan.inclination_deg)
+    field_of = {p.number: np.asarray(p.R_body_to_ned, dtype=float).T @ b_lab
+                for p in plan.positions}
+    numbers = np.array(sorted(field_of))
+    b_body = np.array([field_of[k] for k in numbers])[np.searchsorted(numbers, position)]
+    holds = [s.hold_s / 60.0 for s in plan.steps]
+    n = len(time_s)
+    return Scenario(
+        description=(f"ground test following the program: {len(plan.positions)} static "
+                     f"positions x chamber levels {', '.join(f'{v:g}' for v in plan.levels_C)} "
+                     f"degC, ramps {plan.ramp_C_per_min:g} degC/min, holds "
+                     f"{min(holds):g}-{max(holds):g} min (board time constant "
+                     f"{plan.board_tau_s / 60.0:.1f} min), {dt:g} s samples; recording paused "
+                     "while the jig is turned"),
+        time_s=time_s, b_body_nT=b_body, b_body_at=_static_field_at(time_s, b_body),
+        deployed=False, temp_board_C={b: v[keep] for b, v in temps.items()},
+        rate_dps=np.zeros((n, 3)), coil_A=np.zeros((n, 3)), position=position,
+        columns=_ref_vector_columns(b_body, plan.lab_field_nT),
+        extra_truth={"temp_chamber_C": chamber_all[keep],
+                     "board_tau_s": np.array([scaled.board_tau_s["body"],
+                                              scaled.board_tau_s["boom"]]),
+                     "plan_json": np.array(json.dumps(plan.to_json_dict()))})
 
 def _rotate_rows(vectors, rotvec) -> np.ndarray:
     """Rodrigues: rows of `vectors` rotated by the rotation vector (cheaper than scipy here)."""
@@ -571,10 +659,11 @@ def _rates_from_attitude(time_s, R_body_to_ref):
 
 
 def _rotation(unit, truth, rng, *, duration_s=400.0, sample_rate_hz=10.0, speed_dps=20.0,
-              coverage_cap_deg=180.0, cap_axis_body=(0.0, 0.0, 1.0), lab_field_nT=LAB_FIELD_nT,
+              coverage_cap_deg=180.0, cap_axis_body=(0.0, 0.0, 1.0), lab_field_nT=None,
               inclination_deg=LAB_INCLINATION_deg, room_C=25.0, gyro_noise_dps=0.03):
     """Hand rotation at room temperature, boom deployed. The field direction in the body
     frame wanders smoothly over the sphere, or within coverage_cap_deg of cap_axis_body."""
+    lab_field_nT = _field_nT(unit, lab_field_nT)
     dt = 1.0 / sample_rate_hz
     n = int(round(duration_s * sample_rate_hz))
     time_s = np.arange(n) * dt
@@ -636,13 +725,14 @@ def _attitude_campaign(time_s, R_body_to_lab, b_lab, rng, *, attitude_noise_deg,
 
 
 def _yaw_flight(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0, yaw_rate_dps=30.0,
-                tilt_max_deg=12.0, attitude_noise_deg=0.1, lab_field_nT=LAB_FIELD_nT,
+                tilt_max_deg=12.0, attitude_noise_deg=0.1, lab_field_nT=None,
                 inclination_deg=LAB_INCLINATION_deg, room_C=25.0, gyro_noise_dps=0.03):
     """A multicopter-like flight: the body turns mostly in yaw (a smooth random yaw rate of
     rms yaw_rate_dps), roll and pitch wander smoothly and stay under tilt_max_deg (the tilt
     of body z from the vertical never exceeds it). The vertical field component hardly
     changes. Reference vectors from an attitude estimate (attitude_noise_deg per axis).
     Constant surroundings at room_C, no boom (B_frame = B_body for every sensor)."""
+    lab_field_nT = _field_nT(unit, lab_field_nT)
     dt = 1.0 / sample_rate_hz
     n = int(round(duration_s * sample_rate_hz))
     time_s = np.arange(n) * dt
@@ -673,13 +763,14 @@ def _yaw_flight(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0, yaw_
 
 def _planar_rotation(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0,
                      rate_dps=20.0, wobble_deg=2.0, axis_body=(0.0, 1.0, 0.0),
-                     attitude_noise_deg=0.02, lab_field_nT=LAB_FIELD_nT,
+                     attitude_noise_deg=0.02, lab_field_nT=None,
                      inclination_deg=LAB_INCLINATION_deg, room_C=25.0, gyro_noise_dps=0.03):
     """A turntable turning the unit about one body axis (axis_body) held perpendicular to
     the lab field, with a smooth wobble of that axis (rms wobble_deg/2, under wobble_deg):
     the field direction in the body frame stays near one plane (the plane normal to
     axis_body). Reference vectors from the table's encoder (attitude_noise_deg).
     Constant surroundings at room_C, boom stowed."""
+    lab_field_nT = _field_nT(unit, lab_field_nT)
     dt = 1.0 / sample_rate_hz
     n = int(round(duration_s * sample_rate_hz))
     time_s = np.arange(n) * dt
@@ -715,10 +806,11 @@ def _planar_rotation(unit, truth, rng, *, duration_s=600.0, sample_rate_hz=10.0,
 
 
 def _coils(unit, truth, rng, *, positions=(1, 5, 9), steps_mA=(25, 50, 75, 100), hold_s=10.0,
-           sample_period_s=1.0, lab_field_nT=LAB_FIELD_nT, inclination_deg=LAB_INCLINATION_deg,
+           sample_period_s=1.0, lab_field_nT=None, inclination_deg=LAB_INCLINATION_deg,
            room_C=25.0):
     """Static in the jig; in each position each magnetorquer steps 0, +a, -a, ... and back
     to 0 while the others are off."""
+    lab_field_nT = _field_nT(unit, lab_field_nT)
     n_hold = max(1, int(round(hold_s / sample_period_s)))
     levels_A = [0.0] + [s * sign / 1000.0 for s in steps_mA for sign in (1, -1)] + [0.0]
     coil_rows, pos_rows = [], []
@@ -1047,7 +1139,9 @@ def write_unit_toml(unit: Unit, path) -> None:
 EXAMPLE_SIZES = {
     "fast": {k: {"fast": True} for k in CAMPAIGNS},
     "example": {
-        "thermal_12pos": {"hold_s": 600.0, "sample_period_s": 10.0, "board_tau_scale": 1 / 3},
+        # the program of `magcal plan` (holds from the boards' time constants) at 30 s
+        # samples, 20 per segment (the segment finder's 10 min): ~4 days of chamber time
+        "thermal_12pos": {"sample_period_s": 60.0, "samples_per_segment": 10},
         "rotation": {"duration_s": 300.0},
         "coils": {"hold_s": 5.0},
         "flight": {"duration_s": 3 * 3600.0},
