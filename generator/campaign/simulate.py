@@ -47,11 +47,12 @@ from scipy.spatial.transform import Rotation, Slerp
 from generator.campaign.board_thermal import first_order_lag
 from generator.campaign.plan import (TestPlan, lab_field_ned, make_plan,
                                      twelve_positions)   # the test program
-from generator.io.unit import PARTS, SensorSpec, Unit
+from generator.io import parts as _parts
+from generator.io.unit import SensorSpec, Unit
 
 CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")   # make_example's campaigns
 # further geometries for fit tests (simulate_campaign kinds; not part of make_example)
-EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation")
+EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation", "coil_study")
 
 T_REF_C = 25.0
 LAB_FIELD_nT = 51540.0            # field magnitude in the lab (seed 000)
@@ -59,6 +60,15 @@ LAB_INCLINATION_deg = 70.0
 SET_RESET_DELAY_s = 0.012          # RESET reading is taken this long after the SET one
 DEFAULT_NOISE_nT = {"MMC5883MA": 40.0, "MPU-9255": 250.0}
 MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = 0.7, -75.0   # MMC5883MA temperature output: 0.7 degC/LSB
+
+# The coil study's test coil (seed 000: a magnetorquer at points 1-6, 5 to 30 cm from the
+# magnetometer, 0.1 A): |field per ampere| at 30 cm on the coil's axis, the fall-off
+# exponent (a dipole: 3) and the factor the solar panel adds (seed 000 at 30 cm and 0.1 A:
+# 167.87 nT without the panel, 307.57 nT with it). Set with a truth override.
+COIL_STUDY_DEFAULT = {"K_30cm_nT_per_A": 1678.7, "exponent": 3.0,
+                      "panel_factor": 307.57 / 167.87}
+COIL_STUDY_LIMITS = {"K_30cm_nT_per_A": (0.0, 1e7), "exponent": (0.5, 6.0),
+                     "panel_factor": (0.0, 100.0)}
 
 
 # ---------------------------------------------------------------------------------------
@@ -80,8 +90,27 @@ def frame_to_sensor(spec: SensorSpec, v_frame) -> np.ndarray:
     return out
 
 
+def sensor_noise_nT(spec: SensorSpec, sensor_truth=None) -> float:
+    """1-sigma noise of one axis of one reading: the truth's noise_nT where set, else the
+    unit file's noise_nT, else the part's typical figure (catalogue), else 1/1000 of the
+    sensor's full scale (a generic part without a figure)."""
+    if sensor_truth is not None and sensor_truth.noise_nT is not None:
+        return float(sensor_truth.noise_nT)
+    if spec.noise_nT is not None:
+        return float(spec.noise_nT)
+    if spec.part in DEFAULT_NOISE_nT:
+        return DEFAULT_NOISE_nT[spec.part]
+    part = _parts.part(spec.part)
+    return float(part.noise_nT) if part.noise_nT else 1e-3 * spec.full_scale_nT
+
+
+def physical_decimals(spec: SensorSpec) -> int:
+    """Decimals of a physical-unit column (ICD section 4): a resolution of 0.1 nT or finer."""
+    return max(0, math.ceil(math.log10(spec.nT_per_input / 0.1) - 1e-9))
+
+
 def report_temperature(part: str, temp_C) -> tuple[np.ndarray, int]:
-    """(reported temperature, decimals): MMC5883 in 0.7 degC steps, MPU-9255 to 0.01."""
+    """(reported temperature, decimals): MMC5883 in 0.7 degC steps, other parts to 0.01."""
     t = np.asarray(temp_C, dtype=float)
     if part == "MMC5883MA":
         steps = np.round((t - MMC_TEMP_ZERO_C) / MMC_TEMP_STEP_C)
@@ -125,6 +154,7 @@ class SensorTruth:
     chip_offset_poly_sensor_nT: np.ndarray  # (2, 3): c0, c1 in sensor axes (zero for MPU)
     K_coil_frame_nT_per_A: np.ndarray      # (3, 3): column j = field per amp of coil j
     frame: str | None = None               # "body" / "boom" (not in the shared truth.json)
+    noise_nT: float | None = None          # None: the unit file's, else the part's
 
     def W(self, dT) -> np.ndarray:
         d = np.asarray(dT, dtype=float)[..., None, None]
@@ -154,6 +184,9 @@ class Truth:
     sensors: dict                          # name -> SensorTruth, unit order
     board_tau_s: dict = field(default_factory=lambda: {"body": 900.0, "boom": 900.0})
     board_self_heating_C: dict = field(default_factory=lambda: {"body": 0.0, "boom": 0.0})
+    # the coil study (campaign coil_study): a test coil at known distances; no random draw,
+    # so that adding it changed no other campaign. See COIL_STUDY_DEFAULT.
+    coil_study: dict = field(default_factory=lambda: dict(COIL_STUDY_DEFAULT))
 
     def true_field_frame(self, sensor, B_body_nT, deployed: bool) -> np.ndarray:
         """True field in the sensor's frame. sensor: a SensorSpec or a name."""
@@ -176,12 +209,14 @@ class Truth:
                     "chip_offset_poly_sensor_nT": s.chip_offset_poly_sensor_nT.tolist(),
                     "K_coil_frame_nT_per_A": s.K_coil_frame_nT_per_A.tolist(),
                     "frame": s.frame,
+                    **({"noise_nT": s.noise_nT} if s.noise_nT is not None else {}),
                     "note": note,
                 }
                 for name, s in self.sensors.items()
             },
             "board_tau_s": dict(self.board_tau_s),
             "board_self_heating_C": dict(self.board_self_heating_C),
+            "coil_study": dict(self.coil_study),
         }
 
     @staticmethod
@@ -200,13 +235,14 @@ class Truth:
                     s.get("chip_offset_poly_sensor_nT", np.zeros((2, 3))), dtype=float),
                 K_coil_frame_nT_per_A=np.array(
                     s.get("K_coil_frame_nT_per_A", np.zeros((3, 3))), dtype=float),
-                frame=frame,
+                frame=frame, noise_nT=s.get("noise_nT"),
             )
         truth = Truth(t_ref_C=float(d["t_ref_C"]),
                       H_boom_to_body=np.array(d["H_boom_to_body"], dtype=float),
                       sensors=sensors)
         truth.board_tau_s.update(d.get("board_tau_s", {}))
         truth.board_self_heating_C.update(d.get("board_self_heating_C", {}))
+        truth.coil_study.update(d.get("coil_study", {}))
         return truth
 
 
@@ -235,10 +271,97 @@ def random_truth(unit: Unit, rng: np.random.Generator) -> Truth:
                       _signed_uniform(rng, 1e-4, 4e-3, 3)])
         K = K_base[s.frame] * rng.uniform(0.8, 1.2, (3, 3))
         chip = np.array([rng.uniform(-8000.0, 8000.0, 3), rng.uniform(-20.0, 20.0, 3)])
-        if not PARTS[s.part]["set_reset_capable"]:
+        if not _parts.part(s.part).set_reset:
             chip[:] = 0.0
         sensors[s.name] = SensorTruth(np.array([W0, W1, W2]), b, chip, K, frame=s.frame)
     return Truth(T_REF_C, H, sensors, board_tau_s, heating_C)
+
+
+def override_truth(truth: Truth, d: dict, unit: Unit, source=None) -> Truth:
+    """The truth with the values of `d` (a partial truth: the keys of truth.json, see
+    docs/simulate.md) put in place of the drawn ones; InputError naming the key on an
+    unknown sensor or key, a wrong shape, a non-finite number or an impossible value."""
+    from generator.errors import InputError
+
+    def arr(v, key, shapes):
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(source, f"key {key}: not an array of numbers") from None
+        if a.shape not in shapes:
+            raise InputError(source, f"key {key}: shape {a.shape}, expected "
+                                     + " or ".join(str(x) for x in shapes))
+        if not np.isfinite(a).all():
+            raise InputError(source, f"key {key}: not finite")
+        return a
+
+    def num(v, key, lo, hi):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or not lo <= v <= hi:
+            raise InputError(source, f"key {key}: {v!r} is not a number in [{lo:g}, {hi:g}]")
+        return float(v)
+
+    if not isinstance(d, dict):
+        raise InputError(source, "a truth override is a table of keys (see docs/simulate.md)")
+    known = {"H_boom_to_body", "board_tau_s", "board_self_heating_C", "sensors", "coil_study"}
+    for k in d:
+        if k not in known:
+            raise InputError(source, f"key {k}: unknown; known keys: {', '.join(sorted(known))}")
+    sensors = {n: SensorTruth(**{f.name: getattr(st, f.name) for f in fields(st)})
+               for n, st in truth.sensors.items()}
+    out = Truth(truth.t_ref_C, truth.H_boom_to_body.copy(), sensors, dict(truth.board_tau_s),
+                dict(truth.board_self_heating_C), dict(truth.coil_study))
+    if "H_boom_to_body" in d:
+        H = arr(d["H_boom_to_body"], "H_boom_to_body", [(3, 3)])
+        if not np.allclose(H @ H.T, np.eye(3), atol=1e-6) or np.linalg.det(H) < 0:
+            raise InputError(source, "key H_boom_to_body: not a rotation matrix")
+        out.H_boom_to_body = H
+    for key, lo, hi in (("board_tau_s", 0.0, 1e6), ("board_self_heating_C", -50.0, 50.0)):
+        v = d.get(key, {})
+        if not isinstance(v, dict):
+            raise InputError(source, f"key {key}: a table {{body = .., boom = ..}}")
+        for b, x in v.items():
+            if b not in ("body", "boom"):
+                raise InputError(source, f"key {key}.{b}: boards are body and boom")
+            getattr(out, key)[b] = num(x, f"{key}.{b}", lo, hi)
+    cs = d.get("coil_study", {})
+    if not isinstance(cs, dict):
+        raise InputError(source, "key coil_study: a table (see docs/simulate.md)")
+    for k, x in cs.items():
+        lim = COIL_STUDY_LIMITS.get(k)
+        if lim is None:
+            raise InputError(source, f"key coil_study.{k}: unknown; known keys: "
+                                     f"{', '.join(COIL_STUDY_LIMITS)}")
+        out.coil_study[k] = num(x, f"coil_study.{k}", *lim)
+    sens = d.get("sensors", {})
+    if not isinstance(sens, dict):
+        raise InputError(source, "key sensors: a table of sensors by name")
+    for name, sd in sens.items():
+        if name not in sensors:
+            raise InputError(source, f"key sensors.{name}: unit {unit.id} has no sensor "
+                                     f"{name!r} ({', '.join(unit.sensor_names)})")
+        if not isinstance(sd, dict):
+            raise InputError(source, f"key sensors.{name}: a table of parameters")
+        st = sensors[name]
+        for k, v in sd.items():
+            key = f"sensors.{name}.{k}"
+            if k == "W_poly_frame":
+                st.W_poly_frame = arr(v, key, [(j, 3, 3) for j in (1, 2, 3)])
+                if abs(np.linalg.det(st.W_poly_frame[0])) < 0.1:
+                    raise InputError(source, f"key {key}: W0 is (nearly) singular")
+            elif k == "b_poly_frame_nT":
+                st.b_poly_frame_nT = arr(v, key, [(j, 3) for j in (1, 2, 3, 4)])
+            elif k == "chip_offset_poly_sensor_nT":
+                st.chip_offset_poly_sensor_nT = arr(v, key, [(1, 3), (2, 3)])
+            elif k == "K_coil_frame_nT_per_A":
+                st.K_coil_frame_nT_per_A = arr(v, key, [(3, 3)])
+            elif k == "noise_nT":
+                st.noise_nT = num(v, key, 0.0, 1e6)
+            else:
+                raise InputError(source, f"key {key}: unknown; known: W_poly_frame, "
+                                         "b_poly_frame_nT, chip_offset_poly_sensor_nT, "
+                                         "K_coil_frame_nT_per_A, noise_nT")
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -428,6 +551,8 @@ class Scenario:
     position: np.ndarray | None       # (N,) int, or None: no position column
     columns: dict                     # further telemetry: name -> (values, decimals)
     extra_truth: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)          # '# key: value' lines of the file
+    extra_field_frame_nT: dict = field(default_factory=dict)  # sensor -> (N, 3) added field
 
 
 def _static_field_at(time_s, b_body_nT):
@@ -838,6 +963,66 @@ def _coils(unit, truth, rng, *, positions=(1, 5, 9), steps_mA=(25, 50, 75, 100),
         rate_dps=np.zeros((n, 3)), coil_A=coil_A, position=position, columns=columns)
 
 
+
+COIL_STUDY_DISTANCES_CM = (5.0, 10.0, 15.0, 20.0, 25.0, 30.0)   # seed 000 points 1-6
+
+
+def coil_study_sensors(unit) -> tuple:
+    """The sensor the coil study's distances are measured to: the first boom sensor (the
+    seed's boom magnetometer), else the first sensor."""
+    boom = [s.name for s in unit.sensors if s.frame == "boom"]
+    return (boom[0] if boom else unit.sensors[0].name,)
+
+
+def _coil_study(unit, truth, rng, *, distances_cm=COIL_STUDY_DISTANCES_CM, panels=(0, 1),
+                steps_mA=(100, 50), hold_s=10.0, sample_period_s=1.0, position=1,
+                lab_field_nT=None, inclination_deg=LAB_INCLINATION_deg, room_C=25.0,
+                other_offset_cm=10.0, test_sensors=None):
+    """Coil interference at known distances (docs/coil_study.md): the jig static in one
+    position at room temperature, a test coil (column coil_test_A) on a rail at each
+    distance (column coil_distance_cm, to the sensors in test_sensors) without and with
+    the solar panel in place (column panel 0/1), stepped 0, +a, -a, ... 0.
+
+    The coil's field per ampere at a sensor under test, in its frame axes, is
+    K(r) = K_30cm (30 cm / r)^exponent x (panel_factor with the panel) u, u a fixed unit
+    direction (the coil's axis, drawn from rng); the unit's other sensors sit
+    other_offset_cm further away. K_30cm, exponent, panel_factor: truth.coil_study."""
+    lab_field_nT = _field_nT(unit, lab_field_nT)
+    test_sensors = tuple(test_sensors or coil_study_sensors(unit))
+    cs = truth.coil_study
+    n_hold = max(1, int(round(hold_s / sample_period_s)))
+    levels_A = [0.0] + [m * sg / 1000.0 for m in steps_mA for sg in (1, -1)] + [0.0]
+    rows = [(r, pnl, lv) for pnl in panels for r in distances_cm for lv in levels_A]
+    dist = np.repeat([r for r, _, _ in rows], n_hold).astype(float)
+    panel = np.repeat([pnl for _, pnl, _ in rows], n_hold).astype(int)
+    current = np.round(np.repeat([lv for _, _, lv in rows], n_hold), 4)
+    n = len(current)
+    time_s = np.arange(n) * float(sample_period_s)
+    b_lab = _lab_field_nT(lab_field_nT, inclination_deg)
+    b_body = np.tile(twelve_positions()[position - 1].T @ b_lab, (n, 1))
+    u = _unit_vector(rng.normal(size=3))
+    per_A = {}
+    for spec in unit.sensors:
+        r = dist if spec.name in test_sensors else dist + other_offset_cm
+        mag = (cs["K_30cm_nT_per_A"] * (30.0 / r) ** cs["exponent"]
+               * np.where(panel == 1, cs["panel_factor"], 1.0))
+        per_A[spec.name] = mag[:, None] * u
+    columns = {"coil_test_A": (current, 4), "coil_distance_cm": (dist, 1),
+               "panel": (panel, None)}
+    columns.update(_ref_vector_columns(b_body, lab_field_nT))
+    return Scenario(
+        description=(f"ground test: coil interference at {', '.join(f'{r:g}' for r in distances_cm)} "
+                     f"cm from {', '.join(test_sensors)}, without and with the solar panel, "
+                     f"+-{', '.join(str(m) for m in steps_mA)} mA, static in position {position}"),
+        time_s=time_s, b_body_nT=b_body, b_body_at=_static_field_at(time_s, b_body),
+        deployed=False, temp_board_C=_board_temps(truth, time_s, room_C, 1.0, room_C),
+        rate_dps=np.zeros((n, 3)), coil_A=np.zeros((n, 3)),
+        position=np.full(n, position, dtype=int), columns=columns,
+        extra_truth={"coil_direction_frame": u,
+                     "coil_study_json": np.array(json.dumps(dict(cs)))},
+        meta={"coil_test_sensor": ", ".join(test_sensors)},
+        extra_field_frame_nT={k: v * current[:, None] for k, v in per_A.items()})
+
 EARTH_RADIUS_km = 6371.2
 EARTH_MU_km3_s2 = 398600.4418
 EARTH_RATE_rad_s = 7.2921159e-5
@@ -947,7 +1132,7 @@ def _flight(unit, truth, rng, *, duration_s=6 * 3600.0, sample_period_s=2.0, alt
 
 
 SCENARIOS = {"thermal_12pos": _thermal_12pos, "rotation": _rotation, "coils": _coils,
-             "flight": _flight, "yaw_flight": _yaw_flight, "planar_rotation": _planar_rotation}
+             "flight": _flight, "coil_study": _coil_study, "yaw_flight": _yaw_flight, "planar_rotation": _planar_rotation}
 
 # fast=True: a few hundred samples per campaign, for quick tests (explicit options win).
 FAST_OPTIONS = {
@@ -955,6 +1140,7 @@ FAST_OPTIONS = {
                       "board_tau_scale": 60.0 / 1800.0},
     "rotation": {"duration_s": 120.0, "sample_rate_hz": 5.0},
     "coils": {"positions": (1, 9), "hold_s": 3.0},
+    "coil_study": {"distances_cm": (5.0, 15.0, 30.0), "hold_s": 3.0},
     "flight": {"duration_s": 5760.0, "sample_period_s": 10.0},
     "yaw_flight": {"duration_s": 120.0, "sample_rate_hz": 5.0},
     "planar_rotation": {"duration_s": 120.0, "sample_rate_hz": 5.0},
@@ -970,6 +1156,15 @@ def _to_counts(spec: SensorSpec, value_nT) -> np.ndarray:
     return np.clip(counts, spec.count_min, spec.count_max).astype(np.int64)
 
 
+def _to_raw(spec: SensorSpec, value_nT) -> tuple:
+    """(column values, decimals): integer counts (decimals None), or for a physical-unit
+    input (ICD section 4) the value in that unit, clipped at the full scale."""
+    if spec.counts:
+        return _to_counts(spec, value_nT), None
+    fs = spec.full_scale_nT
+    return np.clip(value_nT, -fs, fs) / spec.nT_per_input, physical_decimals(spec)
+
+
 def _render_sensor(spec, truth, sc: Scenario, effects, channels, rng, delay_s, noise_scale):
     """Raw telemetry columns of one sensor: name -> (values, decimals)."""
     st = truth.sensors[spec.name]
@@ -977,6 +1172,8 @@ def _render_sensor(spec, truth, sc: Scenario, effects, channels, rng, delay_s, n
     dT = temp_C - truth.t_ref_C
     B_frame = truth.true_field_frame(spec, sc.b_body_nT, sc.deployed)
     m = st.reading_frame_nT(B_frame, dT, sc.coil_A)
+    if spec.name in sc.extra_field_frame_nT:            # e.g. the coil study's test coil
+        m = m + sc.extra_field_frame_nT[spec.name]
 
     ctx = EffectContext(spec, st, truth.t_ref_C, sc.time_s, temp_C, B_frame, sc.coil_A, m, channels,
                         lambda t: truth.true_field_frame(spec, sc.b_body_at(t), sc.deployed))
@@ -987,25 +1184,28 @@ def _render_sensor(spec, truth, sc: Scenario, effects, channels, rng, delay_s, n
             added = added + e.frame_nT(ctx)
             ctx.reading_frame_nT = m + added
     chip = st.chip_offset(dT)
-    sigma = (spec.noise_nT if spec.noise_nT is not None else DEFAULT_NOISE_nT[spec.part]) * noise_scale
+    sigma = sensor_noise_nT(spec, st) * noise_scale
     cols = {}
     if spec.set_reset:
         B_reset = truth.true_field_frame(spec, rotate_by_rate(sc.b_body_nT, sc.rate_dps, delay_s),
                                          sc.deployed)
         m_reset = st.reading_frame_nT(B_reset, dT, sc.coil_A) + added
+        if spec.name in sc.extra_field_frame_nT:
+            m_reset = m_reset + sc.extra_field_frame_nT[spec.name]
         set_nT = frame_to_sensor(spec, m + added) + chip + rng.normal(size=m.shape) * sigma
         reset_nT = -frame_to_sensor(spec, m_reset) + chip + rng.normal(size=m.shape) * sigma
         for kind, v in (("set", set_nT), ("reset", reset_nT)):
-            counts = _to_counts(spec, v)
+            raw, dec = _to_raw(spec, v)
             for k, ax in enumerate("xyz"):
-                cols[f"{spec.name}_{kind}_{ax}"] = (counts[:, k], None)
+                cols[f"{spec.name}_{kind}_{ax}"] = (raw[:, k], dec)
     else:
         v = frame_to_sensor(spec, m + added) + chip + rng.normal(size=m.shape) * sigma
-        counts = _to_counts(spec, v)
+        raw, dec = _to_raw(spec, v)
         for k, ax in enumerate("xyz"):
-            cols[f"{spec.name}_{ax}"] = (counts[:, k], None)
-    reported, decimals = report_temperature(spec.part, temp_C)
-    cols[f"{spec.name}_temp_C"] = (reported, decimals)
+            cols[f"{spec.name}_{ax}"] = (raw[:, k], dec)
+    if spec.temperature:
+        reported, decimals = report_temperature(spec.part, temp_C)
+        cols[f"{spec.name}_temp_C"] = (reported, decimals)
     return cols
 
 
@@ -1080,7 +1280,7 @@ def simulate_campaign(kind: str, unit: Unit, truth: Truth, rng: np.random.Genera
         sensor_cols.update(_render_sensor(spec, truth, sc, effects, channel_values, rng,
                                           set_reset_delay_s, noise_scale))
     comments = [f"campaign: {kind}", f"unit: {unit.id}", "source: generator.campaign.simulate",
-                f"description: {sc.description}"]
+                f"description: {sc.description}"] + [f"{k}: {v}" for k, v in sc.meta.items()]
     csv_path = out_dir / f"{name}.csv"
     write_telemetry_csv(csv_path, comments, {**time_cols, **sensor_cols, **channels})
 
