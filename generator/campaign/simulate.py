@@ -1331,6 +1331,12 @@ def write_unit_toml(unit: Unit, path) -> None:
                   f"set_reset = {'true' if s.set_reset else 'false'}"]
         if s.noise_nT is not None:
             lines.append(f"noise_nT = {float(s.noise_nT)!r}")
+        if s.input != "counts":                         # ICD section 4 keys where used
+            lines.append(f"input = {q(s.input)}")
+        if not s.temperature:
+            lines.append("temperature = false")
+        if s.range_nT is not None:
+            lines.append(f"range_nT = {float(s.range_nT)!r}")
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
