@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 
 from generator.campaign import plan as plan_mod
@@ -183,7 +183,8 @@ def test_bad_plan_is_one_line(tmp_path, capsys):
 # ---- any unit: simulate, then fit ------------------------------------------------------
 
 PARTS = parts_mod.names()
-PHYSICAL = ("nT", "uT", "mG", "G")
+# "G" is left out of the draw: the fit fails on it (test_gauss_input_fits below)
+PHYSICAL = ("nT", "uT", "mG")
 
 
 def _sensor(i, part_name, frame, axes, temperature, inp, set_reset):
@@ -208,9 +209,14 @@ def units(draw):
         perm = draw(st.permutations("xyz"))
         signs = draw(st.lists(st.sampled_from("+-"), min_size=3, max_size=3))
         frame = "boom" if (boom and i > 0 and draw(st.booleans())) else "body"
-        sensors.append(_sensor(i, draw(st.sampled_from(PARTS)), frame,
-                               tuple(sg + a for sg, a in zip(signs, perm)),
-                               draw(st.booleans()), draw(st.sampled_from(PHYSICAL)),
+        part = draw(st.sampled_from(PARTS))
+        # a sensor without temperature in a unit with a boom breaks the boom alignment
+        # (test_boom_unit_with_a_sensor_without_temperature below): drawn with temperature
+        temperature = True if boom else draw(st.booleans())
+        if boom and not parts_mod.part(part).temperature:
+            part = "MPU-9255"
+        sensors.append(_sensor(i, part, frame, tuple(sg + a for sg, a in zip(signs, perm)),
+                               temperature, draw(st.sampled_from(PHYSICAL)),
                                draw(st.booleans())))
     has_boom = any(s.frame == "boom" for s in sensors)
     field = draw(st.sampled_from((None, 25000.0, 48000.0, 64000.0)))
@@ -218,10 +224,17 @@ def units(draw):
                 boom_reference="s0" if has_boom else None), draw(st.integers(0, 2**32 - 1))
 
 
-@settings(max_examples=4, deadline=None, derandomize=True,
+@settings(max_examples=4, deadline=None, derandomize=True, database=None,
+          phases=[Phase.explicit, Phase.generate],      # no shrinking: minutes per step
           suppress_health_check=[HealthCheck.function_scoped_fixture,
                                  HealthCheck.too_slow])
 @given(drawn=units())
+@example(drawn=(Unit("boomed", (
+    _sensor(0, "MMC5883MA", "body", ("+z", "+y", "+x"), True, "uT", True),
+    _sensor(1, "generic", "body", ("-y", "+x", "+z"), True, "uT", False),
+    _sensor(2, "MMC5983MA", "boom", ("-y", "-z", "-x"), True, "uT", True),
+    _sensor(3, "MPU-9255", "boom", ("-y", "-z", "+x"), True, "uT", False)),
+    lab_field_nT=49800.0, boom_reference="s0"), 11))
 def test_simulate_then_fit_any_unit(tmp_path_factory, drawn):
     unit, seed = drawn
     d = tmp_path_factory.mktemp("anyunit")
@@ -253,9 +266,40 @@ def test_simulate_then_fit_any_unit(tmp_path_factory, drawn):
             continue
         # with temperature the model is the truth's: what is left is the reading noise
         # (halved in variance by SET/RESET) and the quantisation, each per axis; |B| sees
-        # one axis' worth. 4 sigma plus 2 % for the cubic's fit over a 75 degC span.
+        # one axis' worth, sigma. Over N >= 2000 samples the RMS of that noise scatters by
+        # 1/sqrt(2N) < 2 %, and the fitted parameters (p ~ 30 per sensor) add about
+        # sqrt(p/N) ~ 12 % in quadrature: 1.25 sigma holds them with room.
         sigma = sim.sensor_noise_nT(s, truth.sensors[s.name])
         q = s.lsb_nT if s.counts else 0.1 * s.nT_per_input
         per_axis = math.sqrt((sigma ** 2 + q ** 2 / 12) / (2 if s.set_reset else 1))
-        assert rms_cal < 4 * per_axis + 0.02 * rms_raw, (s.name, s.part, rms_cal, rms_raw,
-                                                          per_axis)
+        assert ok.sum() >= 2000
+        assert rms_cal < 1.25 * per_axis, (s.name, s.part, rms_cal, rms_raw, per_axis)
+
+
+@pytest.mark.xfail(strict=True, reason="generator/fit/alignment.calibrated_fields applies a "
+                   "temperature-free sensor's calibration at its NaN temperature and ands every "
+                   "sensor into one mask: every sample is left out, 'alignment: 0 sample "
+                   "pair(s)' (fit/alignment.py, not this module's)")
+def test_boom_unit_with_a_sensor_without_temperature(tmp_path):
+    unit = Unit("boomy", (_sensor(0, "MMC5983MA", "body", ("+x", "+y", "+z"), True, "uT", True),
+                          _sensor(1, "IST8310", "boom", ("+y", "+x", "-z"), False, "uT", False)),
+                lab_field_nT=48000.0, boom_reference="s0")
+    sim.write_unit_toml(unit, tmp_path / "unit.toml")
+    rc, out = _sim(tmp_path, tmp_path / "unit.toml", "--seed", "3")
+    assert rc == 0
+    files = [out / f"{k}.csv" for k in ("thermal_12pos", "rotation", "coils", "coil_study")]
+    assert main(["fit", str(out / "unit.toml"), *map(str, files), "-o",
+                 str(tmp_path / "fit"), "-q"]) == 0
+
+
+@pytest.mark.xfail(strict=True, reason="magcal fit: internal error (LinAlgError in "
+                   "fit/reference.reference_fit) for a sensor whose input is in gauss; the "
+                   "same readings in uT or nT fit (fit/, not this module's)")
+def test_gauss_input_fits(tmp_path):
+    unit = Unit("gee", (_sensor(0, "generic", "body", ("+x", "+y", "+z"), True, "G", False),),
+                lab_field_nT=48000.0)
+    sim.write_unit_toml(unit, tmp_path / "unit.toml")
+    rc, out = _sim(tmp_path, tmp_path / "unit.toml", "--campaigns", "thermal_12pos")
+    assert rc == 0
+    assert main(["fit", str(out / "unit.toml"), str(out / "thermal_12pos.csv"), "-o",
+                 str(tmp_path / "fit"), "-q"]) == 0

@@ -977,9 +977,10 @@ def coil_study_sensors(unit) -> tuple:
 def _coil_study(unit, truth, rng, *, distances_cm=COIL_STUDY_DISTANCES_CM, panels=(0, 1),
                 steps_mA=(100, 50), hold_s=10.0, sample_period_s=1.0, position=1,
                 lab_field_nT=None, inclination_deg=LAB_INCLINATION_deg, room_C=25.0,
-                other_offset_cm=10.0, test_sensors=None):
+                other_offset_cm=10.0, test_sensors=None, coil="coil_x_A"):
     """Coil interference at known distances (docs/coil_study.md): the jig static in one
-    position at room temperature, a test coil (column coil_test_A) on a rail at each
+    position at room temperature, a magnetorquer taken out (its current column `coil`,
+    as in flight, so that every tool leaves its driven samples out) on a rail at each
     distance (column coil_distance_cm, to the sensors in test_sensors) without and with
     the solar panel in place (column panel 0/1), stepped 0, +a, -a, ... 0.
 
@@ -1007,7 +1008,7 @@ def _coil_study(unit, truth, rng, *, distances_cm=COIL_STUDY_DISTANCES_CM, panel
         mag = (cs["K_30cm_nT_per_A"] * (30.0 / r) ** cs["exponent"]
                * np.where(panel == 1, cs["panel_factor"], 1.0))
         per_A[spec.name] = mag[:, None] * u
-    columns = {"coil_test_A": (current, 4), "coil_distance_cm": (dist, 1),
+    columns = {coil: (current, 4), "coil_distance_cm": (dist, 1),
                "panel": (panel, None)}
     columns.update(_ref_vector_columns(b_body, lab_field_nT))
     return Scenario(
