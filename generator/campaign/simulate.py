@@ -50,7 +50,8 @@ from generator.campaign.plan import (TestPlan, lab_field_ned, make_plan,
 from generator.io import parts as _parts
 from generator.io.unit import SensorSpec, Unit
 
-CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")   # make_example's campaigns
+CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "flight")   # the unit's campaigns
+EXAMPLE_CAMPAIGNS = CAMPAIGNS + ("coil_study",)                  # make_example writes these
 # further geometries for fit tests (simulate_campaign kinds; not part of make_example)
 EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation", "coil_study")
 
@@ -1344,7 +1345,7 @@ def write_unit_toml(unit: Unit, path) -> None:
 # Campaign options for make_example sizes: "example" runs in a few seconds and still
 # spans the temperature range; "full" is the real campaign length.
 EXAMPLE_SIZES = {
-    "fast": {k: {"fast": True} for k in CAMPAIGNS},
+    "fast": {k: {"fast": True} for k in EXAMPLE_CAMPAIGNS},
     "example": {
         # the program of `magcal plan` (holds from the boards' time constants) at 30 s
         # samples, 20 per segment (the segment finder's 10 min): ~4 days of chamber time
@@ -1358,19 +1359,20 @@ EXAMPLE_SIZES = {
 
 
 def make_example(out_dir, seed: int = 0, size: str = "example") -> dict:
-    """Write unit.toml, truth.json and the four campaigns (with .truth.npz) to out_dir.
+    """Write unit.toml, truth.json and the campaigns of EXAMPLE_CAMPAIGNS (with .truth.npz)
+    to out_dir (the coil study last: the others keep their random streams).
     Returns {"unit": path, "truth": path, <campaign>: csv path, <campaign>_truth: npz path}."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     unit = make_example_unit()
-    truth_seed, *campaign_seeds = np.random.SeedSequence(seed).spawn(1 + len(CAMPAIGNS))
+    truth_seed, *campaign_seeds = np.random.SeedSequence(seed).spawn(1 + len(EXAMPLE_CAMPAIGNS))
     truth = random_truth(unit, np.random.default_rng(truth_seed))
     paths = {"unit": out_dir / "unit.toml", "truth": out_dir / "truth.json"}
     write_unit_toml(unit, paths["unit"])
     paths["truth"].write_text(json.dumps(truth.to_json(), indent=1) + "\n", encoding="utf-8")
-    for kind, ss in zip(CAMPAIGNS, campaign_seeds):
+    for kind, ss in zip(EXAMPLE_CAMPAIGNS, campaign_seeds):
         csv_path, _ = simulate_campaign(kind, unit, truth, np.random.default_rng(ss), out_dir,
-                                        **EXAMPLE_SIZES[size][kind])
+                                        **EXAMPLE_SIZES[size].get(kind, {}))
         paths[kind] = csv_path
         paths[f"{kind}_truth"] = out_dir / f"{kind}.truth.npz"
     return paths
