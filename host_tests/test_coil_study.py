@@ -127,3 +127,25 @@ def test_fit_report_has_the_coil_study(tmp_path, capsys):
     sec = md.split("## Coil study")[1].split("\n## ")[0]
     assert "Distance law per sensor and panel state" in sec
     assert sec.count("| mmc2 | coil_x_A |") == 2 + 2 * 3     # 2 laws, 2 x 3 points (fast)
+
+
+def test_interference_table_takes_the_fall_off_and_distance_from_the_study(tmp_path):
+    """With a study: the exponent is the measured one (not 3) and each sensor's distance is
+    where the study's coil gives that sensor's measured interference; without one the
+    rows say the distance is assumed."""
+    from generator.fit.coils import fit_coils, interference_table
+
+    unit, truth, tel, _ = _study(tmp_path, 6, {"exponent": 2.5})
+    study = fit_coil_study(unit, [tel])
+    ex = sim.make_example(tmp_path / "ex", seed=6, size="fast")
+    cf = fit_coils(unit, [read_telemetry(ex["coils"], unit)])
+    law = next(w for w in study.laws if w.panel == 0)
+    for r in interference_table(unit, cf, study=study):
+        assert r["exponent"] == pytest.approx(law.exponent)
+        assert abs(r["exponent"] - 2.5) < 4 * law.exponent_sigma
+        assert r["distance_source"].startswith("coil study")
+        # the law at that distance gives the measured |K column|
+        assert float(law.at(r["distance_cm"])) == pytest.approx(r["K_col_nT_per_A"])
+        assert r["at_cm"][15.0] == pytest.approx(r["at_cm"][30.0] * 2 ** law.exponent)
+    for r in interference_table(unit, cf):
+        assert r["distance_source"] == "assumed" and r["exponent"] == 3.0

@@ -18,10 +18,14 @@ Uncertainty: the OLS covariance with each axis' residual variance.
 
 Reports:
 * `interference_table`: |K column| x current (default 0.1 A) per sensor and coil, in nT and
-  as % of the lab field, scaled by 1/r^3 to the seed's points (5, 15, 30 cm) from an
-  assumed sensor-coil distance, beside the seed's 30 cm figures (167.87 nT without the
-  solar panel, 307.57 nT with it, 0.1 A); also the distance at which the seed's coil would
-  give the measured interference.
+  as % of the lab field, carried to the seed's points (5, 15, 30 cm) by the distance law
+  of a coil study when one is given (else an assumed distance and 1/r^3, said so per
+  row), beside the seed's 30 cm figures (167.87 nT without the solar panel, 307.57 nT
+  with it, 0.1 A); also the distance at which the seed's coil would give the measured
+  interference.
+* The coil study (`fit_coil_study`, docs/coil_study.md): K per distance and panel state
+  measured at known distances, and the distance law |K| = K30 (30 cm / r)^n fitted to
+  them with its uncertainty.
 * `correction_table`: |B| (and vector, where reference vectors exist) RMS error of the
   calibrated readings with and without subtracting K i, per sensor.
 """
@@ -211,51 +215,81 @@ def default_distance_cm(spec) -> float:
     return DEFAULT_DISTANCE_CM.get(spec.frame, DEFAULT_DISTANCE_CM["body"])
 
 
+def scale_power(value_at_r0, r0_cm, r_cm, exponent):
+    """Power-law fall-off: value(r) = value(r0) (r0 / r)^exponent."""
+    return np.asarray(value_at_r0, float) * (float(r0_cm) / np.asarray(r_cm, float)) ** exponent
+
+
 def scale_inverse_cube(value_at_r0, r0_cm, r_cm):
     """Dipole fall-off: value(r) = value(r0) (r0 / r)^3."""
-    return np.asarray(value_at_r0, float) * (float(r0_cm) / np.asarray(r_cm, float)) ** 3
+    return scale_power(value_at_r0, r0_cm, r_cm, 3.0)
 
 
-def equivalent_distance_cm(interference_nT, ref_nT=SEED_30CM_NO_PANEL_NT, ref_r_cm=30.0):
+def equivalent_distance_cm(interference_nT, ref_nT=SEED_30CM_NO_PANEL_NT, ref_r_cm=30.0,
+                           exponent=3.0):
     """Distance at which a coil giving ref_nT at ref_r_cm would give interference_nT."""
-    return float(ref_r_cm * (ref_nT / float(interference_nT)) ** (1.0 / 3.0))
+    return float(ref_r_cm * (ref_nT / float(interference_nT)) ** (1.0 / exponent))
 
 
 def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRENT_A,
                        lab_field_nT: float | None = None, distance_cm: dict | None = None,
-                       points_cm=SEED_POINTS_CM) -> list:
+                       points_cm=SEED_POINTS_CM, study: "CoilStudy | None" = None) -> list:
     """Rows {sensor, coil, K_col_nT_per_A, sigma, interference_nT, pct_of_lab_field,
-    distance_cm (assumed), at_cm {r: nT}, seed_no_panel_at_cm {r: nT} (the seed's 30 cm
-    figure scaled by 1/r^3; only 30 cm is measured in the seed), seed_panel_at_cm,
-    equivalent_distance_cm}. distance_cm: {sensor: cm}, default by frame (DEFAULT_DISTANCE_CM).
+    distance_cm, distance_source, exponent, at_cm {r: nT}, seed_no_panel_at_cm {r: nT}
+    (the seed's 30 cm figure scaled by r^-exponent; only 30 cm is measured in the seed),
+    seed_panel_at_cm, equivalent_distance_cm}.
+
+    With a coil study (fit_coil_study) the fall-off is the measured law (its exponent, not
+    3), and a sensor's distance is where the study's coil gives the interference measured
+    on that sensor (distance_source "coil study"); distance_cm {sensor: cm} given here wins.
+    Without a study nothing is measured about distance: the distance is the assumption
+    DEFAULT_DISTANCE_CM by frame and the fall-off a dipole's (distance_source "assumed").
     """
     lab = lab_field_nT if lab_field_nT is not None else unit.lab_field_nT
+    law = _study_law(study)
+    n = 3.0 if law is None else law.exponent
     rows = []
     for name, f in coil_fit.sensors.items():
         spec = unit.sensor(name)
-        r0 = (distance_cm or {}).get(name, default_distance_cm(spec))
         norms = f.column_norm_nT_per_A()
         sig = f.column_norm_sigma_nT_per_A()
         for j, coil in enumerate(f.coils):
             x = float(norms[j] * current_A)
+            if (distance_cm or {}).get(name) is not None:
+                r0, source = float(distance_cm[name]), "given"
+            elif law is not None and norms[j] > 0:
+                r0 = float(30.0 * (law.K_30cm_nT_per_A / norms[j]) ** (1.0 / n))
+                source = f"coil study ({law.sensor} {law.coil}, n = {n:.2f})"
+            else:
+                r0, source = default_distance_cm(spec), "assumed"
             rows.append({
                 "sensor": name, "coil": coil, "frame": spec.frame,
                 "K_col_nT_per_A": float(norms[j]), "K_col_sigma_nT_per_A": float(sig[j]),
                 "current_A": current_A, "interference_nT": x,
                 "interference_sigma_nT": float(sig[j] * current_A),
                 "pct_of_lab_field": (100.0 * x / lab) if lab else None,
-                "distance_cm": float(r0),
-                "at_cm": {float(r): float(scale_inverse_cube(x, r0, r)) for r in points_cm},
-                "seed_no_panel_at_cm": {float(r): float(scale_inverse_cube(
-                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                "distance_cm": float(r0), "distance_source": source, "exponent": n,
+                "at_cm": {float(r): float(scale_power(x, r0, r, n)) for r in points_cm},
+                "seed_no_panel_at_cm": {float(r): float(scale_power(
+                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
                     for r in points_cm},
-                "seed_panel_at_cm": {float(r): float(scale_inverse_cube(
-                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                "seed_panel_at_cm": {float(r): float(scale_power(
+                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
                     for r in points_cm},
                 "equivalent_distance_cm": (equivalent_distance_cm(
-                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A) if x > 0 else None),
+                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=n)
+                    if x > 0 else None),
             })
     return rows
+
+
+def _study_law(study):
+    """The law a coil study measured without the panel (the flight configuration's
+    torquer field): the one with the most points, None without a study."""
+    if study is None:
+        return None
+    laws = [w for w in study.laws if w.panel == 0] or list(study.laws)
+    return max(laws, key=lambda w: w.n_points) if laws else None
 
 
 def format_interference_table(rows) -> str:
