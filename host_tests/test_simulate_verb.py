@@ -75,6 +75,18 @@ def test_thermal_campaign_follows_the_plan_and_every_level_is_found(tmp_path):
         assert all(len({g.position for g in lv}) == 12 for lv in levels), s.name
 
 
+def test_check_says_the_simulated_campaign_covers_its_plan(tmp_path, capsys):
+    unit = sim.make_example_unit()
+    sim.write_unit_toml(unit, tmp_path / "unit.toml")
+    rc, out = _sim(tmp_path, tmp_path / "unit.toml", "--campaigns", "thermal_12pos")
+    assert rc == 0
+    capsys.readouterr()
+    rc = main(["check", str(out / "unit.toml"), str(out / "thermal_12pos.csv"), "--plan",
+               str(out / "plan.json"), "--json", "-q"])
+    res = json.loads(capsys.readouterr().out)
+    assert rc == 0 and not res["gaps"]
+
+
 def test_the_unit_lab_field_is_the_campaign_field(tmp_path):
     unit = sim.make_example_unit()
     unit = Unit(unit.id, unit.sensors, lab_field_nT=23456.0, boom_reference="mmc1")

@@ -103,6 +103,10 @@ def run_simulate(args, progress) -> tuple:
             if plan.unit_id and plan.unit_id != unit.id:
                 notes.append(f"{args.plan} is the program of unit {plan.unit_id!r}; "
                              f"followed for {unit.id!r}")
+            field = unit.lab_field_nT or sim.LAB_FIELD_nT
+            if abs(plan.lab_field_nT - field) > 1e-6 * field:
+                notes.append(f"the plan's lab field {plan.lab_field_nT:g} nT is used for the "
+                             f"thermal campaign, the unit's {field:g} nT for the others")
             if args.sample_period_s is not None or args.samples_per_segment is not None:
                 raise InputError(args.plan, "--plan sets the sample period and the samples "
                                             "per segment: leave out --sample-period-s and "
