@@ -236,7 +236,7 @@ def units(draw):
                 boom_reference="s0" if has_boom else None), draw(st.integers(0, 2**32 - 1))
 
 
-@settings(max_examples=4, deadline=None, derandomize=True, database=None,
+@settings(max_examples=3, deadline=None, derandomize=True, database=None,
           phases=[Phase.explicit, Phase.generate],      # no shrinking: minutes per step
           suppress_health_check=[HealthCheck.function_scoped_fixture,
                                  HealthCheck.too_slow])
