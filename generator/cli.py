@@ -338,6 +338,8 @@ def _args_simulate(p):
     from generator.verbs.simulate import add_simulate_args
 
     add_simulate_args(p)
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="seed of the simulated unit and its campaigns (0 .. 2**32-1)")
 
 
 ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,

@@ -33,8 +33,6 @@ def add_simulate_args(p):
                    help="the test program to follow (magcal plan's plan.json); default: the "
                         "program magcal plan writes for the unit, with the holds from the "
                         "simulated boards' time constants")
-    p.add_argument("--seed", type=_seed, default=0,
-                   help="seed of the simulated unit and its campaigns (0 .. 2**32-1)")
     p.add_argument("--truth", default=None, metavar="TRUTH.json|.toml",
                    help="set parameters of the simulated unit (keys of truth.json; the rest "
                         "is drawn with the seed); see docs/simulate.md")
@@ -46,18 +44,6 @@ def add_simulate_args(p):
     p.add_argument("--samples-per-segment", type=int, default=None,
                    help=f"thermal campaign without --plan: samples recorded per hold "
                         f"(default {DEFAULT_SAMPLES_PER_SEGMENT})")
-
-
-def _seed(text):
-    try:
-        v = int(text)
-    except ValueError:
-        import argparse
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= v < 2 ** 32:
-        import argparse
-        raise argparse.ArgumentTypeError(f"{v} is outside 0 .. 2**32-1")
-    return v
 
 
 def load_truth_override(path) -> dict:
