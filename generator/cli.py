@@ -328,9 +328,25 @@ def _args_import(p):
     add_import_args(p)
 
 
+@verb("simulate", "simulate campaigns of your own unit (thermal following the plan, rotation, "
+                  "coils, coil study) and its truth")
+def cmd_simulate(args):
+    from generator.verbs.simulate import run_simulate
+
+    return run_simulate(args, _progress(args))
+
+
+def _args_simulate(p):
+    from generator.verbs.simulate import add_simulate_args
+
+    add_simulate_args(p)
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="seed of the simulated unit and its campaigns (0 .. 2**32-1)")
+
+
 ARGS = {"fit": _args_fit, "apply": _args_apply, "generate": _args_generate, "demo": _args_demo,
         "plan": _args_plan, "check": _args_check, "table": _args_table,
-        "trace": _args_trace, "import": _args_import}
+        "trace": _args_trace, "import": _args_import, "simulate": _args_simulate}
 
 
 class _UsageError(Exception):

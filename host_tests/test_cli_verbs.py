@@ -21,7 +21,8 @@ from generator.campaign import simulate as sim
 from generator.cli import VERBS, main
 from generator.io.unit import Unit
 
-ALL_VERBS = ("fit", "apply", "generate", "demo", "plan", "check", "table", "trace", "import")
+ALL_VERBS = ("fit", "apply", "generate", "demo", "plan", "check", "table", "trace", "import",
+             "simulate")
 # `magcal import` is a group: its sub-commands are the commands, and they carry -q and --json
 SUBCOMMANDS = {"import": ("px4", "csv")}
 HELP_CASES = [(v,) + ((s,) if s else ()) for v in ALL_VERBS for s in SUBCOMMANDS.get(v, (None,))]

@@ -342,6 +342,96 @@ def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DE
 
 
 # =======================================================================================
+# Reading a whole program back (magcal simulate --plan)
+# =======================================================================================
+def plan_from_json_dict(d: dict, source=None) -> TestPlan:
+    """The TestPlan of a plan.json written by `magcal plan` (InputError naming the key on
+    anything malformed). The derived items (chamber program, durations) are recomputed
+    from the steps, so a program edited by hand stays consistent."""
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise InputError(source, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
+    if d.get("format_version") != FORMAT_VERSION:
+        raise InputError(source, f"format_version {d.get('format_version')!r} is not "
+                                 f"supported (this is {FORMAT_VERSION})")
+
+    def num(obj, key, where, lo=-math.inf, hi=math.inf):
+        v = obj.get(key) if isinstance(obj, dict) else None
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or not lo <= v <= hi:
+            raise InputError(source, f"key {where}{key}: {v!r} is not a number in "
+                                     f"[{lo:g}, {hi:g}]")
+        return float(v)
+
+    pos_fields = ("number", "up", "north", "east", "R_body_to_ned", "expected_field_body_nT")
+    positions_ = []
+    for i, p in enumerate(d.get("positions") or []):
+        where = f"positions[{i}]."
+        if not isinstance(p, dict) or any(k not in p for k in pos_fields):
+            raise InputError(source, f"key positions[{i}]: needs {', '.join(pos_fields)}")
+        R = np.asarray(p["R_body_to_ned"], dtype=float) if _is_matrix(p["R_body_to_ned"]) \
+            else None
+        if R is None or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) \
+                or abs(np.linalg.det(R) - 1.0) > 1e-6:
+            raise InputError(source, f"key {where}R_body_to_ned: not a 3x3 rotation matrix")
+        try:
+            field_ = np.asarray(p["expected_field_body_nT"], dtype=float)
+        except (TypeError, ValueError):
+            field_ = np.zeros(0)
+        if field_.shape != (3,) or not np.isfinite(field_).all():
+            raise InputError(source, f"key {where}expected_field_body_nT: not 3 numbers")
+        positions_.append(Position(number=int(num(p, "number", where, 1, 10**6)),
+                                   up=str(p["up"]), north=str(p["north"]),
+                                   east=str(p["east"]), R_body_to_ned=R.tolist(),
+                                   expected_field_body_nT=[float(x) for x in field_]))
+    if not positions_:
+        raise InputError(source, "key positions: no positions")
+    steps = []
+    for i, s in enumerate(d.get("steps") or []):
+        where = f"steps[{i}]."
+        vals = {k: num(s, k, where, lo, hi) for k, lo, hi in (
+            ("level_C", -150.0, 200.0), ("from_C", -150.0, 200.0), ("step_C", 0.0, 400.0),
+            ("ramp_s", 0.0, 1e7), ("settle_s", 0.0, 1e7), ("record_s", 0.0, MAX_RECORD_S),
+            ("hold_s", 0.0, 1e7))}
+        if vals["hold_s"] < vals["record_s"]:
+            raise InputError(source, f"key {where}hold_s: {vals['hold_s']:g} s is shorter "
+                                     f"than its recording ({vals['record_s']:g} s)")
+        steps.append(Step(**vals))
+    if not steps:
+        raise InputError(source, "key steps: no temperature steps")
+    plan = TestPlan(
+        unit_id=str(d.get("unit", "")), lab_field_nT=num(d, "lab_field_nT", "", 1000.0, 1e6),
+        inclination_deg=num(d, "inclination_deg", "", -90.0, 90.0), positions=positions_,
+        levels_C=[s.level_C for s in steps], room_C=num(d, "room_C", "", -60.0, 60.0),
+        board_tau_s=num(d, "board_tau_s", "", 0.0, 1e7),
+        settle_tolerance_C=num(d, "settle_tolerance_C", "", 1e-3, 50.0),
+        ramp_C_per_min=num(d, "ramp_C_per_min", "", 1e-3, 100.0),
+        sample_period_s=num(d, "sample_period_s", "", 1e-3, 3600.0),
+        samples_per_segment=int(num(d, "samples_per_segment", "", 1, 1e6)),
+        reposition_s=num(d, "reposition_s", "", 0.0, 1e7), steps=steps,
+        return_ramp_s=num(d, "return_ramp_s", "", 0.0, 1e7),
+        assumptions=[str(a) for a in d.get("assumptions", [])])
+    rows = plan.total_duration_s / plan.sample_period_s
+    if rows > len(plan.positions) * MAX_CYCLE_ROWS:
+        raise InputError(source, f"plan: {rows:.3g} samples in all; at most "
+                                 f"{len(plan.positions) * MAX_CYCLE_ROWS:g}")
+    return plan
+
+
+def _is_matrix(v) -> bool:
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == (3, 3) and bool(np.isfinite(a).all())
+
+
+def load_plan(path) -> TestPlan:
+    """Read a whole plan.json written by `magcal plan` (InputError on anything malformed)."""
+    path = Path(path)
+    return plan_from_json_dict(load_json(path, "test plan"), path)
+
+
+# =======================================================================================
 # Reading a profile back (magcal check --plan)
 # =======================================================================================
 @dataclass

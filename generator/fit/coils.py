@@ -18,10 +18,14 @@ Uncertainty: the OLS covariance with each axis' residual variance.
 
 Reports:
 * `interference_table`: |K column| x current (default 0.1 A) per sensor and coil, in nT and
-  as % of the lab field, scaled by 1/r^3 to the seed's points (5, 15, 30 cm) from an
-  assumed sensor-coil distance, beside the seed's 30 cm figures (167.87 nT without the
-  solar panel, 307.57 nT with it, 0.1 A); also the distance at which the seed's coil would
-  give the measured interference.
+  as % of the lab field, carried to the seed's points (5, 15, 30 cm) by the distance law
+  of a coil study when one is given (else an assumed distance and 1/r^3, said so per
+  row), beside the seed's 30 cm figures (167.87 nT without the solar panel, 307.57 nT
+  with it, 0.1 A); also the distance at which the seed's coil would give the measured
+  interference.
+* The coil study (`fit_coil_study`, docs/coil_study.md): K per distance and panel state
+  measured at known distances, and the distance law |K| = K30 (30 cm / r)^n fitted to
+  them with its uncertainty.
 * `correction_table`: |B| (and vector, where reference vectors exist) RMS error of the
   calibrated readings with and without subtracting K i, per sensor.
 """
@@ -211,51 +215,81 @@ def default_distance_cm(spec) -> float:
     return DEFAULT_DISTANCE_CM.get(spec.frame, DEFAULT_DISTANCE_CM["body"])
 
 
+def scale_power(value_at_r0, r0_cm, r_cm, exponent):
+    """Power-law fall-off: value(r) = value(r0) (r0 / r)^exponent."""
+    return np.asarray(value_at_r0, float) * (float(r0_cm) / np.asarray(r_cm, float)) ** exponent
+
+
 def scale_inverse_cube(value_at_r0, r0_cm, r_cm):
     """Dipole fall-off: value(r) = value(r0) (r0 / r)^3."""
-    return np.asarray(value_at_r0, float) * (float(r0_cm) / np.asarray(r_cm, float)) ** 3
+    return scale_power(value_at_r0, r0_cm, r_cm, 3.0)
 
 
-def equivalent_distance_cm(interference_nT, ref_nT=SEED_30CM_NO_PANEL_NT, ref_r_cm=30.0):
+def equivalent_distance_cm(interference_nT, ref_nT=SEED_30CM_NO_PANEL_NT, ref_r_cm=30.0,
+                           exponent=3.0):
     """Distance at which a coil giving ref_nT at ref_r_cm would give interference_nT."""
-    return float(ref_r_cm * (ref_nT / float(interference_nT)) ** (1.0 / 3.0))
+    return float(ref_r_cm * (ref_nT / float(interference_nT)) ** (1.0 / exponent))
 
 
 def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRENT_A,
                        lab_field_nT: float | None = None, distance_cm: dict | None = None,
-                       points_cm=SEED_POINTS_CM) -> list:
+                       points_cm=SEED_POINTS_CM, study: "CoilStudy | None" = None) -> list:
     """Rows {sensor, coil, K_col_nT_per_A, sigma, interference_nT, pct_of_lab_field,
-    distance_cm (assumed), at_cm {r: nT}, seed_no_panel_at_cm {r: nT} (the seed's 30 cm
-    figure scaled by 1/r^3; only 30 cm is measured in the seed), seed_panel_at_cm,
-    equivalent_distance_cm}. distance_cm: {sensor: cm}, default by frame (DEFAULT_DISTANCE_CM).
+    distance_cm, distance_source, exponent, at_cm {r: nT}, seed_no_panel_at_cm {r: nT}
+    (the seed's 30 cm figure scaled by r^-exponent; only 30 cm is measured in the seed),
+    seed_panel_at_cm, equivalent_distance_cm}.
+
+    With a coil study (fit_coil_study) the fall-off is the measured law (its exponent, not
+    3), and a sensor's distance is where the study's coil gives the interference measured
+    on that sensor (distance_source "coil study"); distance_cm {sensor: cm} given here wins.
+    Without a study nothing is measured about distance: the distance is the assumption
+    DEFAULT_DISTANCE_CM by frame and the fall-off a dipole's (distance_source "assumed").
     """
     lab = lab_field_nT if lab_field_nT is not None else unit.lab_field_nT
+    law = _study_law(study)
+    n = 3.0 if law is None else law.exponent
     rows = []
     for name, f in coil_fit.sensors.items():
         spec = unit.sensor(name)
-        r0 = (distance_cm or {}).get(name, default_distance_cm(spec))
         norms = f.column_norm_nT_per_A()
         sig = f.column_norm_sigma_nT_per_A()
         for j, coil in enumerate(f.coils):
             x = float(norms[j] * current_A)
+            if (distance_cm or {}).get(name) is not None:
+                r0, source = float(distance_cm[name]), "given"
+            elif law is not None and norms[j] > 0:
+                r0 = float(30.0 * (law.K_30cm_nT_per_A / norms[j]) ** (1.0 / n))
+                source = f"coil study ({law.sensor} {law.coil}, n = {n:.2f})"
+            else:
+                r0, source = default_distance_cm(spec), "assumed"
             rows.append({
                 "sensor": name, "coil": coil, "frame": spec.frame,
                 "K_col_nT_per_A": float(norms[j]), "K_col_sigma_nT_per_A": float(sig[j]),
                 "current_A": current_A, "interference_nT": x,
                 "interference_sigma_nT": float(sig[j] * current_A),
                 "pct_of_lab_field": (100.0 * x / lab) if lab else None,
-                "distance_cm": float(r0),
-                "at_cm": {float(r): float(scale_inverse_cube(x, r0, r)) for r in points_cm},
-                "seed_no_panel_at_cm": {float(r): float(scale_inverse_cube(
-                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                "distance_cm": float(r0), "distance_source": source, "exponent": n,
+                "at_cm": {float(r): float(scale_power(x, r0, r, n)) for r in points_cm},
+                "seed_no_panel_at_cm": {float(r): float(scale_power(
+                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
                     for r in points_cm},
-                "seed_panel_at_cm": {float(r): float(scale_inverse_cube(
-                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r))
+                "seed_panel_at_cm": {float(r): float(scale_power(
+                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
                     for r in points_cm},
                 "equivalent_distance_cm": (equivalent_distance_cm(
-                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A) if x > 0 else None),
+                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=n)
+                    if x > 0 else None),
             })
     return rows
+
+
+def _study_law(study):
+    """The law a coil study measured without the panel (the flight configuration's
+    torquer field): the one with the most points, None without a study."""
+    if study is None:
+        return None
+    laws = [w for w in study.laws if w.panel == 0] or list(study.laws)
+    return max(laws, key=lambda w: w.n_points) if laws else None
 
 
 def format_interference_table(rows) -> str:
@@ -355,10 +389,224 @@ def _f(x):
 def has_coil_steps(tel) -> bool:
     """A coil campaign: magnetorquer currents that step while the unit stands in static
     positions (a `position` column > 0). Orbit telemetry with B-dot currents is not one:
-    its field turns with the satellite, which a per-position constant cannot absorb."""
+    its field turns with the satellite, which a per-position constant cannot absorb.
+    Neither is a coil study (a `coil_distance_cm` column): its test coil is not where the
+    flight magnetorquers are (fit_coil_study)."""
     cols = [c for c in tel.columns if c.startswith("coil_") and c.endswith("_A")]
+    if is_coil_study(tel):
+        return False
     if not cols or "position" not in tel.columns:
         return False
     static = tel.columns["position"] > 0
     return bool(static.any()) and any(np.nanmax(np.abs(tel.columns[c][static])) > 0
                                       for c in cols)
+
+
+# =======================================================================================
+# The coil study: interference at known distances (docs/coil_study.md)
+# =======================================================================================
+DISTANCE_COLUMN = "coil_distance_cm"
+PANEL_COLUMN = "panel"
+TEST_SENSOR_KEY = "coil_test_sensor"
+
+
+def is_coil_study(tel) -> bool:
+    """A coil-study file: it has a coil_distance_cm column."""
+    return DISTANCE_COLUMN in tel.columns
+
+
+@dataclass
+class StudyPoint:
+    sensor: str
+    coil: str
+    panel: int                          # 0 without, 1 with the solar panel
+    distance_cm: float
+    K_nT_per_A: np.ndarray              # (3,) frame axes
+    K_sigma_nT_per_A: np.ndarray        # (3,)
+    K_norm_nT_per_A: float              # |K|
+    K_norm_sigma_nT_per_A: float
+    n_samples: int
+
+    def to_dict(self) -> dict:
+        return {"sensor": self.sensor, "coil": self.coil, "panel": self.panel,
+                "distance_cm": self.distance_cm, "K_nT_per_A": self.K_nT_per_A.tolist(),
+                "K_sigma_nT_per_A": self.K_sigma_nT_per_A.tolist(),
+                "K_norm_nT_per_A": self.K_norm_nT_per_A,
+                "K_norm_sigma_nT_per_A": self.K_norm_sigma_nT_per_A,
+                "n_samples": self.n_samples}
+
+
+@dataclass
+class DistanceLaw:
+    """|K|(r) = K_30 (30 cm / r)^n, fitted to the points of one sensor, coil and panel
+    state by weighted least squares in log-log (weights from the points' 1-sigma); the
+    uncertainties from the covariance, scaled by sqrt(chi2/dof) where the scatter exceeds
+    the points' own errors (Birge ratio)."""
+    sensor: str
+    coil: str
+    panel: int
+    n_points: int
+    exponent: float
+    exponent_sigma: float | None        # None: two points, no degree of freedom left
+    K_30cm_nT_per_A: float
+    K_30cm_sigma_nT_per_A: float | None
+    chi2_per_dof: float | None
+
+    def at(self, r_cm, current_A=1.0):
+        return self.K_30cm_nT_per_A * (30.0 / np.asarray(r_cm, float)) ** self.exponent \
+            * current_A
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in ("sensor", "coil", "panel", "n_points",
+                                              "exponent", "exponent_sigma", "K_30cm_nT_per_A",
+                                              "K_30cm_sigma_nT_per_A", "chi2_per_dof")}
+
+
+@dataclass
+class CoilStudy:
+    points: list                        # of StudyPoint
+    laws: list                          # of DistanceLaw
+    sources: list
+    notes: list = field(default_factory=list)
+
+    def law(self, sensor, coil, panel):
+        return next((w for w in self.laws if (w.sensor, w.coil, w.panel) ==
+                     (sensor, coil, panel)), None)
+
+    def seed_comparison(self, current_A=SEED_CURRENT_A) -> list:
+        """Per law at 30 cm and current_A: interference and its 1-sigma beside the seed's
+        figure for the same panel state, and their ratio."""
+        out = []
+        for w in self.laws:
+            seed = (SEED_30CM_PANEL_NT if w.panel else SEED_30CM_NO_PANEL_NT) \
+                * current_A / SEED_CURRENT_A
+            x = float(w.at(30.0, current_A))
+            sig = (None if w.K_30cm_sigma_nT_per_A is None
+                   else float(w.K_30cm_sigma_nT_per_A * current_A))
+            out.append({"sensor": w.sensor, "coil": w.coil, "panel": w.panel,
+                        "current_A": current_A, "at_30cm_nT": x, "sigma_nT": sig,
+                        "seed_nT": seed, "ratio_to_seed": x / seed})
+        return out
+
+    def to_dict(self) -> dict:
+        return {"sources": [str(s) for s in self.sources],
+                "points": [p.to_dict() for p in self.points],
+                "laws": [w.to_dict() for w in self.laws],
+                "seed_comparison": self.seed_comparison(), "notes": list(self.notes)}
+
+
+def fit_distance_law(r_cm, K_norm, K_sigma, *, sensor="", coil="", panel=0, source=None
+                     ) -> DistanceLaw:
+    """log|K| = log K_30 - n log(r / 30 cm), weighted by the points' relative errors."""
+    r = np.asarray(r_cm, float)
+    y = np.log(np.asarray(K_norm, float))
+    s = np.asarray(K_sigma, float) / np.asarray(K_norm, float)      # sigma of log|K|
+    if len(np.unique(r)) < 2:
+        raise InputError(source, f"coil study: {sensor} {coil} panel {panel}: one distance "
+                                 "only; the distance law needs two or more")
+    s = np.where(s > 0, s, np.min(s[s > 0]) if np.any(s > 0) else 1.0)
+    A = np.column_stack([np.ones_like(r), -np.log(r / 30.0)])
+    w = 1.0 / s
+    cov = np.linalg.inv((A * w[:, None] ** 2).T @ A)
+    beta = cov @ (A.T @ (w ** 2 * y))
+    dof = len(r) - 2
+    chi2 = float(np.sum(((y - A @ beta) * w) ** 2))
+    if dof > 0:
+        cov = cov * max(1.0, chi2 / dof)
+    K30 = float(np.exp(beta[0]))
+    return DistanceLaw(sensor=sensor, coil=coil, panel=int(panel), n_points=int(len(r)),
+                       exponent=float(beta[1]),
+                       exponent_sigma=float(np.sqrt(cov[1, 1])) if dof > 0 else None,
+                       K_30cm_nT_per_A=K30,
+                       K_30cm_sigma_nT_per_A=float(K30 * np.sqrt(cov[0, 0])) if dof > 0 else None,
+                       chi2_per_dof=chi2 / dof if dof > 0 else None)
+
+
+def fit_coil_study(unit, telemetries) -> CoilStudy:
+    """K per distance and panel state, and the distance law, from coil-study files
+    (Telemetry objects with a coil_distance_cm column; docs/coil_study.md).
+
+    Per file: the sensors under test are those named by '# coil_test_sensor:' (every
+    sensor when absent); the coils are its coil_*_A columns; samples with position 0
+    (moving), a missing distance or current, or an unusable reading are left out. Each
+    (distance, panel) group is fitted like a coil campaign (fit_coupling: K plus a constant
+    per static position), so the field, the offsets and anything steady drop out."""
+    from generator.io import telemetry_csv as _telemetry
+    study = [t for t in telemetries if is_coil_study(t)]
+    if not study:
+        raise InputError(unit.path, "coil study: no file with a coil_distance_cm column")
+    groups = {}                                        # (sensor, coil, panel, r) -> data
+    notes = []
+    for tel in study:
+        coils = coil_columns(tel)
+        if not coils:
+            raise InputError(tel.path, "coil study: no coil_*_A current column")
+        names = _test_sensors(unit, tel)
+        dist = np.asarray(tel.columns[DISTANCE_COLUMN], float)
+        panel = (np.asarray(tel.columns[PANEL_COLUMN], float) if PANEL_COLUMN in tel.columns
+                 else np.zeros(tel.n))
+        _check_study_columns(tel, dist, panel)
+        I = np.column_stack([tel.columns[c] for c in coils])
+        pos = (np.asarray(tel.columns["position"], float) if "position" in tel.columns
+               else np.ones(tel.n))
+        ok = np.isfinite(dist) & np.isfinite(panel) & np.isfinite(I).all(axis=1) \
+            & np.isfinite(pos) & (pos > 0)
+        data = _telemetry.preprocess(tel, unit)
+        for n in names:
+            sd = data[n]
+            use = ok & sd.usable & np.isfinite(sd.field_frame_nT).all(axis=1)
+            for r in np.unique(dist[use]):
+                for pn in np.unique(panel[use & (dist == r)]):
+                    sel = use & (dist == r) & (panel == pn)
+                    g = groups.setdefault((n, int(pn), float(r)), ([], [], [], coils))
+                    g[0].append(sd.field_frame_nT[sel])
+                    g[1].append(I[sel])
+                    g[2].append(pos[sel])
+    points = []
+    src = ", ".join(str(t.path) for t in study)
+    for (n, pn, r), (ys, Is, gs, coils) in sorted(groups.items()):
+        f = fit_coupling(np.concatenate(ys), np.concatenate(Is), np.concatenate(gs),
+                         coils=coils, name=f"{n} at {r:g} cm, panel {pn}", source=src)
+        norms, sig = f.column_norm_nT_per_A(), f.column_norm_sigma_nT_per_A()
+        for j, c in enumerate(coils):
+            points.append(StudyPoint(n, c, pn, r, f.K_nT_per_A[:, j].copy(),
+                                     f.K_sigma_nT_per_A[:, j].copy(), float(norms[j]),
+                                     float(sig[j]), f.n_samples))
+    laws = []
+    for key in sorted({(p.sensor, p.coil, p.panel) for p in points}):
+        pts = [p for p in points if (p.sensor, p.coil, p.panel) == key]
+        if len({p.distance_cm for p in pts}) < 2:
+            notes.append(f"{key[0]} {key[1]} panel {key[2]}: one distance only, no law")
+            continue
+        laws.append(fit_distance_law([p.distance_cm for p in pts],
+                                     [p.K_norm_nT_per_A for p in pts],
+                                     [p.K_norm_sigma_nT_per_A for p in pts],
+                                     sensor=key[0], coil=key[1], panel=key[2], source=src))
+    return CoilStudy(points=points, laws=laws, sources=[t.path for t in study], notes=notes)
+
+
+def _test_sensors(unit, tel) -> list:
+    text = tel.meta.get(TEST_SENSOR_KEY)
+    if not text:
+        return list(unit.sensor_names)
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    for n in names:
+        if n not in unit.sensor_names:
+            raise InputError(tel.path, f"'# {TEST_SENSOR_KEY}: {text}': unit {unit.id} has no "
+                                       f"sensor {n!r} ({', '.join(unit.sensor_names)})")
+    return names
+
+
+def _check_study_columns(tel, dist, panel) -> None:
+    """A distance that is not positive or a panel flag other than 0/1: InputError naming
+    the line and column."""
+    bad = np.isfinite(dist) & ~(dist > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {DISTANCE_COLUMN}: "
+                                   f"{dist[i]!r} is not a positive distance")
+    bad = np.isfinite(panel) & ~np.isin(panel, (0.0, 1.0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {PANEL_COLUMN}: "
+                                   f"{panel[i]!r} is not 0 (without) or 1 (with the panel)")

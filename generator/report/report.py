@@ -628,6 +628,9 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
             out.extend(_coil_sections(cs, analysis, out_dir))
         except Exception as e:     # the report must not lose the fit over a figure
             out.append(Section("Magnetorquer interference", [f"Not computed: {e}"]))
+    if analysis is not None:              # the coil study from data (report/coil_study.py)
+        from generator.report.coil_study import coil_study_sections
+        out.extend(coil_study_sections(cs, analysis, out_dir))
     if any(s.set_reset for s in cs.unit.sensors):
         out.extend(_setreset_sections(cs, out_dir))
     return out

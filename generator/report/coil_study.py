@@ -1,0 +1,131 @@
+"""The coil study in the report (seed 000 fig. 5-6, from data): coil interference at known
+distances, without and with the solar panel, the distance law fitted to it, beside the
+seed's 30 cm / 0.1 A figures. The data format is docs/coil_study.md; the fits are
+generator/fit/coils.py (fit_coil_study).
+
+    coil_study_sections(cs, analysis, out_dir)   # [] when no input file is a coil study
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from generator.fit.coils import (SEED_30CM_NO_PANEL_NT, SEED_30CM_PANEL_NT, SEED_CURRENT_A,
+                                 fit_coil_study, is_coil_study)
+from generator.report.document import Section, Table, pm
+
+PANEL = {0: "without panel", 1: "with panel"}
+
+
+def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list:
+    """The coil-study section of the fit report, from the input files that are coil
+    studies (a coil_distance_cm column); [] when there are none."""
+    tels = [t for t in getattr(analysis, "tels", []) if is_coil_study(t)]
+    if not tels:
+        return []
+    study = fit_coil_study(cs.unit, tels)
+    if not study.points:
+        return []
+    png = coil_study_figure(Path(out_dir) / "coil_study.png", study, current_A)
+    point_rows = []
+    for p in study.points:
+        law = study.law(p.sensor, p.coil, p.panel)
+        point_rows.append([p.sensor, p.coil, PANEL[p.panel], f"{p.distance_cm:g}",
+                           pm(p.K_norm_nT_per_A, p.K_norm_sigma_nT_per_A),
+                           pm(p.K_norm_nT_per_A * current_A, p.K_norm_sigma_nT_per_A * current_A),
+                           "-" if law is None else f"{float(law.at(p.distance_cm, current_A)):.1f}",
+                           p.n_samples])
+    law_rows = []
+    for w, c in zip(study.laws, study.seed_comparison(current_A)):
+        law_rows.append([w.sensor, w.coil, PANEL[w.panel], w.n_points,
+                         pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
+                         else f"{w.exponent:.3f} (2 points)",
+                         pm(c["at_30cm_nT"], c["sigma_nT"]) if c["sigma_nT"]
+                         else f"{c['at_30cm_nT']:.1f}",
+                         f"{c['seed_nT']:.2f}", f"{c['ratio_to_seed']:.2f}",
+                         "-" if w.chi2_per_dof is None else f"{w.chi2_per_dof:.2f}"])
+    paragraphs = [
+        f"Coil interference measured at known distances (coil_distance_cm) without and with "
+        f"the solar panel (panel), from {', '.join(str(s) for s in study.sources)}. Per "
+        "distance and panel state, K (nT/A, the sensor's frame axes) is fitted like a coil "
+        "campaign: the readings against the current plus a constant per static position. "
+        f"Through the points of each sensor and panel state the law |K| = K30 (30 cm / r)^n "
+        "is fitted in log-log, weighted by the points' 1-sigma, its uncertainty scaled up "
+        "by sqrt(chi2/dof) where the points scatter more than their errors. A dipole gives "
+        f"n = 3. The seed measured {SEED_30CM_NO_PANEL_NT} nT without and "
+        f"{SEED_30CM_PANEL_NT} nT with the panel at 30 cm and {SEED_CURRENT_A:g} A.",
+        "What to look for: points on their line (chi2/dof near 1), n within its "
+        "uncertainty of 3, and the panel's factor at 30 cm against the seed's "
+        f"{SEED_30CM_PANEL_NT / SEED_30CM_NO_PANEL_NT:.2f}."]
+    ratios = _panel_ratios(study)
+    if ratios:
+        paragraphs.append("Panel factor at 30 cm (with / without): " + "; ".join(
+            f"{s} {c}: {r:.2f}" for (s, c), r in ratios.items()) + ".")
+    paragraphs += [f"Note: {n}" for n in study.notes]
+    return [Section(f"Coil study: interference against distance at {current_A:g} A", paragraphs,
+                    [Table(["sensor", "coil", "panel", "n", "exponent n",
+                            f"at 30 cm, {current_A:g} A nT", "seed 000 nT", "ratio to seed",
+                            "chi2/dof"], law_rows, "Distance law per sensor and panel state"),
+                     Table(["sensor", "coil", "panel", "distance cm", "|K| nT/A",
+                            f"at {current_A:g} A nT", "law nT", "samples"], point_rows,
+                           "K per distance and panel state (the points)")],
+                    [(png.name, "Coil interference against distance, log-log: points with "
+                      "1-sigma, the fitted laws, the seed's 30 cm figures", [0, 1])])]
+
+
+def _panel_ratios(study) -> dict:
+    out = {}
+    for w in study.laws:
+        if w.panel != 1:
+            continue
+        base = study.law(w.sensor, w.coil, 0)
+        if base is not None and base.K_30cm_nT_per_A > 0:
+            out[(w.sensor, w.coil)] = w.K_30cm_nT_per_A / base.K_30cm_nT_per_A
+    return out
+
+
+def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
+    """Interference at current_A against distance, log-log: points with 1-sigma bars, the
+    fitted law of each sensor, coil and panel state, the seed's 30 cm figures."""
+    from generator.report.figures import _figure, _save
+
+    fig = _figure(6.5, 4.2)
+    ax = fig.subplots()
+    keys = sorted({(p.sensor, p.coil, p.panel) for p in study.points})
+    r_all = np.array([p.distance_cm for p in study.points])
+    grid = np.geomspace(r_all.min() * 0.9, max(r_all.max(), 30.0) * 1.1, 50)
+    for k, key in enumerate(keys):
+        pts = [p for p in study.points if (p.sensor, p.coil, p.panel) == key]
+        r = np.array([p.distance_cm for p in pts])
+        y = np.array([p.K_norm_nT_per_A for p in pts]) * current_A
+        e = np.array([p.K_norm_sigma_nT_per_A for p in pts]) * current_A
+        color = f"C{k % 10}"
+        label = f"{key[0]} {key[1]}, {PANEL[key[2]]}"
+        ax.errorbar(r, y, yerr=e, fmt="o" if key[2] == 0 else "s", ms=4, color=color,
+                    capsize=2, lw=1, label=label)
+        law = study.law(*key)
+        if law is not None:
+            ax.loglog(grid, law.at(grid, current_A), "-" if key[2] == 0 else "--", lw=0.8,
+                      color=color, label=f"law, {PANEL[key[2]]}: n = {law.exponent:.2f}")
+    seed = current_A / SEED_CURRENT_A
+    ax.loglog([30.0], [SEED_30CM_NO_PANEL_NT * seed], "*", ms=10, color="k",
+              label="seed 000, 30 cm, no panel")
+    ax.loglog([30.0], [SEED_30CM_PANEL_NT * seed], "*", ms=10, color="0.5",
+              label="seed 000, 30 cm, panel")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    from matplotlib.ticker import NullFormatter
+    ticks = np.unique(r_all)
+    ax.set_xticks(ticks)
+    ax.set_xticklabels([f"{x:g}" for x in ticks])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel("distance coil - magnetometer, cm", fontsize=8)
+    ax.set_ylabel(f"interference |dB| at {current_A:g} A, nT", fontsize=8)
+    ax.grid(alpha=0.3, lw=0.5, which="both")
+    ax.legend(fontsize=6)
+    ax.tick_params(labelsize=7)
+    ax.set_title("Coil study: interference against distance", fontsize=10)
+    fig.subplots_adjust(left=0.13, right=0.98, top=0.9, bottom=0.13)
+    return _save(fig, path)

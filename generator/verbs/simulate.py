@@ -1,0 +1,141 @@
+"""`magcal simulate UNIT.toml [--plan PLAN.json] [--seed N] [--truth TRUTH] -o DIR`:
+campaigns of a user's own unit from the project's simulator (docs/simulate.md).
+
+Writes DIR/unit.toml (the unit file as given), DIR/truth.json (the simulated unit's
+parameters: what a fit should recover), DIR/plan.json (the program the thermal campaign
+followed) and per campaign DIR/<campaign>.csv (ICD telemetry) with <campaign>.truth.npz.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from generator.campaign import plan as plan_mod
+from generator.campaign import simulate as sim
+from generator.errors import InputError
+from generator.io.outputs import check_output_folder, output_folder
+from generator.io.unitfile import load_unit
+
+CAMPAIGNS = ("thermal_12pos", "rotation", "coils", "coil_study")
+DEFAULT_SAMPLE_PERIOD_S = 60.0        # thermal campaign without --plan: one sample a minute,
+DEFAULT_SAMPLES_PER_SEGMENT = 10      # 10 per segment (the segment finder's 10 min)
+
+
+def add_simulate_args(p):
+    p.add_argument("unit", help="unit file (TOML, ICD sections 1 and 4)")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    p.add_argument("--plan", default=None, metavar="PLAN.json",
+                   help="the test program to follow (magcal plan's plan.json); default: the "
+                        "program magcal plan writes for the unit, with the holds from the "
+                        "simulated boards' time constants")
+    p.add_argument("--truth", default=None, metavar="TRUTH.json|.toml",
+                   help="set parameters of the simulated unit (keys of truth.json; the rest "
+                        "is drawn with the seed); see docs/simulate.md")
+    p.add_argument("--campaigns", nargs="+", default=list(CAMPAIGNS), choices=CAMPAIGNS,
+                   help="which campaigns (default: all)")
+    p.add_argument("--sample-period-s", type=float, default=None,
+                   help=f"thermal campaign without --plan: sample period (default "
+                        f"{DEFAULT_SAMPLE_PERIOD_S:g} s)")
+    p.add_argument("--samples-per-segment", type=int, default=None,
+                   help=f"thermal campaign without --plan: samples recorded per hold "
+                        f"(default {DEFAULT_SAMPLES_PER_SEGMENT})")
+
+
+def load_truth_override(path) -> dict:
+    """A truth override file: JSON or TOML (by its suffix), InputError on anything else."""
+    path = Path(path)
+    if path.suffix.lower() == ".toml":
+        try:
+            import tomllib
+        except ImportError:                       # Python 3.10
+            import tomli as tomllib
+        try:
+            return tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError(path, "file not found") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(path, f"cannot read: {e}") from None
+        except tomllib.TOMLDecodeError as e:
+            raise InputError(path, f"not a TOML truth override: {e}") from None
+    from generator.io.json_input import load_json
+    return load_json(path, "truth override")
+
+
+def run_simulate(args, progress) -> tuple:
+    """`magcal simulate`: exit status and the JSON result (paths, campaigns, plan)."""
+    check_output_folder(args.output)
+    unit = load_unit(args.unit)
+    for name, v, lo, hi in (("--sample-period-s", args.sample_period_s, 1e-2, 3600.0),
+                            ("--samples-per-segment", args.samples_per_segment, 1, 10000)):
+        if v is not None and not (math.isfinite(v) and lo <= v <= hi):
+            raise InputError(None, f"{name} {v!r} is outside [{lo:g}, {hi:g}]")
+    truth_ss, *camp_ss = np.random.SeedSequence(args.seed).spawn(1 + len(CAMPAIGNS))
+    truth = sim.random_truth(unit, np.random.default_rng(truth_ss))
+    if args.truth:
+        truth = sim.override_truth(truth, load_truth_override(args.truth), unit, args.truth)
+    notes = []
+    if not unit.lab_field_nT:
+        notes.append(f"the unit file has no lab_field_nT: the lab field is seed 000's "
+                     f"{sim.LAB_FIELD_nT:g} nT")
+    plan = None
+    if "thermal_12pos" in args.campaigns:
+        if args.plan:
+            plan = plan_mod.load_plan(args.plan)
+            if plan.unit_id and plan.unit_id != unit.id:
+                notes.append(f"{args.plan} is the program of unit {plan.unit_id!r}; "
+                             f"followed for {unit.id!r}")
+            field = unit.lab_field_nT or sim.LAB_FIELD_nT
+            if abs(plan.lab_field_nT - field) > 1e-6 * field:
+                notes.append(f"the plan's lab field {plan.lab_field_nT:g} nT is used for the "
+                             f"thermal campaign, the unit's {field:g} nT for the others")
+            if args.sample_period_s is not None or args.samples_per_segment is not None:
+                raise InputError(args.plan, "--plan sets the sample period and the samples "
+                                            "per segment: leave out --sample-period-s and "
+                                            "--samples-per-segment")
+        else:
+            plan = sim.plan_for(unit, truth,
+                                sample_period_s=args.sample_period_s or DEFAULT_SAMPLE_PERIOD_S,
+                                samples_per_segment=(args.samples_per_segment
+                                                     or DEFAULT_SAMPLES_PER_SEGMENT))
+        tau_true = max(truth.board_tau_s[b] for b in sim.boards_of(unit))
+        if plan.board_tau_s < tau_true:
+            notes.append(f"the plan assumes a board time constant of {plan.board_tau_s / 60:.1f} "
+                         f"min, the simulated boards have {tau_true / 60:.1f} min: its holds "
+                         "may end before the boards settle")
+        progress(f"unit {unit.id}: thermal program {len(plan.positions)} positions x "
+                 f"{len(plan.levels_C)} levels, {plan.total_duration_s / 3600:.1f} h, "
+                 f"{plan.sample_period_s:g} s samples")
+    for n in notes:
+        progress(f"note: {n}")
+    written = {}
+    with output_folder(args.output) as folder:
+        tmp = folder.tmp
+        shutil.copyfile(args.unit, tmp / "unit.toml")
+        (tmp / "truth.json").write_text(json.dumps(truth.to_json(), indent=1) + "\n",
+                                        encoding="utf-8")
+        files = {"unit": tmp / "unit.toml", "truth": tmp / "truth.json"}
+        if plan is not None:
+            (tmp / "plan.json").write_text(json.dumps(plan.to_json_dict(), indent=1) + "\n",
+                                           encoding="utf-8")
+            files["plan"] = tmp / "plan.json"
+        for kind, ss in zip(CAMPAIGNS, camp_ss):
+            if kind not in args.campaigns:
+                continue
+            opts = {"plan": plan} if kind == "thermal_12pos" else {}
+            path, arrays = sim.simulate_campaign(kind, unit, truth, np.random.default_rng(ss),
+                                                 tmp, **opts)
+            files[kind] = path
+            written[kind] = int(len(arrays["time_s"]))
+            progress(f"{kind}: {written[kind]} samples")
+    files = {k: folder.final(v) for k, v in files.items()}
+    progress(f"wrote {len(files)} files to {folder.final(folder.tmp)}")
+    return 0, {"unit": unit.id, "seed": args.seed, "files": {k: str(v) for k, v in files.items()},
+               "samples": written, "notes": notes,
+               "plan": None if plan is None else {
+                   "levels_C": plan.levels_C, "hold_s": [s.hold_s for s in plan.steps],
+                   "board_tau_s": plan.board_tau_s, "sample_period_s": plan.sample_period_s}}
