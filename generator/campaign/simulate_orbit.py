@@ -35,8 +35,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from generator.campaign.simulate import (ChannelBias, Scenario, SquareWave, _board_temps,
-                                         _render_sensor, write_telemetry_csv)
+from generator.campaign.scenarios import Scenario, _board_temps
+from generator.campaign.simulate import (ChannelBias, SquareWave, _render_sensor,
+                                         write_telemetry_csv)
 from generator.io import geomag, orbit
 
 # The International Space Station, CelesTrak element set of 2008-09-20 12:25:40 UTC, as
