@@ -143,7 +143,7 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     table_ok = accepted == 0 and rejected != 0
 
     progress("writing the report (figures)")
-    fit_rep = fit_report(cs, out, data_paths=[ground[0]], progress=progress)
+    fit_rep = fit_report(cs, out, data_paths=ground, progress=progress)   # every fitted file
     rep = Report(f"magcal demo: simulated unit {cs.unit.id} (seed {seed})")
     rep.add(Section("What ran", [
         "The project's simulator made the unit, its truth and its campaigns. magcal fitted the "
