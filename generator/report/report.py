@@ -749,6 +749,8 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
     out_dir.mkdir(parents=True, exist_ok=True)
     analysis = CampaignAnalysis(cs, data_paths, progress) if data_paths else None
     rep = Report(f"magcal fit: unit {cs.unit.id}")
+    from generator.report.summary import summary_section
+    rep.add(summary_section(cs, analysis))     # first: the verdict
     rep.add(inputs_section(cs, analysis, data_paths))
     rep.extend(fit_sections(cs))
     m = method_section(cs)
