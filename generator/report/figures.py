@@ -16,13 +16,15 @@ _AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")     # X red, Y green, Z blue
 _BEFORE, _AFTER = "#bbbbbb", "#1f77b4"
 
 
-def _figure(w_in, h_in):
+def _figure(w_in, h_in, constrained=False):
+    """A figure on the Agg canvas; constrained=True: constrained layout (titles, labels and
+    colour bars never overlap; slower to draw, so only where a figure needs it)."""
     import matplotlib
     matplotlib.use("Agg", force=False)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w_in, h_in), dpi=DPI)
+    fig = Figure(figsize=(w_in, h_in), dpi=DPI, layout="constrained" if constrained else None)
     FigureCanvasAgg(fig)
     return fig
 
@@ -113,10 +115,21 @@ class parallel:
         return False
 
 
+EMPTY_AXES_KEY = "magcal-empty-axes"   # PNG text chunk: visible axes with nothing drawn
+
+
+def empty_axes(fig) -> list:
+    """Titles (or indices) of the visible axes of fig with no data drawn in them."""
+    return [a.get_title() or str(k) for k, a in enumerate(fig.axes)
+            if a.get_visible() and not a.has_data()]
+
+
 def _save(fig, path) -> Path:
+    """Write the PNG; the titles of axes left empty go into its text chunk EMPTY_AXES_KEY
+    (read by the render check, host_tests/test_report_render.py)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=DPI, metadata={EMPTY_AXES_KEY: "; ".join(empty_axes(fig))})
     return path
 
 
@@ -303,7 +316,7 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") ->
     n = len(maps)
     ncol = min(n, 2)
     nrow = (n + ncol - 1) // ncol
-    fig = _figure(6.0 * ncol, 3.2 * nrow + 0.4)
+    fig = _figure(6.0 * ncol, 3.2 * nrow + 0.4, constrained=True)   # titles clear the labels
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     vmax = max(float(np.nanmax(m)) for m in maps) or 1.0
     im = None

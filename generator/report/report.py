@@ -589,10 +589,10 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
     al = info.get("alignment")
     if al and analysis is not None:
         try:
-            out.append(_alignment_from_fit(cs, analysis, al, out_dir))
+            out.extend(_alignment_from_fit(cs, analysis, al, out_dir))
         except Exception as e:    # the report must not lose the fit over a figure
             out.append(Section("Agreement of the two magnetometers",
-                               [f"Angle figure not drawn: {e}"]))
+                               [f"Angle figure not drawn: {type(e).__name__}: {e}"]))
     return out
 
 
@@ -737,9 +737,12 @@ def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     H = np.asarray(cs.unit_values["H_boom_to_body"], float)
     B1, B2 = fields[ref][mask], fields[boom][mask]
     res = al.get("result", al)
-    return alignment_section(out_dir, angle_between_deg(B1, B2), angle_between_deg(B1, B2 @ H.T),
-                             pair=f"{ref}/{boom}", time_s=tel.time_s[mask], H=H,
-                             sigma_angle_deg=res.get("sigma_angle_deg"))
+    from generator.report.seed_sections import projections_section
+    return [alignment_section(out_dir, angle_between_deg(B1, B2),
+                              angle_between_deg(B1, B2 @ H.T), pair=f"{ref}/{boom}",
+                              time_s=tel.time_s[mask], H=H,
+                              sigma_angle_deg=res.get("sigma_angle_deg")),
+            projections_section(out_dir, tel.time_s[mask], B1, B2, H, pair=f"{ref}/{boom}")]
 
 
 def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
@@ -761,8 +764,17 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
 
         say("report: drawing the figures")
         with parallel():
+            from generator.report import seed_sections as seed
             rep.add(rms_section(cs, analysis, out_dir))
+            for sec in (seed.axis_rms_section(cs, analysis, out_dir),
+                        seed.profile_section(cs, analysis, out_dir)):
+                if sec is not None:
+                    rep.add(sec)
             rep.extend(temperature_sections(cs, analysis, out_dir))
+            sec = seed.positions_section(cs, analysis, out_dir)
+            if sec is not None:
+                rep.add(sec)
+            rep.extend(seed.examples_sections(cs, analysis, out_dir))
             rep.extend(extras_sections(cs, analysis, out_dir))
             rep.extend(seed000_sections(cs, analysis, out_dir))
         say("report: figures drawn")
