@@ -21,11 +21,18 @@ import numpy as np
 from generator import __version__
 
 
+COLLAPSE_ROWS = 30     # a longer table is collapsed (<details>): the page stays readable
+
+
 @dataclass
 class Table:
     header: list
     rows: list
     caption: str = ""
+
+    @property
+    def collapsed(self) -> bool:
+        return len(self.rows) > COLLAPSE_ROWS
 
 
 @dataclass
@@ -99,12 +106,18 @@ class Report:
                 link = _refs_text(refs, caption)
                 out += [f"![Figure {nf}]({path})", "", f"_Figure {nf}. {caption}{link}_", ""]
             for t, n in zip(s.tables, tnums):
-                out += [f"**Table {n}.{(' ' + t.caption) if t.caption else ''}**", ""]
+                cap = f"Table {n}.{(' ' + t.caption) if t.caption else ''}"
+                if t.collapsed:
+                    out += [f"<details><summary>{cap} ({len(t.rows)} rows)</summary>", ""]
+                else:
+                    out += [f"**{cap}**", ""]
                 out.append("| " + " | ".join(_md(h) for h in t.header) + " |")
                 out.append("|" + "---|" * len(t.header))
                 for r in t.rows:
                     out.append("| " + " | ".join(_md(_cell(v)) for v in r) + " |")
                 out.append("")
+                if t.collapsed:
+                    out += ["</details>", ""]
         return "\n".join(out) + "\n"
 
     def html(self) -> str:
@@ -135,6 +148,9 @@ class Report:
                            f"alt=\"Figure {nf}: {e(caption)}\"></a><figcaption>Figure {nf}. "
                            f"{e(caption)}{e(_refs_text(refs, caption))}</figcaption></figure>")
             for t, n in zip(s.tables, tnums):
+                if t.collapsed:
+                    out.append(f"<details><summary>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
+                               f" ({len(t.rows)} rows: click to open)</summary>")
                 out.append(f"<table id=\"table-{n}\">")
                 out.append(f"<caption>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
                            "</caption>")
@@ -142,6 +158,8 @@ class Report:
                 for r in t.rows:
                     out.append("<tr>" + "".join(f"<td>{e(_cell(v))}</td>" for v in r) + "</tr>")
                 out.append("</table>")
+                if t.collapsed:
+                    out.append("</details>")
         out.append("</body></html>")
         return "\n".join(out) + "\n"
 
@@ -190,6 +208,17 @@ def _cell(v) -> str:
     if isinstance(v, (np.integer,)):
         return str(int(v))
     return str(v)
+
+
+def resolved(value, resolution) -> str:
+    """value printed to its resolution: '0' below it (a numerical zero such as -4.5e-15
+    is not a measured value), else with the resolution's decimals."""
+    v, r = float(value), float(resolution)
+    if not np.isfinite(v):
+        return "-"
+    if abs(v) < r:
+        return "0"
+    return f"{v:.{max(0, -int(np.floor(np.log10(r))))}f}"
 
 
 def pm(value, sigma, digits=None) -> str:

@@ -21,6 +21,7 @@ import numpy as np
 from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _deferrable, _figure,
                                       _save)
 
+BAND = 0.35          # sphere_projections: points within 0.35 |B| of the plane (~20 deg)
 MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only gets slower
 
 
@@ -58,7 +59,8 @@ def projections_before_after(path, title, time_h, u_ref, u_before, u_after, name
 def sphere_projections(path, title, rows) -> Path:
     """One row per series (label, raw (N,3), calibrated (N,3), radius nT): the three planes
     xy, xz, yz, raw (grey) and calibrated (blue), the circle of the reference magnitude
-    (seed 000 fig. 14 and 16)."""
+    (seed 000 fig. 14 and 16). Each plane shows the points within BAND |B| of it (raw: of
+    its median), so that a calibrated sensor draws the circle and not a filled disc."""
     n = len(rows)
     fig = _figure(11.0, 3.3 * n + 0.5, constrained=True)
     axes = np.atleast_2d(fig.subplots(n, 3, squeeze=False))
@@ -70,11 +72,14 @@ def sphere_projections(path, title, rows) -> Path:
         ms = 1.5 if len(raw) > 200 else 5
         for c, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
             ax = axes[r, c]
+            o = 3 - i - j          # the out-of-plane axis: a band about the plane only
+            near_raw = np.abs(raw[:, o] - np.median(raw[:, o])) < BAND * radius
+            near_cal = np.abs(cal[:, o]) < BAND * radius
             ax.plot(radius * np.cos(phi) / 1e3, radius * np.sin(phi) / 1e3, "-",
                     color="#2ca02c", lw=0.8, label=f"|B| = {radius / 1e3:.2f} µT")
-            ax.plot(raw[sl, i] / 1e3, raw[sl, j] / 1e3, ".", ms=ms, color=_BEFORE,
-                    label="raw")
-            ax.plot(cal[sl, i] / 1e3, cal[sl, j] / 1e3, ".", ms=ms, color=_AFTER,
+            rr, cc = raw[near_raw][sl], cal[near_cal][sl]
+            ax.plot(rr[:, i] / 1e3, rr[:, j] / 1e3, ".", ms=ms, color=_BEFORE, label="raw")
+            ax.plot(cc[:, i] / 1e3, cc[:, j] / 1e3, ".", ms=ms, color=_AFTER,
                     label="calibrated")
             ax.set_aspect("equal", adjustable="datalim")
             ax.set_xlabel(f"B{'xyz'[i]}, µT", fontsize=8)
@@ -124,7 +129,8 @@ def temperature_profile(path, title, series, segments, positions) -> Path:
 @_deferrable(lambda path, *a, **k: Path(path))
 def positions_timeline(path, title, rows) -> Path:
     """rows: [(label, time_h (N,), raw (N,3), cal (N,3), ref (N,3), bounds [(pos, t0, t1)])]:
-    one row per sensor, columns x, y, z (seed 000 fig. 26)."""
+    one row per sensor, columns x, y, z: raw and calibrated minus the reference, nT
+    (seed 000 fig. 26; the difference, since the field itself hides the drift)."""
     n = len(rows)
     fig = _figure(12.0, 2.6 * n + 0.6, constrained=True)
     axes = np.atleast_2d(fig.subplots(n, 3, squeeze=False))
@@ -133,18 +139,19 @@ def positions_timeline(path, title, rows) -> Path:
         sl = _thin(len(t))
         for c in range(3):
             ax = axes[r, c]
-            ax.plot(t[sl], raw[sl, c] / 1e3, ".", ms=1.5, color=_BEFORE, label="raw")
-            ax.plot(t[sl], cal[sl, c] / 1e3, ".", ms=1.5, color=_AFTER, label="calibrated")
-            ax.plot(t[sl], ref[sl, c] / 1e3, "-", lw=0.8, color="#2ca02c", label="reference")
+            ax.plot(t[sl], raw[sl, c] - ref[sl, c], ".", ms=1.5, color=_BEFORE, label="raw")
+            ax.plot(t[sl], cal[sl, c] - ref[sl, c], ".", ms=1.5, color=_AFTER,
+                    label="calibrated")
+            ax.axhline(0.0, lw=0.8, color="#2ca02c", label="reference")
             for pos, t0, t1 in bounds:
                 ax.axvline(t0, color="#888888", lw=0.5, ls=":")
-            ax.set_title(f"{label}: B{'xyz'[c]}", fontsize=9)
+            ax.set_title(f"{label}: B{'xyz'[c]} - reference", fontsize=9)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, lw=0.5)
             if r == n - 1:
                 ax.set_xlabel("time, h (dotted: next position)", fontsize=8)
             if c == 0:
-                ax.set_ylabel("µT", fontsize=8)
+                ax.set_ylabel("nT", fontsize=8)
     axes[0, 0].legend(fontsize=6, markerscale=4)
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)

@@ -155,14 +155,15 @@ def positions_section(cs, analysis, out_dir):
         f"{', '.join(str(p) for p in FIG26_POSITIONS)} through the temperature cycle", rows_fig)
     return Section("Calibrated measurements in the positions", [
         "Each sensor's field components in positions 1-3 against time while the chamber "
-        "steps through its levels (seed 000 fig. 26): raw readings (after SET/RESET and the "
-        "axis mapping), calibrated, and the reference vector."],
+        "steps through its levels (seed 000 fig. 26), as the difference to the reference "
+        "vector: raw readings (after SET/RESET and the axis mapping) and calibrated."],
         [Table(["sensor", "position", "samples", "raw x RMS nT", "raw y", "raw z",
                 "calibrated x RMS nT", "calibrated y", "calibrated z"], rows_tab,
                "RMS of (field - reference) per axis in each position")],
-        [(png.name, "Raw (grey) and calibrated (blue) components against the reference "
-                    "(green line). Look for the calibrated points on the line at every "
-                    "temperature: raw ones drift with temperature and sit off by the offset.")])
+        [(png.name, "Raw (grey) and calibrated (blue) components minus the reference "
+                    "vector. Look for the calibrated points on zero at every temperature, "
+                    "within the noise; raw ones sit off by the offset and scale error and "
+                    "drift as the chamber steps.")])
 
 
 # ---- per-axis RMS ---------------------------------------------------------------------
@@ -249,9 +250,10 @@ def examples_sections(cs, analysis, out_dir) -> list:
                " The twelve positions give twelve clusters (spread along the sphere by the "
                "temperature steps while raw).")],
             tables,
-            [(png.name, "Raw (grey) and calibrated (blue) readings, green: the circle of the "
-                        "reference magnitude. Look for the calibrated points on the circle "
-                        "and centred; raw points form a shifted, stretched ellipse.",
+            [(png.name, "Raw (grey) and calibrated (blue) readings near each coordinate "
+                        "plane (within 0.35 |B| of it), green: the circle of the reference "
+                        "magnitude. Look for the calibrated points on the circle and "
+                        "centred; raw points form a shifted, stretched ellipse.",
               list(range(len(tables))))]))
     return out
 
@@ -285,3 +287,20 @@ def projections_section(out_dir, time_s, B_ref, B_boom, H, *, pair) -> Section:
         [(png.name, f"Black: {names[0]}, coloured: {names[1]}. Look for the two curves on "
                     "top of each other after H; before H a fixed misalignment shows as a "
                     "gap that changes with the attitude.")])
+
+
+# ---- rotation against twelve positions ----------------------------------------------
+def comparison_sections(cs, analysis, progress=None) -> list:
+    """The rotation against the twelve positions (generator.report.compare), when the
+    campaign has both: a static-position file with reference vectors and a rotation
+    without them; else []."""
+    from generator.report import compare
+
+    if analysis is None or _rotation_file(analysis) is None or _static_file(analysis) is None:
+        return []
+    tels = analysis.tels
+    vec = [t for t in tels if t.has("ref_x_nT", "ref_y_nT", "ref_z_nT")]
+    (progress or (lambda m: None))("report: comparing the fit methods (rotation against "
+                                   "twelve positions)")
+    return compare.sections(compare.compare_methods(
+        cs.unit, vec, evaluate=[t for t in tels if t not in vec], progress=progress))
