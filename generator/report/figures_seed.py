@@ -115,6 +115,8 @@ def temperature_profile(path, title, series, segments, positions) -> Path:
                 solid_capstyle="butt", label="constant-temperature segment" if first else None)
         first = False
     lo, hi = ax.get_ylim()
+    hi += 0.08 * (hi - lo)          # room for the position numbers above the curves
+    ax.set_ylim(lo, hi)
     for num, t0, t1 in positions:
         ax.text((t0 + t1) / 2, hi, str(num), ha="center", va="top", fontsize=7)
     ax.set_xlabel("time, h (numbers: positions)", fontsize=8)

@@ -355,7 +355,9 @@ def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) ->
                         + [pm(a, b) for a, b in zip(vals, sigs)])
         hdr = ["level degC", "samples", "positions"] + [f"{n} {u}".strip() for n, u in
                                                         zip(COEF_NAMES, COEF_UNITS)]
-        sec.tables.append(Table(hdr, rows, f"{name}: per-level estimates (points, 1-sigma)"))
+        if rows:     # no level: no points, and no empty table
+            sec.tables.append(Table(hdr, rows, f"{name}: per-level estimates (points, "
+                                               "1-sigma)"))
         Tc = np.unique(np.clip(np.concatenate([[t_lo], LT, [t_hi]]), t_lo, t_hi))
         cv = curve(Tc)
         cb = pc.sigma_at(Tc) if pc is not None else np.full((len(Tc), 12), np.nan)
@@ -364,7 +366,10 @@ def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) ->
         sec.tables.append(Table(["T degC"] + hdr[3:], rows,
                                 f"{name}: fitted polynomial ± 1-sigma band (line and band) at "
                                 "the levels and the ends of the calibrated range"))
-        sec.figures.append((png.name, f"{name}: temperature dependence of b and M", [0, 1]))
+        sec.figures.append((png.name, f"{name}: temperature dependence of b and M. Look for "
+                                      "the points (levels) on the line within their error "
+                                      "bars; a point off the line is a level the polynomial "
+                                      "does not follow.", list(range(len(sec.tables)))))
         sec.tables.append(polynomial_table(cs, name))
         if len(fits) < 2:
             sec.paragraphs.append(
