@@ -127,7 +127,8 @@ class Report:
                "<style>body{font-family:sans-serif;max-width:78em;margin:2em auto;padding:0 1em;"
                "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
                "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
-               "th{background:#eee}td:first-child,th:first-child{text-align:left}caption{font-weight:bold;text-align:left;padding:2px 0}"
+               "th{background:#eee}td:first-child,th:first-child,td.t{text-align:left}"
+               "details{margin:0.4em 0 1.2em 0}caption{font-weight:bold;text-align:left;padding:2px 0}"
                "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
                "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"
                "margin-top:2em}nav li{margin:0.1em 0}</style></head><body>",
@@ -156,7 +157,7 @@ class Report:
                            "</caption>")
                 out.append("<tr>" + "".join(f"<th>{e(str(h))}</th>" for h in t.header) + "</tr>")
                 for r in t.rows:
-                    out.append("<tr>" + "".join(f"<td>{e(_cell(v))}</td>" for v in r) + "</tr>")
+                    out.append("<tr>" + "".join(_td(_cell(v)) for v in r) + "</tr>")
                 out.append("</table>")
                 if t.collapsed:
                     out.append("</details>")
@@ -174,6 +175,16 @@ class Report:
         path = out_dir / f"{stem}.html"
         path.write_text(self.html(), encoding="utf-8")
         return path
+
+
+_NUMBER = re.compile(r"^[-+]?(\d[\d.]*|\.\d+)(e[-+]?\d+)?( ± [\d.e+-]+)?( ?%)?$")
+
+
+def _td(text) -> str:
+    """A cell: numbers right-aligned (the default), text left-aligned and wrapping."""
+    if text == "-" or _NUMBER.match(text):
+        return f"<td>{html.escape(text)}</td>"
+    return f"<td class=\"t\">{html.escape(text)}</td>"
 
 
 def _refs_text(refs, caption="") -> str:

@@ -30,12 +30,14 @@ def _thin(n):
 
 
 @_deferrable(lambda path, *a, **k: Path(path))
-def projections_before_after(path, title, time_h, u_ref, u_before, u_after, names) -> Path:
-    """Rows before / after H, columns x, y, z: the normalised projections B/|B| of the
-    reference sensor and of the boom sensor against time (seed 000 fig. 8-9)."""
-    fig = _figure(12.0, 5.6, constrained=True)
-    axes = fig.subplots(2, 3, sharex=True, sharey=True)
-    t = np.asarray(time_h, float)
+def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
+                             time_label="time, s") -> Path:
+    """Columns x, y, z; rows: the normalised projections B/|B| of the reference sensor and
+    of the boom sensor before H, the same after H (seed 000 fig. 8-9), and their difference
+    in % before (grey) and after (coloured), where a gap of a percent becomes visible."""
+    fig = _figure(12.0, 7.6, constrained=True)
+    axes = fig.subplots(3, 3, sharex=True)
+    t = np.asarray(time, float)
     sl = _thin(len(t))
     for r, (label, ub) in enumerate((("before H", u_before), ("after H", u_after))):
         for c in range(3):
@@ -44,12 +46,22 @@ def projections_before_after(path, title, time_h, u_ref, u_before, u_after, name
             ax.plot(t[sl], ub[sl, c], ".", ms=1.2, color=_AXIS_COLORS[c], alpha=0.6,
                     label=names[1])
             ax.set_title(f"{'xyz'[c]} axis, {label}", fontsize=9)
-            ax.grid(alpha=0.3, lw=0.5)
-            ax.tick_params(labelsize=7)
-            if r == 1:
-                ax.set_xlabel("time, h", fontsize=8)
             if c == 0:
                 ax.set_ylabel("B/|B|", fontsize=8)
+    for c in range(3):
+        ax = axes[2, c]
+        ax.plot(t[sl], 100 * (u_before[sl, c] - u_ref[sl, c]), ".", ms=1.2, color=_BEFORE,
+                label="before H")
+        ax.plot(t[sl], 100 * (u_after[sl, c] - u_ref[sl, c]), ".", ms=1.2,
+                color=_AXIS_COLORS[c], label="after H")
+        ax.set_title(f"{'xyz'[c]} axis: {names[1]} - {names[0]}", fontsize=9)
+        ax.set_xlabel(time_label, fontsize=8)
+        if c == 0:
+            ax.set_ylabel("difference, %", fontsize=8)
+        ax.legend(fontsize=6, markerscale=4)
+    for ax in axes.ravel():
+        ax.grid(alpha=0.3, lw=0.5)
+        ax.tick_params(labelsize=7)
     axes[0, 0].legend(fontsize=7, markerscale=5)
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)

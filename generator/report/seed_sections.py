@@ -81,8 +81,9 @@ def profile_section(cs, analysis, out_dir):
         mine = [g for g in S.segments if getattr(g, "file", None) == k and len(g.index)]
         for g in mine:
             segs.append((s.name, g.t_start_s / 3600.0, g.t_stop_s / 3600.0, g.temp_C))
-            seg_rows.append([s.name, int(g.position), g.t_start_s / 3600.0,
-                             g.t_stop_s / 3600.0, g.duration_s / 60.0, f"{g.temp_C:.2f}",
+            seg_rows.append([s.name, int(g.position), f"{g.t_start_s / 3600.0:.2f}",
+                             f"{g.t_stop_s / 3600.0:.2f}", f"{g.duration_s / 60.0:.1f}",
+                             f"{g.temp_C:.2f}",
                              len(g.index)])
         sum_rows.append([s.name, f"{float(S.T[m].min()):.1f}", f"{float(S.T[m].max()):.1f}",
                          len(mine), len(analysis.levels[s.name]),
@@ -274,19 +275,22 @@ def projections_section(out_dir, time_s, B_ref, B_boom, H, *, pair) -> Section:
         rows.append([label, len(u)] + [float(x) for x in d.mean(axis=0)]
                     + [float(x) for x in d.max(axis=0)])
     names = pair.split("/")
+    t = np.asarray(time_s, float)
+    hours = t.size and float(t.max() - t.min()) > 7200.0
     png = figures_seed.projections_before_after(
         Path(out_dir) / "projections_before_after.png",
-        f"{pair}: normalised projections before and after H", np.asarray(time_s) / 3600.0,
-        u1, u2, u2h, names)
+        f"{pair}: normalised projections before and after H", t / 3600.0 if hours else t,
+        u1, u2, u2h, names, time_label="time, h" if hours else "time, s")
     return Section("Agreement of the two magnetometers: projections per axis", [
         f"Normalised projections B/|B| of {names[0]} and of {names[1]} (rotated by H) per "
         "axis against time (seed 000 fig. 8-9, eq. 2); the seed reaches at most 0.5 % "
         "difference after the agreement algorithm."],
         [Table(["", "samples", "mean |diff| x %", "y %", "z %", "max |diff| x %", "y %",
                 "z %"], rows, "Difference of the normalised projections, per axis")],
-        [(png.name, f"Black: {names[0]}, coloured: {names[1]}. Look for the two curves on "
-                    "top of each other after H; before H a fixed misalignment shows as a "
-                    "gap that changes with the attitude.")])
+        [(png.name, f"Rows 1-2: {names[0]} (black) and {names[1]} (coloured), before and "
+                    "after H; row 3: their difference in %. Look for the difference after H "
+                    "scattered about zero within the noise; before H a fixed misalignment "
+                    "shows as a difference that follows the attitude.")])
 
 
 # ---- rotation against twelve positions ----------------------------------------------

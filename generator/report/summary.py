@@ -155,7 +155,7 @@ def summary_section(cs, analysis) -> Section:
         rows.append([
             s.name, s.part, s.noise_nT, f.get("norm_before_nT"), f.get("norm_after_nT"),
             ang("angle_before_deg"), ang("angle_after_deg"),
-            f"{100 * f['valid_fraction']:.1f} %" if f.get("valid_fraction") is not None
+            f"{100 * f['valid_fraction']:.1f}%" if f.get("valid_fraction") is not None
             else None,
             f"{float(v['t_min_C']):.1f} .. {float(v['t_max_C']):.1f}" if "t_min_C" in v
             else "no temperature",
