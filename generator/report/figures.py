@@ -309,9 +309,11 @@ def angle_before_after(path, title, before_deg, after_deg, x=None, xlabel="sampl
 
 
 @_deferrable(lambda path, *a, **k: Path(path))
-def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") -> Path:
+def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT",
+               contour=None) -> Path:
     """SET/RESET offset error maps (seed 000 fig. 12-13): one heatmap per measurement
-    time, rate (rows) x angle between field and axis (columns)."""
+    time, rate (rows) x angle between field and axis (columns). contour: (value, label)
+    drawn as a white line where the map crosses value (e.g. the seed's bound)."""
     maps = [np.asarray(m, float) for m in maps]
     n = len(maps)
     ncol = min(n, 2)
@@ -333,6 +335,9 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") ->
         ax.set_xlabel("angle between field and axis, deg", fontsize=7)
         ax.set_ylabel("rate, deg/s", fontsize=7)
         ax.set_title(map_titles[k], fontsize=8)
+        if contour is not None and np.nanmin(maps[k]) < contour[0] < np.nanmax(maps[k]):
+            cs = ax.contour(maps[k], levels=[contour[0]], colors="white", linewidths=1.2)
+            ax.clabel(cs, fmt={contour[0]: contour[1]}, fontsize=6)
     if im is not None:
         fig.colorbar(im, ax=list(axes[:n]), label=unit, shrink=0.9)
     fig.suptitle(title, fontsize=10)

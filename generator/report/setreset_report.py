@@ -14,6 +14,8 @@ import numpy as np
 
 from generator.report.document import Section, Table
 
+SEED_BOUND_PCT = 0.001     # seed 000: offset error below 0.001 % of the field
+
 
 def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_nT=None,
                      title="SET/RESET offset error while turning",
@@ -51,7 +53,8 @@ def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_n
                                      title + " (relative to |B|)", rate, theta,
                                      [rel[k] for k in range(len(tTM))],
                                      [f"t_TM = {t:g} ms" for t in tTM],
-                                     unit="|offset error|, % of |B|")
+                                     unit="|offset error|, % of |B|",
+                                     contour=(SEED_BOUND_PCT, f"{SEED_BOUND_PCT:g} %"))
         first = len(tables)
         for k, t in enumerate(tTM):
             rows = [[f"{r:g}"] + [float(rel[k, i, j]) for j in range(len(theta))]
@@ -59,8 +62,9 @@ def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_n
             tables.append(Table(["rate deg/s \\ theta deg"] + [f"{x:g}" for x in theta], rows,
                                 f"|offset error| % of |B| = {field_nT:.0f} nT, t_TM = {t:g} ms"))
         figs.append((png_rel.name, "Offset error maps relative to the field (seed 000 fig. 13). "
-                                   "Look for the seed's bound, 0.001 %, against the rates the "
-                                   "unit turns at.", list(range(first, len(tables)))))
+                                   "White line: the seed's bound, 0.001 %; look for the "
+                                   "rates the unit turns at against it.",
+                     list(range(first, len(tables)))))
     return Section(title, [
         "The RESET reading is taken t_delay after the SET one; a body turning meanwhile "
         "leaves (B - B')/2 in the offset (seed 000 eq. 4, generalised to any geometry)."],
