@@ -372,6 +372,10 @@ def sections(result) -> list:
         lev.tables.append(Table(["level degC", "samples", "residual seed 001 nT",
                                  "residual with R nT", "R angle deg", "R rotation vector deg",
                                  "k", "e deg", "b nT"], rows, f"{name} ({srow['part']})"))
+    if not lev.tables:      # no constant-temperature level: nothing to show, say so
+        intro.paragraphs.append("Seed 001's per-level model (with the rotation R) needs "
+                                "constant-temperature levels; none was found in these files.")
+        return [intro]
     return [intro, lev]
 
 

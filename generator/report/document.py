@@ -128,7 +128,7 @@ class Report:
                "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
                "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
                "th{background:#eee}td:first-child,th:first-child,td.t{text-align:left}"
-               "details{margin:0.4em 0 1.2em 0}caption{font-weight:bold;text-align:left;padding:2px 0}"
+               "details{margin:0.4em 0 1.2em 0}.tw{overflow-x:auto;max-width:100%}caption{font-weight:bold;text-align:left;padding:2px 0}"
                "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
                "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"
                "margin-top:2em}nav li{margin:0.1em 0}</style></head><body>",
@@ -152,13 +152,13 @@ class Report:
                 if t.collapsed:
                     out.append(f"<details><summary>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
                                f" ({len(t.rows)} rows: click to open)</summary>")
-                out.append(f"<table id=\"table-{n}\">")
+                out.append(f"<div class=\"tw\"><table id=\"table-{n}\">")
                 out.append(f"<caption>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
                            "</caption>")
                 out.append("<tr>" + "".join(f"<th>{e(str(h))}</th>" for h in t.header) + "</tr>")
                 for r in t.rows:
                     out.append("<tr>" + "".join(_td(_cell(v)) for v in r) + "</tr>")
-                out.append("</table>")
+                out.append("</table></div>")
                 if t.collapsed:
                     out.append("</details>")
         out.append("</body></html>")
