@@ -468,7 +468,9 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
                             "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.4f} deg"
                                                   if sigma_angle_deg is not None else "")))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
-                   [(png.name, f"{pair}: angle between the vectors before and after H", [0])])
+                   [(png.name, f"{pair}: angle between the vectors before and after H. Look "
+                               "for the angle after H down at the noise's level, with no trend "
+                               "in time; before H it is the misalignment itself.", [0])])
 
 
 def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
