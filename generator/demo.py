@@ -154,7 +154,8 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
         "from the coil steps, boom alignment H from the rotation), generated and compiled the "
         "flight C, and ran every sample of the thermal and the orbit campaign through it and "
         "through the Python reference; the table below compares them bit for bit and against "
-        "the simulator's truth."]))
+        "the simulator's truth. The unit file states the ICD's example [requirements] "
+        "(150 nT, 0.5 deg) for the verdict at the top."]))
     header = ["sensor", "valid samples", "C vs Python", "|B| RMS raw nT",
               "|B| RMS calibrated nT", "|B| RMS true parameters nT", "ratio to truth",
               "angle calibrated deg", "angle true parameters deg"]
