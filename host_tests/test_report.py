@@ -197,7 +197,7 @@ def test_demo_ends_with_the_report(tmp_path, capsys):
     assert f"report:       {report}" in out
     page = check_report_dir(report, min_figures=6)
     titles = [t for t, _, _ in page.sections]
-    assert titles[:2] == ["What ran", "Result on the thermal campaign"]
+    assert titles[:3] == ["Summary and verdict", "What ran", "Result on the thermal campaign"]
 
 
 def test_hooks_make_a_figure_and_a_table_each(tmp_path):

@@ -908,7 +908,11 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
         if poor:
             gaps.append(_poor_message(s.name, pred, S, limit_b_nT, limit_m))
         sensors_out[s.name] = so
-        say(f"{s.name}: {S.n} usable samples, {len(S.segments)} segments, "
+        # segments the grid counts: in a position, at a planned level, long enough
+        n_settled = sum(1 for (pos, L), c in cells.items() if s.name in c
+                        and c[s.name]["samples"] >= min_samples) if plan_applies else 0
+        say(f"{s.name}: {S.n} usable samples, {len(S.segments)} constant-temperature "
+            f"segment(s), {n_settled} position/level cell(s) of the grid settled, "
             f"{len(poor)} coefficient(s) poorly determined")
     result["sensors"] = sensors_out
     if plan_applies and explicit:
@@ -957,7 +961,8 @@ def format_text(result) -> str:
         levels = result["plan"]["levels_C"]
         code = {"ok": "ok", "short": "short", "not settled": "unsettled", "missing": "-"}
         out.append("")
-        out.append("settled segments per position (rows) and level degC (columns); "
+        out.append("settled segments per position (rows) and level degC (columns), the "
+                   "worst of the sensors (each sensor's count is in the progress lines); "
                    f"'short': < {result['plan']['min_samples']} samples")
         out.append("  pos " + "".join(f"{L:>10g}" for L in levels))
         by = {(c["position"], c["level_C"]): c for c in result["cells"]}

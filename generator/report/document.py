@@ -21,11 +21,18 @@ import numpy as np
 from generator import __version__
 
 
+COLLAPSE_ROWS = 30     # a longer table is collapsed (<details>): the page stays readable
+
+
 @dataclass
 class Table:
     header: list
     rows: list
     caption: str = ""
+
+    @property
+    def collapsed(self) -> bool:
+        return len(self.rows) > COLLAPSE_ROWS
 
 
 @dataclass
@@ -99,12 +106,18 @@ class Report:
                 link = _refs_text(refs, caption)
                 out += [f"![Figure {nf}]({path})", "", f"_Figure {nf}. {caption}{link}_", ""]
             for t, n in zip(s.tables, tnums):
-                out += [f"**Table {n}.{(' ' + t.caption) if t.caption else ''}**", ""]
+                cap = f"Table {n}.{(' ' + t.caption) if t.caption else ''}"
+                if t.collapsed:
+                    out += [f"<details><summary>{cap} ({len(t.rows)} rows)</summary>", ""]
+                else:
+                    out += [f"**{cap}**", ""]
                 out.append("| " + " | ".join(_md(h) for h in t.header) + " |")
                 out.append("|" + "---|" * len(t.header))
                 for r in t.rows:
                     out.append("| " + " | ".join(_md(_cell(v)) for v in r) + " |")
                 out.append("")
+                if t.collapsed:
+                    out += ["</details>", ""]
         return "\n".join(out) + "\n"
 
     def html(self) -> str:
@@ -114,7 +127,8 @@ class Report:
                "<style>body{font-family:sans-serif;max-width:78em;margin:2em auto;padding:0 1em;"
                "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
                "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
-               "th{background:#eee}td:first-child,th:first-child{text-align:left}caption{font-weight:bold;text-align:left;padding:2px 0}"
+               "th{background:#eee}td:first-child,th:first-child,td.t{text-align:left}"
+               "details{margin:0.4em 0 1.2em 0}.tw{overflow-x:auto;max-width:100%}caption{font-weight:bold;text-align:left;padding:2px 0}"
                "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
                "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"
                "margin-top:2em}nav li{margin:0.1em 0}</style></head><body>",
@@ -135,13 +149,18 @@ class Report:
                            f"alt=\"Figure {nf}: {e(caption)}\"></a><figcaption>Figure {nf}. "
                            f"{e(caption)}{e(_refs_text(refs, caption))}</figcaption></figure>")
             for t, n in zip(s.tables, tnums):
-                out.append(f"<table id=\"table-{n}\">")
+                if t.collapsed:
+                    out.append(f"<details><summary>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
+                               f" ({len(t.rows)} rows: click to open)</summary>")
+                out.append(f"<div class=\"tw\"><table id=\"table-{n}\">")
                 out.append(f"<caption>Table {n}.{(' ' + e(t.caption)) if t.caption else ''}"
                            "</caption>")
                 out.append("<tr>" + "".join(f"<th>{e(str(h))}</th>" for h in t.header) + "</tr>")
                 for r in t.rows:
-                    out.append("<tr>" + "".join(f"<td>{e(_cell(v))}</td>" for v in r) + "</tr>")
-                out.append("</table>")
+                    out.append("<tr>" + "".join(_td(_cell(v)) for v in r) + "</tr>")
+                out.append("</table></div>")
+                if t.collapsed:
+                    out.append("</details>")
         out.append("</body></html>")
         return "\n".join(out) + "\n"
 
@@ -156,6 +175,16 @@ class Report:
         path = out_dir / f"{stem}.html"
         path.write_text(self.html(), encoding="utf-8")
         return path
+
+
+_NUMBER = re.compile(r"^[-+]?(\d[\d.]*|\.\d+)(e[-+]?\d+)?( ± [\d.e+-]+)?( ?%)?$")
+
+
+def _td(text) -> str:
+    """A cell: numbers right-aligned (the default), text left-aligned and wrapping."""
+    if text == "-" or _NUMBER.match(text):
+        return f"<td>{html.escape(text)}</td>"
+    return f"<td class=\"t\">{html.escape(text)}</td>"
 
 
 def _refs_text(refs, caption="") -> str:
@@ -190,6 +219,17 @@ def _cell(v) -> str:
     if isinstance(v, (np.integer,)):
         return str(int(v))
     return str(v)
+
+
+def resolved(value, resolution) -> str:
+    """value printed to its resolution: '0' below it (a numerical zero such as -4.5e-15
+    is not a measured value), else with the resolution's decimals."""
+    v, r = float(value), float(resolution)
+    if not np.isfinite(v):
+        return "-"
+    if abs(v) < r:
+        return "0"
+    return f"{v:.{max(0, -int(np.floor(np.log10(r))))}f}"
 
 
 def pm(value, sigma, digits=None) -> str:

@@ -16,13 +16,15 @@ _AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")     # X red, Y green, Z blue
 _BEFORE, _AFTER = "#bbbbbb", "#1f77b4"
 
 
-def _figure(w_in, h_in):
+def _figure(w_in, h_in, constrained=False):
+    """A figure on the Agg canvas; constrained=True: constrained layout (titles, labels and
+    colour bars never overlap; slower to draw, so only where a figure needs it)."""
     import matplotlib
     matplotlib.use("Agg", force=False)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w_in, h_in), dpi=DPI)
+    fig = Figure(figsize=(w_in, h_in), dpi=DPI, layout="constrained" if constrained else None)
     FigureCanvasAgg(fig)
     return fig
 
@@ -113,10 +115,21 @@ class parallel:
         return False
 
 
+EMPTY_AXES_KEY = "magcal-empty-axes"   # PNG text chunk: visible axes with nothing drawn
+
+
+def empty_axes(fig) -> list:
+    """Titles (or indices) of the visible axes of fig with no data drawn in them."""
+    return [a.get_title() or str(k) for k, a in enumerate(fig.axes)
+            if a.get_visible() and not a.has_data()]
+
+
 def _save(fig, path) -> Path:
+    """Write the PNG; the titles of axes left empty go into its text chunk EMPTY_AXES_KEY
+    (read by the render check, host_tests/test_report_render.py)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=DPI, metadata={EMPTY_AXES_KEY: "; ".join(empty_axes(fig))})
     return path
 
 
@@ -296,14 +309,16 @@ def angle_before_after(path, title, before_deg, after_deg, x=None, xlabel="sampl
 
 
 @_deferrable(lambda path, *a, **k: Path(path))
-def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") -> Path:
+def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT",
+               contour=None) -> Path:
     """SET/RESET offset error maps (seed 000 fig. 12-13): one heatmap per measurement
-    time, rate (rows) x angle between field and axis (columns)."""
+    time, rate (rows) x angle between field and axis (columns). contour: (value, label)
+    drawn as a white line where the map crosses value (e.g. the seed's bound)."""
     maps = [np.asarray(m, float) for m in maps]
     n = len(maps)
     ncol = min(n, 2)
     nrow = (n + ncol - 1) // ncol
-    fig = _figure(6.0 * ncol, 3.2 * nrow + 0.4)
+    fig = _figure(6.0 * ncol, 3.2 * nrow + 0.4, constrained=True)   # titles clear the labels
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     vmax = max(float(np.nanmax(m)) for m in maps) or 1.0
     im = None
@@ -320,6 +335,9 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT") ->
         ax.set_xlabel("angle between field and axis, deg", fontsize=7)
         ax.set_ylabel("rate, deg/s", fontsize=7)
         ax.set_title(map_titles[k], fontsize=8)
+        if contour is not None and np.nanmin(maps[k]) < contour[0] < np.nanmax(maps[k]):
+            cs = ax.contour(maps[k], levels=[contour[0]], colors="white", linewidths=1.2)
+            ax.clabel(cs, fmt={contour[0]: contour[1]}, fontsize=6)
     if im is not None:
         fig.colorbar(im, ax=list(axes[:n]), label=unit, shrink=0.9)
     fig.suptitle(title, fontsize=10)

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 
-from generator.report.document import Report, Section, Table, pm
+from generator.report.document import Report, Section, Table, pm, resolved
+from generator.report.setreset_report import setreset_section  # noqa: F401 (a hook, re-exported)
 
 
 # =======================================================================================
@@ -269,7 +270,8 @@ class CampaignAnalysis:
                     float(np.sqrt(np.mean(after[m] ** 2))))
         temp = []
         in_level = np.zeros(S.n, bool)
-        for lev in self.levels[name]:
+        # one level alone is no temperature axis: then 10 degC bins, as with none
+        for lev in (self.levels[name] if len(self.levels[name]) >= 2 else []):
             idx = np.concatenate([g.index for g in lev])
             m = np.zeros(S.n, bool)
             m[idx] = True
@@ -354,7 +356,9 @@ def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) ->
                         + [pm(a, b) for a, b in zip(vals, sigs)])
         hdr = ["level degC", "samples", "positions"] + [f"{n} {u}".strip() for n, u in
                                                         zip(COEF_NAMES, COEF_UNITS)]
-        sec.tables.append(Table(hdr, rows, f"{name}: per-level estimates (points, 1-sigma)"))
+        if rows:     # no level: no points, and no empty table
+            sec.tables.append(Table(hdr, rows, f"{name}: per-level estimates (points, "
+                                               "1-sigma)"))
         Tc = np.unique(np.clip(np.concatenate([[t_lo], LT, [t_hi]]), t_lo, t_hi))
         cv = curve(Tc)
         cb = pc.sigma_at(Tc) if pc is not None else np.full((len(Tc), 12), np.nan)
@@ -363,7 +367,10 @@ def temperature_sections(cs, analysis: CampaignAnalysis, out_dir, names=None) ->
         sec.tables.append(Table(["T degC"] + hdr[3:], rows,
                                 f"{name}: fitted polynomial ± 1-sigma band (line and band) at "
                                 "the levels and the ends of the calibrated range"))
-        sec.figures.append((png.name, f"{name}: temperature dependence of b and M", [0, 1]))
+        sec.figures.append((png.name, f"{name}: temperature dependence of b and M. Look for "
+                                      "the points (levels) on the line within their error "
+                                      "bars; a point off the line is a level the polynomial "
+                                      "does not follow.", list(range(len(sec.tables)))))
         sec.tables.append(polynomial_table(cs, name))
         if len(fits) < 2:
             sec.paragraphs.append(
@@ -416,7 +423,10 @@ def rms_section(cs, analysis: CampaignAnalysis, out_dir) -> Section:
                                "|B| RMS error before and after calibration (log scale)",
                                rows_fig)
         sec.figures.append((png.name, "|B| RMS before (grey) and after (blue) calibration, "
-                                      "per temperature and per position"))
+                                      "per temperature and per position. Look for the blue "
+                                      "bars at the sensor's noise in every group; a group "
+                                      "where they stay up lies outside the calibrated range "
+                                      "or holds an effect the model lacks."))
     return sec
 
 
@@ -458,41 +468,9 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
                             "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.4f} deg"
                                                   if sigma_angle_deg is not None else "")))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
-                   [(png.name, f"{pair}: angle between the vectors before and after H", [0])])
-
-
-def setreset_section(out_dir, rate_dps, theta_deg, error_nT, t_TM_ms, *, field_nT=None,
-                     title="SET/RESET offset error while turning",
-                     stem="setreset_error_maps") -> Section:
-    """SET/RESET offset error maps (seed 000 fig. 12-13): error_nT (K, R, Th) for K
-    measurement times t_TM_ms, rates rate_dps (R) and field-to-axis angles theta_deg (Th)
-    (e.g. generator.fit.setreset.offset_error_maps()["error_abs_nT"][..., 0])."""
-    from generator.report import figures
-
-    E = np.abs(np.asarray(error_nT, float))
-    rate = np.asarray(rate_dps, float)
-    theta = np.asarray(theta_deg, float)
-    tTM = np.atleast_1d(np.asarray(t_TM_ms, float))
-    png = figures.error_maps(Path(out_dir) / f"{stem}.png", title, rate, theta,
-                             [E[k] for k in range(len(tTM))],
-                             [f"t_TM = {t:g} ms" for t in tTM],
-                             unit="|offset error|, nT")
-    tables = []
-    for k, t in enumerate(tTM):
-        rows = [[f"{r:g}"] + [float(E[k, i, j]) for j in range(len(theta))]
-                for i, r in enumerate(rate)]
-        tables.append(Table(["rate deg/s \\ theta deg"] + [f"{x:g}" for x in theta], rows,
-                            f"|offset error| nT, t_TM = {t:g} ms"))
-    worst = [[f"{t:g}", float(E[k].max()),
-              (100.0 * float(E[k].max()) / field_nT) if field_nT else None]
-             for k, t in enumerate(tTM)]
-    tables.append(Table(["t_TM ms", "largest error nT", "% of |B|"], worst,
-                        "Largest error on the grid"))
-    return Section(title, [
-        "The RESET reading is taken t_delay after the SET one; a body turning meanwhile "
-        "leaves (B - B')/2 in the offset (seed 000 eq. 4, generalised to any geometry)."],
-        tables, [(png.name, "Offset error maps: rate against angle between field and axis",
-                  list(range(len(tTM))))])
+                   [(png.name, f"{pair}: angle between the vectors before and after H. Look "
+                               "for the angle after H down at the noise's level, with no trend "
+                               "in time; before H it is the misalignment itself.", [0])])
 
 
 def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
@@ -580,8 +558,14 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
         rows = []
         for s in cs.unit.sensors:
             K = np.asarray(cs.sensors[s.name].get("K_nT_per_A", np.zeros((3, 0))), float)
+            # printed to a tenth of the sensor's LSB per ampere: below that a coupling moves
+            # the reading by less than 0.1 LSB at 1 A (more than any coil draws), so it is
+            # 0 (the fit's numerical zeros, -4.5e-15, are not printed as values)
+            lsb = float(s.lsb_nT) if s.lsb_nT and np.isfinite(s.lsb_nT) and s.lsb_nT > 0 \
+                else float(s.noise_nT or 1.0)
             for i, ax in enumerate("xyz"):
-                rows.append([s.name, ax] + [float(K[i, j]) for j in range(K.shape[1])])
+                rows.append([s.name, ax] + [resolved(K[i, j], 0.1 * lsb)
+                                            for j in range(K.shape[1])])
         out.append(Section("Magnetorquer coupling K", [
             f"dB = K i, nT per A, one column per coil ({', '.join(cs.spec.coils)}), fitted "
             "from the coil-step campaign (seed 000 sec. 1)."],
@@ -589,10 +573,10 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
     al = info.get("alignment")
     if al and analysis is not None:
         try:
-            out.append(_alignment_from_fit(cs, analysis, al, out_dir))
+            out.extend(_alignment_from_fit(cs, analysis, al, out_dir))
         except Exception as e:    # the report must not lose the fit over a figure
             out.append(Section("Agreement of the two magnetometers",
-                               [f"Angle figure not drawn: {e}"]))
+                               [f"Angle figure not drawn: {type(e).__name__}: {e}"]))
     return out
 
 
@@ -632,7 +616,8 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
         from generator.report.coil_study import coil_study_sections
         out.extend(coil_study_sections(cs, analysis, out_dir))
     if any(s.set_reset for s in cs.unit.sensors):
-        out.extend(_setreset_sections(cs, out_dir))
+        from generator.report.setreset_report import setreset_sections
+        out.extend(setreset_sections(cs, out_dir))
     return out
 
 
@@ -680,48 +665,6 @@ def _coil_sections(cs, analysis, out_dir) -> list:
     return [sec, dist]
 
 
-def _setreset_sections(cs, out_dir) -> list:
-    from generator.fit import setreset
-
-    field = float(cs.unit.lab_field_nT or setreset.DEFAULT_FIELD_NT)
-    maps = setreset.offset_error_maps(field_nT=field)
-    sec = setreset_section(out_dir, maps["rate_dps"], maps["theta_deg"],
-                           maps["error_abs_nT"][..., 0], maps["t_TM_ms"], field_nT=field)
-    rows = [[r["t_TM_ms"], r["t_delay_ms"], r["rate_dps"], r["seed_plane_nT"],
-             r["seed_plane_pct"], r["worst_nT"], r["worst_pct"], r["worst_over_seed"],
-             "yes" if r["seed_bound_holds_general"] else "no"]
-            for r in maps["worst_case"]]
-    sec.tables.append(Table(["t_TM ms", "t_delay ms", "rate deg/s", "seed case (field on the "
-                             "axis) nT", "%", "any geometry, worst nT", "%", "x seed case",
-                             "< 0.001 %"], rows,
-                            "The seed's plane rotation against the general case"))
-    gain = setreset.compensation_gain(field_nT=field, n_trials=1000)
-    grow = []
-    for i, r in enumerate(gain["rate_dps"]):
-        for k, tTM in enumerate(gain["t_TM_ms"]):
-            grow.append([float(r), float(tTM)] + [100.0 * float(gain["removed"][i, k, j])
-                                                  for j in range(len(gain["gyro_noise_dps"]))])
-    sec.tables.append(Table(["rate deg/s", "t_TM ms"] + [f"removed % (gyro noise {g:g} deg/s)"
-                                                        for g in gain["gyro_noise_dps"]], grow,
-                            "Gyro compensation: share of the offset error it removes"))
-    sec.paragraphs.append(
-        f"Field {field:.0f} nT. The seed treats the field along the axis, where the error is "
-        "second order in the angle turned (B (1 - cos phi) / 2); for any other direction the "
-        "projection changes to first order (B sin theta phi), hence the general worst case. "
-        "The chain can compensate it with the gyro rate (SensorOptions.sr_compensation).")
-    sr = cs.fit_info.get("set_reset_compensation") or {}
-    rows = [[s.name, "yes" if cs.spec.opts(s).sr_compensation else "no",
-             float(cs.sensors[s.name]["sr_comp_s_per_deg"])
-             if cs.spec.opts(s).sr_compensation else "-",
-             (sr.get(s.name) or {}).get("why", "not decided by the fit")]
-            for s in cs.unit.sensors if s.set_reset]
-    sec.tables.append(Table(["sensor", "gyro compensation in the chain", "c s rad/deg", "why"],
-                            rows, "SET/RESET gyro compensation per sensor (decided by the fit: "
-                            "the error over the recorded rates against a fraction of the "
-                            "noise, generator.fit.setreset.compensation_decision)"))
-    return [sec]
-
-
 def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     from generator.fit.alignment import angle_between_deg, calibrated_fields
 
@@ -740,18 +683,24 @@ def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     H = np.asarray(cs.unit_values["H_boom_to_body"], float)
     B1, B2 = fields[ref][mask], fields[boom][mask]
     res = al.get("result", al)
-    return alignment_section(out_dir, angle_between_deg(B1, B2), angle_between_deg(B1, B2 @ H.T),
-                             pair=f"{ref}/{boom}", time_s=tel.time_s[mask], H=H,
-                             sigma_angle_deg=res.get("sigma_angle_deg"))
+    from generator.report.seed_sections import projections_section
+    return [alignment_section(out_dir, angle_between_deg(B1, B2),
+                              angle_between_deg(B1, B2 @ H.T), pair=f"{ref}/{boom}",
+                              time_s=tel.time_s[mask], H=H,
+                              sigma_angle_deg=res.get("sigma_angle_deg")),
+            projections_section(out_dir, tel.time_s[mask], B1, B2, H, pair=f"{ref}/{boom}")]
 
 
-def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
-    """The report of a fit, figures written into out_dir."""
+def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Report:
+    """The report of a fit, figures written into out_dir. compare: add the method
+    comparison when the campaign has a rotation and twelve positions."""
     say = progress or (lambda m: None)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     analysis = CampaignAnalysis(cs, data_paths, progress) if data_paths else None
     rep = Report(f"magcal fit: unit {cs.unit.id}")
+    from generator.report.summary import summary_section
+    rep.add(summary_section(cs, analysis))     # first: the verdict
     rep.add(inputs_section(cs, analysis, data_paths))
     rep.extend(fit_sections(cs))
     m = method_section(cs)
@@ -762,8 +711,17 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
 
         say("report: drawing the figures")
         with parallel():
+            from generator.report import seed_sections as seed
             rep.add(rms_section(cs, analysis, out_dir))
+            for sec in (seed.axis_rms_section(cs, analysis, out_dir),
+                        seed.profile_section(cs, analysis, out_dir)):
+                if sec is not None:
+                    rep.add(sec)
             rep.extend(temperature_sections(cs, analysis, out_dir))
+            sec = seed.positions_section(cs, analysis, out_dir)
+            if sec is not None:
+                rep.add(sec)
+            rep.extend(seed.examples_sections(cs, analysis, out_dir))
             rep.extend(extras_sections(cs, analysis, out_dir))
             rep.extend(seed000_sections(cs, analysis, out_dir))
         say("report: figures drawn")
@@ -772,6 +730,9 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
             rep.add(Section(f"Coefficients: {s.name}", [], [polynomial_table(cs, s.name)]))
         rep.extend(extras_sections(cs, analysis, out_dir))
         rep.extend(seed000_sections(cs, analysis, out_dir))
+    if compare:
+        from generator.report.seed_sections import comparison_sections
+        rep.extend(comparison_sections(cs, analysis, progress))
     notes = [n for n in cs.fit_info.get("notes", [])]
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
@@ -784,7 +745,9 @@ def fit_report(cs, out_dir, data_paths=(), progress=None) -> Report:
 def write_fit_report(cs, out_dir, data_paths=(), progress=None, extra_sections=()) -> Path:
     """report.html and report.md (with the PNG figures) in out_dir; returns the HTML path.
     extra_sections: further Sections (e.g. the method comparison), placed before the notes."""
-    rep = fit_report(cs, out_dir, data_paths, progress)
+    from generator.report.compare import TITLE
+    rep = fit_report(cs, out_dir, data_paths, progress,     # --compare-methods gave it
+                     compare=not any(s.title == TITLE for s in extra_sections))
     if extra_sections:
         notes = [s for s in rep.sections if s.title == "Notes"]
         rep.sections = [s for s in rep.sections if s.title != "Notes"]

@@ -52,11 +52,11 @@ def plot_step(name, tr: SensorTrace, st: Step, path) -> str:
     vb, va, ve = (_per_sample(S, r, d) for r in (rb, ra, expl))
     o = np.argsort(S.order, kind="stable")
     fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
-    k = np.arange(S.n)
+    k = np.asarray(S.time_s, float)[o]      # the data are in time: a time axis
     ax[0].plot(k, vb[o], ".", ms=2, color="0.6", label=f"before ({st.rms_before_nT:.1f} nT rms)")
     ax[0].plot(k, va[o], ".", ms=2, color="tab:blue", label=f"after ({st.rms_after_nT:.1f} nT rms)")
     ax[0].plot(k, ve[o], "-", lw=1, color="tab:red", label=f"explained by {st.effect.name}")
-    ax[0].set_xlabel("held-out sample, time order")
+    ax[0].set_xlabel("time in its file, s (held-out samples)")
     axis_txt = "" if not any(S.kind != NORM) else \
         f" along [{d[0]:+.2f}, {d[1]:+.2f}, {d[2]:+.2f}]"
     ax[0].set_ylabel(f"residual{axis_txt}, nT")

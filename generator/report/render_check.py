@@ -1,0 +1,104 @@
+"""Is a written report fit to read? The checks a reader would make at a glance, on the
+files: every figure shows something, no section says it could not draw, no table is empty.
+
+problems(html_path) -> list of one-line problems (empty: fit to read):
+
+* a figure file missing, or a PNG that is blank: one colour, or (almost) nothing but its
+  background (fewer than MIN_INK of its pixels differ from the most common colour);
+* a PNG whose text chunk EMPTY_AXES_KEY (written by generator.report.figures._save) names
+  axes with nothing drawn in them;
+* a "not drawn" / "not computed" message in the page;
+* a table without a data row.
+"""
+
+from __future__ import annotations
+
+import re
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+
+from generator.report.figures import EMPTY_AXES_KEY
+
+# A figure with a drawn curve or bar marks far more than this share of its pixels (a 1 px
+# line across a 900 px wide figure of 400 px height is 0.25 %); axes, ticks and labels
+# alone (what an empty figure still has) mark about 2-3 %, so this catches a PNG with no
+# frame at all; empty axes are caught by EMPTY_AXES_KEY.
+MIN_INK = 0.002
+FAILURE_TEXT = re.compile(r"not drawn|not computed", re.IGNORECASE)
+
+
+class _Page(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.tables, self.text = [], [], []
+        self._in_table = None
+        self._cell = False
+        self._caption = False
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.images.append(a.get("src"))
+        elif tag == "table":
+            self._in_table = {"id": a.get("id"), "rows": 0, "caption": ""}
+            self.tables.append(self._in_table)
+        elif tag == "td" and self._in_table is not None and not self._cell:
+            self._cell = True
+        elif tag == "caption":
+            self._caption = True
+
+    def handle_endtag(self, tag):
+        if tag == "tr" and self._in_table is not None and self._cell:
+            self._in_table["rows"] += 1
+            self._cell = False
+        elif tag == "table":
+            self._in_table = None
+        elif tag == "caption":
+            self._caption = False
+
+    def handle_data(self, data):
+        self.text.append(data)
+        if self._in_table is not None and self._caption:
+            self._in_table["caption"] += data
+
+
+def png_problems(path) -> list:
+    """A PNG's problems: missing, blank, or axes left empty (module docstring)."""
+    from PIL import Image
+
+    p = Path(path)
+    if not p.is_file() or p.stat().st_size == 0:
+        return [f"{p.name}: missing or empty file"]
+    with Image.open(p) as im:
+        empty = (getattr(im, "text", {}) or {}).get(EMPTY_AXES_KEY, "")
+        rgb = np.asarray(im.convert("RGB"))
+    out = []
+    flat = rgb.reshape(-1, 3)
+    colours, counts = np.unique(flat, axis=0, return_counts=True)
+    ink = 1.0 - counts.max() / len(flat)
+    if len(colours) == 1:
+        out.append(f"{p.name}: blank (one colour)")
+    elif ink < MIN_INK:
+        out.append(f"{p.name}: nearly blank ({100 * ink:.2f} % of pixels drawn)")
+    if empty:
+        out.append(f"{p.name}: axes with nothing drawn: {empty}")
+    return out
+
+
+def problems(html_path) -> list:
+    """Every problem of the report at html_path (module docstring)."""
+    html_path = Path(html_path)
+    page = _Page()
+    page.feed(html_path.read_text(encoding="utf-8"))
+    out = []
+    for src in page.images:
+        out += png_problems(html_path.parent / src)
+    for t in page.tables:
+        if t["rows"] == 0:
+            out.append(f"{t['id'] or 'a table'}: no data row ({t['caption'].strip()[:60]})")
+    for m in FAILURE_TEXT.finditer(" ".join(page.text)):
+        text = " ".join(page.text)
+        out.append("page says: " + text[max(0, m.start() - 40):m.end() + 60].strip())
+    return out

@@ -1,0 +1,194 @@
+"""The report's first section: per sensor what an attitude engineer asks first, and the
+verdict against the unit's [requirements] (ICD section 4).
+
+Per sensor, over the samples the fit used (generator.campaign.check.gather_samples, the
+report's CampaignAnalysis):
+
+* |B| error before and after: RMS of |B~| - |B_ref| (raw, after SET/RESET and the axis
+  mapping) and of |M(T)(B~ - b(T))| - |B_ref|;
+* angle error before and after: RMS of the angle between the raw / calibrated vector and
+  the reference vector, on the samples with reference vectors, for a sensor whose M maps
+  to the reference's frame (a magnitude-only fit knows M only up to a rotation: no angle);
+* valid fraction: of all rows of the files, those the flight chain keeps valid by their
+  inputs: reading present and not saturated, temperature within the calibrated range
+  widened by the chain's margin temp_margin_C (docs/chain.md);
+* the calibrated temperature range; what was fitted and what held at the prior (the
+  reference fit's per-coefficient "data"/"prior" tags, fit stats "observability");
+* warnings (the sanity checks before a calibration is written).
+
+Verdict (ICD section 4): field_error_nT is the |B| RMS after calibration, angle_deg the
+angle RMS against the reference, per sensor. A sensor meets the requirements when every
+requirement that can be assessed holds; one that cannot be assessed (no reference vectors
+for the angle) is said so, never counted as met. With no [requirements] the report says so
+and gives no verdict.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from generator.report.document import Section, Table
+
+
+def requirements(cs) -> tuple:
+    """({key: value} of [requirements], where they came from). The unit of a fit carries
+    them (Unit.extra); a coefficients.json does not, so the unit file the fit names is
+    read again."""
+    req = ((cs.unit.extra or {}).get("requirements") or {})
+    if req:
+        return dict(req), "the unit file"
+    path = cs.fit_info.get("unit_file")
+    if path and Path(path).is_file():
+        from generator.errors import InputError
+        from generator.io.unitfile import load_unit
+        try:
+            req = (load_unit(path).extra or {}).get("requirements") or {}
+        except InputError as e:
+            return {}, f"unit file not readable ({e.message})"
+        return dict(req), str(path)
+    return {}, "no unit file"
+
+
+def _angle_deg(a, b) -> np.ndarray:
+    cos = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _rms(x):
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else None
+
+
+def sensor_figures(cs, analysis, name) -> dict:
+    """The summary's numbers of one sensor (module docstring)."""
+    S = analysis.samples[name]
+    v = cs.sensors[name]
+    out = {"n": S.n}
+    if S.n:
+        cal = cs.calibration(name)
+        B = cal.apply64(S.x, S.T)
+        out["norm_before_nT"] = _rms(np.linalg.norm(S.x, axis=1) - S.norm)
+        out["norm_after_nT"] = _rms(np.linalg.norm(B, axis=1) - S.norm)
+        vec = S.is_vec
+        if vec.any() and analysis.body_frame(name):
+            out["angle_before_deg"] = _rms(_angle_deg(S.x[vec], S.ref[vec]))
+            out["angle_after_deg"] = _rms(_angle_deg(B[vec], S.ref[vec]))
+            out["n_angle"] = int(vec.sum())
+    # valid fraction over every row of every file
+    lo = hi = None
+    if "t_min_C" in v:
+        margin = float(v.get("temp_margin_C", 0.0))
+        lo, hi = float(v["t_min_C"]) - margin, float(v["t_max_C"]) + margin
+    total = valid = 0
+    for pre in analysis.pres:
+        sd = pre.get(name)
+        if sd is None:
+            continue
+        ok = np.asarray(sd.usable, bool) & np.isfinite(sd.field_frame_nT).all(axis=1)
+        if lo is not None:
+            with np.errstate(invalid="ignore"):
+                ok &= (sd.temp_C >= lo) & (sd.temp_C <= hi)
+        total += len(ok)
+        valid += int(ok.sum())
+    out["valid_fraction"] = valid / total if total else None
+    out["rows"] = total
+    return out
+
+
+def fitted_vs_prior(cs, name) -> str:
+    """What the data determined and what was held at the prior (fit stats)."""
+    st = cs.fit_info.get("sensors", {}).get(name, {}).get("stats", {}) or {}
+    ob = st.get("observability") or {}
+    params = ob.get("parameters") or []
+    if params:
+        held = [p["name"] for p in params if p.get("source") == "prior"]
+        if not held:
+            return f"all {len(params)} coefficients from the data"
+        return (f"{len(params) - len(held)} of {len(params)} from the data; held at the prior"
+                f" ({ob.get('prior_source', 'prior')}): {', '.join(held)}")
+    note = ob.get("note") or "not recorded by the fit"
+    return note.split(";")[0]
+
+
+def verdict(fig, req) -> tuple:
+    """(verdict text, [reasons]) of one sensor against the requirements."""
+    if not req:
+        return "no requirements given", []
+    fails, unknown = [], []
+    lim = req.get("field_error_nT")
+    if lim is not None:
+        a = fig.get("norm_after_nT")
+        if a is None:
+            unknown.append("|B| (no samples)")
+        elif a > lim:
+            fails.append(f"|B| RMS {a:.1f} nT > {lim:g} nT")
+    lim = req.get("angle_deg")
+    if lim is not None:
+        a = fig.get("angle_after_deg")
+        if a is None:
+            unknown.append("angle (no reference vectors in the sensor's frame)")
+        elif a > lim:
+            fails.append(f"angle RMS {a:.3f} deg > {lim:g} deg")
+    if fails:
+        return "FAILS", fails + [f"not assessed: {u}" for u in unknown]
+    if unknown:
+        return "NOT ASSESSED", [f"not assessed: {u}" for u in unknown]
+    return "MEETS", []
+
+
+def summary_section(cs, analysis) -> Section:
+    """The first section: per sensor the figures of the module docstring and the verdict."""
+    req, src = requirements(cs)
+    rows, warn_rows = [], []
+    for s in cs.unit.sensors:
+        v = cs.sensors[s.name]
+        st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
+        if analysis is not None:
+            f = sensor_figures(cs, analysis, s.name)
+        else:    # no telemetry given to the report: the fit's own residual only
+            fit = st.get("fit") or {}
+            f = {"norm_after_nT": fit.get("rms_norm_nT")}
+        vt, why = verdict(f, req)
+        ang = (lambda k: f.get(k))
+        rows.append([
+            s.name, s.part, s.noise_nT, f.get("norm_before_nT"), f.get("norm_after_nT"),
+            ang("angle_before_deg"), ang("angle_after_deg"),
+            f"{100 * f['valid_fraction']:.1f}%" if f.get("valid_fraction") is not None
+            else None,
+            f"{float(v['t_min_C']):.1f} .. {float(v['t_max_C']):.1f}" if "t_min_C" in v
+            else "no temperature",
+            fitted_vs_prior(cs, s.name),
+            vt + (": " + "; ".join(why) if why else "")])
+        for w in (st.get("sanity") or {}).get("warnings", []):
+            warn_rows.append([s.name, w])
+    if req:
+        head = ("Requirements from " + src + ": "
+                + ", ".join(f"{k} = {v:g}" for k, v in req.items())
+                + " (ICD section 4: |B| RMS after calibration and angle RMS against the "
+                  "reference, per sensor).")
+        met = [r[0] for r in rows if r[-1].startswith("MEETS")]
+        failed = [r[0] for r in rows if r[-1].startswith("FAILS")]
+        overall = ("Verdict: every sensor meets the requirements." if len(met) == len(rows)
+                   else "Verdict: " + (f"{', '.join(failed)} fail(s); " if failed else "")
+                   + f"{len(met)} of {len(rows)} sensors meet the requirements.")
+    else:
+        head = ("No [requirements] in the unit file (" + src + "): the numbers below are not "
+                "judged. Add field_error_nT and angle_deg (ICD section 4) for a verdict.")
+        overall = "Verdict: none (no requirements given)."
+    paras = [overall, head,
+             "Before: raw readings (after SET/RESET and the axis mapping); after: the "
+             "calibration. |B| and angle over the samples the fit used (reference vectors "
+             "for the angle, on sensors whose M maps to the reference's frame). Valid: rows "
+             "of all files the flight chain keeps valid by their inputs (present, not "
+             "saturated, temperature within the calibrated range plus the chain's margin)."]
+    tables = [Table(["sensor", "part", "stated noise nT/axis", "|B| RMS before nT", "|B| RMS after nT",
+                     "angle RMS before deg", "angle RMS after deg", "valid",
+                     "calibrated degC", "fitted / held at the prior", "verdict"], rows,
+                    "Per sensor: errors before and after, validity, range, verdict")]
+    if warn_rows:
+        tables.append(Table(["sensor", "warning"], warn_rows, "Warnings of the fit"))
+    else:
+        paras.append("Warnings: none (the fit's sanity checks passed for every sensor).")
+    return Section("Summary and verdict", paras, tables)
