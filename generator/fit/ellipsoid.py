@@ -78,7 +78,11 @@ def lm_solve(model, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
     model(x, jac) -> (cost, JTJ, JTr, m): cost = |r|^2, and when jac is True the Gauss-
     Newton matrix J^T J and gradient J^T r (else None), m the number of residuals.
     Moré-style scaling by the diagonal of J^T J; stops when the relative decrease of the
-    cost or the relative step falls below tolerance. Returns (x, cost, JTJ, info).
+    cost or the relative step falls below tolerance, or when even the undamped Gauss-Newton
+    step promises a relative decrease below rtol (g^T (J^T J)^-1 g < rtol cost: the
+    minimum of the local quadratic model is within tolerance, so the trial steps that
+    would only find that out by raising the damping tenfold at a time are skipped).
+    Returns (x, cost, JTJ, info).
     """
     x = np.asarray(x0, float).copy()
     cost, JTJ, g, m = model(x, True)
@@ -89,6 +93,13 @@ def lm_solve(model, x0, *, max_iter=100, rtol=1e-12, xtol=1e-12):
         d = np.sqrt(np.maximum(np.diag(JTJ), 1e-300))
         Js = JTJ / np.outer(d, d)
         gs = g / d
+        try:
+            gn_drop = float(gs @ np.linalg.solve(Js, gs))
+        except np.linalg.LinAlgError:
+            gn_drop = np.inf
+        if 0.0 <= gn_drop < rtol * cost:
+            converged = True  # the Gauss-Newton minimum is within tolerance of the cost
+            break
         improved = False
         for _ in range(30):
             try:
@@ -210,16 +221,14 @@ def _distinct_readings(x, rel=1e-4) -> int:
     return distinct_rows(x - x.mean(axis=0), rel * scale, at_most=MIN_SAMPLES)
 
 
-# rows a_i c_j (+ a_j c_i off the diagonal) of d(a^T M c)/dm, in SYM_INDEX order
-_SYM_I = np.array([i for i, _ in SYM_INDEX])
-_SYM_J = np.array([j for _, j in SYM_INDEX])
-
-
 def _sym_gradT(a, c):
     """d(a^T M c)/dm for the six entries of symmetric M, component-major: a, c (3, N) ->
-    (6, N). One vectorised expression (no loop over samples or entries)."""
-    P = a[_SYM_I] * c[_SYM_J]
-    P[3:] += a[_SYM_J[3:]] * c[_SYM_I[3:]]
+    (6, N), rows in SYM_INDEX order: a_i c_i on the diagonal, a_i c_j + a_j c_i off it."""
+    P = np.empty((6, a.shape[1]))
+    np.multiply(a, c, out=P[:3])
+    P[3] = a[1] * c[2] + a[2] * c[1]
+    P[4] = a[0] * c[2] + a[2] * c[0]
+    P[5] = a[0] * c[1] + a[1] * c[0]
     return P
 
 
@@ -339,13 +348,19 @@ def algebraic_ellipsoid(field_nT, ref_norm_nT, *, source=None):
 # ---------------------------------------------------------------------------------------
 # Geometric refinement
 # ---------------------------------------------------------------------------------------
+_BLOCK = 1024       # samples per block of the Jacobian (_Refinement)
+
+
 class _Refinement:
     """The refinement's residuals as the normal-equation model of lm_solve, vectorised.
 
     Samples are held component-major ((3, N) rows) so every step is a whole-array numpy
     operation; a cost-only call (lm_solve's trial steps) computes the residuals and nothing
     else, and the Jacobian call that follows an accepted step reuses that step's
-    intermediate arrays instead of recomputing them.
+    intermediate arrays instead of recomputing them. J^T J and J^T r are accumulated over
+    blocks of _BLOCK samples: the Jacobian's temporaries then stay in cache and below the
+    allocator's mmap threshold (whole-array temporaries of (6, N) doubles cost page faults
+    on every call: 8x the time of four blocks at N = 4,000).
 
     kind "geometric": r_i = (|M (x_i - b)| - R_i) w_i.
     kind "normalised": s_i = (|M (x_i - b)| - R_i) / |M^T u_i| w_i (the noise-normalised
@@ -367,8 +382,9 @@ class _Refinement:
         if kind not in ("normalised", "geometric"):
             raise ValueError(f"residual must be one of {sorted(RESIDUALS)}")
         self.xT = np.ascontiguousarray(np.asarray(x, float).T)
-        self.R = np.asarray(R, float)
-        self.w = np.asarray(w, float)
+        n = self.xT.shape[1]
+        self.R = np.broadcast_to(np.asarray(R, float), (n,))
+        self.w = np.broadcast_to(np.asarray(w, float), (n,))
         self.kind = kind
         self._last = None
 
@@ -395,27 +411,29 @@ class _Refinement:
     def residuals(self, p):
         return self._eval(np.asarray(p, float))["res"]
 
-    def jacobian_T(self, p):
-        """(9, N) transposed Jacobian of the weighted residuals."""
+    def jacobian_T(self, p, sl=slice(None)):
+        """(9, n) transposed Jacobian of the weighted residuals of the samples sl."""
         st = self._eval(np.asarray(p, float))
-        M, y, rho = st["M"], st["y"], st["rho"]
+        M, y, rho = st["M"], st["y"][:, sl], st["rho"][sl]
+        w = self.w[sl]
         JT = np.empty((9, y.shape[1]))
         if self.kind == "geometric":
-            u = (M @ y) / rho
-            JT[:3] = -(M @ u)
-            JT[3:] = _sym_gradT(u, y)
+            uw = (M @ y) * (w / rho)
+            JT[:3] = -(M @ uw)
+            JT[3:] = _sym_gradT(uw, y)
         else:
-            u, v, g = st["u"], st["v"], st["g"]
-            s = st["r"] / g
+            # J = (d rho - s d g) / g regrouped by linearity of sym: with t = s / (rho g),
+            # J_b = -(v + t (g^2 v - M q)) / g, J_m = sym(a, y) - sym(s v / g^2, u),
+            # a = (u - t (q - g^2 u)) / g (weights folded into a, v before sym)
+            u, v, g = st["u"][:, sl], st["v"][:, sl], st["g"][sl]
+            s = st["r"][sl] / g
             q = M @ v
             g2 = g * g
-            rho_g = rho * g
-            drho_m = _sym_gradT(u, y)
-            dg_b = (g2 * v - M @ q) / rho_g
-            dg_m = (_sym_gradT(v, u) + (_sym_gradT(q, y) - g2 * drho_m) / rho) / g
-            JT[:3] = (-v - s * dg_b) / g
-            JT[3:] = (drho_m - s * dg_m) / g
-        JT *= self.w
+            t = s / (rho * g)
+            wg = w / g
+            JT[:3] = -(v + t * (g2 * v - M @ q)) * wg
+            JT[3:] = _sym_gradT((u - t * (q - g2 * u)) * wg, y)
+            JT[3:] -= _sym_gradT(v * (s * wg / g), u)
         return JT
 
     def __call__(self, p, jac):
@@ -425,8 +443,13 @@ class _Refinement:
         cost = float(res @ res)
         if not jac:
             return cost, None, None, len(res)
-        JT = self.jacobian_T(p)
-        return cost, JT @ JT.T, JT @ res, len(res)
+        JTJ, JTr = np.zeros((9, 9)), np.zeros(9)
+        for k in range(0, len(res), _BLOCK):
+            sl = slice(k, k + _BLOCK)
+            JT = self.jacobian_T(p, sl)
+            JTJ += JT @ JT.T
+            JTr += JT @ res[sl]
+        return cost, JTJ, JTr, len(res)
 
 
 def _geo_resid_jac(params, x, R, w):
