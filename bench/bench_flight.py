@@ -9,7 +9,9 @@ that can be folded when a table is loaded (scale and axis signs into b and M, H 
 sensors, constants squared once), built from the chain definition
 (chain.fold_sensor_coeffs / folded_sensor_kernel, arm_measure.flop_bound). Also shown: the
 generated kernel's own operations ("kernel flops", issue 7's "min flops", which counts
-what the kernel happens to do, so it is no lower bound) and how many of them are per call.
+what the kernel happens to do, so it is no lower bound) and how many of them are per call,
+and floor/bound: (bound + one load per folded coefficient and input element + one store
+per output element) / bound, what a machine moving one value per instruction needs.
 
 Targets: instructions <= 1.5 x the bound per sensor call (issue 20); <= 2 x the kernel's
 flops (issue 7); < 16 KiB code for a whole unit, < 512 B stack per call.
@@ -64,13 +66,14 @@ def main(argv=None) -> int:
     m = ta.measure(cs)
     print(f"unit {cs.unit.id} ({label}), Cortex-M4F on QEMU {ta.MACHINE}")
     print(f"{'entry point':28s} {'insn/call':>9s} {'worst':>6s} {'kernel flops':>12s} "
-          f"{'per call':>8s} {'ratio':>6s} {'bound':>6s} {'insn/bound':>10s} {'code B':>7s} "
-          f"{'stack B':>7s}")
+          f"{'per call':>8s} {'ratio':>6s} {'bound':>6s} {'insn/bound':>10s} {'floor/bound':>11s} "
+          f"{'code B':>7s} {'stack B':>7s}")
     ratios, bratios = [], []
     for e in m["entries"]:
         print(f"{e.entry.fn:28s} {e.nominal:9d} {e.worst:6d} {e.flops['flops']:12d} "
               f"{e.bound['kernel_per_call']:8d} {e.ratio:6.2f} {e.bound['flops']:6d} "
-              f"{e.bound_ratio:10.2f} {e.code_bytes:7d} {e.stack_static:7d}")
+              f"{e.bound_ratio:10.2f} {1 + e.bound['moves'] / e.bound['flops']:11.2f} "
+              f"{e.code_bytes:7d} {e.stack_static:7d}")
         if e.entry.kind != "select":
             ratios.append(e.ratio)
             bratios.append(e.bound_ratio)

@@ -125,3 +125,22 @@ def test_per_call_count_ignores_coefficient_only_operations():
     n = am.per_call_flops(f, 1)
     assert n["flops"] == 4 and n["coeff_only"] == 2      # x0 c0, (..) x1, +, -; c1^2, c0 + c1
     assert am.per_call_flops(f, 2)["flops"] == 6
+
+
+def test_bound_data_movement():
+    """moves: one load per folded coefficient and input element, one store per output.
+    A plain counts sensor with a cubic b(T), M(T) and three coils reads 4 x 3 offsets,
+    4 x 9 matrix entries, 3 x 3 couplings, t_ref and the two squared band limits, takes
+    3 counts, a temperature and 3 currents, writes 3 field components and 2 margins; a
+    boom sensor's H is folded into M, so it reads no more."""
+    cs = random_coeffs(np.random.default_rng(6), samsat_unit("fm"), coils=COILS)
+    for name in ("mpu1", "mpu3"):
+        b = am.flop_bound(cs.spec, cs.unit.sensor(name))
+        assert b["moves"] == (12 + 36 + 9 + 1 + 2) + (3 + 1 + 3) + (3 + 2), (name, b)
+
+
+def test_every_optional_stage_has_a_folded_form():
+    """A stage added to SensorOptions (and sensor_kernel) without a folded form makes the
+    bound refuse instead of silently leaving the stage out."""
+    from generator.flight import chain
+    assert set(SensorOptions().to_dict()) == set(chain._FOLDED_OPTIONS)

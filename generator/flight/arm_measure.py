@@ -242,12 +242,12 @@ def per_call_flops(f: ca.Function, n_call_inputs: int) -> dict:
             "coeff_only": coeff_only}
 
 
-def folded_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
+def folded_kernel(spec: ChainSpec, sensor, set_only=False) -> tuple:
     """The chain of one sensor with every constant folded (chain.fold_sensor_coeffs,
     chain.folded_sensor_kernel) as a CasADi Function of the same arguments as the
     generated kernel (codegen.build_kernel): per-call inputs, then the sensor's and the
     unit's table coefficients; the folding is part of the Function, and per_call_flops
-    leaves it out."""
+    leaves it out. Returns (Function, number of folded coefficients a call reads)."""
     from generator.flight.chain import CoeffView, fold_sensor_coeffs, folded_sensor_kernel
     s = spec.unit.sensor(sensor) if isinstance(sensor, str) else sensor
     ins = spec.sensor_inputs(s, set_only)
@@ -267,9 +267,18 @@ def folded_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
                                half, set_only=set_only, channels=elems("channels"),
                                rate_dps=elems("rate_dps"))
     outs = spec.sensor_outputs(s, set_only)
-    return ca.Function(f"{spec.unit.id}_{s.name}_{'set_' if set_only else ''}folded",
-                       [sym[i.name] for i in ins] + [c_sym, u_sym],
-                       [ca.vertcat(*out[o.name]) for o in outs])
+    return (ca.Function(f"{spec.unit.id}_{s.name}_{'set_' if set_only else ''}folded",
+                        [sym[i.name] for i in ins] + [c_sym, u_sym],
+                        [ca.vertcat(*out[o.name]) for o in outs]),
+            len(_leaves(folded)))
+
+
+def _leaves(v) -> list:
+    if isinstance(v, dict):
+        return [x for k in v for x in _leaves(v[k])]
+    if isinstance(v, (list, tuple)):
+        return [x for e in v for x in _leaves(e)]
+    return [v]
 
 
 def flop_bound(spec: ChainSpec, sensor, set_only=False) -> dict:
@@ -278,11 +287,16 @@ def flop_bound(spec: ChainSpec, sensor, set_only=False) -> dict:
     operations of the generated kernel itself ('kernel_per_call': what it does per call
     that a table load could do once, the squares of the band limits and lsb/2, counted)."""
     s = spec.unit.sensor(sensor) if isinstance(sensor, str) else sensor
-    n_in = len(spec.sensor_inputs(s, set_only))
-    bound = per_call_flops(folded_kernel(spec, s, set_only), n_in)
+    ins = spec.sensor_inputs(s, set_only)
+    f, n_folded = folded_kernel(spec, s, set_only)
+    bound = per_call_flops(f, len(ins))
     kind = "correct_set" if set_only else "correct"
-    kernel = per_call_flops(Entry(0, kind, s.name, "", "").kernel(spec), n_in)
-    return {"flops": bound["flops"], "by_op": bound["by_op"],
+    kernel = per_call_flops(Entry(0, kind, s.name, "", "").kernel(spec), len(ins))
+    # one load per folded coefficient and per input element, one store per output
+    # element: what a machine that moves one value per instruction cannot avoid
+    moves = (n_folded + sum(i.size for i in ins)
+             + sum(o.size for o in spec.sensor_outputs(s, set_only)))
+    return {"flops": bound["flops"], "by_op": bound["by_op"], "moves": moves,
             "kernel_per_call": kernel["flops"], "kernel_coeff_only": kernel["coeff_only"]}
 
 
@@ -290,9 +304,11 @@ def entry_bound(spec: ChainSpec, entry: Entry) -> dict:
     """flop_bound of an entry point; for select, the per-call operations of the agreement
     kernel (the squared tolerances (agree_i + agree_j)^2 are coefficients only)."""
     if entry.kind == "select":
-        b = per_call_flops(entry.kernel(spec), 1)
+        f = entry.kernel(spec)
+        b = per_call_flops(f, 1)
+        moves = sum(f.nnz_in(i) for i in range(f.n_in())) + f.nnz_out(0)
         return {"flops": b["flops"], "by_op": b["by_op"], "kernel_per_call": b["flops"],
-                "kernel_coeff_only": b["coeff_only"]}
+                "kernel_coeff_only": b["coeff_only"], "moves": moves}
     return flop_bound(spec, entry.sensor, set_only=entry.kind == "correct_set")
 
 
@@ -849,6 +865,10 @@ def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
         "bratio_max": max(r["e"].bound_ratio for r in sensor_rows),
         "fold_gain_min": min(_fold_gain(r["e"]) for r in sensor_rows),
         "fold_gain_max": max(_fold_gain(r["e"]) for r in sensor_rows),
+        "bfloor_min": min(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
+                          for r in sensor_rows),
+        "bfloor_max": max(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
+                          for r in sensor_rows),
         "bratio_fold_min": min((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]
                                for r in sensor_rows),
         "bratio_fold_max": max((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]

@@ -625,6 +625,11 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
 # both give the same field for every option.
 
 
+# the optional stages folded_sensor_kernel reproduces (thermal_lag acts on the temperature
+# before the kernel: nothing to fold)
+_FOLDED_OPTIONS = ("channels", "thermal_lag", "nonlinear", "sr_compensation")
+
+
 def _axis_scales(sensor: SensorSpec, c: CoeffView, half, set_only):
     """sigma_k, the factor from the per-call difference v_k (sensor axis idx[k]) to the
     frame-axis field in nT: field_f_k = sigma_k (v_k - zero) (plain counts) or sigma_k v_k."""
@@ -645,6 +650,10 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     columns by sigma and, for a boom sensor without rate compensation, M premultiplied by
     H; field_min^2, field_max^2."""
     o = spec.opts(sensor)
+    unknown = [k for k, v in o.to_dict().items() if v and k not in _FOLDED_OPTIONS]
+    if unknown:   # a stage sensor_kernel has and the folded form lacks: no silent bound
+        raise ValueError(f"sensor '{sensor.name}': the folded chain has no form of the "
+                         f"stage(s) {', '.join(unknown)}; add it to folded_sensor_kernel")
     sig = _axis_scales(sensor, c, half, set_only)
     n = spec.degree(sensor) + 1
     b_poly, M_poly = c.get("b_poly_nT"), c.get("M_poly")
