@@ -1,11 +1,20 @@
 #!/usr/bin/env python3
 """Benchmark of the flight code on the flight processor: instructions per call of each
-entry point on the emulated Cortex-M4F divided by the minimum floating-point operations
-of its chain, with code size and worst-case stack (generator/flight/target.py measures; the
+entry point on the emulated Cortex-M4F against the lower bound of its floating-point
+operations, with code size and worst-case stack (generator/flight/target.py measures; the
 method and its calibration are in docs/flight_target.md).
 
-Targets (issue 7): instructions <= 2 x min flops per sensor call, < 16 KiB code for a
-whole unit, < 512 B stack per call.
+The bound (issue 20): the per-call operations of the chain with every constant folded
+that can be folded when a table is loaded (scale and axis signs into b and M, H M for boom
+sensors, constants squared once), built from the chain definition
+(chain.fold_sensor_coeffs / folded_sensor_kernel, arm_measure.flop_bound). Also shown: the
+generated kernel's own operations ("kernel flops", issue 7's "min flops", which counts
+what the kernel happens to do, so it is no lower bound) and how many of them are per call,
+and floor/bound: (bound + one load per folded coefficient and input element + one store
+per output element) / bound, what a machine moving one value per instruction needs.
+
+Targets: instructions <= 1.5 x the bound per sensor call (issue 20); <= 2 x the kernel's
+flops (issue 7); < 16 KiB code for a whole unit, < 512 B stack per call.
 
     python3 bench/bench_flight.py [COEFFS.json] [--check]
 
@@ -56,14 +65,18 @@ def main(argv=None) -> int:
     cs, label = load(args.coeffs)
     m = ta.measure(cs)
     print(f"unit {cs.unit.id} ({label}), Cortex-M4F on QEMU {ta.MACHINE}")
-    print(f"{'entry point':28s} {'insn/call':>9s} {'worst':>6s} {'min flops':>9s} "
-          f"{'ratio':>6s} {'code B':>7s} {'stack B':>7s}")
-    ratios = []
+    print(f"{'entry point':28s} {'insn/call':>9s} {'worst':>6s} {'kernel flops':>12s} "
+          f"{'per call':>8s} {'ratio':>6s} {'bound':>6s} {'insn/bound':>10s} {'floor/bound':>11s} "
+          f"{'code B':>7s} {'stack B':>7s}")
+    ratios, bratios = [], []
     for e in m["entries"]:
-        print(f"{e.entry.fn:28s} {e.nominal:9d} {e.worst:6d} {e.flops['flops']:9d} "
-              f"{e.ratio:6.2f} {e.code_bytes:7d} {e.stack_static:7d}")
+        print(f"{e.entry.fn:28s} {e.nominal:9d} {e.worst:6d} {e.flops['flops']:12d} "
+              f"{e.bound['kernel_per_call']:8d} {e.ratio:6.2f} {e.bound['flops']:6d} "
+              f"{e.bound_ratio:10.2f} {1 + e.bound['moves'] / e.bound['flops']:11.2f} "
+              f"{e.code_bytes:7d} {e.stack_static:7d}")
         if e.entry.kind != "select":
             ratios.append(e.ratio)
+            bratios.append(e.bound_ratio)
     u = m["unit"]
     stack = max(e.stack_static for e in m["entries"])
     print(f"whole unit: code {u['compiled']['code']} B as compiled, {u['linked_code']} B "
@@ -72,10 +85,14 @@ def main(argv=None) -> int:
     print(f"counter: trace exact on {len(cal['trace'])} calibration loops "
           f"({all(t['counted'] == t['expected'] for t in cal['trace'])}); -icount "
           f"{cal['icount_insn_per_tick']:.3f} instructions/tick")
-    ok = {"ratio": max(ratios) <= ta.TARGET_RATIO,
+    ok = {"bound": max(bratios) <= ta.TARGET_BOUND_RATIO,
+          "ratio": max(ratios) <= ta.TARGET_RATIO,
           "code": u["compiled"]["code"] < ta.TARGET_UNIT_CODE,
           "stack": stack < ta.TARGET_STACK}
-    print(f"targets: ratio <= {ta.TARGET_RATIO} (max {max(ratios):.2f}): "
+    print(f"targets: instructions <= {ta.TARGET_BOUND_RATIO} x bound (sensor calls "
+          f"{min(bratios):.2f} .. {max(bratios):.2f}): "
+          f"{'met' if ok['bound'] else 'NOT MET'}; "
+          f"ratio <= {ta.TARGET_RATIO} (max {max(ratios):.2f}): "
           f"{'met' if ok['ratio'] else 'NOT MET'}; unit code < {ta.TARGET_UNIT_CODE} B: "
           f"{'met' if ok['code'] else 'NOT MET'}; stack < {ta.TARGET_STACK} B (max {stack}): "
           f"{'met' if ok['stack'] else 'NOT MET'}")

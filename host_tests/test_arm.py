@@ -368,13 +368,33 @@ def test_stack_and_code_size_targets(measured):
 
 
 @pytest.mark.xfail(strict=True, reason="issue 7 target not met yet: instructions per call "
-                   "exceed 2 x the minimum flops; measurements and proposals in "
-                   "docs/flight_target.md")
+                   "are 2.09-2.32 x the kernel's own flops on this unit (measured "
+                   "2026-11-24); measurements and proposals in docs/flight_target.md")
 def test_instructions_within_twice_the_minimum_flops(measured):
     cs, m = measured
     for e in m["entries"]:
         if e.entry.kind != "select":
             assert e.ratio <= ta.TARGET_RATIO, (e.entry.fn, e.nominal, e.flops["flops"])
+
+
+@pytest.mark.xfail(strict=True, reason="issue 20 goal not met: instructions per call are "
+                   "2.26-2.69 x the flop bound (the chain with every constant folded) on "
+                   "this unit (measured 2026-11-24); the generated code does not fold yet and "
+                   "folding alone would save at most 21 instructions of a call; "
+                   "docs/flight_target.md, 'The flop bound'")
+def test_instructions_within_the_flop_bound_goal(measured):
+    cs, m = measured
+    for e in m["entries"]:
+        if e.entry.kind != "select":
+            assert e.bound_ratio <= ta.TARGET_BOUND_RATIO, (e.entry.fn, e.nominal, e.bound)
+
+
+def test_flop_bound_is_below_every_measured_call(measured):
+    """The bound is a lower bound of what runs: every sensor call executes at least as many
+    FPU arithmetic instructions as the folded chain's per-call operations."""
+    cs, m = measured
+    for e in m["entries"]:
+        assert 0 < e.bound["flops"] <= e.by_class["fp arithmetic"], (e.entry.fn, e.bound)
 
 
 def test_flop_count_is_the_casadi_algorithm():

@@ -613,6 +613,138 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     return out
 
 
+# ---- the folded chain: the same arithmetic, every constant folded at table-load time ----
+#
+# What a call must compute once the coefficients are known (issue 20 item 5): the scale of
+# a count (lsb, lsb/2, the physical unit's factor) and the axis signs fold into the columns
+# of M and the offsets (b, K, C, the cubic) are divided by them, a plain count's zero point
+# joins the offset, a boom sensor's H multiplies every term of M(T) (unless the SET/RESET
+# rate compensation sits between M and H), and constants are squared once. Its operation
+# count is the lower bound the flight code is measured against (arm_measure.flop_bound).
+# The stages are those of sensor_kernel, in its order; test_flight_bound.py checks that
+# both give the same field for every option.
+
+
+# the optional stages folded_sensor_kernel reproduces (thermal_lag acts on the temperature
+# before the kernel: nothing to fold)
+_FOLDED_OPTIONS = ("channels", "thermal_lag", "nonlinear", "sr_compensation")
+
+
+def _axis_scales(sensor: SensorSpec, c: CoeffView, half, set_only):
+    """sigma_k, the factor from the per-call difference v_k (sensor axis idx[k]) to the
+    frame-axis field in nT: field_f_k = sigma_k (v_k - zero) (plain counts) or sigma_k v_k."""
+    _, sign = sensor.axis_map()
+    pair = sensor.set_reset and not set_only
+    if is_physical(sensor):
+        scale = type(half)(input_scale_nT(sensor) * (0.5 if pair else 1.0))
+    else:
+        scale = c.scalar("lsb_nT") * half if pair else c.scalar("lsb_nT")
+    return [scale if sign[k] > 0 else -scale for k in range(3)]
+
+
+def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: CoeffView, half,
+                       set_only=False) -> dict:
+    """The folded coefficients of one sensor's chain from its table blocks (any scalar
+    type): {name: value or nested lists}. b_poly, K, C are divided by sigma (a plain
+    count's zero added to the constant term of b), the cubic multiplied by sigma^2, M's
+    columns by sigma and, for a boom sensor without rate compensation, M premultiplied by
+    H; field_min^2, field_max^2."""
+    o = spec.opts(sensor)
+    unknown = [k for k, v in o.to_dict().items() if v and k not in _FOLDED_OPTIONS]
+    if unknown:   # a stage sensor_kernel has and the folded form lacks: no silent bound
+        raise ValueError(f"sensor '{sensor.name}': the folded chain has no form of the "
+                         f"stage(s) {', '.join(unknown)}; add it to folded_sensor_kernel")
+    sig = _axis_scales(sensor, c, half, set_only)
+    n = spec.degree(sensor) + 1
+    b_poly, M_poly = c.get("b_poly_nT"), c.get("M_poly")
+    f = {"b_poly": [[b_poly[k][i] / sig[i] for i in range(3)] for k in range(n)]}
+    if not is_physical(sensor) and not (sensor.set_reset or set_only):
+        f["b_poly"][0] = [f["b_poly"][0][i] + c.scalar("zero_count") for i in range(3)]
+    M = [[[M_poly[k][i][j] * sig[j] for j in range(3)] for i in range(3)] for k in range(n)]
+    fold_H = sensor.frame == "boom" and not o.sr_compensation
+    if fold_H:
+        H = u.get("H_boom_to_body")
+        M = [[[_dot3(H[i], [M[k][0][j], M[k][1][j], M[k][2][j]]) for j in range(3)]
+              for i in range(3)] for k in range(n)]
+    f["M_poly"] = M
+    if spec.coils:
+        K = c.get("K_nT_per_A")
+        f["K"] = [[K[i][j] / sig[i] for j in range(len(spec.coils))] for i in range(3)]
+    if o.channels:
+        C = c.get("C_nT_per_unit")
+        f["C"] = [[C[i][j] / sig[i] for j in range(len(o.channels))] for i in range(3)]
+    if o.nonlinear:
+        n3 = c.get("cubic_per_nT2")
+        f["cubic"] = [n3[i] * (sig[i] * sig[i]) for i in range(3)]
+    if o.sr_compensation:
+        f["sr_comp"] = c.scalar("sr_comp_s_per_deg")
+    if sensor.frame == "boom" and not fold_H:
+        f["H"] = u.get("H_boom_to_body")
+    if sensor.temperature:
+        f["t_ref_C"] = c.scalar("t_ref_C")
+    if sensor.set_reset and not set_only:   # the bridge offset output stays in nT
+        f["offset_scale"] = type(half)(input_scale_nT(sensor)) if is_physical(sensor) \
+            else c.scalar("lsb_nT")
+        if not is_physical(sensor):
+            f["zero_count"] = c.scalar("zero_count")
+    f_min, f_max = u.scalar("field_min_nT"), u.scalar("field_max_nT")
+    f["field_min2"], f["field_max2"] = f_min * f_min, f_max * f_max
+    return f
+
+
+def folded_sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, f: dict,
+                         half, set_only=False, channels=(), rate_dps=()):
+    """sensor_kernel's outputs from the folded coefficients f (fold_sensor_coeffs): the
+    operations a call cannot avoid. Same arguments as sensor_kernel otherwise."""
+    out = {}
+    idx, _ = sensor.axis_map()
+    o = spec.opts(sensor)
+    if set_only or sensor.set_reset:
+        s, r = raw[0:3], raw[3:6]
+        v = [s[idx[k]] - r[idx[k]] for k in range(3)]
+        if not set_only:
+            oc = [(s[i] + r[i]) * half for i in range(3)]
+            out["chip_offset_nT"] = ([oc[i] * f["offset_scale"] for i in range(3)]
+                                     if is_physical(sensor) else
+                                     [(oc[i] - f["zero_count"]) * f["offset_scale"]
+                                      for i in range(3)])
+            out["offset_counts"] = oc
+    else:
+        v = [raw[idx[k]] for k in range(3)]
+    n = spec.degree(sensor) + 1
+    if sensor.temperature:
+        dT = temp_C - f["t_ref_C"]
+        b = [_horner([f["b_poly"][k][i] for k in range(n)], dT) for i in range(3)]
+        M = [[_horner([f["M_poly"][k][i][j] for k in range(n)], dT) for j in range(3)]
+             for i in range(3)]
+    else:
+        b, M = f["b_poly"][0], f["M_poly"][0]
+    x = [v[i] - b[i] for i in range(3)]
+    if spec.coils:
+        coil = _couple(f["K"], coil_A)
+        x = [x[i] - coil[i] for i in range(3)]
+    if o.channels:
+        ch = _couple(f["C"], channels)
+        x = [x[i] - ch[i] for i in range(3)]
+    if o.nonlinear:
+        x = [x[i] - f["cubic"][i] * x[i] * x[i] * x[i] for i in range(3)]
+    B = [_dot3(M[i], x) for i in range(3)]
+    if o.sr_compensation:
+        w = list(rate_dps)
+        if "H" in f:
+            H = f["H"]
+            w = [H[0][i] * rate_dps[0] + H[1][i] * rate_dps[1] + H[2][i] * rate_dps[2]
+                 for i in range(3)]
+        wB = [w[1] * B[2] - w[2] * B[1], w[2] * B[0] - w[0] * B[2], w[0] * B[1] - w[1] * B[0]]
+        B = [B[i] + f["sr_comp"] * wB[i] for i in range(3)]
+    if "H" in f:
+        B = [_dot3(f["H"][i], B) for i in range(3)]
+    out["field_body_nT"] = B
+    norm2 = B[0] * B[0] + B[1] * B[1] + B[2] * B[2]
+    out["band_margin_nT2"] = [norm2 - f["field_min2"], f["field_max2"] - norm2]
+    return out
+
+
 def agreement_kernel(fields, agree):
     """Cross-sensor agreement margins, pairs (i, j) with i < j in unit order:
     (agree_i + agree_j)^2 - |B_i - B_j|^2, >= 0 when the two agree."""
