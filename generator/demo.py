@@ -193,9 +193,10 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
     paths = simulate.make_example(data_dir, seed=seed)
     with open(paths["unit"], "a", encoding="utf-8") as f:   # the ICD's example needs
         f.write("\n[requirements]\nfield_error_nT = 150.0\nangle_deg = 0.5\n")
-    ground = [Path(paths[k]) for k in ("thermal_12pos", "rotation", "coils")]
+    ground = [Path(paths[k]) for k in ("thermal_12pos", "rotation", "coils", "coil_study")]
 
-    progress("fitting the ground campaigns: thermal twelve positions, rotation, coils")
+    progress("fitting the ground campaigns: thermal twelve positions, rotation, coils, "
+             "coil study")
     cs = pipeline.fit(paths["unit"], ground, progress=progress)
     fit_dir = out / "fit"
     fit_dir.mkdir(parents=True, exist_ok=True)
@@ -231,13 +232,15 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
         out, paths, fit_dir / "coefficients.json", seed, progress)
 
     progress("writing the report (figures)")
-    fit_rep = fit_report(cs, out, data_paths=ground, progress=progress)   # every fitted file
+    # every fitted file (the coil study's section: K against distance)
+    fit_rep = fit_report(cs, out, data_paths=ground, progress=progress)
     rep = Report(f"magcal demo: simulated unit {cs.unit.id} (seed {seed})")
     rep.add(fit_rep.sections.pop(0))  # the summary and verdict first
     rep.add(Section("What ran", [
         "The project's simulator made the unit, its truth and its campaigns. magcal fitted the "
         "ground campaigns (temperature model from the thermal twelve positions, coil coupling "
-        "from the coil steps, boom alignment H from the rotation), generated and compiled the "
+        "from the coil steps, boom alignment H from the rotation, the interference against "
+        "distance from the coil study), generated and compiled the "
         "flight C, and ran every sample of the thermal and the orbit campaign through it and "
         "through the Python reference; the table below compares them bit for bit and against "
         "the simulator's truth. The unit file states the ICD's example [requirements] "

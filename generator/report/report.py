@@ -624,14 +624,24 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 def _coil_sections(cs, analysis, out_dir) -> list:
     from generator.fit.coils import (SEED_POINTS_CM, correction_table, fit_coils,
                             interference_table)
-    from generator.fit.coils import has_coil_steps
+    from generator.fit.coils import fit_coil_study, has_coil_steps, is_coil_study
 
     k = next((i for i, t in enumerate(analysis.tels) if has_coil_steps(t)), None)
     if k is None:
         return []
     tel = analysis.tels[k]
     cf = fit_coils(cs.unit, [tel])
-    rows = interference_table(cs.unit, cf, current_A=0.1)
+    study_tels = [t for t in analysis.tels if is_coil_study(t)]
+    study = fit_coil_study(cs.unit, study_tels) if study_tels else None
+    rows = interference_table(cs.unit, cf, current_A=0.1, study=study)
+    if study is not None and rows:
+        how = (f"scaled by the distance law the coil study measured ({rows[0]['distance_source']}"
+               f"; see the coil study section) from the distance where that law gives the "
+               f"measured interference")
+    else:
+        how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
+               "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
+               "given, so nothing about distance is measured")
     pts = [float(r) for r in SEED_POINTS_CM]
     table = [[r["sensor"], r["coil"], r["K_col_nT_per_A"], r["interference_nT"],
               r["pct_of_lab_field"], r["distance_cm"]] + [r["at_cm"][p] for p in pts]
@@ -642,12 +652,12 @@ def _coil_sections(cs, analysis, out_dir) -> list:
     table.append(["seed 000", "with panel", "-", seed_p[30.0], 100 * seed_p[30.0] / 51540.0,
                   30.0] + [seed_p[p] for p in pts])
     sec = Section("Magnetorquer interference at 0.1 A", [
-        f"|K column| x 0.1 A per sensor and coil from {tel.path}; scaled as 1/r^3 from the "
-        "sensor's assumed distance to the coil (boom sensors 30 cm, the boom's length; body "
-        "sensors an assumed 10 cm) to the seed's points 5, 15 and 30 cm. The seed measured "
-        "167.87 nT without and 307.57 nT with the solar panel at 30 cm and 0.1 A."],
+        f"|K column| x 0.1 A per sensor and coil from {tel.path}; {how}, to the seed's "
+        "points 5, 15 and 30 cm. The seed measured 167.87 nT without and 307.57 nT with the "
+        "solar panel at 30 cm and 0.1 A."],
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
-                "assumed r cm"] + [f"at {p:g} cm nT" for p in pts], table,
+                "r cm (measured law)" if study is not None else "assumed r cm"]
+               + [f"at {p:g} cm nT" for p in pts], table,
                "Interference by sensor and coil")])
     series = {f"{r['sensor']} {r['coil']}": [r["at_cm"][p] for p in pts] for r in rows
               if r["frame"] == "boom"}
