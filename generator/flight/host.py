@@ -267,12 +267,19 @@ class HostUnit:
             return np.ascontiguousarray(raw), self._ctype
         return np.ascontiguousarray(raw_counts, dtype=np.int32), "int32_t"
 
+    def new_state(self, sensor: str) -> np.ndarray:
+        """A zeroed state of the sensor's chain (its C state struct as bytes), for
+        correct(..., state=): consecutive calls on it are one sequence of calls."""
+        return np.zeros(int(getattr(self._lib, f"host_{sensor}_state_size")()), np.uint8)
+
     def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None,
-                channels=None, rate_dps=None, dt_s=None) -> dict:
+                channels=None, rate_dps=None, dt_s=None, state=None) -> dict:
         """Run `<unit>_<sensor>_correct` over a sequence of samples on one state; same
         outputs as chain.reference_sensor (offset_counts: the state's stored offset after
         each call, NaN until the first unsaturated pair). raw_counts: counts, or for a
-        physical-input sensor its readings in its input unit. channels: {column: (N,)}."""
+        physical-input sensor its readings in its input unit. channels: {column: (N,)}.
+        state: None, a fresh zeroed state; else a buffer from new_state(sensor), read at
+        the start and updated in place at the end (streaming in chunks)."""
         s = self.spec.unit.sensor(sensor)
         raw, raw_t = self._raw(s, raw_counts)
         n = raw.shape[0]
@@ -286,12 +293,21 @@ class HostUnit:
         keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_batch")(
             self._ptr(co), n, self._ptr(raw, raw_t), self._ptr(temp), *aux,
-            self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"))
+            self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"),
+            self._state_ptr(sensor, state))
         out = {"field_body_nT": field, "status": status}
         if s.set_reset:
             out["chip_offset_nT"] = chip
             out["offset_counts"] = offs
         return out
+
+    def _state_ptr(self, sensor, state):
+        if state is None or state.size == 0:
+            return self._ffi.NULL
+        want = int(getattr(self._lib, f"host_{sensor}_state_size")())
+        if state.dtype != np.uint8 or state.size != want or not state.flags.c_contiguous:
+            raise ValueError(f"state of {sensor}: not a buffer from new_state()")
+        return self._ffi.cast("unsigned char *", state.ctypes.data)
 
     def correct_set(self, sensor: str, set_counts, temp_C, offset_counts, coil_A=None,
                     coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:

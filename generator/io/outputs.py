@@ -17,6 +17,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from generator.errors import InputError
 
 
@@ -226,3 +228,64 @@ def _merge(src: Path, dst: Path) -> None:
         d.parent.mkdir(parents=True, exist_ok=True)
         os.replace(f, d)
     _fsync_dir(dst)
+
+
+# ---- CSV cells, vectorised -------------------------------------------------------------
+# Output CSVs write every float as Python's repr(float(v)) would: the shortest text that
+# reads back as the same float64 (a float32 value widened to float64 exactly, so it reads
+# back as the same float32), in fixed notation for 1e-4 <= |v| < 1e16 and 0, else
+# scientific ("1e-05"). pyarrow's C formatter finds the same shortest digits (both are
+# shortest round-trip with the nearest-value tie-break); where its layout differs from
+# repr's ("1" for 1.0, "1e+15", "0.00001") the cell is fixed or written by repr itself.
+# host_tests/test_stream_io.py compares the two on a million values of every magnitude.
+
+
+def float_cells(values, present=None):
+    """pyarrow string array: repr(float(v)) of each value, null (an empty cell) where the
+    value is NaN or infinite or present is False."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    x = np.asarray(values, dtype=np.float64)        # float32 widened exactly
+    ok = np.isfinite(x)
+    if present is not None:
+        ok &= np.asarray(present, dtype=bool)
+    s = pc.cast(pa.array(x, mask=~ok), pa.string())
+    ax = np.abs(x)
+    with np.errstate(invalid="ignore"):
+        fixed = (ax == 0) | ((ax >= 1e-4) & (ax < 1e16))     # repr's fixed notation
+    has_e = pc.fill_null(pc.match_substring(s, "e"), False).to_numpy(zero_copy_only=False)
+    no_dot = pc.invert(pc.match_substring(s, "."))
+    s = pc.if_else(no_dot, pc.binary_join_element_wise(s, ".0", ""), s)   # "1" -> "1.0"
+    slow = ok & (has_e | ~fixed)
+    if slow.any():
+        s = pc.replace_with_mask(s, pa.array(slow),
+                                 pa.array([repr(v) for v in x[slow].tolist()], pa.string()))
+    return s
+
+
+def int_cells(values):
+    """pyarrow string array: str(int(v)) of each integer value."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    return pc.cast(pa.array(np.asarray(values, dtype=np.int64)), pa.string())
+
+
+def csv_lines(columns) -> memoryview:
+    """The rows of equal-length pyarrow string arrays as CSV text (UTF-8 bytes), each row
+    ended by a newline; a null is an empty cell. Cells are written as they are: the
+    callers' cells never hold a comma, quote or newline (numbers and identifiers)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    rows = pc.binary_join_element_wise(*columns, ",", null_handling="replace",
+                                       null_replacement="")
+    rows = pc.binary_join_element_wise(rows, "", "\n")               # "row" -> "row\n"
+    if isinstance(rows, pa.ChunkedArray):
+        rows = rows.combine_chunks()
+    if len(rows) == 0:
+        return memoryview(b"")
+    offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)
+    start, end = int(offsets[rows.offset]), int(offsets[rows.offset + len(rows)])
+    return memoryview(rows.buffers()[2])[start:end]

@@ -53,6 +53,11 @@ _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 
 # --------------------------------------------------------------------------- reading
 
+# text read per chunk: whole lines adding up to about this many bytes (a few 10^4 rows of
+# telemetry); memory while reading is bounded by it, not by the file's length
+CHUNK_BYTES = 4 << 20
+
+
 def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     """Read and validate one telemetry CSV against the unit (ICD section 2).
 
@@ -61,41 +66,185 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     not a number, a literal NaN/inf cell, time going backwards, a row with the wrong
     number of cells, a count outside the part's raw range. Empty cells are missing values
     (NaN) and are allowed. Extra columns are kept as channels.
+
+    The file is read in chunks (iter_telemetry) and the columns joined at the end: the
+    peak memory is the columns themselves plus one chunk, not copies of the whole text.
     """
-    text = _read_text(path)
-    header, header_line, rows, row_lines, meta, comments = _split_lines(path, text)
-    if "unit" in meta and meta["unit"] != unit.id:
-        raise InputError(path, f"'# unit: {meta['unit']}' but the unit file is for "
-                               f"'{unit.id}': telemetry of another unit?")
-    names = _check_header(path, header, header_line, unit, require_sensors)
+    return concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors))
 
-    values = _parse_fast(rows, len(names))
-    if values is None:
-        values = _parse_slow(path, names, rows, row_lines)
-    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
-    line_numbers = np.asarray(row_lines, dtype=np.int64)
 
-    _check_time(path, columns[TIME_COLUMN], line_numbers)
-    _check_counts(path, columns, line_numbers, unit)
-    _check_position(path, columns, line_numbers)
-    _check_geo(path, columns, line_numbers)
-    _check_physical(path, columns, line_numbers)
-    return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
-                     meta=meta, comments=comments)
+def concat_chunks(chunks) -> Telemetry:
+    """One Telemetry from consecutive chunks of one file (column by column, so at most
+    one column is held twice while joining)."""
+    parts, lines, first = {}, [], None
+    for c in chunks:
+        first = first or c
+        for name, v in c.columns.items():
+            parts.setdefault(name, []).append(v)
+        lines.append(c.line_numbers)
+    columns = {name: (vs[0] if len(vs) == 1 else np.concatenate(vs))
+               for name, vs in ((n, parts.pop(n)) for n in list(parts))}
+    return Telemetry(path=first.path, columns=columns,
+                     line_numbers=np.concatenate(lines) if len(lines) > 1 else lines[0],
+                     meta=first.meta, comments=first.comments)
+
+
+def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int = CHUNK_BYTES):
+    """The telemetry file as consecutive validated Telemetry chunks (same checks and
+    messages as read_telemetry; at least one chunk, maybe empty). Each chunk holds the
+    rows of about chunk_bytes of text; time order is checked across chunk boundaries.
+    A fault is raised when its chunk is reached: a caller writing output must write it
+    atomically (io.outputs.atomic_file)."""
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+    with f:
+        st = _SplitState()
+        names = None
+        prev = None                     # (time_s, line) of the last row of the last chunk
+        yielded = False
+        next_line = 1
+        while True:
+            try:
+                lines = f.readlines(chunk_bytes)
+            except OSError as e:
+                raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") \
+                    from None
+            if not lines:
+                break
+            raw = b"".join(lines)
+            del lines
+            text = _decode(path, raw, next_line, first=next_line == 1)
+            first_no = next_line
+            next_line += raw.count(b"\n")
+            del raw
+            if names is None:
+                rows, row_lines = _split_chunk(path, text, first_no, st)
+                if st.header is None:
+                    continue
+                if "unit" in st.meta and st.meta["unit"] != unit.id:
+                    raise InputError(path, f"'# unit: {st.meta['unit']}' but the unit file is "
+                                           f"for '{unit.id}': telemetry of another unit?")
+                names = _check_header(path, st.header, st.header_line, unit, require_sensors)
+                values = _parse_rows(path, names, rows, row_lines)
+            else:
+                values, row_lines = _parse_chunk(path, names, text, first_no, st)
+            del text
+            tel = _validated(path, names, values, row_lines, unit, st, prev)
+            del values
+            if tel.n:
+                prev = (float(tel.time_s[-1]), int(tel.line_numbers[-1]))
+            if tel.n or not yielded:
+                yielded = True
+                yield tel
+        if st.header is None:
+            raise InputError(path, "no header line (the file is empty or holds only comments)")
 
 
 def _read_text(path) -> str:
+    """The whole file as text (importers of small files; telemetry is read in chunks)."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
     except OSError as e:
         raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+    return _decode(path, raw, 1, first=True)
+
+
+class _SplitState:
+    """What the line splitter knows so far: the header and the comments before it."""
+
+    def __init__(self):
+        self.header = self.header_line = None
+        self.meta, self.comments = {}, []
+
+
+def _decode(path, raw: bytes, first_line: int, first: bool) -> str:
     try:
-        text = raw.decode("utf-8-sig")          # a leading byte-order mark is tolerated
+        text = raw.decode("utf-8-sig" if first else "utf-8")   # a leading BOM is tolerated
     except UnicodeDecodeError as e:
-        line = raw.count(b"\n", 0, e.start) + 1
+        line = first_line + raw.count(b"\n", 0, e.start)
         raise InputError(path, f"not UTF-8 (byte 0x{raw[e.start]:02x})", line=line) from None
     return text.replace("\r\n", "\n")
+
+
+def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
+    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
+    line_numbers = np.asarray(row_lines, dtype=np.int64)
+    if prev is not None and line_numbers.size:
+        _check_time(path, np.concatenate([[prev[0]], columns[TIME_COLUMN]]),
+                    np.concatenate([[prev[1]], line_numbers]))
+    else:
+        _check_time(path, columns[TIME_COLUMN], line_numbers)
+    _check_counts(path, columns, line_numbers, unit)
+    _check_position(path, columns, line_numbers)
+    _check_geo(path, columns, line_numbers)
+    _check_physical(path, columns, line_numbers)
+    return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
+                     meta=st.meta, comments=st.comments)
+
+
+def _parse_chunk(path, names, text: str, first_no: int, st):
+    """(values, line numbers) of a chunk of data lines after the header. A chunk with no
+    comment, blank or indented line is parsed as one block with consecutive line numbers;
+    any other goes line by line (_split_chunk)."""
+    clean = ("#" not in text and "\n\n" not in text and "\n " not in text
+             and "\n\t" not in text and text[:1] not in ("\n", " ", "\t"))
+    if clean:
+        body = text[:-1] if text.endswith("\n") else text
+        n = body.count("\n") + 1 if body else 0
+        values = _parse_arrow(body, len(names), n)
+        if values is not None:
+            return values, np.arange(first_no, first_no + n, dtype=np.int64)
+    rows, row_lines = _split_chunk(path, text, first_no, st)
+    return _parse_rows(path, names, rows, row_lines), row_lines
+
+
+def _parse_rows(path, names, rows: list, row_lines: list) -> np.ndarray:
+    """The data rows as (N, ncol) float64: the C parsers first, cell by cell (naming the
+    faulty cell) when they cannot be sure."""
+    values = _parse_arrow("\n".join(rows), len(names), len(rows)) if rows else None
+    if values is None:
+        values = _parse_fast(rows, len(names))
+    if values is None:
+        values = _parse_slow(path, names, rows, row_lines)
+    return values
+
+
+def _parse_arrow(body: str, ncol: int, nrows: int):
+    """(nrows, ncol) float64 parsed by pyarrow's C CSV reader, or None when it is not sure
+    (then the callers' slower paths decide and name the fault). It accepts a subset of what
+    _parse_slow accepts, with the same values (host_tests/test_stream_io.py): no quoting,
+    only empty cells are missing; letters of nan/inf are left to the slow path."""
+    if nrows == 0:
+        return np.empty((0, ncol))
+    if any(ch in body for ch in "nNiI"):
+        return None
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+
+    cols = [f"c{j}" for j in range(ncol)]
+    try:
+        table = pcsv.read_csv(
+            pa.BufferReader(body.encode()),
+            read_options=pcsv.ReadOptions(column_names=cols),
+            parse_options=pcsv.ParseOptions(quote_char=False, double_quote=False,
+                                            escape_char=False, newlines_in_values=False,
+                                            ignore_empty_lines=False),
+            convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in cols},
+                                                null_values=[""], strings_can_be_null=False,
+                                                quoted_strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowException, ValueError):
+        return None
+    if table.num_rows != nrows or table.num_columns != ncol:
+        return None
+    values = np.empty((nrows, ncol))
+    for j in range(ncol):
+        values[:, j] = table.column(j).to_numpy()      # empty cells (null) become NaN
+    if np.isinf(values).any():
+        return None                      # a value too large for float64: the slow path says so
+    return values
 
 
 def _split_lines(path, text: str):
@@ -104,9 +253,18 @@ def _split_lines(path, text: str):
     Comment lines ('#' first, leading blanks allowed) and blank lines are skipped anywhere;
     only those before the header are collected into meta / comments.
     """
-    header = header_line = None
-    rows, row_lines, meta, comments = [], [], {}, []
-    for no, line in enumerate(text.split("\n"), start=1):
+    st = _SplitState()
+    rows, row_lines = _split_chunk(path, text, 1, st)
+    if st.header is None:
+        raise InputError(path, "no header line (the file is empty or holds only comments)")
+    return st.header, st.header_line, rows, row_lines, st.meta, st.comments
+
+
+def _split_chunk(path, text: str, first_no: int, st: _SplitState):
+    """Data lines and their line numbers of a chunk of text starting at line first_no;
+    the header and the comments before it go into st."""
+    rows, row_lines = [], []
+    for no, line in enumerate(text.split("\n"), start=first_no):
         first = line[:1]
         if first in ("", " ", "\t"):
             stripped = line.strip()
@@ -114,21 +272,19 @@ def _split_lines(path, text: str):
                 continue                          # blank line
             first = stripped[0]
         if first == "#":
-            if header is None:
+            if st.header is None:
                 m = _META_RE.match(line.strip())
                 if m:
-                    meta[m.group(1)] = m.group(2).strip()
+                    st.meta[m.group(1)] = m.group(2).strip()
                 else:
-                    comments.append(line)
+                    st.comments.append(line)
             continue
-        if header is None:
-            header, header_line = line, no
+        if st.header is None:
+            st.header, st.header_line = line, no
         else:
             rows.append(line)
             row_lines.append(no)
-    if header is None:
-        raise InputError(path, "no header line (the file is empty or holds only comments)")
-    return header, header_line, rows, row_lines, meta, comments
+    return rows, row_lines
 
 
 def _check_header(path, header: str, line: int, unit, require_sensors: bool) -> list:
