@@ -246,7 +246,8 @@ def float_cells(values, present=None):
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    x = np.asarray(values, dtype=np.float64)        # float32 widened exactly
+    with np.errstate(invalid="ignore"):             # a signalling NaN stays a NaN
+        x = np.asarray(values, dtype=np.float64)    # float32 widened exactly
     ok = np.isfinite(x)
     if present is not None:
         ok &= np.asarray(present, dtype=bool)
