@@ -111,7 +111,7 @@ def cmd_fit(args):
 
 def _args_fit(p):
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
-    p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2)")
+    p.add_argument("data", nargs="+", help="telemetry files (ICD section 2): CSV or Parquet")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--compare-methods", action="store_true",
                    help="also fit with every method (seed 000 ellipsoid, seed 001 analytic, "
@@ -148,7 +148,7 @@ def cmd_apply(args):
 
 def _args_apply(p):
     p.add_argument("coeffs", help="coefficients.json")
-    p.add_argument("data", help="telemetry CSV")
+    p.add_argument("data", help="telemetry file (ICD section 2): CSV or Parquet")
     p.add_argument("-o", "--output", required=True, help="output CSV")
     p.add_argument("--boom-stowed", action="store_true",
                    help="the data were taken with the boom stowed (ground jig): H = identity")

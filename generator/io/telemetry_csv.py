@@ -26,6 +26,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io.telemetry import SensorData, Telemetry
+from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
 
 TIME_COLUMN = "time_s"
 POSITION_COLUMN = "position"
@@ -94,7 +95,13 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
     messages as read_telemetry; at least one chunk, maybe empty). Each chunk holds the
     rows of about chunk_bytes of text; time order is checked across chunk boundaries.
     A fault is raised when its chunk is reached: a caller writing output must write it
-    atomically (io.outputs.atomic_file)."""
+    atomically (io.outputs.atomic_file).
+
+    A Parquet file (io.telemetry_parquet, recognised by its magic bytes) is read the same
+    way: its blocks of values pass the same checks; its faults name the data row."""
+    if is_parquet(path):
+        yield from _iter_parquet(path, unit, require_sensors, chunk_bytes)
+        return
     try:
         f = open(path, "rb")
     except OSError as e:
@@ -150,6 +157,27 @@ def _read_text(path) -> str:
     except OSError as e:
         raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
     return _decode(path, raw, 1, first=True)
+
+
+def _iter_parquet(path, unit, require_sensors, chunk_bytes):
+    pt = ParquetTelemetry(path)
+    st = _SplitState()
+    st.meta = pt.meta
+    if "unit" in st.meta and st.meta["unit"] != unit.id:
+        raise InputError(path, f"metadata 'unit: {st.meta['unit']}' but the unit file is "
+                               f"for '{unit.id}': telemetry of another unit?")
+    names = _check_header(path, pt.names, None, unit, require_sensors)
+    rows = max(1, chunk_bytes // (8 * len(names)))    # as many values as a CSV chunk's text
+    prev, yielded = None, False
+    for first, values in pt.blocks(rows):
+        tel = _validated(path, names, values, np.arange(first, first + values.shape[0]),
+                         unit, st, prev)
+        if tel.n:
+            prev = (float(tel.time_s[-1]), int(tel.line_numbers[-1]))
+            yielded = True
+            yield tel
+    if not yielded:
+        yield _validated(path, names, np.empty((0, len(names))), [], unit, st, None)
 
 
 class _SplitState:
@@ -287,8 +315,10 @@ def _split_chunk(path, text: str, first_no: int, st: _SplitState):
     return rows, row_lines
 
 
-def _check_header(path, header: str, line: int, unit, require_sensors: bool) -> list:
-    names = [c.strip() for c in header.split(",")]
+def _check_header(path, header, line, unit, require_sensors: bool) -> list:
+    """The column names of a CSV header line (or a list of names: Parquet), checked."""
+    names = (list(header) if isinstance(header, (list, tuple))
+             else [c.strip() for c in header.split(",")])
     first_at = {}
     for j, name in enumerate(names, start=1):
         if not name:
