@@ -152,7 +152,7 @@ def cmd_apply(args):
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
     apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off,
-          at_rest=args.at_rest)
+          at_rest=args.at_rest, collect=False)     # streams: memory bounded by the chunk
     return 0
 
 

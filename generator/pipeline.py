@@ -308,9 +308,8 @@ def _apply_preamble(source, unit: Unit, fallback_order) -> str:
 def _apply_rows(time_s, unit: Unit, results: dict) -> memoryview:
     """The data rows of the output CSV, formatted column by column (io.outputs: every
     float as repr(float(v)), missing values as empty cells)."""
-    import pyarrow as pa
-
     from generator.flight.chain import SELECT_REASONS
+    from generator.io.arrow_np import int64_array, string_array
     from generator.io.outputs import csv_lines, float_cells, int_cells
 
     cols = [float_cells(time_s)]
@@ -324,15 +323,15 @@ def _apply_rows(time_s, unit: Unit, results: dict) -> memoryview:
     chosen = k_sel >= 0
     for k in range(3):
         cols.append(float_cells(sel["field_body_nT"][:, k], chosen))
-    names = pa.array([s.name for s in unit.sensors], pa.string())
-    cols.append(names.take(pa.array(np.where(chosen, k_sel, 0), mask=~chosen)))
+    names = string_array([s.name for s in unit.sensors])
+    cols.append(names.take(int64_array(np.where(chosen, k_sel, 0), valid=chosen)))
     by_value = {v: k for k, v in SELECT_REASONS.items()}
     reason = np.asarray(sel["reason"], dtype=np.int64)
     unknown = sorted(set(np.unique(reason).tolist()) - set(by_value))
     if unknown:
         raise RuntimeError(f"select returned reason {unknown[0]}, not in SELECT_REASONS")
-    lut = pa.array([by_value.get(i) for i in range(max(by_value) + 1)], pa.string())
-    cols.append(lut.take(pa.array(reason)))
+    lut = string_array([by_value.get(i) for i in range(max(by_value) + 1)])
+    cols.append(lut.take(int64_array(reason)))
     return csv_lines(cols)
 
 

@@ -21,26 +21,11 @@ import textwrap
 
 from conftest import REPO
 
+sys.path.insert(0, str(REPO / "bench"))
+from bench_io import write_long_file  # noqa: E402  (the bench's long-file maker)
+
 CHUNK_BYTES = 256 * 1024
 SLACK_MiB = 16
-
-
-def _long_file(src, path, rows):
-    lines = src.read_text().split("\n")
-    head = [ln for ln in lines[:10] if ln.startswith("#")]
-    header = lines[len(head)]
-    data = [ln for ln in lines[len(head) + 1:] if ln and not ln.startswith("#")]
-    t_end = float(data[-1].split(",", 1)[0]) + 1.0
-    with open(path, "w") as f:
-        f.write("\n".join(head + [header]) + "\n")
-        k = 0
-        while k * len(data) < rows:
-            take = data[:rows - k * len(data)]
-            for ln in take:
-                t, rest = ln.split(",", 1)
-                f.write(f"{float(t) + k * t_end!r},{rest}\n")
-            k += 1
-    return path.stat().st_size
 
 
 def _peak_rss_MiB(data, out) -> float:
@@ -68,8 +53,8 @@ def _peak_rss_MiB(data, out) -> float:
 def test_apply_memory_does_not_grow_with_the_file(tmp_path, fm1_dir):
     rows = 20_000
     src = fm1_dir / "thermal_12pos.csv"
-    small = _long_file(src, tmp_path / "small.csv", rows)
-    large = _long_file(src, tmp_path / "large.csv", 10 * rows)
+    small = write_long_file(src, tmp_path / "small.csv", rows)
+    large = write_long_file(src, tmp_path / "large.csv", 10 * rows)
     bound_MiB = 10 * CHUNK_BYTES / 2**20 + SLACK_MiB
     extra_text_MiB = (large - small) / 2**20
     assert extra_text_MiB > 1.5 * bound_MiB, "the long file must be long enough to show it"

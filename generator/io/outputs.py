@@ -243,34 +243,38 @@ def _merge(src: Path, dst: Path) -> None:
 def float_cells(values, present=None):
     """pyarrow string array: repr(float(v)) of each value, null (an empty cell) where the
     value is NaN or infinite or present is False."""
-    import pyarrow as pa
     import pyarrow.compute as pc
+
+    from generator.io.arrow_np import (bool_array, float64_array, repeated_string, string_array,
+                                       to_bool)
 
     with np.errstate(invalid="ignore"):             # a signalling NaN stays a NaN
         x = np.asarray(values, dtype=np.float64)    # float32 widened exactly
     ok = np.isfinite(x)
     if present is not None:
         ok &= np.asarray(present, dtype=bool)
-    s = pc.cast(pa.array(x, mask=~ok), pa.string())
+    s = pc.cast(float64_array(x, ok), "string")
     ax = np.abs(x)
     with np.errstate(invalid="ignore"):
         fixed = (ax == 0) | ((ax >= 1e-4) & (ax < 1e16))     # repr's fixed notation
-    has_e = pc.fill_null(pc.match_substring(s, "e"), False).to_numpy(zero_copy_only=False)
+    has_e = to_bool(pc.match_substring(s, "e"))
     no_dot = pc.invert(pc.match_substring(s, "."))
-    s = pc.if_else(no_dot, pc.binary_join_element_wise(s, ".0", ""), s)   # "1" -> "1.0"
+    empty = repeated_string("", len(s))
+    s = pc.if_else(no_dot, pc.binary_join_element_wise(s, repeated_string(".0", len(s)),
+                                                       empty), s)            # "1" -> "1.0"
     slow = ok & (has_e | ~fixed)
     if slow.any():
-        s = pc.replace_with_mask(s, pa.array(slow),
-                                 pa.array([repr(v) for v in x[slow].tolist()], pa.string()))
+        s = pc.replace_with_mask(s, bool_array(slow), string_array([repr(v) for v in x[slow].tolist()]))
     return s
 
 
 def int_cells(values):
     """pyarrow string array: str(int(v)) of each integer value."""
-    import pyarrow as pa
     import pyarrow.compute as pc
 
-    return pc.cast(pa.array(np.asarray(values, dtype=np.int64)), pa.string())
+    from generator.io.arrow_np import int64_array
+
+    return pc.cast(int64_array(values), "string")
 
 
 def csv_lines(columns) -> memoryview:
@@ -280,13 +284,17 @@ def csv_lines(columns) -> memoryview:
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    rows = pc.binary_join_element_wise(*columns, ",", null_handling="replace",
-                                       null_replacement="")
-    rows = pc.binary_join_element_wise(rows, "", "\n")               # "row" -> "row\n"
+    from generator.io.arrow_np import repeated_string
+
+    n = len(columns[0])
+    if n == 0:
+        return memoryview(b"")
+    rows = pc.binary_join_element_wise(*columns, repeated_string(",", n),
+                                       null_handling="replace", null_replacement="")
+    rows = pc.binary_join_element_wise(rows, repeated_string("", n),
+                                       repeated_string("\n", n))      # "row" -> "row\n"
     if isinstance(rows, pa.ChunkedArray):
         rows = rows.combine_chunks()
-    if len(rows) == 0:
-        return memoryview(b"")
     offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)
     start, end = int(offsets[rows.offset]), int(offsets[rows.offset + len(rows)])
     return memoryview(rows.buffers()[2])[start:end]

@@ -25,6 +25,7 @@ import re
 import numpy as np
 
 from generator.errors import InputError
+from generator.io.arrow_np import to_float64
 from generator.io.telemetry import SensorData, Telemetry
 from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
 
@@ -75,19 +76,28 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
 
 
 def concat_chunks(chunks) -> Telemetry:
-    """One Telemetry from consecutive chunks of one file (column by column, so at most
-    one column is held twice while joining)."""
-    parts, lines, first = {}, [], None
+    """One Telemetry from consecutive chunks of one file. The columns grow in place
+    (ndarray.resize: realloc, which moves no data for large blocks), so the peak is about
+    the columns themselves plus one chunk, as for numpy.loadtxt."""
+    cols, lines, n, first = None, None, 0, None
     for c in chunks:
-        first = first or c
+        if cols is None:
+            first = c
+            cap = max(c.n, 1)
+            cols = {name: np.empty(cap) for name in c.columns}
+            lines = np.empty(cap, dtype=np.int64)
+        if n + c.n > lines.shape[0]:
+            cap = max(n + c.n, int(lines.shape[0] * 1.5))
+            for a in (*cols.values(), lines):
+                a.resize(cap, refcheck=False)
         for name, v in c.columns.items():
-            parts.setdefault(name, []).append(v)
-        lines.append(c.line_numbers)
-    columns = {name: (vs[0] if len(vs) == 1 else np.concatenate(vs))
-               for name, vs in ((n, parts.pop(n)) for n in list(parts))}
-    return Telemetry(path=first.path, columns=columns,
-                     line_numbers=np.concatenate(lines) if len(lines) > 1 else lines[0],
-                     meta=first.meta, comments=first.comments)
+            cols[name][n:n + c.n] = v
+        lines[n:n + c.n] = c.line_numbers
+        n += c.n
+    for a in (*cols.values(), lines):
+        a.resize(n, refcheck=False)
+    return Telemetry(path=first.path, columns=cols, line_numbers=lines, meta=first.meta,
+                     comments=first.comments)
 
 
 def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int = CHUNK_BYTES):
@@ -112,22 +122,13 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
         prev = None                     # (time_s, line) of the last row of the last chunk
         yielded = False
         next_line = 1
-        while True:
-            try:
-                lines = f.readlines(chunk_bytes)
-            except OSError as e:
-                raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") \
-                    from None
-            if not lines:
-                break
-            raw = b"".join(lines)
-            del lines
-            text = _decode(path, raw, next_line, first=next_line == 1)
+        for raw in _line_blocks(path, f, chunk_bytes):
             first_no = next_line
             next_line += raw.count(b"\n")
-            del raw
             if names is None:
+                text = _decode(path, raw, first_no, first=first_no == 1)
                 rows, row_lines = _split_chunk(path, text, first_no, st)
+                del text
                 if st.header is None:
                     continue
                 if "unit" in st.meta and st.meta["unit"] != unit.id:
@@ -136,8 +137,8 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
                 names = _check_header(path, st.header, st.header_line, unit, require_sensors)
                 values = _parse_rows(path, names, rows, row_lines)
             else:
-                values, row_lines = _parse_chunk(path, names, text, first_no, st)
-            del text
+                values, row_lines = _parse_chunk(path, names, raw, first_no, st)
+            del raw
             tel = _validated(path, names, values, row_lines, unit, st, prev)
             del values
             if tel.n:
@@ -147,6 +148,29 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
                 yield tel
         if st.header is None:
             raise InputError(path, "no header line (the file is empty or holds only comments)")
+
+
+def _line_blocks(path, f, chunk_bytes: int):
+    """The file's bytes in blocks of whole lines, about chunk_bytes each (a line longer
+    than that is one block)."""
+    rest = b""
+    while True:
+        try:
+            block = f.read(chunk_bytes)
+        except OSError as e:
+            raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+        if not block:
+            if rest:
+                yield rest
+            return
+        cut = block.rfind(b"\n")
+        if cut < 0:
+            rest += block
+            continue
+        raw = rest + block[:cut + 1] if rest else block[:cut + 1]
+        rest = block[cut + 1:]
+        del block
+        yield raw
 
 
 def _read_text(path) -> str:
@@ -213,18 +237,20 @@ def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
                      meta=st.meta, comments=st.comments)
 
 
-def _parse_chunk(path, names, text: str, first_no: int, st):
-    """(values, line numbers) of a chunk of data lines after the header. A chunk with no
-    comment, blank or indented line is parsed as one block with consecutive line numbers;
-    any other goes line by line (_split_chunk)."""
-    clean = ("#" not in text and "\n\n" not in text and "\n " not in text
-             and "\n\t" not in text and text[:1] not in ("\n", " ", "\t"))
+def _parse_chunk(path, names, raw: bytes, first_no: int, st):
+    """(values, line numbers) of a block of data lines after the header. A block with no
+    comment, blank, indented or CR-ended line goes to the C parser as it is, with
+    consecutive line numbers; any other (or one the C parser refuses) is decoded and goes
+    line by line (_split_chunk, _parse_rows)."""
+    clean = (b"#" not in raw and b"\n\n" not in raw and b"\n " not in raw
+             and b"\n\t" not in raw and b"\r" not in raw and raw[:1] not in (b"\n", b" ", b"\t"))
     if clean:
-        body = text[:-1] if text.endswith("\n") else text
-        n = body.count("\n") + 1 if body else 0
-        values = _parse_arrow(body, len(names), n)
+        _decode(path, raw, first_no, first=False)          # UTF-8, or the line that is not
+        n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
+        values = _parse_arrow(raw, len(names), n)
         if values is not None:
             return values, np.arange(first_no, first_no + n, dtype=np.int64)
+    text = _decode(path, raw, first_no, first=False)
     rows, row_lines = _split_chunk(path, text, first_no, st)
     return _parse_rows(path, names, rows, row_lines), row_lines
 
@@ -240,14 +266,16 @@ def _parse_rows(path, names, rows: list, row_lines: list) -> np.ndarray:
     return values
 
 
-def _parse_arrow(body: str, ncol: int, nrows: int):
+def _parse_arrow(body, ncol: int, nrows: int):
     """(nrows, ncol) float64 parsed by pyarrow's C CSV reader, or None when it is not sure
     (then the callers' slower paths decide and name the fault). It accepts a subset of what
     _parse_slow accepts, with the same values (host_tests/test_stream_io.py): no quoting,
     only empty cells are missing; letters of nan/inf are left to the slow path."""
     if nrows == 0:
         return np.empty((0, ncol))
-    if any(ch in body for ch in "nNiI"):
+    if isinstance(body, str):
+        body = body.encode()
+    if any(ch in body for ch in (b"n", b"N", b"i", b"I")):
         return None
     import pyarrow as pa
     import pyarrow.csv as pcsv
@@ -255,7 +283,7 @@ def _parse_arrow(body: str, ncol: int, nrows: int):
     cols = [f"c{j}" for j in range(ncol)]
     try:
         table = pcsv.read_csv(
-            pa.BufferReader(body.encode()),
+            pa.BufferReader(body),
             read_options=pcsv.ReadOptions(column_names=cols),
             parse_options=pcsv.ParseOptions(quote_char=False, double_quote=False,
                                             escape_char=False, newlines_in_values=False,
@@ -267,9 +295,9 @@ def _parse_arrow(body: str, ncol: int, nrows: int):
         return None
     if table.num_rows != nrows or table.num_columns != ncol:
         return None
-    values = np.empty((nrows, ncol))
+    values = np.empty((nrows, ncol), order="F")    # columns contiguous: no copy per column
     for j in range(ncol):
-        values[:, j] = table.column(j).to_numpy()      # empty cells (null) become NaN
+        values[:, j] = to_float64(table.column(j), copy=False)   # empty cell: NaN
     if np.isinf(values).any():
         return None                      # a value too large for float64: the slow path says so
     return values

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from generator.errors import InputError
+from generator.io.arrow_np import nulls, to_float64
 
 MAGIC = b"PAR1"
 
@@ -73,10 +74,10 @@ class ParquetTelemetry:
                 values = np.empty((n, len(self.names)))
                 for j, name in enumerate(self.names):
                     col = batch.column(j)
-                    v = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+                    v = to_float64(col, copy=False)        # nulls come out as NaN
                     stored = ~np.isfinite(v)
                     if col.null_count:
-                        stored &= ~np.asarray(col.is_null().to_numpy(zero_copy_only=False))
+                        stored &= ~nulls(col)
                     if stored.any():
                         i = int(np.flatnonzero(stored)[0])
                         what = "NaN" if np.isnan(v[i]) else "infinity"
