@@ -57,7 +57,7 @@ _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 
 # text read per chunk: whole lines adding up to about this many bytes (a few 10^4 rows of
 # telemetry); memory while reading is bounded by it, not by the file's length
-CHUNK_BYTES = 4 << 20
+CHUNK_BYTES = 2 << 20
 
 
 def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
@@ -125,19 +125,15 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
         for raw in _line_blocks(path, f, chunk_bytes):
             first_no = next_line
             next_line += raw.count(b"\n")
-            if names is None:
-                text = _decode(path, raw, first_no, first=first_no == 1)
-                rows, row_lines = _split_chunk(path, text, first_no, st)
-                del text
+            if names is None:                  # the lines up to the header, one by one
+                raw, first_no = _up_to_header(path, raw, first_no, st)
                 if st.header is None:
                     continue
                 if "unit" in st.meta and st.meta["unit"] != unit.id:
                     raise InputError(path, f"'# unit: {st.meta['unit']}' but the unit file is "
                                            f"for '{unit.id}': telemetry of another unit?")
                 names = _check_header(path, st.header, st.header_line, unit, require_sensors)
-                values = _parse_rows(path, names, rows, row_lines)
-            else:
-                values, row_lines = _parse_chunk(path, names, raw, first_no, st)
+            values, row_lines = _parse_chunk(path, names, raw, first_no, st)
             del raw
             tel = _validated(path, names, values, row_lines, unit, st, prev)
             del values
@@ -148,6 +144,21 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
                 yield tel
         if st.header is None:
             raise InputError(path, "no header line (the file is empty or holds only comments)")
+
+
+def _up_to_header(path, raw: bytes, first_no: int, st):
+    """Splits the lines of raw into st (meta, comments, the header) until the header is
+    found; returns the bytes after the header line and the line number they start at."""
+    pos, no = 0, first_no
+    while st.header is None and pos < len(raw):
+        end = raw.find(b"\n", pos)
+        end = len(raw) if end < 0 else end
+        line = raw[pos:end]
+        if line.endswith(b"\r"):
+            line = line[:-1]
+        _split_chunk(path, _decode(path, line, no, first=no == 1), no, st)
+        pos, no = end + 1, no + 1
+    return raw[pos:], no
 
 
 def _line_blocks(path, f, chunk_bytes: int):
@@ -239,11 +250,15 @@ def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
 
 def _parse_chunk(path, names, raw: bytes, first_no: int, st):
     """(values, line numbers) of a block of data lines after the header. A block with no
-    comment, blank, indented or CR-ended line goes to the C parser as it is, with
+    comment, blank or indented line and no CR but in CR LF goes to the C parser as it is, with
     consecutive line numbers; any other (or one the C parser refuses) is decoded and goes
     line by line (_split_chunk, _parse_rows)."""
+    if not raw:
+        return np.empty((0, len(names))), []
     clean = (b"#" not in raw and b"\n\n" not in raw and b"\n " not in raw
-             and b"\n\t" not in raw and b"\r" not in raw and raw[:1] not in (b"\n", b" ", b"\t"))
+             and b"\n\t" not in raw and b"\n\r" not in raw
+             and raw[:1] not in (b"\n", b" ", b"\t", b"\r")
+             and raw.count(b"\r") == raw.count(b"\r\n"))     # CR only in CR LF endings
     if clean:
         _decode(path, raw, first_no, first=False)          # UTF-8, or the line that is not
         n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
