@@ -1,14 +1,21 @@
 """Telemetry CSV (ICD section 2): reading, validation, and preprocessing to raw frame-axis fields.
 
-read_csv checks the whole file before returning anything; the first fault raises InputError
-naming the file, the 1-based line and the column, e.g.
+read_telemetry checks the whole file before returning anything; the first fault raises
+InputError naming the file, the 1-based line and the column, e.g.
 
     thermal.csv:17: column 'mmc1_set_x': not a number: 'abc'
 
-Reading has two paths that accept the same files. The fast path hands the data lines to
-numpy's C parser (36,000 rows x 35 columns in well under 0.5 s). Whenever it cannot be sure
-(a parse failure, a row of the wrong width, letters of nan/inf in the data), the file is
-parsed again cell by cell in Python, which finds and names the exact faulty cell.
+The file is read in chunks of whole lines (iter_telemetry, about CHUNK_BYTES each), so
+memory is bounded by the chunk, not the file: `apply` streams chunk by chunk,
+read_telemetry joins the chunks' columns. A Parquet file (io/telemetry_parquet.py) is
+read the same way and passes the same checks.
+
+Parsing has three paths that accept the same cells. A block of data lines without
+comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, no
+quoting, only empty cells missing); lines that pyarrow refuses go to numpy's C parser;
+whenever neither can be sure (a parse failure, a row of the wrong width, letters of
+nan/inf in the data), the lines are parsed cell by cell in Python, which finds and names
+the exact faulty cell.
 
 preprocess_sensors turns counts into nT in the sensor's frame axes (not calibrated):
     SET/RESET: field = (set - reset)/2 * lsb_nT,  chip offset = ((set + reset)/2 - zero_count) * lsb_nT
