@@ -243,28 +243,51 @@ def _merge(src: Path, dst: Path) -> None:
 def float_cells(values, present=None):
     """pyarrow string array: repr(float(v)) of each value, null (an empty cell) where the
     value is NaN or infinite or present is False."""
+    import pyarrow as pa
     import pyarrow.compute as pc
 
-    from generator.io.arrow_np import (bool_array, float64_array, repeated_string, string_array,
-                                       to_bool)
+    from generator.io.arrow_np import bool_array, float64_array, string_array
 
     with np.errstate(invalid="ignore"):             # a signalling NaN stays a NaN
         x = np.asarray(values, dtype=np.float64)    # float32 widened exactly
     ok = np.isfinite(x)
     if present is not None:
         ok &= np.asarray(present, dtype=bool)
-    s = pc.cast(float64_array(x, ok), "string")
+    numbers = float64_array(x, ok)                # offset 0, validity: ok
+    s = pc.cast(numbers, "string")
+    n = len(s)
+    if n == 0 or not ok.any():
+        return s
+    # per cell, from the text buffer: does it hold a '.' or an 'e'?
+    offsets = np.frombuffer(s.buffers()[1], dtype=np.int32)[s.offset:s.offset + n + 1]
+    data = np.frombuffer(s.buffers()[2], dtype=np.uint8)[:offsets[-1]]
+    cum_dot = np.zeros(data.shape[0] + 1, dtype=np.int64)
+    cum_e = np.zeros(data.shape[0] + 1, dtype=np.int64)
+    np.cumsum(data == ord("."), out=cum_dot[1:])
+    np.cumsum(data == ord("e"), out=cum_e[1:])
+    has_dot = cum_dot[offsets[1:]] > cum_dot[offsets[:-1]]
+    has_e = cum_e[offsets[1:]] > cum_e[offsets[:-1]]
     ax = np.abs(x)
     with np.errstate(invalid="ignore"):
         fixed = (ax == 0) | ((ax >= 1e-4) & (ax < 1e16))     # repr's fixed notation
-    has_e = to_bool(pc.match_substring(s, "e"))
-    no_dot = pc.invert(pc.match_substring(s, "."))
-    empty = repeated_string("", len(s))
-    s = pc.if_else(no_dot, pc.binary_join_element_wise(s, repeated_string(".0", len(s)),
-                                                       empty), s)            # "1" -> "1.0"
     slow = ok & (has_e | ~fixed)
+    need_dot = ok & ~slow & ~has_dot                          # "1" -> "1.0"
+    if need_dot.any():
+        lens = np.diff(offsets)
+        new_offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(lens + 2 * need_dot, out=new_offsets[1:])
+        shift = np.repeat(new_offsets[:-1] - offsets[:-1], lens)
+        out = np.empty(int(new_offsets[-1]), dtype=np.uint8)
+        out[np.arange(offsets[0], offsets[-1]) - offsets[0] + shift] = data[offsets[0]:]
+        ends = new_offsets[1:][need_dot]
+        out[ends - 2] = ord(".")
+        out[ends - 1] = ord("0")
+        s = pa.Array.from_buffers(pa.string(), n, [
+            numbers.buffers()[0], pa.py_buffer(new_offsets.astype(np.int32)),
+            pa.py_buffer(out)])
     if slow.any():
-        s = pc.replace_with_mask(s, bool_array(slow), string_array([repr(v) for v in x[slow].tolist()]))
+        s = pc.replace_with_mask(s, bool_array(slow),
+                                 string_array([repr(v) for v in x[slow].tolist()]))
     return s
 
 

@@ -266,8 +266,7 @@ def _parse_chunk(path, names, raw: bytes, first_no: int, st):
              and b"\n\t" not in raw and b"\n\r" not in raw
              and raw[:1] not in (b"\n", b" ", b"\t", b"\r")
              and raw.count(b"\r") == raw.count(b"\r\n"))     # CR only in CR LF endings
-    if clean:
-        _decode(path, raw, first_no, first=False)          # UTF-8, or the line that is not
+    if clean:        # no UTF-8 check needed: pyarrow accepts only ASCII number cells
         n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
         values = _parse_arrow(raw, len(names), n)
         if values is not None:
