@@ -238,3 +238,20 @@ def test_apply_in_chunks_writes_the_same_bytes(tmp_path, fm1_dir):
     assert summary["n"] == tel.n
     assert summary["n_valid"] == {s.name: int(one[s.name]["valid"].sum())
                                   for s in cs.unit.sensors}
+
+
+def test_fault_in_a_late_chunk_leaves_no_output(tmp_path, fm1_dir):
+    """Chunks before the fault were already corrected and written to the temporary file:
+    the output must still not appear (atomic), and the message names the line."""
+    cs = CoefficientSet.load(COEFFS).with_boom_stowed()
+    lines = (fm1_dir / "thermal_12pos.csv").read_text().split("\n")[:3000]
+    k = 2500
+    cells = lines[k].split(",")
+    cells[3] = "abc"
+    lines[k] = ",".join(cells)
+    data = tmp_path / "late.csv"
+    data.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out.csv"
+    with pytest.raises(InputError, match=f":{k + 1}: column .*not a number: 'abc'"):
+        pipeline.apply(cs, data, out, coils_off=True, at_rest=True, chunk_bytes=20_000)
+    assert not out.exists() and list(tmp_path.iterdir()) == [data]
