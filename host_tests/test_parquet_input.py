@@ -89,16 +89,16 @@ def test_apply_on_parquet_writes_the_csv_rows(tmp_path, csv_path):
 
 
 def test_fit_and_trace_read_parquet(tmp_path, fm1_dir):
-    """fit on the Parquet copy of the thermal campaign gives the same coefficients as on
+    """fit on the Parquet copy of the rotation campaign gives the same coefficients as on
     the CSV; trace reads its data files through the same reader."""
     from generator.io.unitfile import load_unit
     from generator.trace import tracer
 
     unit_path = fm1_dir / "unit.toml"
     unit = load_unit(unit_path)
-    src = fm1_dir / "thermal_12pos.csv"
-    pqp = _to_parquet(read_telemetry(src, unit), tmp_path / "thermal.parquet",
-                      row_group_size=5000)
+    src = fm1_dir / "rotation.csv"
+    pqp = _to_parquet(read_telemetry(src, unit), tmp_path / "rotation.parquet",
+                      row_group_size=1500)
     a = pipeline.fit(unit_path, [src]).to_json_dict()
     b = pipeline.fit(unit_path, [pqp]).to_json_dict()
     assert a["sensors"] == b["sensors"] and a["unit_coefficients"] == b["unit_coefficients"]
