@@ -261,19 +261,22 @@ def float_cells(values, present=None):
     # per cell, from the text buffer: does it hold a '.' or an 'e'?
     offsets = np.frombuffer(s.buffers()[1], dtype=np.int32)[s.offset:s.offset + n + 1]
     data = np.frombuffer(s.buffers()[2], dtype=np.uint8)[:offsets[-1]]
-    cum_dot = np.zeros(data.shape[0] + 1, dtype=np.int64)
-    cum_e = np.zeros(data.shape[0] + 1, dtype=np.int64)
-    np.cumsum(data == ord("."), out=cum_dot[1:])
-    np.cumsum(data == ord("e"), out=cum_e[1:])
-    has_dot = cum_dot[offsets[1:]] > cum_dot[offsets[:-1]]
-    has_e = cum_e[offsets[1:]] > cum_e[offsets[:-1]]
+    lens = np.diff(offsets)
+    starts = np.minimum(offsets[:-1], max(data.shape[0] - 1, 0))
+    filled = lens > 0                    # only null cells are empty (their flags unused)
+    has_dot = np.logical_or.reduceat(data == ord("."), starts) & filled
+    has_e = np.logical_or.reduceat(data == ord("e"), starts) & filled
     ax = np.abs(x)
     with np.errstate(invalid="ignore"):
         fixed = (ax == 0) | ((ax >= 1e-4) & (ax < 1e16))     # repr's fixed notation
     slow = ok & (has_e | ~fixed)
     need_dot = ok & ~slow & ~has_dot                          # "1" -> "1.0"
-    if need_dot.any():
-        lens = np.diff(offsets)
+    n_dot = int(need_dot.sum())
+    if 0 < n_dot <= n // 16:           # a few whole numbers among fractions: cell by cell
+        at = np.flatnonzero(need_dot)
+        s = pc.replace_with_mask(s, bool_array(need_dot), string_array(
+            [data[offsets[i]:offsets[i + 1]].tobytes().decode() + ".0" for i in at.tolist()]))
+    elif n_dot:                        # many (time stamps, counts): shift the text buffer
         new_offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(lens + 2 * need_dot, out=new_offsets[1:])
         shift = np.repeat(new_offsets[:-1] - offsets[:-1], lens)
