@@ -255,3 +255,23 @@ def test_fault_in_a_late_chunk_leaves_no_output(tmp_path, fm1_dir):
     with pytest.raises(InputError, match=f":{k + 1}: column .*not a number: 'abc'"):
         pipeline.apply(cs, data, out, coils_off=True, at_rest=True, chunk_bytes=20_000)
     assert not out.exists() and list(tmp_path.iterdir()) == [data]
+
+
+@pytest.mark.parametrize("extras", [False, True])
+def test_crlf_file_reads_as_lf(tmp_path, extras):
+    """CR LF line ends take the C parser's path too, with the same values and lines; a
+    lone CR in a cell goes the cell-by-cell way (which strips it, as before)."""
+    unit = _unit()
+    text = _telemetry_text(unit, 2000, np.random.default_rng(6), extras)
+    lf, crlf = tmp_path / "lf.csv", tmp_path / "crlf.csv"
+    lf.write_bytes(text.encode())
+    crlf.write_bytes(text.replace("\n", "\r\n").encode())
+    _same(concat_chunks(iter_telemetry(crlf, unit, chunk_bytes=7000)), read_telemetry(lf, unit))
+    lines = text.split("\n")
+    k = next(i for i in range(1500, 1600) if lines[i] and not lines[i].startswith("#"))
+    cells = lines[k].split(",")
+    cells[2] += "\r"                                      # a lone CR inside a line
+    lines[k] = ",".join(cells)
+    lone = tmp_path / "lone.csv"
+    lone.write_bytes("\n".join(lines).encode())
+    _same(concat_chunks(iter_telemetry(lone, unit, chunk_bytes=7000)), read_telemetry(lf, unit))
