@@ -19,6 +19,8 @@ imports and I/O count as a user sees them. Ratios, not seconds, are the result:
   (--read-rows rows; the issue measured 606 MB against 129 MB at 360,000 rows).
 * fit: `magcal fit --no-report` time and peak RSS on --fit-rows rows, against
   numpy.loadtxt of the same file (reading the numbers at all); peak RSS per sample.
+* the report's share: `magcal fit` of the shared thermal campaign with the report against
+  --no-report (and the imports alone).
 """
 
 from __future__ import annotations
@@ -136,6 +138,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows")
     ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
     ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
+    ap.add_argument("--no-thermal", dest="thermal", action="store_false",
+                    help="skip the fit of the shared thermal campaign with and without report")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -200,6 +204,17 @@ def main(argv=None) -> int:
                   f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
                   f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
+        if a.thermal:          # the report's share of a fit on the shared campaign
+            th = FM1 / "thermal_12pos.csv"
+            t_nr, m_nr = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
+                               tmp / "th_nr", "--no-report", "--quiet"], a.repeat)
+            t_r, m_r = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
+                             tmp / "th_r", "--quiet"], a.repeat)
+            t_imp, _ = best(_worker_cmd("imports"), a.repeat)
+            res["thermal_fit_report_vs_no_report_time"] = t_r / t_nr
+            print(f"fit thermal_12pos: {t_nr:.2f} s with --no-report ({t_nr - t_imp:.2f} s "
+                  f"above the imports), {t_r:.2f} s with the report: the report adds "
+                  f"{t_r - t_nr:.2f} s ({t_r / t_nr:.2f}x); peak {m_nr:.0f} / {m_r:.0f} MiB")
     print(json.dumps({k: round(v, 3) for k, v in res.items()}))
     return 0
 
