@@ -103,21 +103,31 @@ def cmd_fit(args):
             progress=progress))
     with output_folder(args.output) as folder:
         cs.save(folder.tmp / "coefficients.json")
-        report = write_fit_report(cs, folder.tmp, data_paths=args.data, progress=progress,
-                                  extra_sections=extra)
-    out, report = folder.target, folder.final(report)
-    progress(f"wrote {out / 'coefficients.json'} and {report}")
+        report = None if args.no_report else write_fit_report(
+            cs, folder.tmp, data_paths=args.data, progress=progress, extra_sections=extra)
+    out = folder.target
     from generator.report.report import fit_summary
+    if report is None:
+        progress(f"wrote {out / 'coefficients.json'} (no report: --no-report)")
+        summary = fit_summary(cs, out / "coefficients.json", None)
+        summary["report"] = None
+        return 0, summary
+    report = folder.final(report)
+    progress(f"wrote {out / 'coefficients.json'} and {report}")
     return 0, fit_summary(cs, out / "coefficients.json", report)
 
 
 def _args_fit(p):
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
-    p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2)")
+    p.add_argument("data", nargs="+", help="telemetry files (ICD section 2): CSV or Parquet")
     p.add_argument("-o", "--output", required=True, help="output folder")
-    p.add_argument("--compare-methods", action="store_true",
-                   help="also fit with every method (seed 000 ellipsoid, seed 001 analytic, "
-                        "auto) and compare them in the report")
+    only_one = p.add_mutually_exclusive_group()
+    only_one.add_argument("--compare-methods", action="store_true",
+                          help="also fit with every method (seed 000 ellipsoid, seed 001 "
+                               "analytic, auto) and compare them in the report")
+    only_one.add_argument("--no-report", action="store_true",
+                          help="write coefficients.json only: no report and no figures "
+                               "(the fit itself, e.g. for long telemetry or scripts)")
     p.add_argument("--truth", default=None,
                    help="truth.json of a simulated unit: the comparison adds errors against it")
     p.add_argument("--prior", default=None, metavar="COEFFS.json",
@@ -144,13 +154,13 @@ def cmd_apply(args):
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
     apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off,
-          at_rest=args.at_rest)
+          at_rest=args.at_rest, collect=False)     # streams: memory bounded by the chunk
     return 0
 
 
 def _args_apply(p):
     p.add_argument("coeffs", help="coefficients.json")
-    p.add_argument("data", help="telemetry CSV")
+    p.add_argument("data", help="telemetry file (ICD section 2): CSV or Parquet")
     p.add_argument("-o", "--output", required=True, help="output CSV")
     p.add_argument("--boom-stowed", action="store_true",
                    help="the data were taken with the boom stowed (ground jig): H = identity")

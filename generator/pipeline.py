@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 
 import numpy as np
@@ -291,27 +290,70 @@ def _orbit_notes(unit, tels, cals, info) -> None:
 
 
 def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
-          coils_off=False, at_rest=False) -> dict:
+          coils_off=False, at_rest=False, collect=True, chunk_bytes=None) -> dict:
     """Correct a telemetry file through the compiled flight C; write the ICD output CSV.
     coils_off: the data were recorded with the magnetorquers off; at_rest: standing still,
     absent rate and channel columns are 0 (see chain_inputs, aux_off).
 
-    Returns per-sensor outputs (field_body_nT, status, valid) for callers and tests.
+    The file streams through in chunks (io.telemetry_csv.iter_telemetry, about
+    chunk_bytes of text each): each chunk is validated, corrected by the flight C on whole
+    arrays (each sensor's chain state carried from chunk to chunk, so the calls are the
+    same sequence as one batch over the file) and written; the output file appears only
+    when the whole input was good (atomic_file). Memory is bounded by the chunk size when
+    collect=False.
+
+    Returns per-sensor outputs (field_body_nT, status, valid, present) for callers and
+    tests, with "selected" and "fallback_order"; collect=False (the command line): only
+    {"n": samples, "n_valid": {sensor: count}}.
     """
     from generator.flight.host import HostUnit
+    from generator.io.telemetry_csv import CHUNK_BYTES, iter_telemetry
 
     progress = progress or Progress(quiet=True)
-    tel = read_telemetry(data_path, cs.unit)
     host = host or HostUnit(cs)
+    names = [s.name for s in cs.unit.sensors]
+    states = {n: host.new_state(n) for n in names}
+    n_valid = dict.fromkeys(names, 0)
+    pieces, n, prev_t, started = [], 0, None, False
+    with atomic_file(out_path, "wb") as f:
+        for tel in iter_telemetry(data_path, cs.unit, chunk_bytes=chunk_bytes or CHUNK_BYTES):
+            if not started:
+                started = True
+                f.write(_apply_preamble(tel.path, cs.unit, cs.spec.fallback_order()).encode())
+            res = _apply_chunk(cs, host, tel, states, prev_t, coils_off, at_rest)
+            f.write(_apply_rows(tel.time_s, cs.unit, res))
+            for name in names:
+                n_valid[name] += int(res[name]["valid"].sum())
+            n += tel.n
+            if tel.n:
+                prev_t = float(tel.time_s[-1])
+            if collect:
+                pieces.append(res)
+    for name in names:
+        progress(f"{name}: {n_valid[name]} of {n} samples valid")
+    if not collect:
+        return {"n": n, "n_valid": n_valid}
+    results = {name: {k: np.concatenate([p[name][k] for p in pieces])
+                      for k in pieces[0][name]} for name in names}
+    results["selected"] = {k: np.concatenate([p["selected"][k] for p in pieces])
+                           for k in pieces[0]["selected"]}
+    results["fallback_order"] = cs.spec.fallback_order()
+    return results
+
+
+def _apply_chunk(cs, host, tel: Telemetry, states: dict, prev_t, coils_off, at_rest) -> dict:
+    """One chunk through the flight C: every sensor's chain on its carried state, then the
+    cross-check and selection for the attitude system."""
     results = {}
     for s in cs.unit.sensors:
         inp = chain_inputs(tel, cs.spec, s.name, coils_off=coils_off, aux_off=at_rest)
+        if inp["dt_s"] is not None and prev_t is not None and tel.n:
+            inp["dt_s"][0] = tel.time_s[0] - prev_t      # the step from the last chunk
         out = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
                            channels=inp["channels"], rate_dps=inp["rate_dps"],
-                           dt_s=inp["dt_s"])
+                           dt_s=inp["dt_s"], state=states[s.name])
         results[s.name] = {"field_body_nT": out["field_body_nT"], "status": out["status"],
                            "present": inp["present"]}
-    # cross-check and selection for the attitude system, through the flight C
     fields = np.stack([results[s.name]["field_body_nT"] for s in cs.unit.sensors], axis=1)
     statuses = np.stack([np.where(results[s.name]["present"], results[s.name]["status"],
                                   STATUS_ABSENT) for s in cs.unit.sensors], axis=1)
@@ -323,10 +365,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
         r["status"] = np.where(r["present"], sel["status"][:, k],
                                np.asarray(r["status"], dtype=np.uint16) | STATUS_ABSENT)
         r["valid"] = is_valid(r["status"]) & r["present"]
-        progress(f"{s.name}: {int(r['valid'].sum())} of {tel.n} samples valid")
     results["selected"] = sel
-    results["fallback_order"] = cs.spec.fallback_order()
-    write_apply_csv(out_path, tel, cs.unit, results)
     return results
 
 
@@ -334,53 +373,61 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
 STATUS_ABSENT = 0x8000
 
 
-def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
-    """ICD columns (time_s, <s>_x/y/z_nT, <s>_valid) plus, compatibly, <s>_status and the
-    selected vector for the attitude system (sel_x/y/z_nT, sel_sensor, sel_reason)."""
-    from generator.flight.chain import SELECT_REASONS
-
+def _apply_header(unit: Unit) -> list:
     header = ["time_s"]
     for s in unit.sensors:
         header += [f"{s.name}_x_nT", f"{s.name}_y_nT", f"{s.name}_z_nT", f"{s.name}_valid",
                    f"{s.name}_status"]
-    header += ["sel_x_nT", "sel_y_nT", "sel_z_nT", "sel_sensor", "sel_reason"]
-    reasons = {v: k for k, v in SELECT_REASONS.items()}
+    return header + ["sel_x_nT", "sel_y_nT", "sel_z_nT", "sel_sensor", "sel_reason"]
+
+
+def _apply_preamble(source, unit: Unit, fallback_order) -> str:
+    """The comment lines and the header line of the output CSV."""
     names = [s.name for s in unit.sensors]
+    return (f"# magcal apply: calibrated field in the body frame, from {source}\n"
+            "# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
+            + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED\n"
+            "# sel_*: the vector for attitude control (fallback order "
+            + " > ".join(names[i] for i in fallback_order) + ")\n"
+            + ",".join(_apply_header(unit)) + "\n")
+
+
+def _apply_rows(time_s, unit: Unit, results: dict) -> memoryview:
+    """The data rows of the output CSV, formatted column by column (io.outputs: every
+    float as repr(float(v)), missing values as empty cells)."""
+    from generator.flight.chain import SELECT_REASONS
+    from generator.io.arrow_np import int64_array, string_array
+    from generator.io.outputs import csv_lines, float_cells, int_cells
+
+    cols = [float_cells(time_s)]
+    for s in unit.sensors:
+        r = results[s.name]
+        for k in range(3):
+            cols.append(float_cells(r["field_body_nT"][:, k], r["present"]))
+        cols += [int_cells(r["valid"]), int_cells(r["status"])]
     sel = results["selected"]
-    with atomic_file(out_path, "w", newline="") as f:
-        f.write(f"# magcal apply: calibrated field in the body frame, from {tel.path}\n")
-        f.write("# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
-                + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED\n")
-        f.write("# sel_*: the vector for attitude control (fallback order "
-                + " > ".join(names[i] for i in results["fallback_order"]) + ")\n")
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(header)
-        t = tel.time_s
-        cols = []
-        for s in unit.sensors:
-            r = results[s.name]
-            cols.append((r["field_body_nT"], r["valid"], r["status"], r["present"]))
-        for i in range(tel.n):
-            row = [_fmt(t[i])]
-            for field, valid, status, present in cols:
-                if present[i]:
-                    row += [_fmt(field[i, 0]), _fmt(field[i, 1]), _fmt(field[i, 2])]
-                else:
-                    row += ["", "", ""]
-                row += ["1" if valid[i] else "0", str(int(status[i]))]
-            k = int(sel["sensor"][i])
-            if k >= 0:
-                row += [_fmt(sel["field_body_nT"][i, 0]), _fmt(sel["field_body_nT"][i, 1]),
-                        _fmt(sel["field_body_nT"][i, 2]), names[k]]
-            else:
-                row += ["", "", "", ""]
-            row.append(reasons[int(sel["reason"][i])])
-            w.writerow(row)
+    k_sel = np.asarray(sel["sensor"], dtype=np.int64)
+    chosen = k_sel >= 0
+    for k in range(3):
+        cols.append(float_cells(sel["field_body_nT"][:, k], chosen))
+    names = string_array([s.name for s in unit.sensors])
+    cols.append(names.take(int64_array(np.where(chosen, k_sel, 0), valid=chosen)))
+    by_value = {v: k for k, v in SELECT_REASONS.items()}
+    reason = np.asarray(sel["reason"], dtype=np.int64)
+    unknown = sorted(set(np.unique(reason).tolist()) - set(by_value))
+    if unknown:
+        raise RuntimeError(f"select returned reason {unknown[0]}, not in SELECT_REASONS")
+    lut = string_array([by_value.get(i) for i in range(max(by_value) + 1)])
+    cols.append(lut.take(int64_array(reason)))
+    return csv_lines(cols)
 
 
-def _fmt(v) -> str:
-    # shortest repr that round-trips the value (float32 outputs stay exact)
-    return str(v.item() if hasattr(v, "item") else v) if np.isfinite(v) else ""
+def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):
+    """ICD columns (time_s, <s>_x/y/z_nT, <s>_valid) plus, compatibly, <s>_status and the
+    selected vector for the attitude system (sel_x/y/z_nT, sel_sensor, sel_reason)."""
+    with atomic_file(out_path, "wb") as f:
+        f.write(_apply_preamble(tel.path, unit, results["fallback_order"]).encode())
+        f.write(_apply_rows(tel.time_s, unit, results))
 
 
 __all__ = ["Progress", "chain_inputs", "fit", "apply", "write_apply_csv", "InputError"]

@@ -5,15 +5,17 @@ The flight sources are compiled exactly as the standards require
 -Wall -Wextra -Werror -pedantic. A host-only batch shim (templates/host_shim.*.j2) loops
 over samples so that `magcal apply` and the tests run the flight code itself.
 
-Builds are cached by the hash of their sources, flags and compiler, in a private per-user
-folder (cache_dir); a cached module is loaded only when its sha256 matches the sidecar
-written after its build.
+Builds are cached in a private per-user folder (cache_dir) by a hash of their inputs
+(input_key: coefficients, package and template sources, tool versions, flags, compiler),
+so a cached build starts without rendering the C; a cached module is loaded only when its
+sha256 matches the sidecar written after its build.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib.util
+import json
 import os
 import shutil
 import stat
@@ -26,7 +28,7 @@ import numpy as np
 
 from generator.flight.chain import ChainSpec, is_physical, np_dtype
 from generator.flight.codegen import _env, render, template_context
-from generator.flight.coeffs import CoefficientSet
+from generator.flight.coeffs import CoefficientSet, json_default
 from generator.errors import InputError
 
 CC = os.environ.get("CC", "gcc")
@@ -129,19 +131,25 @@ def _compile(src: Path, obj: Path, flags, include: Path):
     return obj
 
 
-def cffi_module(prefix: str, files: dict, cdef_file: str, source: str):
+def cffi_module(prefix: str, files, cdef_file: str, source: str, input_key: str | None = None):
     """(lib, ffi) of a cffi module built from `files` (name -> text): every .c file compiled
     with FP_FLAGS + STRICT_FLAGS, the module's own C is `source`, its declarations are
     files[cdef_file]. Cached under cache_dir() by the hash of sources, flags, compiler and
-    Python; concurrent builders race safely (the first rename wins)."""
-    key = hashlib.sha256()
-    for name in sorted(files):
-        key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
-    key.update(cdef_file.encode() + b"\0" + source.encode() + b"\0")
-    key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
-    key.update(compiler_id().encode())
-    key.update(sys.version.encode())
-    module_name = f"{prefix}_{key.hexdigest()[:16]}"
+    Python; concurrent builders race safely (the first rename wins).
+
+    input_key: the caller's hash of everything the sources are made from (input_key());
+    then the cache is keyed by it, and `files` may be a callable that renders the sources,
+    called only when there is no verified build to load."""
+    if input_key is None:
+        key = hashlib.sha256()
+        for name in sorted(files):
+            key.update(name.encode() + b"\0" + files[name].encode() + b"\0")
+        key.update(cdef_file.encode() + b"\0" + source.encode() + b"\0")
+        key.update(" ".join(FP_FLAGS + STRICT_FLAGS).encode())
+        key.update(compiler_id().encode())
+        key.update(sys.version.encode())
+        input_key = key.hexdigest()
+    module_name = f"{prefix}_{input_key[:16]}"
     build_dir = cache_dir() / module_name
     mod_path = _verified_module(build_dir, module_name)
     if mod_path is None:
@@ -153,7 +161,7 @@ def cffi_module(prefix: str, files: dict, cdef_file: str, source: str):
                 shutil.rmtree(stale, ignore_errors=True)
             except OSError:
                 pass
-        _build_cffi(module_name, files, cdef_file, source)
+        _build_cffi(module_name, files() if callable(files) else files, cdef_file, source)
         mod_path = _verified_module(build_dir, module_name)
         if mod_path is None:
             raise HostBuildError(f"the build of {module_name} in {build_dir} does not match "
@@ -196,21 +204,66 @@ def _build_cffi(module_name, files, cdef_file, source):
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+# what the host build's sources are made from, besides the coefficients: the package's own
+# code (chain, codegen, literals, unit model: any of it can change the C) and the templates
+_SOURCE_SUFFIXES = (".py", ".toml", ".j2", ".c", ".h", ".inc")
+
+
+def input_key(cs: CoefficientSet, roots=None) -> str:
+    """sha256 (hex) of everything the host build of `cs` is made from, without rendering
+    it: the coefficient set as coefficients.json would hold it, every source file of the
+    generator package and of the templates (`roots`, default both), the versions of
+    magcal, CasADi, Jinja2, cffi and numpy, the compiler flags and compiler, and Python.
+    Any change to an input changes the key, so a stale build is never loaded."""
+    import cffi
+    import casadi
+    import jinja2
+
+    import generator
+    from generator.flight.codegen import TEMPLATE_DIR
+
+    h = hashlib.sha256(b"magcal host build inputs v1\0")
+    h.update(json.dumps(cs.to_json_dict(), sort_keys=True, default=json_default).encode())
+    if roots is None:
+        roots = (Path(generator.__file__).resolve().parent, TEMPLATE_DIR)
+    for k, root in enumerate(roots):
+        root = Path(root)
+        for p in sorted(root.rglob("*")):
+            if p.suffix in _SOURCE_SUFFIXES and "__pycache__" not in p.parts and p.is_file():
+                h.update(f"\0{k}:{p.relative_to(root).as_posix()}\0".encode())
+                h.update(p.read_bytes())
+    for part in (generator.__version__, casadi.__version__, jinja2.__version__,
+                 cffi.__version__, np.__version__, " ".join(FP_FLAGS + STRICT_FLAGS), CC,
+                 compiler_id(), sys.version):
+        h.update(b"\0" + str(part).encode())
+    return h.hexdigest()
+
+
 class HostUnit:
-    """The compiled flight C of one unit, callable from Python."""
+    """The compiled flight C of one unit, callable from Python.
+
+    The build is cached by input_key(cs) (hashes of the inputs, not the rendered C): a
+    cached, sha256-verified build is loaded without rendering anything; the C is rendered
+    (CasADi + Jinja2) and compiled only when there is none. `sources` given: the build of
+    exactly those sources (keyed by their text)."""
 
     def __init__(self, cs: CoefficientSet, sources: dict | None = None, quiet=True):
         self.cs = cs
         self.spec: ChainSpec = cs.spec
         self.dtype = np_dtype(self.spec.unit)
-        files = dict(sources) if sources is not None else render(cs)
-        ctx = template_context(cs)
-        env = _env()
-        files["host_shim.c"] = env.get_template("host_shim.c.j2").render(**ctx)
-        files["host_shim.h"] = env.get_template("host_shim.h.j2").render(**ctx)
+
+        def files():
+            out = dict(sources) if sources is not None else render(cs)
+            ctx = template_context(cs)
+            env = _env()
+            out["host_shim.c"] = env.get_template("host_shim.c.j2").render(**ctx)
+            out["host_shim.h"] = env.get_template("host_shim.h.j2").render(**ctx)
+            return out
+
+        key = input_key(cs) if sources is None else None
         self._lib, self._ffi = cffi_module(
-            "_magcal_host", files, "host_shim.h",
-            '#include <stdint.h>\n#include "host_shim.h"\n')
+            "_magcal_host", files if key else files(), "host_shim.h",
+            '#include <stdint.h>\n#include "host_shim.h"\n', input_key=key)
 
     # ---- calls -------------------------------------------------------------------------
     def flat_coeffs(self, cs: CoefficientSet | None = None) -> np.ndarray:
@@ -267,12 +320,19 @@ class HostUnit:
             return np.ascontiguousarray(raw), self._ctype
         return np.ascontiguousarray(raw_counts, dtype=np.int32), "int32_t"
 
+    def new_state(self, sensor: str) -> np.ndarray:
+        """A zeroed state of the sensor's chain (its C state struct as bytes), for
+        correct(..., state=): consecutive calls on it are one sequence of calls."""
+        return np.zeros(int(getattr(self._lib, f"host_{sensor}_state_size")()), np.uint8)
+
     def correct(self, sensor: str, raw_counts, temp_C, coil_A=None, coeffs_flat=None,
-                channels=None, rate_dps=None, dt_s=None) -> dict:
+                channels=None, rate_dps=None, dt_s=None, state=None) -> dict:
         """Run `<unit>_<sensor>_correct` over a sequence of samples on one state; same
         outputs as chain.reference_sensor (offset_counts: the state's stored offset after
         each call, NaN until the first unsaturated pair). raw_counts: counts, or for a
-        physical-input sensor its readings in its input unit. channels: {column: (N,)}."""
+        physical-input sensor its readings in its input unit. channels: {column: (N,)}.
+        state: None, a fresh zeroed state; else a buffer from new_state(sensor), read at
+        the start and updated in place at the end (streaming in chunks)."""
         s = self.spec.unit.sensor(sensor)
         raw, raw_t = self._raw(s, raw_counts)
         n = raw.shape[0]
@@ -286,12 +346,21 @@ class HostUnit:
         keep, aux = self._aux(n, coil_A, channels, rate_dps, dt_s)
         getattr(self._lib, f"host_{sensor}_batch")(
             self._ptr(co), n, self._ptr(raw, raw_t), self._ptr(temp), *aux,
-            self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"))
+            self._ptr(field), self._ptr(chip), self._ptr(offs), self._ptr(status, "uint16_t"),
+            self._state_ptr(sensor, state))
         out = {"field_body_nT": field, "status": status}
         if s.set_reset:
             out["chip_offset_nT"] = chip
             out["offset_counts"] = offs
         return out
+
+    def _state_ptr(self, sensor, state):
+        if state is None or state.size == 0:
+            return self._ffi.NULL
+        want = int(getattr(self._lib, f"host_{sensor}_state_size")())
+        if state.dtype != np.uint8 or state.size != want or not state.flags.c_contiguous:
+            raise ValueError(f"state of {sensor}: not a buffer from new_state()")
+        return self._ffi.cast("unsigned char *", state.ctypes.data)
 
     def correct_set(self, sensor: str, set_counts, temp_C, offset_counts, coil_A=None,
                     coeffs_flat=None, channels=None, rate_dps=None, dt_s=None) -> dict:

@@ -17,6 +17,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from generator.errors import InputError
 
 
@@ -226,3 +228,99 @@ def _merge(src: Path, dst: Path) -> None:
         d.parent.mkdir(parents=True, exist_ok=True)
         os.replace(f, d)
     _fsync_dir(dst)
+
+
+# ---- CSV cells, vectorised -------------------------------------------------------------
+# Output CSVs write every float as Python's repr(float(v)) would: the shortest text that
+# reads back as the same float64 (a float32 value widened to float64 exactly, so it reads
+# back as the same float32), in fixed notation for 1e-4 <= |v| < 1e16 and 0, else
+# scientific ("1e-05"). pyarrow's C formatter finds the same shortest digits (both are
+# shortest round-trip with the nearest-value tie-break); where its layout differs from
+# repr's ("1" for 1.0, "1e+15", "0.00001") the cell is fixed or written by repr itself.
+# host_tests/test_stream_io.py compares the two on a million values of every magnitude.
+
+
+def float_cells(values, present=None):
+    """pyarrow string array: repr(float(v)) of each value, null (an empty cell) where the
+    value is NaN or infinite or present is False."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    from generator.io.arrow_np import bool_array, float64_array, string_array
+
+    with np.errstate(invalid="ignore"):             # a signalling NaN stays a NaN
+        x = np.asarray(values, dtype=np.float64)    # float32 widened exactly
+    ok = np.isfinite(x)
+    if present is not None:
+        ok &= np.asarray(present, dtype=bool)
+    numbers = float64_array(x, ok)                # offset 0, validity: ok
+    s = pc.cast(numbers, "string")
+    n = len(s)
+    if n == 0 or not ok.any():
+        return s
+    # per cell, from the text buffer: does it hold a '.' or an 'e'?
+    offsets = np.frombuffer(s.buffers()[1], dtype=np.int32)[s.offset:s.offset + n + 1]
+    data = np.frombuffer(s.buffers()[2], dtype=np.uint8)[:offsets[-1]]
+    lens = np.diff(offsets)
+    starts = np.minimum(offsets[:-1], max(data.shape[0] - 1, 0))
+    filled = lens > 0                    # only null cells are empty (their flags unused)
+    has_dot = np.logical_or.reduceat(data == ord("."), starts) & filled
+    has_e = np.logical_or.reduceat(data == ord("e"), starts) & filled
+    ax = np.abs(x)
+    with np.errstate(invalid="ignore"):
+        fixed = (ax == 0) | ((ax >= 1e-4) & (ax < 1e16))     # repr's fixed notation
+    slow = ok & (has_e | ~fixed)
+    need_dot = ok & ~slow & ~has_dot                          # "1" -> "1.0"
+    n_dot = int(need_dot.sum())
+    if 0 < n_dot <= n // 16:           # a few whole numbers among fractions: cell by cell
+        at = np.flatnonzero(need_dot)
+        s = pc.replace_with_mask(s, bool_array(need_dot), string_array(
+            [data[offsets[i]:offsets[i + 1]].tobytes().decode() + ".0" for i in at.tolist()]))
+    elif n_dot:                        # many (time stamps, counts): shift the text buffer
+        new_offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(lens + 2 * need_dot, out=new_offsets[1:])
+        shift = np.repeat(new_offsets[:-1] - offsets[:-1], lens)
+        out = np.empty(int(new_offsets[-1]), dtype=np.uint8)
+        out[np.arange(offsets[0], offsets[-1]) - offsets[0] + shift] = data[offsets[0]:]
+        ends = new_offsets[1:][need_dot]
+        out[ends - 2] = ord(".")
+        out[ends - 1] = ord("0")
+        s = pa.Array.from_buffers(pa.string(), n, [
+            numbers.buffers()[0], pa.py_buffer(new_offsets.astype(np.int32)),
+            pa.py_buffer(out)])
+    if slow.any():
+        s = pc.replace_with_mask(s, bool_array(slow),
+                                 string_array([repr(v) for v in x[slow].tolist()]))
+    return s
+
+
+def int_cells(values):
+    """pyarrow string array: str(int(v)) of each integer value."""
+    import pyarrow.compute as pc
+
+    from generator.io.arrow_np import int64_array
+
+    return pc.cast(int64_array(values), "string")
+
+
+def csv_lines(columns) -> memoryview:
+    """The rows of equal-length pyarrow string arrays as CSV text (UTF-8 bytes), each row
+    ended by a newline; a null is an empty cell. Cells are written as they are: the
+    callers' cells never hold a comma, quote or newline (numbers and identifiers)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    from generator.io.arrow_np import repeated_string
+
+    n = len(columns[0])
+    if n == 0:
+        return memoryview(b"")
+    rows = pc.binary_join_element_wise(*columns, repeated_string(",", n),
+                                       null_handling="replace", null_replacement="")
+    rows = pc.binary_join_element_wise(rows, repeated_string("", n),
+                                       repeated_string("\n", n))      # "row" -> "row\n"
+    if isinstance(rows, pa.ChunkedArray):
+        rows = rows.combine_chunks()
+    offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)
+    start, end = int(offsets[rows.offset]), int(offsets[rows.offset + len(rows)])
+    return memoryview(rows.buffers()[2])[start:end]

@@ -1,14 +1,21 @@
 """Telemetry CSV (ICD section 2): reading, validation, and preprocessing to raw frame-axis fields.
 
-read_csv checks the whole file before returning anything; the first fault raises InputError
-naming the file, the 1-based line and the column, e.g.
+read_telemetry checks the whole file before returning anything; the first fault raises
+InputError naming the file, the 1-based line and the column, e.g.
 
     thermal.csv:17: column 'mmc1_set_x': not a number: 'abc'
 
-Reading has two paths that accept the same files. The fast path hands the data lines to
-numpy's C parser (36,000 rows x 35 columns in well under 0.5 s). Whenever it cannot be sure
-(a parse failure, a row of the wrong width, letters of nan/inf in the data), the file is
-parsed again cell by cell in Python, which finds and names the exact faulty cell.
+The file is read in chunks of whole lines (iter_telemetry, about CHUNK_BYTES each), so
+memory is bounded by the chunk, not the file: `apply` streams chunk by chunk,
+read_telemetry joins the chunks' columns. A Parquet file (io/telemetry_parquet.py) is
+read the same way and passes the same checks.
+
+Parsing has three paths that accept the same cells. A block of data lines without
+comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, no
+quoting, only empty cells missing); lines that pyarrow refuses go to numpy's C parser;
+whenever neither can be sure (a parse failure, a row of the wrong width, letters of
+nan/inf in the data), the lines are parsed cell by cell in Python, which finds and names
+the exact faulty cell.
 
 preprocess_sensors turns counts into nT in the sensor's frame axes (not calibrated):
     SET/RESET: field = (set - reset)/2 * lsb_nT,  chip offset = ((set + reset)/2 - zero_count) * lsb_nT
@@ -25,7 +32,9 @@ import re
 import numpy as np
 
 from generator.errors import InputError
+from generator.io.arrow_np import to_float64
 from generator.io.telemetry import SensorData, Telemetry
+from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
 
 TIME_COLUMN = "time_s"
 POSITION_COLUMN = "position"
@@ -53,6 +62,11 @@ _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 
 # --------------------------------------------------------------------------- reading
 
+# text read per chunk: whole lines adding up to about this many bytes (a few 10^4 rows of
+# telemetry); memory while reading is bounded by it, not by the file's length
+CHUNK_BYTES = 2 << 20
+
+
 def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     """Read and validate one telemetry CSV against the unit (ICD section 2).
 
@@ -65,44 +79,255 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     ICD section 4: a file with a position (columns, or the unit's [orbit] TLE) and no ref_*
     column gets ref_norm_nT from the field model along its track (io/orbit.py; its
     provenance in meta["field_reference"]).
+    The file is read in chunks (iter_telemetry) and the columns joined at the end: the
+    peak memory is the columns themselves plus one chunk, not copies of the whole text.
     """
-    text = _read_text(path)
-    header, header_line, rows, row_lines, meta, comments = _split_lines(path, text)
-    if "unit" in meta and meta["unit"] != unit.id:
-        raise InputError(path, f"'# unit: {meta['unit']}' but the unit file is for "
-                               f"'{unit.id}': telemetry of another unit?")
-    names = _check_header(path, header, header_line, unit, require_sensors)
-
-    values = _parse_fast(rows, len(names))
-    if values is None:
-        values = _parse_slow(path, names, rows, row_lines)
-    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
-    line_numbers = np.asarray(row_lines, dtype=np.int64)
-
-    _check_time(path, columns[TIME_COLUMN], line_numbers)
-    _check_counts(path, columns, line_numbers, unit)
-    _check_position(path, columns, line_numbers)
-    _check_geo(path, columns, line_numbers)
-    _check_physical(path, columns, line_numbers)
-    tel = Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
-                    meta=meta, comments=comments)
+    tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors))
     # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
     from generator.io.orbit import attach_field_reference
     return attach_field_reference(tel, unit)
 
 
+def concat_chunks(chunks) -> Telemetry:
+    """One Telemetry from consecutive chunks of one file. The columns grow in place
+    (ndarray.resize: realloc, which moves no data for large blocks), so the peak is about
+    the columns themselves plus one chunk, as for numpy.loadtxt."""
+    cols, lines, n, first = None, None, 0, None
+    for c in chunks:
+        if cols is None:
+            first = c
+            cap = max(c.n, 1)
+            cols = {name: np.empty(cap) for name in c.columns}
+            lines = np.empty(cap, dtype=np.int64)
+        if n + c.n > lines.shape[0]:
+            cap = max(n + c.n, int(lines.shape[0] * 1.5))
+            for a in (*cols.values(), lines):
+                a.resize(cap, refcheck=False)
+        for name, v in c.columns.items():
+            cols[name][n:n + c.n] = v
+        lines[n:n + c.n] = c.line_numbers
+        n += c.n
+    for a in (*cols.values(), lines):
+        a.resize(n, refcheck=False)
+    return Telemetry(path=first.path, columns=cols, line_numbers=lines, meta=first.meta,
+                     comments=first.comments)
+
+
+def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int = CHUNK_BYTES):
+    """The telemetry file as consecutive validated Telemetry chunks (same checks and
+    messages as read_telemetry; at least one chunk, maybe empty). Each chunk holds the
+    rows of about chunk_bytes of text; time order is checked across chunk boundaries.
+    A fault is raised when its chunk is reached: a caller writing output must write it
+    atomically (io.outputs.atomic_file).
+
+    A Parquet file (io.telemetry_parquet, recognised by its magic bytes) is read the same
+    way: its blocks of values pass the same checks; its faults name the data row."""
+    if is_parquet(path):
+        yield from _iter_parquet(path, unit, require_sensors, chunk_bytes)
+        return
+    try:
+        f = open(path, "rb")
+    except OSError as e:
+        raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+    with f:
+        st = _SplitState()
+        names = None
+        prev = None                     # (time_s, line) of the last row of the last chunk
+        yielded = False
+        next_line = 1
+        for raw in _line_blocks(path, f, chunk_bytes):
+            first_no = next_line
+            next_line += raw.count(b"\n")
+            if names is None:                  # the lines up to the header, one by one
+                raw, first_no = _up_to_header(path, raw, first_no, st)
+                if st.header is None:
+                    continue
+                if "unit" in st.meta and st.meta["unit"] != unit.id:
+                    raise InputError(path, f"'# unit: {st.meta['unit']}' but the unit file is "
+                                           f"for '{unit.id}': telemetry of another unit?")
+                names = _check_header(path, st.header, st.header_line, unit, require_sensors)
+            values, row_lines = _parse_chunk(path, names, raw, first_no, st)
+            del raw
+            tel = _validated(path, names, values, row_lines, unit, st, prev)
+            del values
+            if tel.n:
+                prev = (float(tel.time_s[-1]), int(tel.line_numbers[-1]))
+            if tel.n or not yielded:
+                yielded = True
+                yield tel
+        if st.header is None:
+            raise InputError(path, "no header line (the file is empty or holds only comments)")
+
+
+def _up_to_header(path, raw: bytes, first_no: int, st):
+    """Splits the lines of raw into st (meta, comments, the header) until the header is
+    found; returns the bytes after the header line and the line number they start at."""
+    pos, no = 0, first_no
+    while st.header is None and pos < len(raw):
+        end = raw.find(b"\n", pos)
+        end = len(raw) if end < 0 else end
+        line = raw[pos:end]
+        if line.endswith(b"\r"):
+            line = line[:-1]
+        _split_chunk(path, _decode(path, line, no, first=no == 1), no, st)
+        pos, no = end + 1, no + 1
+    return raw[pos:], no
+
+
+def _line_blocks(path, f, chunk_bytes: int):
+    """The file's bytes in blocks of whole lines, about chunk_bytes each (a line longer
+    than that is one block)."""
+    rest = b""
+    while True:
+        try:
+            block = f.read(chunk_bytes)
+        except OSError as e:
+            raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+        if not block:
+            if rest:
+                yield rest
+            return
+        cut = block.rfind(b"\n")
+        if cut < 0:
+            rest += block
+            continue
+        raw = rest + block[:cut + 1] if rest else block[:cut + 1]
+        rest = block[cut + 1:]
+        del block
+        yield raw
+
+
 def _read_text(path) -> str:
+    """The whole file as text (importers of small files; telemetry is read in chunks)."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
     except OSError as e:
         raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+    return _decode(path, raw, 1, first=True)
+
+
+def _iter_parquet(path, unit, require_sensors, chunk_bytes):
+    pt = ParquetTelemetry(path)
+    st = _SplitState()
+    st.meta = pt.meta
+    if "unit" in st.meta and st.meta["unit"] != unit.id:
+        raise InputError(path, f"metadata 'unit: {st.meta['unit']}' but the unit file is "
+                               f"for '{unit.id}': telemetry of another unit?")
+    names = _check_header(path, pt.names, None, unit, require_sensors)
+    rows = max(1, chunk_bytes // (8 * len(names)))    # as many values as a CSV chunk's text
+    prev, yielded = None, False
+    for first, values in pt.blocks(rows):
+        tel = _validated(path, names, values, np.arange(first, first + values.shape[0]),
+                         unit, st, prev)
+        if tel.n:
+            prev = (float(tel.time_s[-1]), int(tel.line_numbers[-1]))
+            yielded = True
+            yield tel
+    if not yielded:
+        yield _validated(path, names, np.empty((0, len(names))), [], unit, st, None)
+
+
+class _SplitState:
+    """What the line splitter knows so far: the header and the comments before it."""
+
+    def __init__(self):
+        self.header = self.header_line = None
+        self.meta, self.comments = {}, []
+
+
+def _decode(path, raw: bytes, first_line: int, first: bool) -> str:
     try:
-        text = raw.decode("utf-8-sig")          # a leading byte-order mark is tolerated
+        text = raw.decode("utf-8-sig" if first else "utf-8")   # a leading BOM is tolerated
     except UnicodeDecodeError as e:
-        line = raw.count(b"\n", 0, e.start) + 1
+        line = first_line + raw.count(b"\n", 0, e.start)
         raise InputError(path, f"not UTF-8 (byte 0x{raw[e.start]:02x})", line=line) from None
     return text.replace("\r\n", "\n")
+
+
+def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
+    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
+    line_numbers = np.asarray(row_lines, dtype=np.int64)
+    if prev is not None and line_numbers.size:
+        _check_time(path, np.concatenate([[prev[0]], columns[TIME_COLUMN]]),
+                    np.concatenate([[prev[1]], line_numbers]))
+    else:
+        _check_time(path, columns[TIME_COLUMN], line_numbers)
+    _check_counts(path, columns, line_numbers, unit)
+    _check_position(path, columns, line_numbers)
+    _check_geo(path, columns, line_numbers)
+    _check_physical(path, columns, line_numbers)
+    return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
+                     meta=st.meta, comments=st.comments)
+
+
+def _parse_chunk(path, names, raw: bytes, first_no: int, st):
+    """(values, line numbers) of a block of data lines after the header. A block with no
+    comment, blank or indented line and no CR but in CR LF goes to the C parser as it is, with
+    consecutive line numbers; any other (or one the C parser refuses) is decoded and goes
+    line by line (_split_chunk, _parse_rows)."""
+    if not raw:
+        return np.empty((0, len(names))), []
+    clean = (b"#" not in raw and b"\n\n" not in raw and b"\n " not in raw
+             and b"\n\t" not in raw and b"\n\r" not in raw
+             and raw[:1] not in (b"\n", b" ", b"\t", b"\r")
+             and raw.count(b"\r") == raw.count(b"\r\n"))     # CR only in CR LF endings
+    if clean:        # no UTF-8 check needed: pyarrow accepts only ASCII number cells
+        n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
+        values = _parse_arrow(raw, len(names), n)
+        if values is not None:
+            return values, np.arange(first_no, first_no + n, dtype=np.int64)
+    text = _decode(path, raw, first_no, first=False)
+    rows, row_lines = _split_chunk(path, text, first_no, st)
+    return _parse_rows(path, names, rows, row_lines), row_lines
+
+
+def _parse_rows(path, names, rows: list, row_lines: list) -> np.ndarray:
+    """The data rows as (N, ncol) float64: the C parsers first, cell by cell (naming the
+    faulty cell) when they cannot be sure."""
+    values = _parse_arrow("\n".join(rows), len(names), len(rows)) if rows else None
+    if values is None:
+        values = _parse_fast(rows, len(names))
+    if values is None:
+        values = _parse_slow(path, names, rows, row_lines)
+    return values
+
+
+def _parse_arrow(body, ncol: int, nrows: int):
+    """(nrows, ncol) float64 parsed by pyarrow's C CSV reader, or None when it is not sure
+    (then the callers' slower paths decide and name the fault). It accepts a subset of what
+    _parse_slow accepts, with the same values (host_tests/test_stream_io.py): no quoting,
+    only empty cells are missing; letters of nan/inf are left to the slow path."""
+    if nrows == 0:
+        return np.empty((0, ncol))
+    if isinstance(body, str):
+        body = body.encode()
+    if any(ch in body for ch in (b"n", b"N", b"i", b"I")):
+        return None
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+
+    cols = [f"c{j}" for j in range(ncol)]
+    try:
+        table = pcsv.read_csv(
+            pa.BufferReader(body),
+            read_options=pcsv.ReadOptions(column_names=cols),
+            parse_options=pcsv.ParseOptions(quote_char=False, double_quote=False,
+                                            escape_char=False, newlines_in_values=False,
+                                            ignore_empty_lines=False),
+            convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in cols},
+                                                null_values=[""], strings_can_be_null=False,
+                                                quoted_strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowException, ValueError):
+        return None
+    if table.num_rows != nrows or table.num_columns != ncol:
+        return None
+    values = np.empty((nrows, ncol), order="F")    # columns contiguous: no copy per column
+    for j in range(ncol):
+        values[:, j] = to_float64(table.column(j), copy=False)   # empty cell: NaN
+    if np.isinf(values).any():
+        return None                      # a value too large for float64: the slow path says so
+    return values
 
 
 def _split_lines(path, text: str):
@@ -111,9 +336,18 @@ def _split_lines(path, text: str):
     Comment lines ('#' first, leading blanks allowed) and blank lines are skipped anywhere;
     only those before the header are collected into meta / comments.
     """
-    header = header_line = None
-    rows, row_lines, meta, comments = [], [], {}, []
-    for no, line in enumerate(text.split("\n"), start=1):
+    st = _SplitState()
+    rows, row_lines = _split_chunk(path, text, 1, st)
+    if st.header is None:
+        raise InputError(path, "no header line (the file is empty or holds only comments)")
+    return st.header, st.header_line, rows, row_lines, st.meta, st.comments
+
+
+def _split_chunk(path, text: str, first_no: int, st: _SplitState):
+    """Data lines and their line numbers of a chunk of text starting at line first_no;
+    the header and the comments before it go into st."""
+    rows, row_lines = [], []
+    for no, line in enumerate(text.split("\n"), start=first_no):
         first = line[:1]
         if first in ("", " ", "\t"):
             stripped = line.strip()
@@ -121,25 +355,25 @@ def _split_lines(path, text: str):
                 continue                          # blank line
             first = stripped[0]
         if first == "#":
-            if header is None:
+            if st.header is None:
                 m = _META_RE.match(line.strip())
                 if m:
-                    meta[m.group(1)] = m.group(2).strip()
+                    st.meta[m.group(1)] = m.group(2).strip()
                 else:
-                    comments.append(line)
+                    st.comments.append(line)
             continue
-        if header is None:
-            header, header_line = line, no
+        if st.header is None:
+            st.header, st.header_line = line, no
         else:
             rows.append(line)
             row_lines.append(no)
-    if header is None:
-        raise InputError(path, "no header line (the file is empty or holds only comments)")
-    return header, header_line, rows, row_lines, meta, comments
+    return rows, row_lines
 
 
-def _check_header(path, header: str, line: int, unit, require_sensors: bool) -> list:
-    names = [c.strip() for c in header.split(",")]
+def _check_header(path, header, line, unit, require_sensors: bool) -> list:
+    """The column names of a CSV header line (or a list of names: Parquet), checked."""
+    names = (list(header) if isinstance(header, (list, tuple))
+             else [c.strip() for c in header.split(",")])
     first_at = {}
     for j, name in enumerate(names, start=1):
         if not name:

@@ -10,7 +10,7 @@ from generator.trace.tracer import trace
 
 def add_trace_args(p):
     p.add_argument("unit", help="unit file (TOML, ICD section 1)")
-    p.add_argument("data", nargs="+", help="telemetry CSV files (ICD section 2) to fit")
+    p.add_argument("data", nargs="+", help="telemetry files (ICD section 2: CSV or Parquet) to fit")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--holdout", nargs="+", default=[], metavar="DATA",
                    help="telemetry files to evaluate on (default: every 5th time block of "

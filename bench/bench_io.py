@@ -1,0 +1,223 @@
+#!/usr/bin/env python3
+"""Benchmark of telemetry I/O (issue 20): `magcal apply` and `magcal fit --no-report` on
+long telemetry, each against baselines measured in the same run.
+
+    python3 bench/bench_io.py [--rows 1000000] [--fit-rows 1000000] [--read-rows 360000]
+
+The input is the shared thermal campaign repeated (time shifted) to the wanted length.
+Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4, so
+imports and I/O count as a user sees them. Ratios, not seconds, are the result:
+
+* apply vs pyarrow: `magcal apply` end to end (read, flight C, write) against
+  pyarrow.csv reading the same input and writing a float64 table of the output's shape
+  (rows x columns) -- a C-speed CSV library doing the I/O alone. Goal: <= 2x.
+* apply start-up: `magcal apply` on 10 rows against importing the modules it needs
+  (generator and the command line's parser, pyarrow.csv, pyarrow.compute; the build
+  cache is keyed by hashes, so a warm start renders nothing).
+* apply memory: peak RSS on the full file against a tenth of it (streaming: ~1x).
+* read memory: io.telemetry_csv.read_telemetry against numpy.loadtxt of the same file
+  (--read-rows rows; the issue measured 606 MB against 129 MB at 360,000 rows).
+* fit: `magcal fit --no-report` time and peak RSS on --fit-rows rows, against
+  numpy.loadtxt of the same file (reading the numbers at all); peak RSS per sample.
+* the report's share: `magcal fit` of the shared thermal campaign with the report against
+  --no-report (and the imports alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+FM1 = Path(os.environ.get("MAGCAL_SHARED") or REPO.parent / "shared") / "data" / "samsat_fm1"
+COEFFS = REPO / "generated" / "samsat_fm1" / "coefficients.json"
+ENV = dict(os.environ, PYTHONPATH=str(REPO))
+PY = sys.executable
+
+
+def write_long_file(src: Path, path: Path, rows: int) -> int:
+    """src's comment and header lines, then its data rows repeated until `rows`, each
+    repetition shifted in time after the last; returns the file size in bytes."""
+    lines = src.read_text().split("\n")
+    head = [ln for ln in lines[:10] if ln.startswith("#")]
+    header = lines[len(head)]
+    data = [ln for ln in lines[len(head) + 1:] if ln and not ln.startswith("#")]
+    t_end = float(data[-1].split(",", 1)[0]) + 1.0
+    with open(path, "w") as f:
+        f.write("\n".join(head + [header]) + "\n")
+        k = 0
+        while k * len(data) < rows:
+            take = data[:rows - k * len(data)]
+            f.write("".join(f"{float(t) + k * t_end!r},{rest}\n"
+                            for t, rest in (ln.split(",", 1) for ln in take)))
+            k += 1
+    return path.stat().st_size
+
+
+def run(cmd) -> tuple[float, float]:
+    """(wall seconds, peak RSS MiB) of one subprocess."""
+    t0 = time.perf_counter()
+    p = subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, env=ENV)
+    _, status, rusage = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    err = p.stderr.read().decode()
+    p.stderr.close()
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{err}")
+    return wall, rusage.ru_maxrss / 1024.0
+
+
+def best(cmd, repeat) -> tuple[float, float]:
+    runs = [run(cmd) for _ in range(repeat)]
+    return min(r[0] for r in runs), max(r[1] for r in runs)
+
+
+def _comment_lines(path) -> int:
+    n = 0
+    with open(path) as f:
+        for line in f:
+            if not line.startswith("#"):
+                return n
+            n += 1
+    return n
+
+
+# ---- workers (run in their own process) -----------------------------------------------------
+
+def worker(kind: str, args: list) -> None:
+    if kind == "arrow":            # read the input, write a float64 table of the output's shape
+        import pyarrow as pa
+        import pyarrow.csv as pcsv
+
+        src, out, ncol = args[0], args[1], int(args[2])
+        table = pcsv.read_csv(src, read_options=pcsv.ReadOptions(
+            skip_rows=_comment_lines(src)))
+        cols = [table.column(j % table.num_columns).cast(pa.float64()) for j in range(ncol)]
+        pcsv.write_csv(pa.table(cols, names=[f"c{j}" for j in range(ncol)]), out)
+    elif kind == "loadtxt":
+        import numpy as np
+
+        np.loadtxt(args[0], delimiter=",", comments="#", skiprows=_comment_lines(args[0]) + 1)
+    elif kind == "read":
+        from generator.io.telemetry_csv import read_telemetry
+        from generator.io.unitfile import load_unit
+
+        read_telemetry(args[0], load_unit(args[1]))
+    elif kind == "imports":          # the modules `magcal apply` imports, nothing run
+        import pyarrow.compute  # noqa: F401
+        import pyarrow.csv  # noqa: F401
+
+        import generator.cli
+        import generator.flight.coeffs  # noqa: F401
+        import generator.flight.host  # noqa: F401
+        import generator.pipeline  # noqa: F401
+
+        generator.cli._parser()      # the verbs' argument definitions import their modules
+    else:
+        raise SystemExit(f"unknown worker {kind}")
+
+
+def _worker_cmd(kind, *args):
+    return [PY, Path(__file__).resolve(), "--worker", kind, *args]
+
+
+def _apply_cmd(data, out):
+    return [PY, "-m", "generator.cli", "apply", COEFFS, data, "-o", out, "--boom-stowed",
+            "--coils-off", "--at-rest", "--quiet"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows")
+    ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
+    ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
+    ap.add_argument("--no-thermal", dest="thermal", action="store_false",
+                    help="skip the fit of the shared thermal campaign with and without report")
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.worker:
+        worker(a.worker[0], a.worker[1:])
+        return 0
+
+    from generator.flight.coeffs import CoefficientSet
+
+    cs = CoefficientSet.load(COEFFS)
+    n_out_cols = 1 + 5 * len(cs.unit.sensors) + 5
+    res = {}
+    with tempfile.TemporaryDirectory(prefix="bench_io-") as tmp:
+        tmp = Path(tmp)
+        src = FM1 / "thermal_12pos.csv"
+        big, tenth, tiny = tmp / "big.csv", tmp / "tenth.csv", tmp / "tiny.csv"
+        size = write_long_file(src, big, a.rows)
+        write_long_file(src, tenth, a.rows // 10)
+        write_long_file(src, tiny, 10)
+        print(f"input: {a.rows} rows, {size / 2**20:.0f} MiB; output {n_out_cols} columns")
+        run(_apply_cmd(tiny, tmp / "warm.csv"))        # the host build in the cache
+
+        t_apply, m_apply = best(_apply_cmd(big, tmp / "out.csv"), a.repeat)
+        t_arrow, m_arrow = best(_worker_cmd("arrow", big, tmp / "arrow.csv", n_out_cols),
+                                a.repeat)
+        res["apply_vs_pyarrow_time"] = t_apply / t_arrow
+        print(f"apply {a.rows} rows: {t_apply:.2f} s, {m_apply:.0f} MiB peak | pyarrow "
+              f"read+write same shape: {t_arrow:.2f} s, {m_arrow:.0f} MiB | ratio "
+              f"{t_apply / t_arrow:.2f}x (goal <= 2x)")
+
+        t_start, _ = best(_apply_cmd(tiny, tmp / "o_tiny.csv"), max(a.repeat, 3))
+        t_imp, _ = best(_worker_cmd("imports"), max(a.repeat, 3))
+        res["apply_startup_vs_imports"] = t_start / t_imp
+        print(f"apply start-up (10 rows): {t_start:.2f} s | imports alone: {t_imp:.2f} s | "
+              f"ratio {t_start / t_imp:.2f}x")
+
+        _, m_tenth = best(_apply_cmd(tenth, tmp / "o_tenth.csv"), a.repeat)
+        res["apply_memory_full_vs_tenth"] = m_apply / m_tenth
+        print(f"apply peak RSS: {m_apply:.0f} MiB on {a.rows} rows, {m_tenth:.0f} MiB on "
+              f"{a.rows // 10}: ratio {m_apply / m_tenth:.2f}x (streaming: ~1x)")
+
+        rd = tmp / "read.csv"
+        write_long_file(src, rd, a.read_rows)
+        t_read, m_read = best(_worker_cmd("read", rd, FM1 / "unit.toml"), a.repeat)
+        t_ltx, m_ltx = best(_worker_cmd("loadtxt", rd), a.repeat)
+        res["read_vs_loadtxt_memory"] = m_read / m_ltx
+        res["read_vs_loadtxt_time"] = t_read / t_ltx
+        print(f"read {a.read_rows} rows: {t_read:.2f} s, {m_read:.0f} MiB peak | "
+              f"numpy.loadtxt: {t_ltx:.2f} s, {m_ltx:.0f} MiB | memory ratio "
+              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x")
+
+        if a.fit_rows:
+            fd = tmp / "fit.csv"
+            write_long_file(src, fd, a.fit_rows)
+            t_fit, m_fit = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", fd,
+                                 "-o", tmp / "fit_out", "--no-report", "--quiet"], 1)
+            t_fl, m_fl = best(_worker_cmd("loadtxt", fd), 1)
+            _, m_imp = best(_worker_cmd("imports"), 1)
+            res["fit_vs_loadtxt_time"] = t_fit / t_fl
+            res["fit_vs_loadtxt_memory"] = m_fit / m_fl
+            print(f"fit --no-report {a.fit_rows} rows: {t_fit:.2f} s, {m_fit:.0f} MiB peak "
+                  f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
+                  f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
+                  f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
+        if a.thermal:          # the report's share of a fit on the shared campaign
+            th = FM1 / "thermal_12pos.csv"
+            t_nr, m_nr = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
+                               tmp / "th_nr", "--no-report", "--quiet"], a.repeat)
+            t_r, m_r = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
+                             tmp / "th_r", "--quiet"], a.repeat)
+            t_imp, _ = best(_worker_cmd("imports"), a.repeat)
+            res["thermal_fit_report_vs_no_report_time"] = t_r / t_nr
+            print(f"fit thermal_12pos: {t_nr:.2f} s with --no-report ({t_nr - t_imp:.2f} s "
+                  f"above the imports), {t_r:.2f} s with the report: the report adds "
+                  f"{t_r - t_nr:.2f} s ({t_r / t_nr:.2f}x); peak {m_nr:.0f} / {m_r:.0f} MiB")
+    print(json.dumps({k: round(v, 3) for k, v in res.items()}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

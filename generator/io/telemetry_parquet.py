@@ -1,0 +1,92 @@
+"""Telemetry in Parquet (pyarrow): the ICD section 2 columns in a columnar file, for long
+recordings.
+
+The same columns as the ICD CSV (time_s, the sensors' count and temperature columns,
+channels), one numeric column each (integers or floats); a null is a missing value, as an
+empty CSV cell is. The file's key-value metadata plays the part of the CSV's '# key: value'
+lines (e.g. unit). This module only turns the file into blocks of float64 values: the
+validation (header, time order, counts, physical ranges) is the CSV reader's, fed with
+these blocks (io.telemetry_csv.iter_telemetry), so both formats pass the same checks and
+give the same messages; a fault is named by its data row (1-based) where the CSV names
+the line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from generator.errors import InputError
+from generator.io.arrow_np import nulls, to_float64
+
+MAGIC = b"PAR1"
+
+
+def is_parquet(path) -> bool:
+    """True when the file starts with Parquet's magic bytes (a CSV never does: its first
+    line is a comment or a header naming time_s)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == MAGIC
+    except OSError:
+        return False           # the CSV reader reports the unreadable file
+
+
+class ParquetTelemetry:
+    """An open Parquet telemetry file: names (column order kept), meta, and blocks()."""
+
+    def __init__(self, path):
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        self.path = path
+        try:
+            self._file = pq.ParquetFile(path)
+        except (OSError, pa.ArrowException, ValueError) as e:
+            raise InputError(path, f"not a readable Parquet file: {e}") from None
+        schema = self._file.schema_arrow
+        self.names = list(schema.names)
+        for field in schema:
+            t = field.type
+            if not (pa.types.is_integer(t) or pa.types.is_floating(t)):
+                raise InputError(path, f"Parquet column of type {t}: telemetry columns hold "
+                                       "numbers (integers or floats)", column=field.name)
+        raw = schema.metadata or {}
+        self.meta = {}
+        for k, v in raw.items():
+            try:
+                key, value = k.decode("utf-8"), v.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                continue
+            if not key.startswith(("pandas", "ARROW:")):      # writers' own bookkeeping
+                self.meta[key] = value
+
+    def blocks(self, rows_per_block: int):
+        """(first row number (1-based), (n, ncol) float64 values) per block; a null is NaN.
+        A NaN or infinite value stored in the file is bad input (InputError naming its row
+        and column), as a literal nan/inf cell is in a CSV."""
+        import pyarrow as pa
+
+        first = 1
+        try:
+            batches = self._file.iter_batches(batch_size=max(1, int(rows_per_block)))
+            for batch in batches:
+                n = batch.num_rows
+                values = np.empty((n, len(self.names)))
+                for j, name in enumerate(self.names):
+                    col = batch.column(j)
+                    v = to_float64(col, copy=False)        # nulls come out as NaN
+                    stored = ~np.isfinite(v)
+                    if col.null_count:
+                        stored &= ~nulls(col)
+                    if stored.any():
+                        i = int(np.flatnonzero(stored)[0])
+                        what = "NaN" if np.isnan(v[i]) else "infinity"
+                        raise InputError(self.path, f"{what} is not allowed; store a null "
+                                                    "for a missing value",
+                                         line=first + i, column=name)
+                    values[:, j] = v             # nulls came out as NaN: missing values
+                yield first, values
+                first += n
+        except (OSError, pa.ArrowException) as e:
+            raise InputError(self.path, f"Parquet file unreadable after row {first - 1}: "
+                                        f"{e}") from None
