@@ -223,6 +223,10 @@ def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:
 def candidate_columns(model: SensorModel, S, e, r0):
     """(d0, G): the residual change of the model with e at its initial parameters, and
     the Jacobian columns of e's parameters there (None for scan-only effects)."""
+    if e.fd_in_scoring and not np.any(e.init_params()):
+        G = model.offset_columns(S, e)      # linear offset: from the model's own forward
+        if G is not None:
+            return None, G
     m1 = model.with_effect(e, e.init_params())
     cols = np.arange(model.P, m1.P) if (e.fd_in_scoring and e.n_params) else np.arange(0)
     r1, G = m1.jacobian(S, cols=cols)
