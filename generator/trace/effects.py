@@ -602,6 +602,10 @@ class BiasStep(Effect):
             prev = int(before.max())
             self.hyper = prev + 1 + (int(self.hyper) - prev - 1) // 2
 
+    def step_key(self, S):
+        """The quantity the step is taken in: mask = step_key >= hyper."""
+        return S.order
+
     def mask(self, S):
         """1 from the change point on (hyper None: everywhere)."""
         if self.hyper is None:

@@ -84,6 +84,14 @@ def _solve_psd(A, b):
         return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
 
 
+def _as_slice(ix):
+    """A sorted index array as a slice where it is a contiguous range (a view, no copy)."""
+    ix = np.asarray(ix)
+    if len(ix) and ix[-1] - ix[0] == len(ix) - 1:
+        return slice(int(ix[0]), int(ix[-1]) + 1)
+    return ix
+
+
 def _mv(M, v):
     """Per-sample matrix times vector: (n, 3, 3) x (n, 3) -> (n, 3), as three broadcast
     products (numpy's einsum of this shape does not use BLAS and is slower)."""
@@ -281,14 +289,11 @@ class SensorModel:
         forward differences."""
         th0 = self.theta if theta is None else np.asarray(theta, float)
         cols = np.arange(self.P) if cols is None else np.asarray(cols)
-        r0, done = self._analytic_columns(th0, S, cols)
-        J = np.empty((len(r0), len(cols)))
-        fd = []
-        for k, c in enumerate(cols):
-            if int(c) in done:
-                J[:, k] = done[int(c)]
-            else:
-                fd.append(k)
+        lin = self._linearisation(th0, S)
+        R = len(lin["r0"]) if lin is not None else S.n_rows
+        J = np.empty((R, len(cols)), order="F")      # filled column by column
+        r0, done = self._analytic_into(th0, S, cols, J, lin)
+        fd = [k for k, c in enumerate(cols) if int(c) not in done]
         if fd:
             J[:, fd] = self._fd_columns(th0, S, cols[fd], r0)
         return r0, J
@@ -303,7 +308,7 @@ class SensorModel:
             J[:, a:a + len(sub)] = (self.residual(th, S) - r0[None]).T / FD_STEP
         return J
 
-    def _analytic_columns(self, th0, S, cols):
+    def _analytic_into(self, th0, S, cols, J, lin):
         """(r0, {column: dr/dtheta_column}) for the columns that have a closed form.
 
         B = sum_k s^k M_k x'' with x'' the reading after offsets and transforms, so
@@ -320,15 +325,15 @@ class SensorModel:
         position not among the model's groups, leaves everything to finite differences.
         Magnitude rows: d|B| = (B / |B|) . dB."""
         want = set(int(c) for c in cols)
-        lin = self._linearisation(th0, S)
         if lin is None or not want:
-            return (lin["r0"] if lin is not None else self.residual(th0[None], S)[0]), {}
-        cols_out, dBs = [], []
+            return (lin["r0"] if lin is not None else self.residual(th0[None], S)[0]), set()
+        pos = {int(c): k for k, c in enumerate(cols)}
+        done = set()
 
-        def add(c, dB):
+        def add(c, dB, skip=None):
             if c in want:
-                cols_out.append(c)
-                dBs.append(dB)
+                lin["rows_into"](J[:, pos[c]], dB, skip)
+                done.add(c)
 
         D = self.base.degree
         s_pow, xpp, Msum = lin["powers"], lin["xpp"], lin["Msum"]
@@ -351,8 +356,10 @@ class SensorModel:
             sl = self.sl["b"]
             for fi, k in enumerate(self.free_b):
                 for j in range(3):
-                    add(sl.start + 3 * fi + j, -s_pow[k][:, None] * Msum[:, :, j])
-            if self.free_K and S.coil is not None:
+                    if sl.start + 3 * fi + j in want:
+                        add(sl.start + 3 * fi + j, -s_pow[k][:, None] * Msum[:, :, j])
+            if self.free_K and S.coil is not None and \
+                    want & set(range(self.sl["K"].start, self.sl["K"].stop)):
                 sl = self.sl["K"]
                 nc = self.base.K.shape[1]
                 for a_ in range(3):
@@ -378,22 +385,9 @@ class SensorModel:
             if e.stage == "calibrated" and want & set(range(sl.start, sl.stop)):
                 own = e.calibrated_columns(th0[sl][None], S, lin["B"])   # (n_params, n, 3)
                 for a_ in range(e.n_params):
-                    c = sl.start + a_
-                    if c in want:
-                        cols_out.append(c)
-                        dBs.append(("own", own[a_], i))
+                    add(sl.start + a_, own[a_], skip=i)
         sl = self.sl["Bp"]
         iv, im, ip = S.idx
-        out = {}
-        if dBs:
-            plain = [k for k, d in enumerate(dBs) if not isinstance(d, tuple)]
-            if plain:
-                R = lin["rows"](np.stack([dBs[k] for k in plain], axis=2))
-                for j, k in enumerate(plain):
-                    out[cols_out[k]] = R[:, j]
-            for k, d in enumerate(dBs):
-                if isinstance(d, tuple):
-                    out[cols_out[k]] = lin["rows"](d[1][:, :, None], skip=d[2])[:, 0]
         if len(ip) and want & set(range(sl.start, sl.stop)):
             k_of = np.searchsorted(self.groups, S.group[ip])
             base_row = 3 * len(iv) + len(im)
@@ -402,10 +396,21 @@ class SensorModel:
                 for j in range(3):
                     c = sl.start + 3 * gi + j
                     if c in want:
-                        col = np.zeros(len(lin["r0"]))
+                        col = J[:, pos[c]]
+                        col[:] = 0.0
                         col[base_row + 3 * sel + j] = -1.0
-                        out[c] = col
-        return lin["r0"], out
+                        done.add(c)
+        return lin["r0"], done
+
+    def _analytic_columns(self, th0, S, cols):
+        """(r0, {column: dr/dtheta_column}) of the columns _analytic_into fills (the
+        docstring there)."""
+        cols = np.asarray(cols)
+        lin = self._linearisation(th0, S)
+        R = len(lin["r0"]) if lin is not None else S.n_rows
+        J = np.empty((R, len(cols)))
+        r0, done = self._analytic_into(th0, S, cols, J, lin)
+        return r0, {int(c): J[:, k].copy() for k, c in enumerate(cols) if int(c) in done}
 
     def _linearisation(self, th0, S):
         """The forward pass at th0 and what the analytic columns need (cached for the
@@ -451,8 +456,33 @@ class SensorModel:
                 parts.append(dB[ip].reshape(-1, dB.shape[2]))
             return np.concatenate(parts) if parts else np.zeros((0, dB.shape[2]))
 
+        nv, nm = len(iv), len(im)
+        sv = _as_slice(iv)
+        sm = _as_slice(im)
+        sp = _as_slice(ip)
+
+        def rows_into(col, dB, skip=None):
+            """One column: the field change dB (n, 3) before the calibrated stages into
+            the residual rows col (R,), no intermediate copies."""
+            if ps:
+                dB = dB[:, :, None]
+                for i, p in ps:
+                    if skip is None or i > skip:
+                        dB = self.effects[i].calibrated_jvp(p, S, dB)
+                dB = dB[:, :, 0]
+            if nv:
+                col[:3 * nv].reshape(nv, 3)[:] = dB[sv]
+            if nm:
+                dm = dB[sm]
+                np.multiply(u[:, 0], dm[:, 0], out=col[3 * nv:3 * nv + nm])
+                col[3 * nv:3 * nv + nm] += u[:, 1] * dm[:, 1]
+                col[3 * nv:3 * nv + nm] += u[:, 2] * dm[:, 2]
+            if len(ip):
+                col[3 * nv + nm:].reshape(len(ip), 3)[:] = dB[sp]
+
         lin = {"r0": r0, "powers": f["powers"], "xpp": f["x_final"], "Msum": f["Msum"],
                "B": f["B"], "st": f["st"], "stages": stages, "rows": rows,
+               "rows_into": rows_into,
                "M_s": f.get("M_s"), "x_off": f.get("x_off")}
         self._lin_cache = (key, lin)
         return lin
