@@ -24,6 +24,7 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     offset      x_i = field_f_i - b_i(T)
     coils       x_i -= K_i0 i_0 + K_i1 i_1 + ...                             (when coils are in the chain)
     channels    x_i -= C_i0 ch_0 + C_i1 ch_1 + ...                           (option: channels)
+    ch. scale   x_i -= g_ij ch_j x_i, for j = 0, 1, ... in turn             (option: channel_scale)
     cubic       x_i -= n_i x_i x_i x_i                                      (option: nonlinear)
     calibrate   B_i = m_i0 x_0 + m_i1 x_1 + m_i2 x_2                        (eq. 5)
     SET/RESET   B += c (w x B), w the body rate in the board frame          (option: sr_compensation)
@@ -141,23 +142,32 @@ class SensorOptions:
         filter, T_el += dt / (tau + dt) (T - T_el), kept in the sensor's state;
     nonlinear: per-axis cubic of the reading, x_i -= n_i x_i^3 after the offsets;
     sr_compensation: SET/RESET rotation error, B += c (w x B) after M, w the body rate in
-        the board frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg).
+        the board frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg);
+    channel_scale: scale factors that follow the channels, after their offsets and before
+        the cubic, channel by channel: x_i -= g_ij ch_j x_i (block g_per_unit, 3 x the
+        channels; a channel that only scales has a zero column of C_nT_per_unit).
+        Written into the structure (and so the layout hash) only where it is set.
     """
 
     channels: tuple = ()
     thermal_lag: bool = False
     nonlinear: bool = False
     sr_compensation: bool = False
+    channel_scale: bool = False
 
     def to_dict(self) -> dict:
-        return {"channels": list(self.channels), "thermal_lag": self.thermal_lag,
-                "nonlinear": self.nonlinear, "sr_compensation": self.sr_compensation}
+        d = {"channels": list(self.channels), "thermal_lag": self.thermal_lag,
+             "nonlinear": self.nonlinear, "sr_compensation": self.sr_compensation}
+        if self.channel_scale:       # only where used: older structures keep their hash
+            d["channel_scale"] = True
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> "SensorOptions":
         return SensorOptions(tuple(d.get("channels", ())), bool(d.get("thermal_lag", False)),
                              bool(d.get("nonlinear", False)),
-                             bool(d.get("sr_compensation", False)))
+                             bool(d.get("sr_compensation", False)),
+                             bool(d.get("channel_scale", False)))
 
 
 NO_OPTIONS = SensorOptions()
@@ -237,6 +247,8 @@ class ChainSpec:
         for name, o in self.sensor_options:
             if name not in names:
                 raise ValueError(f"sensor_options names unknown sensor '{name}'")
+            if o.channel_scale and not o.channels:
+                raise ValueError(f"sensor '{name}': channel_scale needs channels")
             if o.thermal_lag and not self.unit.sensor(name).temperature:
                 raise ValueError(f"sensor '{name}' has no temperature: no thermal lag")
         for s in self.unit.sensors:
@@ -318,6 +330,10 @@ class ChainSpec:
         if o.channels:
             blocks.append(Block("C_nT_per_unit", (3, len(o.channels)), "nT/unit", "coupling",
                                 "coupling of telemetry channels " + ", ".join(o.channels)))
+        if o.channel_scale:
+            blocks.append(Block("g_per_unit", (3, len(o.channels)), "1/unit", "scale_coupling",
+                                "scale factor per unit of telemetry channels "
+                                + ", ".join(o.channels) + ": x_i -= g_ij ch_j x_i"))
         if o.thermal_lag:
             blocks.append(Block("lag_tau_s", (), "s", "time_constant",
                                 "thermal lag of the sensing element behind the reported T"))
@@ -584,6 +600,10 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
     if o.channels:   # linear coupling of other telemetry channels (traced effects)
         ch_nT = _couple(c.get("C_nT_per_unit"), channels)
         x = [x[i] - ch_nT[i] for i in range(3)]
+    if o.channel_scale:   # scale factors following the channels, channel by channel
+        g = c.get("g_per_unit")
+        for j in range(len(o.channels)):
+            x = [x[i] - g[i][j] * channels[j] * x[i] for i in range(3)]
     if o.nonlinear:  # per-axis cubic of the reading
         n3 = c.get("cubic_per_nT2")
         x = [x[i] - n3[i] * x[i] * x[i] * x[i] for i in range(3)]

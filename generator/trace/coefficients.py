@@ -151,7 +151,8 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             mv = m.values()
             o = {"channels": [], "thermal_lag": False, "nonlinear": False,
                  "sr_compensation": False}
-            for k in ("C_nT_per_unit", "lag_tau_s", "cubic_per_nT2", "sr_comp_s_per_deg"):
+            for k in ("C_nT_per_unit", "lag_tau_s", "cubic_per_nT2", "sr_comp_s_per_deg",
+                      "g_per_unit"):
                 v.pop(k, None)
             D = m.base.degree
             v["b_poly_nT"] = mv["b_poly_nT"].copy()
@@ -164,6 +165,10 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
                     e.to_flight(m.effect_params(i), v, o, m)
                 else:
                     later.append(i)
+            g = v.pop("_g_by_channel", None)
+            if g:                  # channel scales, aligned with the sensor's channels
+                v["g_per_unit"] = np.stack([g.get(ch, np.zeros(3)) for ch in o["channels"]],
+                                           axis=1)
             if m.free_M is None:   # no absolute reference: keep the baseline's mean output
                 _recentre(v, o, tr, m)
             for i in later:        # a step's new offset (the others have no flight form)

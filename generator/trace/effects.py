@@ -327,7 +327,11 @@ class ChannelBias(Effect):
     def from_flight(cls, sv, options, S, info):
         out = []
         C = np.asarray(sv.get("C_nT_per_unit", np.zeros((3, 0))), float)
+        g = np.asarray(sv["g_per_unit"], float).reshape(3, -1) \
+            if getattr(options, "channel_scale", False) else None
         for j, ch in enumerate(options.channels):
+            if g is not None and not np.any(C[:, j]) and np.any(g[:, j]):
+                continue          # a channel that only scales (ChannelScale.from_flight)
             v = S.channels.get(ch)
             sd = float(np.std(v)) if v is not None and len(v) else 1.0
             sd = sd if sd > 0 else 1.0
@@ -930,10 +934,11 @@ class ChannelScale(Effect):
     title = "scale factor following a telemetry channel"
     physics = ("the sensitivity depends on a telemetry quantity (a supply voltage, a "
                "current warming the part): each axis reads (1 + g ch) of its field")
-    flight_form = ("needs a chain stage: x_i -= g_i ch x_i after the offsets (a block "
-                   "g_per_unit, 3 x nch, and the channel as an input); until the chain has "
-                   "it the flight coefficients leave it out")
-    in_chain = False
+    flight_form = ("channel_scale option: block g_per_unit (3 x the channels), "
+                   "x_i -= g_ij ch_j x_i after the channels' offsets, before the cubic (the "
+                   "channel joins the sensor's channels, with a zero C column if it only "
+                   "scales)")
+    in_chain = True
     stage = "transform"
     order = 0
     repeatable = True
@@ -996,7 +1001,32 @@ class ChannelScale(Effect):
                 "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
 
     def to_flight(self, p, values, options, model):
-        """No chain stage yet (flight_form): nothing is written."""
+        """The channel among the sensor's channels (a zero C column if new), its g by
+        channel name (generator.trace.coefficients aligns g_per_unit with the channels
+        once every effect is written)."""
+        chans = options.setdefault("channels", [])
+        if self.channel not in chans:
+            chans.append(self.channel)
+            C = values.get("C_nT_per_unit")
+            values["C_nT_per_unit"] = np.zeros((3, 1)) if C is None else \
+                np.hstack([C, np.zeros((3, 1))])
+        options["channel_scale"] = True
+        values.setdefault("_g_by_channel", {})[self.channel] = self.g_per_unit(p)
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        if not getattr(options, "channel_scale", False):
+            return []
+        g = np.asarray(sv["g_per_unit"], float).reshape(3, -1)
+        out = []
+        for j, ch in enumerate(options.channels):
+            if not np.any(g[:, j]):
+                continue
+            v = S.channels.get(ch)
+            sd = float(np.std(v)) if v is not None and len(v) else 1.0
+            sd = sd if sd > 0 else 1.0
+            out.append((cls(ch, sd), g[:, j] * FIELD_SCALE_nT * sd))
+        return out
 
 
 CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,
