@@ -238,7 +238,7 @@ def _with_options(cs, rng):
     from dataclasses import replace
 
     opts = (("mmc1", chain.SensorOptions(channels=("heater_A",), thermal_lag=True,
-                                         sr_compensation=True)),
+                                         sr_compensation=True, lagged_channels=("bus_V",))),
             ("mpu1", chain.SensorOptions(channels=("heater_A", "bus_V"), nonlinear=True,
                                          channel_scale=True)))
     spec = replace(cs.spec, sensor_options=opts)
@@ -255,8 +255,9 @@ def _with_options(cs, rng):
 
 
 def test_optional_stages_bit_identical(toolchain):
-    """Channels, thermal lag (a recursion over the calls), SET/RESET rotation compensation,
-    the channel scale and the cubic: the target's bits are the reference's bits."""
+    """Channels, thermal lag (a recursion over the calls), a lagged channel (its own
+    recursion), SET/RESET rotation compensation, the channel scale and the cubic: the
+    target's bits are the reference's bits."""
     if not hasattr(chain, "SensorOptions"):
         pytest.skip("this chain has no optional stages")
     rng = np.random.default_rng(12)

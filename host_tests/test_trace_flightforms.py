@@ -130,3 +130,124 @@ def test_a_traced_channel_scale_goes_through_generate_table_apply(tmp_path):
     assert main(["table", "--decode", str(tmp_path / "t.bin"), "-q"]) == 0
     assert main(["apply", cj, str(tel.path), "-o", str(tmp_path / "a.csv"), "-q"]) == 0
     assert (tmp_path / "a.csv").stat().st_size > 0
+
+
+# ---- lagged_channel_bias: the lagged_channels option --------------------------------
+def _with_lag(cs: CoefficientSet, rng, tau_s=25.0) -> CoefficientSet:
+    """cs with heater_A also through a first-order lag (tau_s) on every sensor: C_lag
+    random, 50 nT per unit (as the direct channels' scale)."""
+    opts = tuple((n, replace(o, lagged_channels=("heater_A",)))
+                 for n, o in cs.spec.sensor_options)
+    spec = ChainSpec(cs.unit, poly_degree=cs.spec.poly_degree, coils=cs.spec.coils,
+                     sensor_options=opts)
+    sensors = {}
+    for s in cs.unit.sensors:
+        v = dict(cs.sensors[s.name])
+        v["C_lag_nT_per_unit"] = rng.normal(size=(3, 1)) * 50
+        v["lag_channel_tau_s"] = np.array([tau_s])
+        sensors[s.name] = {b.name: np.asarray(v[b.name], float).reshape(b.shape)
+                           for b in spec.sensor_blocks(s)}
+    return CoefficientSet(spec, sensors, cs.unit_values, {}, {})
+
+
+def _inputs(tel, cs, name):
+    inp = chain_inputs(tel, cs.spec, name, aux_off=True)
+    t = tel.time_s
+    np.testing.assert_array_equal(inp["dt_s"], np.diff(t, prepend=t[0]))   # as apply does
+    if "heater_A" in tel.columns:
+        np.testing.assert_array_equal(inp["channels"]["heater_A"], tel.columns["heater_A"])
+    inp["dt_s"] = inp["dt_s"].copy()
+    return inp
+
+
+def test_the_model_is_the_chain_with_lagged_channels(rotation_with_channels):
+    unit, truth, base, (thermal, tel), rng = rotation_with_channels
+    cs = _with_lag(_with_scale(_extended_set(unit, base, truth, rng),
+                               np.random.default_rng(6)), np.random.default_rng(7))
+    unit64 = replace(unit, float_type="float64")
+    spec64 = ChainSpec(unit64, poly_degree=5, coils=(), sensor_options=cs.spec.sensor_options)
+    assert np.ptp(tel.columns["heater_A"]) > 0
+    for s in unit.sensors:
+        rows, B64 = tr.calibrated_field64(cs, tel, s.name)
+        inp = _inputs(tel, cs, s.name)
+        ref = chain.reference_sensor(spec64, unit64.sensor(s.name), cs.flat_sensor(s.name),
+                                     cs.flat_unit(), inp["raw_counts"], inp["temp_C"],
+                                     inp["coil_A"], channels=inp["channels"],
+                                     rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+        assert np.all(ref["status"][rows] == 0)
+        np.testing.assert_allclose(B64, ref["field_body_nT"][rows], rtol=0, atol=1e-6)
+    # the filter is live: another time constant changes the model
+    cs2 = CoefficientSet(cs.spec, {n: dict(v) for n, v in cs.sensors.items()},
+                         cs.unit_values, {}, {})
+    cs2.sensors["mmc2"]["lag_channel_tau_s"] = cs2.sensors["mmc2"]["lag_channel_tau_s"] * 3
+    assert np.abs(tr.calibrated_field64(cs2, tel, "mmc2")[1]
+                  - tr.calibrated_field64(cs, tel, "mmc2")[1]).max() > 0.01
+
+
+def test_the_c_is_the_reference_with_lagged_channels(rotation_with_channels, tmp_path):
+    require_gcc()
+    from chain_fixtures import assert_bit_identical
+    from generator.cli import main
+    from generator.flight.host import HostUnit
+    unit, truth, base, (thermal, tel), rng = rotation_with_channels
+    cs = _with_lag(_extended_set(unit, base, truth, rng), np.random.default_rng(8))
+    host = HostUnit(cs)
+    for s in unit.sensors:
+        inp = _inputs(tel, cs, s.name)
+        inp["dt_s"][::53] = -1.0                 # clock steps back: the filter holds
+        got = host.correct(s.name, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                           channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+        py = chain.reference_sensor(cs.spec, s, cs.flat_sensor(s.name), cs.flat_unit(),
+                                    inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                                    channels=inp["channels"], rate_dps=inp["rate_dps"],
+                                    dt_s=inp["dt_s"])
+        assert_bit_identical(got, py, f"lagged channels {s.name}")
+    path = tmp_path / "c.json"
+    cs.save(path)
+    assert main(["generate", str(path), "-o", str(tmp_path / "gen"), "--compile", "-q"]) == 0
+    assert main(["table", str(path), "-o", str(tmp_path / "t.bin"), "-q"]) == 0
+
+
+def test_a_traced_lagged_heater_goes_through_generate_table_and_the_c(tmp_path):
+    """The lagged heater of test_trace_lagged (one of its draws: 12 x the noise, tau
+    120 s): traced, written (lagged_channels, its tau), generated and compiled; the C
+    over the data is the float32 reference bit for bit and the trace's float64 model to
+    float32 rounding (0.1 nT: float32 carries ~7 digits of 5e4 nT)."""
+    require_gcc()
+    from chain_fixtures import assert_bit_identical
+    from generator.cli import main
+    from generator.flight.host import HostUnit
+    from test_trace import _direction
+    from test_trace_lagged import LaggedHeater
+    rng = np.random.default_rng(61_001)
+    unit = small_unit()
+    truth = sim.random_truth(unit, rng)
+    truth.H_boom_to_body = np.eye(3)
+    s = "mmc2"
+    src = sim.SquareWave(600.0, 0.5, 1.0, 0.0, 100.0, 3)
+    eff = LaggedHeater(s, "heater_A", tuple(_direction(rng) * 12.0 * sigma_field(unit.sensor(s))),
+                       120.0, src)
+    tel, _ = run("thermal", unit, truth, 5, tmp_path, [eff])
+    res = tr.trace(unit, [tel])
+    assert (s, "lagged_channel_bias") in [(n, st.effect.name) for n, st in res.effects]
+    out = tmp_path / "trace"
+    res.write(out)
+    cs = CoefficientSet.load(out / "coefficients.json")
+    o = cs.spec.opts(s)
+    assert o.lagged_channels == ("heater_A",)
+    assert 120.0 / 1.5 < float(cs.sensors[s]["lag_channel_tau_s"][0]) < 120.0 * 1.5
+    cj = str(out / "coefficients.json")
+    assert main(["generate", cj, "-o", str(tmp_path / "gen"), "--compile", "-q"]) == 0
+    assert main(["table", cj, "-o", str(tmp_path / "t.bin"), "-q"]) == 0
+    assert main(["apply", cj, str(tel.path), "-o", str(tmp_path / "a.csv"), "-q"]) == 0
+    host = HostUnit(cs)
+    inp = _inputs(tel, cs, s)
+    got = host.correct(s, inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                       channels=inp["channels"], rate_dps=inp["rate_dps"], dt_s=inp["dt_s"])
+    py = chain.reference_sensor(cs.spec, unit.sensor(s), cs.flat_sensor(s), cs.flat_unit(),
+                                inp["raw_counts"], inp["temp_C"], inp["coil_A"],
+                                channels=inp["channels"], rate_dps=inp["rate_dps"],
+                                dt_s=inp["dt_s"])
+    assert_bit_identical(got, py, "traced lagged heater")
+    rows, B64 = tr.calibrated_field64(cs, tel, s)
+    np.testing.assert_allclose(got["field_body_nT"][rows], B64, rtol=0, atol=0.1)

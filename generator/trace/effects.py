@@ -853,11 +853,11 @@ class LaggedChannelBias(ChannelBias):
     title = "bias following a telemetry channel through a first-order lag"
     physics = ("a heater or a load warms a board or a part: the offset follows the channel "
                "with a time constant, not at once")
-    flight_form = ("needs a chain stage: a first-order filter state per channel, "
-                   "ch_f += dt/(tau + dt) (ch - ch_f) (the thermal lag's recursion), then "
-                   "x -= C ch_f; until the chain has it the flight coefficients leave it "
-                   "out")
-    in_chain = False
+    flight_form = ("lagged_channels option: blocks C_lag_nT_per_unit (3 x the lagged "
+                   "channels) and lag_channel_tau_s; a first-order filter state per channel "
+                   "in the sensor's state, ch_f += dt/(tau + dt) (ch - ch_f) (the thermal "
+                   "lag's recursion), then x -= C_lag ch_f")
+    in_chain = True
     n_hyper = 1
     GRID = 10
 
@@ -915,11 +915,32 @@ class LaggedChannelBias(ChannelBias):
         return {**super().describe(p, model), "tau_s": float(self.hyper)}
 
     def to_flight(self, p, values, options, model):
-        """No chain stage yet (flight_form): nothing is written."""
+        options.setdefault("lagged_channels", []).append(self.channel)
+        C = values.get("C_lag_nT_per_unit")
+        col = self.C_nT_per_unit(p).reshape(3, 1)
+        values["C_lag_nT_per_unit"] = col if C is None else np.hstack([C, col])
+        tau = values.get("lag_channel_tau_s")
+        values["lag_channel_tau_s"] = np.append(np.zeros(0) if tau is None else tau,
+                                                float(self.hyper))
+        if self.partial:   # the files that carry the channel are the operating condition
+            values["b_poly_nT"][0] = values["b_poly_nT"][0] + np.asarray(p, float)[3:6]
 
     @classmethod
     def from_flight(cls, sv, options, S, info):
-        return []
+        out = []
+        lagged = getattr(options, "lagged_channels", ())
+        if not lagged:
+            return out
+        C = np.asarray(sv["C_lag_nT_per_unit"], float).reshape(3, -1)
+        taus = np.asarray(sv["lag_channel_tau_s"], float).reshape(-1)
+        for j, ch in enumerate(lagged):
+            v = S.channels.get(ch)
+            sd = float(np.std(v)) if v is not None and len(v) else 1.0
+            sd = sd if sd > 0 else 1.0
+            e = cls(ch, sd)
+            e.hyper = float(taus[j])
+            out.append((e, C[:, j] * sd))
+        return out
 
 
 class ChannelScale(Effect):
