@@ -386,14 +386,20 @@ class ThermalLag(Effect):
     def refine_grid(self, S, best):
         return list(best * np.exp(np.linspace(-0.3, 0.3, 7)))
 
+    LOG_LIMIT = 20.0    # |log(tau / hyper)| at most 20: tau within e^+-20 of the scanned
+    #                     value (beyond, the element is a constant or the board itself
+    #                     for any data; a fit that runs off there stays finite)
+
     def tau_s(self, p):
-        return float(self.hyper * math.exp(float(np.asarray(p).reshape(-1)[0])))
+        lp = float(np.clip(float(np.asarray(p).reshape(-1)[0]), -self.LOG_LIMIT, self.LOG_LIMIT))
+        return float(self.hyper * math.exp(lp))
 
     def hyper_after_fit(self, p):
         return self.tau_s(p)
 
     def temperature(self, p, S, T):
-        taus = self.hyper * np.exp(np.asarray(p)[:, 0])
+        taus = self.hyper * np.exp(np.clip(np.asarray(p)[:, 0], -self.LOG_LIMIT,
+                                           self.LOG_LIMIT))
         out = np.empty((len(taus), S.n))
         uniq, inv = np.unique(np.round(taus, 12), return_inverse=True)
         for u_i, tau in enumerate(uniq):
@@ -410,6 +416,8 @@ class ThermalLag(Effect):
         the derivative's own recursion (lag_filter_dtau) per file."""
         tau = self.tau_s(p)
         out = np.zeros((1, S.n))
+        if abs(float(np.asarray(p).reshape(-1)[0])) >= self.LOG_LIMIT:
+            return out                            # clipped: tau does not move
         for fi, series in enumerate(S.files):
             sel = S.file_index == fi
             if sel.any():
