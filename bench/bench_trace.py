@@ -8,8 +8,10 @@ wait4), with this checkout on PYTHONPATH, so imports and I/O count as a user see
 
     python3 bench/bench_trace.py [--data DIR] [--repeat 1] [--files a.csv b.csv ...]
 
-Prints the walls, the ratio trace / fit, and the trace's own progress lines (per
-sensor and round, with the time each round took) from its stderr.
+Prints the walls and CPU times (user + system, from wait4), the ratio trace / fit of
+each run and of the best of the runs, and the trace's own progress lines (per sensor
+and round, with the time each round took). On a shared machine the CPU ratio is the
+steadier figure: the walls include waiting for a core, which differs between the runs.
 """
 
 from __future__ import annotations
@@ -66,7 +68,9 @@ def main(argv=None) -> int:
             traces.append((w, rss, cpu))
             print(f"run {k + 1}: fit {fits[-1][0]:.1f} s wall, {fits[-1][2]:.1f} s CPU "
                   f"({fits[-1][1]:.0f} MiB); trace {traces[-1][0]:.1f} s wall, "
-                  f"{traces[-1][2]:.1f} s CPU ({traces[-1][1]:.0f} MiB)")
+                  f"{traces[-1][2]:.1f} s CPU ({traces[-1][1]:.0f} MiB); ratio "
+                  f"{traces[-1][0] / fits[-1][0]:.2f} wall, "
+                  f"{traces[-1][2] / fits[-1][2]:.2f} CPU")
     fit = min(w for w, _, _ in fits)
     trace = min(w for w, _, _ in traces)
     fit_cpu = min(c for _, _, c in fits)
