@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from generator.campaign import simulate as sim
 from generator.flight import chain
@@ -251,3 +252,21 @@ def test_a_traced_lagged_heater_goes_through_generate_table_and_the_c(tmp_path):
     assert_bit_identical(got, py, "traced lagged heater")
     rows, B64 = tr.calibrated_field64(cs, tel, s)
     np.testing.assert_allclose(got["field_body_nT"][rows], B64, rtol=0, atol=0.1)
+
+
+def test_bad_options_in_coefficients_json_name_the_key(rotation_with_channels):
+    """coefficients.json is user input: the new options are checked like the others."""
+    import json
+    from generator.errors import InputError
+    unit, truth, base, (thermal, tel), rng = rotation_with_channels
+    cs = _with_lag(_with_scale(_extended_set(unit, base, truth, rng),
+                               np.random.default_rng(9)), np.random.default_rng(10))
+    doc = json.loads(json.dumps(cs.to_json_dict(), default=float))
+    CoefficientSet.from_json_dict(json.loads(json.dumps(doc)))        # as written: valid
+    for key, value in (("lagged_channels", "heater_A"), ("lagged_channels", [1]),
+                       ("lagged_channels", ["heater_A", "heater_A"]),
+                       ("channel_scale", "yes")):
+        bad = json.loads(json.dumps(doc))
+        bad["chain"]["sensor_options"]["mmc1"][key] = value
+        with pytest.raises(InputError, match=key):
+            CoefficientSet.from_json_dict(bad)
