@@ -8,8 +8,10 @@ wait4), with this checkout on PYTHONPATH, so imports and I/O count as a user see
 
     python3 bench/bench_trace.py [--data DIR] [--repeat 1] [--files a.csv b.csv ...]
 
-Prints the walls, the ratio trace / fit, and the trace's own progress lines (per
-sensor and round, with the time each round took) from its stderr.
+Prints the walls and CPU times (user + system, from wait4), the ratio trace / fit of
+each run and of the best of the runs, and the trace's own progress lines (per sensor
+and round, with the time each round took). On a shared machine the CPU ratio is the
+steadier figure: the walls include waiting for a core, which differs between the runs.
 """
 
 from __future__ import annotations
@@ -28,8 +30,10 @@ CANDIDATES = [REPO.parent / "shared" / "data" / "samsat_fm1",
 FILES = ["thermal_12pos.csv", "rotation.csv", "coils.csv", "flight_6h.csv"]
 
 
-def run(cmd) -> tuple[float, float, str]:
-    """(wall seconds, peak RSS MiB, stderr) of one subprocess."""
+def run(cmd) -> tuple[float, float, str, float]:
+    """(wall seconds, peak RSS MiB, stderr, CPU seconds user + system) of one
+    subprocess. The CPU time is the steadier figure on a shared machine (the wall time
+    includes waiting for a core)."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
@@ -39,7 +43,7 @@ def run(cmd) -> tuple[float, float, str]:
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{out[-3000:]}")
-    return wall, rusage.ru_maxrss / 1024.0, out
+    return wall, rusage.ru_maxrss / 1024.0, out, rusage.ru_utime + rusage.ru_stime
 
 
 def main(argv=None) -> int:
@@ -58,21 +62,27 @@ def main(argv=None) -> int:
     fits, traces = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(a.repeat):
-            w, rss, _ = run(py + ["fit", unit, *files, "-o", f"{tmp}/fit{k}"])
-            fits.append((w, rss))
-            w, rss, out = run(py + ["trace", unit, *files, "-o", f"{tmp}/trace{k}"])
-            traces.append((w, rss))
-            print(f"run {k + 1}: fit {fits[-1][0]:.1f} s ({fits[-1][1]:.0f} MiB), "
-                  f"trace {traces[-1][0]:.1f} s ({traces[-1][1]:.0f} MiB)")
-    fit = min(w for w, _ in fits)
-    trace = min(w for w, _ in traces)
+            w, rss, _, cpu = run(py + ["fit", unit, *files, "-o", f"{tmp}/fit{k}"])
+            fits.append((w, rss, cpu))
+            w, rss, out, cpu = run(py + ["trace", unit, *files, "-o", f"{tmp}/trace{k}"])
+            traces.append((w, rss, cpu))
+            print(f"run {k + 1}: fit {fits[-1][0]:.1f} s wall, {fits[-1][2]:.1f} s CPU "
+                  f"({fits[-1][1]:.0f} MiB); trace {traces[-1][0]:.1f} s wall, "
+                  f"{traces[-1][2]:.1f} s CPU ({traces[-1][1]:.0f} MiB); ratio "
+                  f"{traces[-1][0] / fits[-1][0]:.2f} wall, "
+                  f"{traces[-1][2] / fits[-1][2]:.2f} CPU")
+    fit = min(w for w, _, _ in fits)
+    trace = min(w for w, _, _ in traces)
+    fit_cpu = min(c for _, _, c in fits)
+    trace_cpu = min(c for _, _, c in traces)
     print("trace progress (last run):")
     for line in out.splitlines():
         print("  " + line)
     print(f"files: {', '.join(a.files)}")
-    print(f"magcal fit   {fit:7.1f} s   (best of {a.repeat})")
-    print(f"magcal trace {trace:7.1f} s   (best of {a.repeat})")
-    print(f"ratio trace / fit = {trace / fit:.1f}   (target <= 3)")
+    print(f"magcal fit   {fit:7.1f} s wall {fit_cpu:7.1f} s CPU   (best of {a.repeat})")
+    print(f"magcal trace {trace:7.1f} s wall {trace_cpu:7.1f} s CPU   (best of {a.repeat})")
+    print(f"ratio trace / fit = {trace / fit:.2f} wall, {trace_cpu / fit_cpu:.2f} CPU   "
+          "(target <= 3)")
     return 0
 
 

@@ -68,12 +68,13 @@ def chain_inputs(tel: Telemetry, spec: ChainSpec, sensor_name: str,
 
     o = spec.opts(s)
     coil = optional(list(spec.coils), "magnetorquer current", zero_if_absent=coils_off)
-    ch = optional(list(o.channels), "telemetry channel", zero_if_absent=aux_off)
-    channels = {c: ch[:, k] for k, c in enumerate(o.channels)} if ch is not None else None
+    kch = list(o.kernel_channels)          # the channels, then the lagged ones
+    ch = optional(kch, "telemetry channel", zero_if_absent=aux_off)
+    channels = {c: ch[:, k] for k, c in enumerate(kch)} if ch is not None else None
     rate = optional(["rate_x_dps", "rate_y_dps", "rate_z_dps"] if o.sr_compensation else [],
                     "body rate", zero_if_absent=aux_off)
     dt = None
-    if o.thermal_lag:
+    if o.thermal_lag or o.lagged_channels:      # the filters advance by the time step
         t = tel.time_s
         dt = np.diff(t, prepend=t[0])
     return {"raw_counts": raw, "temp_C": np.where(np.isfinite(temp), temp, 0.0),

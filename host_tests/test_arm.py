@@ -238,8 +238,9 @@ def _with_options(cs, rng):
     from dataclasses import replace
 
     opts = (("mmc1", chain.SensorOptions(channels=("heater_A",), thermal_lag=True,
-                                         sr_compensation=True)),
-            ("mpu1", chain.SensorOptions(channels=("heater_A", "bus_V"), nonlinear=True)))
+                                         sr_compensation=True, lagged_channels=("bus_V",))),
+            ("mpu1", chain.SensorOptions(channels=("heater_A", "bus_V"), nonlinear=True,
+                                         channel_scale=True)))
     spec = replace(cs.spec, sensor_options=opts)
     sensors = {}
     for s in spec.unit.sensors:
@@ -247,14 +248,16 @@ def _with_options(cs, rng):
         for b in spec.sensor_blocks(s):
             if b.name not in v:
                 v[b.name] = np.array(30.0) if "tau" in b.name else \
-                    rng.normal(0, 1e-4 if "cubic" in b.name else 20.0, b.shape or ())
+                    rng.normal(0, 1e-4 if "cubic" in b.name else
+                               1e-3 if b.name == "g_per_unit" else 20.0, b.shape or ())
         sensors[s.name] = v
     return CoefficientSet(spec, sensors, cs.unit_values, {}, {})
 
 
 def test_optional_stages_bit_identical(toolchain):
-    """Channels, thermal lag (a recursion over the calls), SET/RESET rotation compensation
-    and the cubic: the target's bits are the reference's bits."""
+    """Channels, thermal lag (a recursion over the calls), a lagged channel (its own
+    recursion), SET/RESET rotation compensation, the channel scale and the cubic: the
+    target's bits are the reference's bits."""
     if not hasattr(chain, "SensorOptions"):
         pytest.skip("this chain has no optional stages")
     rng = np.random.default_rng(12)

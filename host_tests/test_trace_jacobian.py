@@ -1,6 +1,7 @@
 """Issue 17, speed: the analytic Jacobian columns of the linear blocks (b, M, K, B_p) of
 generator.trace.model.SensorModel equal the finite differences they replace, for vector,
-magnitude and static-position rows, with and without effects in the chain.
+magnitude and static-position rows, with and without effects in the chain (the thermal
+lag's tau column, by its own recursion, against central differences).
 
 Tolerance: forward differences of step FD_STEP (1e-3 internal units, ~1e-3 nT) on a model
 that is linear in these blocks (b, K, B_p) or bilinear (M with magnitude rows: |B| is
@@ -78,8 +79,21 @@ def test_analytic_columns_equal_finite_differences(kind, with_effect, tmp_path):
         assert m.free_K
     for b in blocks:                           # every free linear block is analytic here
         assert set(range(m.sl[b].start, m.sl[b].stop)) <= set(done), b
+    if with_effect is True:                     # the thermal lag's column is analytic too
+        assert m.sl["e0"].start in done
     cols = np.array(sorted(done))
     J_fd = m._fd_columns(th, S, cols, r0)
+    if with_effect is True:
+        # log(tau) is not a linear parameter: its forward difference is off by the
+        # curvature, FD_STEP / 2 relative; central differences of the same step are off
+        # by FD_STEP^2 / 6 ~ 2e-7 of the column's third-derivative scale, inside REL_TOL
+        c = m.sl["e0"].start
+        k = int(np.searchsorted(cols, c))
+        h = tr.FD_STEP
+        up, dn = th.copy(), th.copy()
+        up[c] += h
+        dn[c] -= h
+        J_fd[:, k] = (m.residual(up[None], S)[0] - m.residual(dn[None], S)[0]) / (2 * h)
     for k, c in enumerate(cols):
         scale = max(np.max(np.abs(J_fd[:, k])), 1e-12)
         assert np.max(np.abs(done[c] - J_fd[:, k])) <= REL_TOL * scale + 1e-9, (kind, c)

@@ -24,6 +24,9 @@ Per sensor, per sample (seed 000, fig. 30; equations [4], [1], [7], [5]):
     offset      x_i = field_f_i - b_i(T)
     coils       x_i -= K_i0 i_0 + K_i1 i_1 + ...                             (when coils are in the chain)
     channels    x_i -= C_i0 ch_0 + C_i1 ch_1 + ...                           (option: channels)
+    lagged ch.  chf_j += dt / (tau_j + dt) (ch_j - chf_j), state between calls;
+                x_i -= C_lag_i0 chf_0 + ...                                (option: lagged_channels)
+    ch. scale   x_i -= g_ij ch_j x_i, for j = 0, 1, ... in turn             (option: channel_scale)
     cubic       x_i -= n_i x_i x_i x_i                                      (option: nonlinear)
     calibrate   B_i = m_i0 x_0 + m_i1 x_1 + m_i2 x_2                        (eq. 5)
     SET/RESET   B += c (w x B), w the body rate in the board frame          (option: sr_compensation)
@@ -141,23 +144,47 @@ class SensorOptions:
         filter, T_el += dt / (tau + dt) (T - T_el), kept in the sensor's state;
     nonlinear: per-axis cubic of the reading, x_i -= n_i x_i^3 after the offsets;
     sr_compensation: SET/RESET rotation error, B += c (w x B) after M, w the body rate in
-        the board frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg).
+        the board frame, c = (SET->RESET delay) / 2 * pi / 180 (s rad/deg);
+    channel_scale: scale factors that follow the channels, after their offsets and before
+        the cubic, channel by channel: x_i -= g_ij ch_j x_i (block g_per_unit, 3 x the
+        channels; a channel that only scales has a zero column of C_nT_per_unit).
+        Written into the structure (and so the layout hash) only where it is set;
+    lagged_channels: telemetry columns whose coupling acts through a first-order filter
+        (a heater warming a board): ch_f += dt / (tau_j + dt) (ch - ch_f) per channel,
+        kept in the sensor's state (the thermal lag's recursion and rules: the first
+        sample, a NULL state or a non-finite result start it at ch), then
+        x_i -= C_lag_ij ch_f_j after the other channels' offsets (blocks C_lag_nT_per_unit,
+        lag_channel_tau_s). Written into the structure only where used.
     """
 
     channels: tuple = ()
     thermal_lag: bool = False
     nonlinear: bool = False
     sr_compensation: bool = False
+    channel_scale: bool = False
+    lagged_channels: tuple = ()
+
+    @property
+    def kernel_channels(self) -> tuple:
+        """The kernel's `channels` input: the channels, then the lagged ones (filtered)."""
+        return tuple(self.channels) + tuple(self.lagged_channels)
 
     def to_dict(self) -> dict:
-        return {"channels": list(self.channels), "thermal_lag": self.thermal_lag,
-                "nonlinear": self.nonlinear, "sr_compensation": self.sr_compensation}
+        d = {"channels": list(self.channels), "thermal_lag": self.thermal_lag,
+             "nonlinear": self.nonlinear, "sr_compensation": self.sr_compensation}
+        if self.channel_scale:       # only where used: older structures keep their hash
+            d["channel_scale"] = True
+        if self.lagged_channels:
+            d["lagged_channels"] = list(self.lagged_channels)
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> "SensorOptions":
         return SensorOptions(tuple(d.get("channels", ())), bool(d.get("thermal_lag", False)),
                              bool(d.get("nonlinear", False)),
-                             bool(d.get("sr_compensation", False)))
+                             bool(d.get("sr_compensation", False)),
+                             bool(d.get("channel_scale", False)),
+                             tuple(d.get("lagged_channels", ())))
 
 
 NO_OPTIONS = SensorOptions()
@@ -237,6 +264,11 @@ class ChainSpec:
         for name, o in self.sensor_options:
             if name not in names:
                 raise ValueError(f"sensor_options names unknown sensor '{name}'")
+            if o.channel_scale and not o.channels:
+                raise ValueError(f"sensor '{name}': channel_scale needs channels")
+            for lst in (o.channels, o.lagged_channels):
+                if len(set(lst)) != len(lst):
+                    raise ValueError(f"sensor '{name}': a channel is named twice")
             if o.thermal_lag and not self.unit.sensor(name).temperature:
                 raise ValueError(f"sensor '{name}' has no temperature: no thermal lag")
         for s in self.unit.sensors:
@@ -252,14 +284,15 @@ class ChainSpec:
 
     def has_state(self, sensor) -> bool:
         """Whether the sensor's calls keep a state (stored offset, filtered temperature)."""
-        return sensor.set_reset or self.opts(sensor).thermal_lag
+        o = self.opts(sensor)
+        return sensor.set_reset or o.thermal_lag or bool(o.lagged_channels)
 
     @property
     def aux_channels(self) -> tuple:
         """All channels any sensor uses, in first-use order: the aux struct's fields."""
         out = []
         for s in self.unit.sensors:
-            for c in self.opts(s).channels:
+            for c in self.opts(s).kernel_channels:
                 if c not in out:
                     out.append(c)
         return tuple(out)
@@ -270,7 +303,8 @@ class ChainSpec:
 
     @property
     def needs_dt(self) -> bool:
-        return any(self.opts(s).thermal_lag for s in self.unit.sensors)
+        return any(self.opts(s).thermal_lag or self.opts(s).lagged_channels
+                   for s in self.unit.sensors)
 
     @property
     def has_aux(self) -> bool:
@@ -318,6 +352,17 @@ class ChainSpec:
         if o.channels:
             blocks.append(Block("C_nT_per_unit", (3, len(o.channels)), "nT/unit", "coupling",
                                 "coupling of telemetry channels " + ", ".join(o.channels)))
+        if o.lagged_channels:
+            nl = len(o.lagged_channels)
+            blocks.append(Block("C_lag_nT_per_unit", (3, nl), "nT/unit", "coupling",
+                                "coupling of lagged telemetry channels "
+                                + ", ".join(o.lagged_channels)))
+            blocks.append(Block("lag_channel_tau_s", (nl,), "s", "time_constant",
+                                "time constants of the lagged channels' first-order filters"))
+        if o.channel_scale:
+            blocks.append(Block("g_per_unit", (3, len(o.channels)), "1/unit", "scale_coupling",
+                                "scale factor per unit of telemetry channels "
+                                + ", ".join(o.channels) + ": x_i -= g_ij ch_j x_i"))
         if o.thermal_lag:
             blocks.append(Block("lag_tau_s", (), "s", "time_constant",
                                 "thermal lag of the sensing element behind the reported T"))
@@ -356,8 +401,12 @@ class ChainSpec:
         if self.coils:
             ins.append(Input("coil_A", len(self.coils), "A", "magnetorquer currents"))
         o = self.opts(sensor)
-        if o.channels:
-            ins.append(Input("channels", len(o.channels), "as named", ", ".join(o.channels)))
+        if o.kernel_channels:
+            ins.append(Input("channels", len(o.kernel_channels), "as named",
+                             ", ".join(o.channels) + (
+                                 ("; filtered: " if o.channels else "filtered: ")
+                                 + ", ".join(o.lagged_channels) if o.lagged_channels
+                                 else "")))
         if o.sr_compensation:
             ins.append(Input("rate_dps", 3, "deg/s", "body angular rate"))
         return tuple(ins)
@@ -582,8 +631,16 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
         x = [x[i] - coil_nT[i] for i in range(3)]
     o = spec.opts(sensor)
     if o.channels:   # linear coupling of other telemetry channels (traced effects)
-        ch_nT = _couple(c.get("C_nT_per_unit"), channels)
+        ch_nT = _couple(c.get("C_nT_per_unit"), list(channels[:len(o.channels)]))
         x = [x[i] - ch_nT[i] for i in range(3)]
+    if o.lagged_channels:   # channels through their first-order filters (the wrapper)
+        nch = len(o.channels)
+        chl_nT = _couple(c.get("C_lag_nT_per_unit"), list(channels[nch:]))
+        x = [x[i] - chl_nT[i] for i in range(3)]
+    if o.channel_scale:   # scale factors following the channels, channel by channel
+        g = c.get("g_per_unit")
+        for j in range(len(o.channels)):
+            x = [x[i] - g[i][j] * channels[j] * x[i] for i in range(3)]
     if o.nonlinear:  # per-axis cubic of the reading
         n3 = c.get("cubic_per_nT2")
         x = [x[i] - n3[i] * x[i] * x[i] * x[i] for i in range(3)]
@@ -803,6 +860,7 @@ class SensorState:
 
     offset_counts: object = None     # (3,) stored (SET + RESET) / 2, counts
     temp_el_C: object = None         # element temperature of the thermal-lag filter
+    channel_el: object = None        # (n,) lagged channels' filter states
 
 
 NULL_STATE = False   # reference_sensor(state=NULL_STATE): the C call with state == NULL
@@ -867,13 +925,14 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     inputs = {}
     if spec.coils:
         inputs["coil_A"] = aux(coil_A, len(spec.coils))
-    if o.channels:
+    kch = o.kernel_channels
+    if kch:
         inputs["channels"] = aux(None if channels is None else
                                  np.stack([np.asarray(channels[name], dtype=np.float64)
-                                           for name in o.channels], axis=1), len(o.channels))
+                                           for name in kch], axis=1), len(kch))
     if o.sr_compensation:
         inputs["rate_dps"] = aux(rate_dps, 3)
-    if o.thermal_lag:
+    if o.thermal_lag or o.lagged_channels:
         inputs["dt_s"] = aux(dt_s, 1)
     nonfinite = ~np.isfinite(temp)
     if physical:
@@ -916,6 +975,26 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         status[no_offset] |= STATUS_NO_OFFSET
         zeroed |= no_offset
         raw += [np.where(zeroed, ft(0), off[:, i]) for i in range(3)]
+    if o.lagged_channels and not null_state:
+        # the lagged channels' filters: advanced by the calls that reach the kernel (the
+        # C's run_kernel), each a recursion like the thermal lag's
+        nch = len(o.channels)
+        taus = c.get("lag_channel_tau_s")
+        dts = np.where(cols["dt_s"][0] >= 0, cols["dt_s"][0], ft(0)).astype(ft)
+        chs = cols["channels"]
+        els = list(state.channel_el) if state.channel_el is not None else None
+        for j in range(len(o.lagged_channels)):
+            chs[nch + j] = chs[nch + j].copy()
+        for k in np.nonzero(~zeroed)[0]:
+            if els is not None:
+                with np.errstate(over="ignore", invalid="ignore"):
+                    for j in range(len(o.lagged_channels)):
+                        new = lag_kernel(chs[nch + j][k], els[j], dts[k], taus[j])
+                        if np.isfinite(new):
+                            chs[nch + j][k] = new
+            els = [chs[nch + j][k] for j in range(len(o.lagged_channels))]
+        if els is not None:
+            state.channel_el = els
     # clamp to the calibrated range (C: if (t < t_min) ... else if (t > t_max) ...);
     # a sensor with no temperature has no range and nothing to clamp
     t = np.where(zeroed, ft(0), t)

@@ -92,6 +92,20 @@ def build_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
                        ["temp_C", "temp_el_C", "dt_s", "coeffs"], ["temp_el_next_C"])
 
 
+def build_channel_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
+    """The lagged channels' filter update of a sensor (option lagged_channels), from
+    `chain.lag_kernel`, one time constant per channel."""
+    nl = len(spec.opts(sensor).lagged_channels)
+    ch, el, dt = ca.SX.sym("channel", nl), ca.SX.sym("channel_el", nl), ca.SX.sym("dt_s")
+    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
+    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
+    tau = c.get("lag_channel_tau_s")
+    nxt = [lag_kernel(ch[j], el[j], dt, tau[j]) for j in range(nl)]
+    return ca.Function(f"{spec.unit.id}_{sensor.name}_chlag_kernel", [ch, el, dt, c_sym],
+                       [ca.vertcat(*nxt)], ["channel", "channel_el", "dt_s", "coeffs"],
+                       ["channel_el_next"])
+
+
 def build_agreement_kernel(spec: ChainSpec) -> ca.Function:
     """Pairwise agreement margins of all sensors, from `chain.agreement_kernel`."""
     S = len(spec.unit.sensors)
@@ -123,6 +137,9 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
         if spec.opts(s).thermal_lag:
             funcs[s.name + ":lag"] = build_lag_kernel(spec, s)
             cg.add(funcs[s.name + ":lag"])
+        if spec.opts(s).lagged_channels:
+            funcs[s.name + ":chlag"] = build_channel_lag_kernel(spec, s)
+            cg.add(funcs[s.name + ":chlag"])
     funcs[":agree"] = build_agreement_kernel(spec)
     cg.add(funcs[":agree"])
     with tempfile.TemporaryDirectory() as d:
@@ -241,7 +258,7 @@ def template_context(cs: CoefficientSet) -> dict:
                      ([f"counts[{k}]" for k in range(6 if s.set_reset else 3)]
                       if is_physical(s) else []),
             "has_probe": s.temperature or is_physical(s) or bool(
-                spec.coils or spec.opts(s).channels or spec.opts(s).sr_compensation
+                spec.coils or spec.opts(s).kernel_channels or spec.opts(s).sr_compensation
                 or spec.opts(s).thermal_lag),
             "n_raw": 6 if s.set_reset else 3,
             "kernel": kernel_name(spec, s),
@@ -251,8 +268,14 @@ def template_context(cs: CoefficientSet) -> dict:
             "set_kargs": _kernel_args(spec, s, True) if s.set_reset else [],
             "has_state": spec.has_state(s),
             "lag": spec.opts(s).thermal_lag,
+            "uses_dt": spec.opts(s).thermal_lag or bool(spec.opts(s).lagged_channels),
+            "chlag": bool(spec.opts(s).lagged_channels),
+            "chlag_kernel": f"{unit.id}_{s.name}_chlag_kernel",
+            "n_chan": len(spec.opts(s).channels),
+            "n_chlag": len(spec.opts(s).lagged_channels),
             "sr_comp": spec.opts(s).sr_compensation,
-            "channel_idx": [spec.aux_channels.index(ch) for ch in spec.opts(s).channels],
+            "channel_idx": [spec.aux_channels.index(ch)
+                            for ch in spec.opts(s).kernel_channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
         })
     # A sensor block that ends more than 1020 bytes into the coefficient struct is read

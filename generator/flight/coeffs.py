@@ -294,7 +294,8 @@ GENERIC_LIMIT = 1e8
 # accuracy of a boom alignment; a JSON float64 Wahba solution is exact to ~1e-15).
 ORTHO_TOL = 1e-4
 INPUT_KINDS = ("counts", "nT", "uT", "mG", "G")
-OPTION_KEYS = ("channels", "thermal_lag", "nonlinear", "sr_compensation")
+OPTION_KEYS = ("channels", "thermal_lag", "nonlinear", "sr_compensation", "channel_scale",
+               "lagged_channels")
 _BLOCK_LIMITS = {"lsb_nT": FIELD_LIMIT_nT, "zero_count": 2.0 ** 31, "b_poly_nT": FIELD_LIMIT_nT,
                  "M_poly": GAIN_LIMIT, "K_nT_per_A": FIELD_LIMIT_nT, "agree_nT": FIELD_LIMIT_nT,
                  "C_nT_per_unit": FIELD_LIMIT_nT, "field_min_nT": FIELD_LIMIT_nT,
@@ -408,14 +409,21 @@ def _validate_chain(c, unit: Unit, path) -> ChainSpec:
             if k not in OPTION_KEYS:
                 raise InputError(path, f"{where}.{_short(k)}: unknown option "
                                        f"({', '.join(OPTION_KEYS)})")
-            if k != "channels" and not isinstance(v, bool):
+            if k not in ("channels", "lagged_channels") and not isinstance(v, bool):
                 raise InputError(path, f"{where}.{k}: not true or false")
         chans = _column_list(o.get("channels", []), f"{where}.channels", path)
         if o.get("sr_compensation") and not unit.sensor(name).set_reset:
             raise InputError(path, f"{where}.sr_compensation: the sensor has no SET/RESET")
+        if o.get("channel_scale") and not chans:
+            raise InputError(path, f"{where}.channel_scale: needs channels")
+        lagged = _column_list(o.get("lagged_channels", []), f"{where}.lagged_channels", path)
+        for lst, key in ((chans, "channels"), (lagged, "lagged_channels")):
+            if len(set(lst)) != len(lst):
+                raise InputError(path, f"{where}.{key}: a channel is named twice")
         opts.append((name, SensorOptions(chans, o.get("thermal_lag", False),
                                          o.get("nonlinear", False),
-                                         o.get("sr_compensation", False))))
+                                         o.get("sr_compensation", False),
+                                         o.get("channel_scale", False), lagged)))
     spec = ChainSpec(unit, poly_degree=deg, coils=coils, sensor_options=tuple(opts))
     clash = macro_collision([*spec.coils, *spec.aux_channels])
     if clash:

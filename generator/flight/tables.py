@@ -270,6 +270,8 @@ PLAUSIBLE_RANGES = {r.kind: r for r in (
     KindRange("nonlinearity", -1e-10, 1e-10, "1/nT^2: the cubic n x^3 stays below the "
                                              "reading x up to 100 000 nT"),
     KindRange("sr_delay", -0.01, 0.01, "s rad/deg: a SET->RESET delay of at most ~1 s"),
+    KindRange("scale_coupling", -1.0, 1.0, "per unit of a telemetry channel: a unit of the "
+                                           "channel changes the scale by less than 100 %"),
 )}
 
 # The header temperature range of a unit none of whose sensors has a temperature: the

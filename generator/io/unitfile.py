@@ -148,6 +148,13 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
     for key, value in doc.items():
         if key not in ("unit", "boom", "sensor", "orbit", "requirements"):
             extra[key] = value
+    if "trace" in doc:     # [[trace.regressor]]: user-declared regressors (io/formula.py)
+        from generator.io.formula import read_regressors
+        regs = read_regressors(path, doc["trace"],
+                               lambda i, _k: lines.table("trace.regressor", i))
+        if regs:
+            extra["trace_regressors"] = [{k: r[k] for k in ("name", "formula", "inputs")}
+                                         for r in regs]
     # ICD section 4 tables, validated, in plain form (the Unit dataclass is shared and
     # frozen; Unit.extra carries them to whoever needs them: orbit work, the report)
     if orbit:

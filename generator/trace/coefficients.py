@@ -111,7 +111,8 @@ def calibrated_field64(cs: CoefficientSet, tel, sensor: str):
     """float64 B_cal of one sensor of a telemetry file through the extended chain model
     (boom sensors rotated by H), for every usable sample; returns (row index, (n, 3))."""
     unit = cs.unit
-    ch_names = list(dict.fromkeys(c for s in unit.sensors for c in cs.spec.opts(s).channels))
+    ch_names = list(dict.fromkeys(c for s in unit.sensors
+                                  for c in cs.spec.opts(s).kernel_channels))
     norm_tel = _with_any_reference(tel)
     S = gather_samples(unit, [norm_tel], [0], coils=cs.spec.coils,
                        H=cs.unit_values.get("H_boom_to_body"), channels=ch_names)[sensor]
@@ -151,7 +152,8 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             mv = m.values()
             o = {"channels": [], "thermal_lag": False, "nonlinear": False,
                  "sr_compensation": False}
-            for k in ("C_nT_per_unit", "lag_tau_s", "cubic_per_nT2", "sr_comp_s_per_deg"):
+            for k in ("C_nT_per_unit", "lag_tau_s", "cubic_per_nT2", "sr_comp_s_per_deg",
+                      "g_per_unit", "C_lag_nT_per_unit", "lag_channel_tau_s"):
                 v.pop(k, None)
             D = m.base.degree
             v["b_poly_nT"] = mv["b_poly_nT"].copy()
@@ -164,6 +166,10 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
                     e.to_flight(m.effect_params(i), v, o, m)
                 else:
                     later.append(i)
+            g = v.pop("_g_by_channel", None)
+            if g:                  # channel scales, aligned with the sensor's channels
+                v["g_per_unit"] = np.stack([g.get(ch, np.zeros(3)) for ch in o["channels"]],
+                                           axis=1)
             if m.free_M is None:   # no absolute reference: keep the baseline's mean output
                 _recentre(v, o, tr, m)
             for i in later:        # a step's new offset (the others have no flight form)

@@ -121,42 +121,106 @@ class CVEngine:
         sse = yy + d @ Jy + beta @ Gy
         return max(sse, 0.0), d, beta
 
-    def evaluate(self, d0=None, G=None):
+    def _y_pieces(self, y):
+        """(y permuted fold after fold, per-fold [y.y, J^T y]); those of r0 are kept (most
+        candidates leave the residual where it is: d0 = None)."""
+        if y is self.r0 and getattr(self, "_r0_pieces", None) is not None:
+            return self._r0_pieces
+        yp = y[self.perm]
+        pieces = [[float(yp[sl] @ yp[sl]), Jte.T @ yp[sl]]
+                  for sl, (_, Jte, _, _) in zip(self.slices, self.folds)]
+        if y is self.r0:
+            self._r0_pieces = (yp, pieces)
+        return yp, pieces
+
+    def evaluate(self, d0=None, G=None, bound=None):
         """Train SSE per fold (K,), held-out SSE per block (B,), full-data SSE and the
         held-out residual of every row (R,: each row is held out in exactly one fold),
         for the model with offset d0 (R,) and columns G (R, k). The normal-equation
         pieces are formed once per fold (on the fold's contiguous rows) and summed for
-        the whole; a training fold's are the whole's minus its own."""
+        the whole; a training fold's are the whole's minus its own. bound (K,): the
+        held-out rows (and their blocks) only of the folds whose train SSE falls below
+        it (a scan keeps the best per fold; the other rows are left NaN)."""
         y = self.r0 if d0 is None else self.r0 + d0
-        yp = y[self.perm]
+        yp, ypieces = self._y_pieces(y)
         Gp = None if G is None else np.ascontiguousarray(G[self.perm])
         pieces = []
-        for sl, (_, Jte, _, _) in zip(self.slices, self.folds):
-            yf = yp[sl]
-            pc = [float(yf @ yf), Jte.T @ yf]
+        for sl, (_, Jte, _, _), yc in zip(self.slices, self.folds, ypieces):
+            pc = list(yc)
             if Gp is not None:
                 Gf = Gp[sl]
-                pc += [Jte.T @ Gf, Gf.T @ Gf, Gf.T @ yf]
+                pc += [Jte.T @ Gf, Gf.T @ Gf, Gf.T @ yp[sl]]
             pieces.append(pc)
+        return self._finish(y, yp, pieces, (lambda sl: Gp[sl]) if Gp is not None else None,
+                            G, bound)
+
+    def step_scan(self, G, key, thresholds, bound_update):
+        """evaluate(None, G * (key >= t)) for every t of the ascending thresholds, from
+        sufficient statistics: each fold's rows are cut into the intervals between the
+        thresholds, the products J^T G, G^T G, G^T y are formed once per interval and
+        summed from the top (a row counts for every threshold at or below its key), so
+        the scan costs about one evaluation instead of one per threshold. Per threshold
+        j, bound_update(j, train, full, heldout) gets the evaluate() results and
+        returns the bound for the next (the held-out rows are formed only for the folds
+        whose train SSE falls below it, as evaluate's bound)."""
+        thr = np.asarray(thresholds)
+        H = len(thr)
+        yp, ypieces = self._y_pieces(self.r0)
+        Gp = np.ascontiguousarray(G[self.perm])
+        qp = np.searchsorted(thr, np.asarray(key)[self.perm], side="right")   # rows count
+        per_fold = []                                                          # for j < q
+        for sl, (_, Jte, _, _) in zip(self.slices, self.folds):
+            q = qp[sl]
+            Gf, yf = Gp[sl], yp[sl]
+            k = G.shape[1]
+            JG = np.zeros((H + 1, Jte.shape[1], k))
+            GG = np.zeros((H + 1, k, k))
+            Gy = np.zeros((H + 1, k))
+            order = np.argsort(q, kind="stable")
+            cuts = np.searchsorted(q[order], np.arange(H + 2))
+            for g in range(1, H + 1):
+                rows = order[cuts[g]:cuts[g + 1]]
+                if len(rows):
+                    Jr, Gr = Jte[rows], Gf[rows]
+                    JG[g], GG[g], Gy[g] = Jr.T @ Gr, Gr.T @ Gr, Gr.T @ yf[rows]
+            # threshold j takes the intervals g > j: sums from the top
+            per_fold.append((np.cumsum(JG[::-1], axis=0)[::-1], np.cumsum(GG[::-1], axis=0)[::-1],
+                             np.cumsum(Gy[::-1], axis=0)[::-1], q))
+        bound = None
+        for j in range(H):
+            pieces = [list(yc) + [JG[j + 1], GG[j + 1], Gy[j + 1]]
+                      for yc, (JG, GG, Gy, _) in zip(ypieces, per_fold)]
+
+            def cols(sl, j=j):
+                return Gp[sl] * (qp[sl] > j)[:, None]
+
+            out = self._finish(self.r0, yp, pieces, cols, None, bound)
+            bound = bound_update(j, *out)
+
+    def _finish(self, y, yp, pieces, cols, G, bound):
+        """evaluate() from the per-fold pieces [y.y, J^T y(, J^T G, G^T G, G^T y)];
+        cols(slice): the candidate's columns of those permuted rows (None: none)."""
         tot = [sum(pc[i] for pc in pieces) for i in range(len(pieces[0]))] if pieces else \
             [float(y @ y), self.J.T @ y] + ([] if G is None else
                                             [self.J.T @ G, G.T @ G, G.T @ y])
         train = np.empty(len(self.folds))
         block = np.zeros(self.n_blocks)
-        heldout = np.zeros(len(y))
+        heldout = np.zeros(len(y)) if bound is None else np.full(len(y), np.nan)
         for f, (sl, (te, Jte, bte, Ainv)) in enumerate(zip(self.slices, self.folds)):
             pc = pieces[f]
             parts = None
-            if Gp is not None:
+            if cols is not None:
                 parts = (tot[2] - pc[2], tot[3] - pc[3], tot[4] - pc[4])
             sse, d, beta = self._solve(Ainv, tot[0] - pc[0], tot[1] - pc[1], parts)
             train[f] = sse
+            if bound is not None and not sse < bound[f]:
+                continue
             test = yp[sl] + Jte @ d
             if beta is not None:
-                test = test + Gp[sl] @ beta
+                test = test + cols(sl) @ beta
             heldout[te] = test
             block += np.bincount(bte, weights=test * test, minlength=self.n_blocks)
-        full_G = None if G is None else (tot[2], tot[3], tot[4])
+        full_G = None if cols is None else (tot[2], tot[3], tot[4])
         sse_full, _, _ = self._solve(self.Ainv_full, tot[0], tot[1], full_G)
         return train, block, float(sse_full), heldout
 

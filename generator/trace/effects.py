@@ -140,33 +140,91 @@ class Effect:
 # Helpers over the sensor samples (S: generator.trace.tracer.SensorSamples)
 # ---------------------------------------------------------------------------------------
 
+def first_order(a, x, y0) -> np.ndarray:
+    """The recursion y[0] = y0, y[k] = y[k-1] + a[k-1] (x[k] - y[k-1]) for 0 <= a < 1,
+    vectorised: y[k] = P[k] (y0 + sum_{j<=k} a[j-1] x[j] / P[j]), P[k] = prod (1 - a),
+    in chunks over which P falls by at most e^-LOG_SPAN (no overflow). The error of a
+    term is about eps * k * max|a x| (the partial sums are taken relative to the chunk's
+    start, where the factor is 1), i.e. round-off of the loop's size; a = 1 (no memory)
+    is the input itself."""
+    x = np.asarray(x, float)
+    n = len(x)
+    out = np.empty(n)
+    if n == 0:
+        return out
+    out[0] = y0
+    if n == 1:
+        return out
+    a = np.asarray(a, float)
+    ax = a * x[1:]
+    with np.errstate(divide="ignore"):
+        lq = np.log1p(-a)                       # log(1 - a) <= 0, -inf where a = 1
+    hard = ~np.isfinite(lq) | (lq < -LOG_SPAN)  # no memory: y[k] = x[k] (to e^-LOG_SPAN)
+    lq = np.where(hard, 0.0, lq)
+    L = np.cumsum(lq)
+    if (len(np.nonzero(hard)[0]) - L[-1] / LOG_SPAN) * 100 > n:
+        # short memory: many chunks; the plain loop (on Python floats) is faster
+        y = float(y0)
+        al, xl = a.tolist(), x.tolist()
+        for k in range(1, n):
+            y = y + al[k - 1] * (xl[k] - y)
+            out[k] = y
+        return out
+    k, y = 0, float(y0)                         # out[k] = y known; next index k + 1
+    cut = np.nonzero(hard)[0]
+    ci = 0
+    while k < n - 1:
+        # the chunk: indices k+1 .. e (inclusive), up to the next memoryless step and
+        # while the factor stays above e^-LOG_SPAN
+        while ci < len(cut) and cut[ci] < k:
+            ci += 1
+        stop = cut[ci] if ci < len(cut) else n - 1        # index into a (sample stop+1)
+        if stop == k:                                      # sample k+1 has no memory
+            y = x[k + 1]
+            out[k + 1] = y
+            k += 1
+            continue
+        Lk = L[k - 1] if k > 0 else 0.0
+        e = int(np.searchsorted(-(L[k:stop] - Lk), LOG_SPAN, side="right")) + k
+        e = max(e, k + 1)
+        rel = L[k:e] - Lk                                   # log factor from sample k
+        csum = np.cumsum(ax[k:e] * np.exp(-rel))
+        seg = np.exp(rel) * (y + csum)
+        out[k + 1:e + 1] = seg
+        y = float(seg[-1])
+        k = e
+    return out
+
+
+LOG_SPAN = 500.0     # first_order: e^500 stays far inside float64's range
+
+
 def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
     """The flight chain's element temperature: T_el[0] = T[0], then
-    T_el[k] = T_el[k-1] + dt/(tau + dt) (T[k] - T_el[k-1]) (generator.flight.chain.lag_kernel)."""
+    T_el[k] = T_el[k-1] + dt/(tau + dt) (T[k] - T_el[k-1]) (generator.flight.chain.lag_kernel;
+    a step back in time, dt < 0, holds the filter as the chain does)."""
     t = np.asarray(time_s, float)
     T = np.asarray(temp_C, float)
-    out = np.empty_like(T)
     if len(T) == 0:
-        return out
+        return np.empty_like(T)
     if tau_s <= 0:
         return T.copy()
-    dt = np.diff(t)
-    a = dt / (tau_s + dt)
-    if len(dt) and np.ptp(dt) <= 1e-9 * max(abs(dt[0]), 1e-12):
-        from scipy.signal import lfilter
-        a0 = a[0]
-        y, _ = lfilter([a0], [1.0, -(1.0 - a0)], T[1:], zi=[(1.0 - a0) * T[0]])
-        out[0] = T[0]
-        out[1:] = y
-        return out
-    el = T[0]
-    out[0] = el
-    Tl = T.tolist()
-    al = a.tolist()
-    for k in range(1, len(Tl)):
-        el = el + al[k - 1] * (Tl[k] - el)
-        out[k] = el
-    return out
+    dt = np.maximum(np.diff(t), 0.0)
+    return first_order(dt / (tau_s + dt), T, T[0])
+
+
+def lag_filter_dtau(time_s, temp_C, tau_s, filtered=None) -> np.ndarray:
+    """d T_el / d tau of lag_filter: differentiating the recursion gives the same filter,
+    g[0] = 0, g[k] = g[k-1] + a[k-1] (u[k] - g[k-1]), u[k] = -(T[k] - T_el[k-1]) / (tau + dt),
+    since d a / d tau = -a / (tau + dt)."""
+    t = np.asarray(time_s, float)
+    T = np.asarray(temp_C, float)
+    if len(T) < 2 or tau_s <= 0:
+        return np.zeros(len(T))
+    el = lag_filter(t, T, tau_s) if filtered is None else filtered
+    dt = np.maximum(np.diff(t), 0.0)
+    u = np.concatenate([[0.0], -(T[1:] - el[:-1]) / (tau_s + dt)])
+    return first_order(dt / (tau_s + dt), u, 0.0)
 
 
 def element_temperature(series, tau_s) -> np.ndarray:
@@ -269,7 +327,11 @@ class ChannelBias(Effect):
     def from_flight(cls, sv, options, S, info):
         out = []
         C = np.asarray(sv.get("C_nT_per_unit", np.zeros((3, 0))), float)
+        g = np.asarray(sv["g_per_unit"], float).reshape(3, -1) \
+            if getattr(options, "channel_scale", False) else None
         for j, ch in enumerate(options.channels):
+            if g is not None and not np.any(C[:, j]) and np.any(g[:, j]):
+                continue          # a channel that only scales (ChannelScale.from_flight)
             v = S.channels.get(ch)
             sd = float(np.std(v)) if v is not None and len(v) else 1.0
             sd = sd if sd > 0 else 1.0
@@ -324,14 +386,20 @@ class ThermalLag(Effect):
     def refine_grid(self, S, best):
         return list(best * np.exp(np.linspace(-0.3, 0.3, 7)))
 
+    LOG_LIMIT = 20.0    # |log(tau / hyper)| at most 20: tau within e^+-20 of the scanned
+    #                     value (beyond, the element is a constant or the board itself
+    #                     for any data; a fit that runs off there stays finite)
+
     def tau_s(self, p):
-        return float(self.hyper * math.exp(float(np.asarray(p).reshape(-1)[0])))
+        lp = float(np.clip(float(np.asarray(p).reshape(-1)[0]), -self.LOG_LIMIT, self.LOG_LIMIT))
+        return float(self.hyper * math.exp(lp))
 
     def hyper_after_fit(self, p):
         return self.tau_s(p)
 
     def temperature(self, p, S, T):
-        taus = self.hyper * np.exp(np.asarray(p)[:, 0])
+        taus = self.hyper * np.exp(np.clip(np.asarray(p)[:, 0], -self.LOG_LIMIT,
+                                           self.LOG_LIMIT))
         out = np.empty((len(taus), S.n))
         uniq, inv = np.unique(np.round(taus, 12), return_inverse=True)
         for u_i, tau in enumerate(uniq):
@@ -341,6 +409,21 @@ class ThermalLag(Effect):
                 if sel.any():
                     T_el[sel] = element_temperature(series, tau)[S.file_row[sel]]
             out[inv == u_i] = T_el
+        return out
+
+    def temperature_jacobian(self, p, S):
+        """d T_el / d p (1, n) at the parameter p (log(tau / hyper)): tau dT_el/dtau, by
+        the derivative's own recursion (lag_filter_dtau) per file."""
+        tau = self.tau_s(p)
+        out = np.zeros((1, S.n))
+        if abs(float(np.asarray(p).reshape(-1)[0])) >= self.LOG_LIMIT:
+            return out                            # clipped: tau does not move
+        for fi, series in enumerate(S.files):
+            sel = S.file_index == fi
+            if sel.any():
+                g = lag_filter_dtau(series.time_s, series.temp_C, tau,
+                                    element_temperature(series, tau))
+                out[0, sel] = tau * g[S.file_row[sel]]
         return out
 
     def describe(self, p, model=None):
@@ -531,6 +614,10 @@ class BiasStep(Effect):
             prev = int(before.max())
             self.hyper = prev + 1 + (int(self.hyper) - prev - 1) // 2
 
+    def step_key(self, S):
+        """The quantity the step is taken in: mask = step_key >= hyper."""
+        return S.order
+
     def mask(self, S):
         """1 from the change point on (hyper None: everywhere)."""
         if self.hyper is None:
@@ -660,6 +747,24 @@ class SetResetRotation(Effect):
         w = S.rate_frame_dps[None, :, :]
         return B + c[:, None, None] * np.cross(w, B)
 
+    def calibrated_jvp(self, p, S, dB):
+        """The derivative of `calibrated` along field changes dB (n, 3, C): the stage is
+        linear in B, dB + c (w x dB)."""
+        if S.rate_frame_dps is None:
+            return dB
+        c = float(np.asarray(p).reshape(-1)[0]) * self.scale
+        w = S.rate_frame_dps[:, :, None]
+        wx = np.stack([w[:, 1] * dB[:, 2] - w[:, 2] * dB[:, 1],
+                       w[:, 2] * dB[:, 0] - w[:, 0] * dB[:, 2],
+                       w[:, 0] * dB[:, 1] - w[:, 1] * dB[:, 0]], axis=1)
+        return dB + c * wx
+
+    def calibrated_columns(self, p, S, B):
+        """d calibrated / d p (n_params, n, 3) at the field B before the stage."""
+        if S.rate_frame_dps is None:
+            return np.zeros((1,) + B.shape)
+        return (self.scale * np.cross(S.rate_frame_dps, B))[None]
+
     def c_s_per_deg(self, p):
         return float(np.asarray(p).reshape(-1)[0] * self.scale)
 
@@ -756,11 +861,11 @@ class LaggedChannelBias(ChannelBias):
     title = "bias following a telemetry channel through a first-order lag"
     physics = ("a heater or a load warms a board or a part: the offset follows the channel "
                "with a time constant, not at once")
-    flight_form = ("needs a chain stage: a first-order filter state per channel, "
-                   "ch_f += dt/(tau + dt) (ch - ch_f) (the thermal lag's recursion), then "
-                   "x -= C ch_f; until the chain has it the flight coefficients leave it "
-                   "out")
-    in_chain = False
+    flight_form = ("lagged_channels option: blocks C_lag_nT_per_unit (3 x the lagged "
+                   "channels) and lag_channel_tau_s; a first-order filter state per channel "
+                   "in the sensor's state, ch_f += dt/(tau + dt) (ch - ch_f) (the thermal "
+                   "lag's recursion), then x -= C_lag ch_f")
+    in_chain = True
     n_hyper = 1
     GRID = 10
 
@@ -818,11 +923,32 @@ class LaggedChannelBias(ChannelBias):
         return {**super().describe(p, model), "tau_s": float(self.hyper)}
 
     def to_flight(self, p, values, options, model):
-        """No chain stage yet (flight_form): nothing is written."""
+        options.setdefault("lagged_channels", []).append(self.channel)
+        C = values.get("C_lag_nT_per_unit")
+        col = self.C_nT_per_unit(p).reshape(3, 1)
+        values["C_lag_nT_per_unit"] = col if C is None else np.hstack([C, col])
+        tau = values.get("lag_channel_tau_s")
+        values["lag_channel_tau_s"] = np.append(np.zeros(0) if tau is None else tau,
+                                                float(self.hyper))
+        if self.partial:   # the files that carry the channel are the operating condition
+            values["b_poly_nT"][0] = values["b_poly_nT"][0] + np.asarray(p, float)[3:6]
 
     @classmethod
     def from_flight(cls, sv, options, S, info):
-        return []
+        out = []
+        lagged = getattr(options, "lagged_channels", ())
+        if not lagged:
+            return out
+        C = np.asarray(sv["C_lag_nT_per_unit"], float).reshape(3, -1)
+        taus = np.asarray(sv["lag_channel_tau_s"], float).reshape(-1)
+        for j, ch in enumerate(lagged):
+            v = S.channels.get(ch)
+            sd = float(np.std(v)) if v is not None and len(v) else 1.0
+            sd = sd if sd > 0 else 1.0
+            e = cls(ch, sd)
+            e.hyper = float(taus[j])
+            out.append((e, C[:, j] * sd))
+        return out
 
 
 class ChannelScale(Effect):
@@ -837,10 +963,11 @@ class ChannelScale(Effect):
     title = "scale factor following a telemetry channel"
     physics = ("the sensitivity depends on a telemetry quantity (a supply voltage, a "
                "current warming the part): each axis reads (1 + g ch) of its field")
-    flight_form = ("needs a chain stage: x_i -= g_i ch x_i after the offsets (a block "
-                   "g_per_unit, 3 x nch, and the channel as an input); until the chain has "
-                   "it the flight coefficients leave it out")
-    in_chain = False
+    flight_form = ("channel_scale option: block g_per_unit (3 x the channels), "
+                   "x_i -= g_ij ch_j x_i after the channels' offsets, before the cubic (the "
+                   "channel joins the sensor's channels, with a zero C column if it only "
+                   "scales)")
+    in_chain = True
     stage = "transform"
     order = 0
     repeatable = True
@@ -903,7 +1030,32 @@ class ChannelScale(Effect):
                 "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
 
     def to_flight(self, p, values, options, model):
-        """No chain stage yet (flight_form): nothing is written."""
+        """The channel among the sensor's channels (a zero C column if new), its g by
+        channel name (generator.trace.coefficients aligns g_per_unit with the channels
+        once every effect is written)."""
+        chans = options.setdefault("channels", [])
+        if self.channel not in chans:
+            chans.append(self.channel)
+            C = values.get("C_nT_per_unit")
+            values["C_nT_per_unit"] = np.zeros((3, 1)) if C is None else \
+                np.hstack([C, np.zeros((3, 1))])
+        options["channel_scale"] = True
+        values.setdefault("_g_by_channel", {})[self.channel] = self.g_per_unit(p)
+
+    @classmethod
+    def from_flight(cls, sv, options, S, info):
+        if not getattr(options, "channel_scale", False):
+            return []
+        g = np.asarray(sv["g_per_unit"], float).reshape(3, -1)
+        out = []
+        for j, ch in enumerate(options.channels):
+            if not np.any(g[:, j]):
+                continue
+            v = S.channels.get(ch)
+            sd = float(np.std(v)) if v is not None and len(v) else 1.0
+            sd = sd if sd > 0 else 1.0
+            out.append((cls(ch, sd), g[:, j] * FIELD_SCALE_nT * sd))
+        return out
 
 
 CATALOGUE = [ChannelBias, ThermalLag, TemperaturePolynomial, CubicNonlinearity, BiasStep,

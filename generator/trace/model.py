@@ -84,6 +84,20 @@ def _solve_psd(A, b):
         return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
 
 
+def _as_slice(ix):
+    """A sorted index array as a slice where it is a contiguous range (a view, no copy)."""
+    ix = np.asarray(ix)
+    if len(ix) and ix[-1] - ix[0] == len(ix) - 1:
+        return slice(int(ix[0]), int(ix[-1]) + 1)
+    return ix
+
+
+def _mv(M, v):
+    """Per-sample matrix times vector: (n, 3, 3) x (n, 3) -> (n, 3), as three broadcast
+    products (numpy's einsum of this shape does not use BLAS and is slower)."""
+    return M[:, :, 0] * v[:, 0, None] + M[:, :, 1] * v[:, 1, None] + M[:, :, 2] * v[:, 2, None]
+
+
 class SensorModel:
     """B_cal of one sensor from the extended chain, float64, batched over parameters.
 
@@ -218,6 +232,7 @@ class SensorModel:
         out = {}
         if Bt == 1:
             out = {"powers": [p[0] for p in powers], "x_final": x[0], "B": B[0], "st": st,
+                   "M_s": M_s,
                    "Msum": sum(powers[k][0][:, None, None] * M_s[0, k][None]
                                for k in range(D + 1))}
         for i, e in enumerate(self.effects):
@@ -274,14 +289,11 @@ class SensorModel:
         forward differences."""
         th0 = self.theta if theta is None else np.asarray(theta, float)
         cols = np.arange(self.P) if cols is None else np.asarray(cols)
-        r0, done = self._analytic_columns(th0, S, cols)
-        J = np.empty((len(r0), len(cols)))
-        fd = []
-        for k, c in enumerate(cols):
-            if int(c) in done:
-                J[:, k] = done[int(c)]
-            else:
-                fd.append(k)
+        lin = self._linearisation(th0, S)
+        R = len(lin["r0"]) if lin is not None else S.n_rows
+        J = np.empty((R, len(cols)), order="F")      # filled column by column
+        r0, done = self._analytic_into(th0, S, cols, J, lin)
+        fd = [k for k, c in enumerate(cols) if int(c) not in done]
         if fd:
             J[:, fd] = self._fd_columns(th0, S, cols[fd], r0)
         return r0, J
@@ -296,53 +308,37 @@ class SensorModel:
             J[:, a:a + len(sub)] = (self.residual(th, S) - r0[None]).T / FD_STEP
         return J
 
-    def _analytic_columns(self, th0, S, cols):
-        """(r0, {column: dr/dtheta_column}) for the columns of b, M, K and B_p that have
-        a closed form: B = sum_k s^k M_k x'' with x'' the reading after offsets and
-        transforms, so dB/dM_k = s^k x'' exactly; where no transform stage follows the
-        offsets, x' = x - sum_k s^k b_k - K i - offsets gives dB/db_k = -s^k Msum,
+    def _analytic_into(self, th0, S, cols, J, lin):
+        """(r0, {column: dr/dtheta_column}) for the columns that have a closed form.
+
+        B = sum_k s^k M_k x'' with x'' the reading after offsets and transforms, so
+        dB/dM_k = s^k x'' exactly; where no transform stage follows the offsets,
+        x' = x - sum_k s^k b_k - K i - offsets gives dB/db_k = -s^k Msum,
         dB/dK = -Msum i / i_rms (Msum = sum_k s^k M_k) and, for an effect of the offset
-        stage (linear in its parameters), dB/dp_a = -Msum offset(e_a). A `calibrated` stage after M, or
-        a static position not among the model's groups, leaves everything to finite
-        differences. Magnitude rows: d|B| = (B / |B|) . dB."""
-        stages = {e.stage for e in self.effects}
-        iv, im, ip = S.idx
-        lin = set()
-        for blk in ("b", "M", "K", "Bp"):
-            lin |= set(range(self.sl[blk].start, self.sl[blk].stop))
-        lin_eff = []
-        if "transform" not in stages:
-            lin_eff = [i for i, e in enumerate(self.effects)
-                       if e.stage == "offset" and e.linear_offset and e.n_params]
-            for i in lin_eff:
-                lin |= set(range(self.sl[f"e{i}"].start, self.sl[f"e{i}"].stop))
-        want = set(int(c) for c in cols) & lin
-        ok = "calibrated" not in stages and bool(want)
-        if ok and len(ip):
-            g = S.group[ip]
-            ok = bool(len(self.groups)) and bool(np.isin(g, self.groups).all())
-        if not ok:
-            return self.residual(th0[None], S)[0], {}
-        f = self._forward(th0[None], S)
-        r0 = self._residual_rows(th0[None], S, f["B_out"], f["shift"])[0]
-        s_pow, xpp, Msum, B = f["powers"], f["x_final"], f["Msum"], f["B"]
-        u = None
-        if len(im):
-            nb = np.linalg.norm(B[im], axis=1)
-            u = B[im] / np.where(nb > 0, nb, 1.0)[:, None]
+        stage (linear in its parameters), dB/dp_a = -Msum offset(e_a). A thermal lag
+        (stage temperature, its parameter log(tau / hyper)): dB/dp = dB/ds ds/dT_el
+        dT_el/dp, dT_el/dtau by the recursion of effects.lag_filter_dtau, dB/ds =
+        M'(s) x' - Msum (b'(s) + d offsets/ds), zero where the temperature is clamped. A
+        `calibrated` stage after M that is linear in B (set_reset_rotation:
+        B + c w x B) maps every column through its own derivative and gives its
+        parameter's column (calibrated_columns); another calibrated stage, or a static
+        position not among the model's groups, leaves everything to finite differences.
+        Magnitude rows: d|B| = (B / |B|) . dB."""
+        want = set(int(c) for c in cols)
+        if lin is None or not want:
+            return (lin["r0"] if lin is not None else self.residual(th0[None], S)[0]), set()
+        pos = {int(c): k for k, c in enumerate(cols)}
+        done = set()
 
-        def rows(dB):             # (n, 3) -> residual rows
-            parts = []
-            if len(iv):
-                parts.append(dB[iv].reshape(-1))
-            if len(im):
-                parts.append(np.einsum("ni,ni->n", u, dB[im]))
-            if len(ip):
-                parts.append(dB[ip].reshape(-1))
-            return np.concatenate(parts) if parts else np.zeros(0)
+        def add(c, dB, skip=None):
+            if c in want:
+                lin["rows_into"](J[:, pos[c]], dB, skip)
+                done.add(c)
 
-        out = {}
         D = self.base.degree
+        s_pow, xpp, Msum = lin["powers"], lin["xpp"], lin["Msum"]
+        stages = lin["stages"]
+        n = S.n
         sl = self.sl["M"]
         if self.free_M is not None and want & set(range(sl.start, sl.stop)):
             if self.free_M == "full":
@@ -351,37 +347,47 @@ class SensorModel:
                 basis = sym_from6(np.eye(6))
             nb_ = len(basis)
             for k in range(D + 1):
-                sx = s_pow[k][:, None] * xpp                      # (n, 3)
-                for a in range(nb_):
-                    c = sl.start + k * nb_ + a
+                sx = M_UNIT * s_pow[k][:, None] * xpp                # (n, 3)
+                for a_ in range(nb_):
+                    c = sl.start + k * nb_ + a_
                     if c in want:
-                        out[c] = rows(M_UNIT * sx @ basis[a].T)
+                        add(c, sx @ basis[a_].T)
         if "transform" not in stages:
             sl = self.sl["b"]
             for fi, k in enumerate(self.free_b):
                 for j in range(3):
-                    c = sl.start + 3 * fi + j
-                    if c in want:
-                        out[c] = rows(-s_pow[k][:, None] * Msum[:, :, j])
-            if self.free_K and S.coil is not None:
+                    if sl.start + 3 * fi + j in want:
+                        add(sl.start + 3 * fi + j, -s_pow[k][:, None] * Msum[:, :, j])
+            if self.free_K and S.coil is not None and \
+                    want & set(range(self.sl["K"].start, self.sl["K"].stop)):
                 sl = self.sl["K"]
                 nc = self.base.K.shape[1]
-                for a in range(3):
+                for a_ in range(3):
                     for ci in range(nc):
-                        c = sl.start + a * nc + ci
-                        if c in want:
-                            out[c] = rows(-Msum[:, :, a] * (S.coil[:, ci] / self.i_rms)[:, None])
-        for i in lin_eff:         # x -= offset(p), linear in p: dB = -Msum offset(e_a)
+                        add(sl.start + a_ * nc + ci,
+                            -Msum[:, :, a_] * (S.coil[:, ci] / self.i_rms)[:, None])
+            for i, e in enumerate(self.effects):
+                sl = self.sl[f"e{i}"]
+                if not want & set(range(sl.start, sl.stop)):
+                    continue
+                if e.stage == "offset" and e.linear_offset and e.n_params:
+                    dx = np.asarray(e.offset(np.eye(e.n_params), S, lin["st"]), float)
+                    dx = np.broadcast_to(dx, (e.n_params, n, 3))
+                    for a_ in range(e.n_params):
+                        add(sl.start + a_, -_mv(Msum, dx[a_]))
+                elif e.stage == "temperature" and hasattr(e, "temperature_jacobian"):
+                    dT = e.temperature_jacobian(th0[sl], S)            # (n_params, n)
+                    dBds = self._dB_ds(th0, S, lin)
+                    for a_ in range(e.n_params):
+                        add(sl.start + a_, dBds * (dT[a_] / self.base.t_scale_C)[:, None])
+        for i, e in enumerate(self.effects):
             sl = self.sl[f"e{i}"]
-            if not want & set(range(sl.start, sl.stop)):
-                continue
-            e = self.effects[i]
-            dx = np.asarray(e.offset(np.eye(e.n_params), S, f["st"]), float)
-            dx = np.broadcast_to(dx, (e.n_params, S.n, 3))
-            for a in range(e.n_params):
-                if sl.start + a in want:
-                    out[sl.start + a] = rows(-np.einsum("nij,nj->ni", Msum, dx[a]))
+            if e.stage == "calibrated" and want & set(range(sl.start, sl.stop)):
+                own = e.calibrated_columns(th0[sl][None], S, lin["B"])   # (n_params, n, 3)
+                for a_ in range(e.n_params):
+                    add(sl.start + a_, own[a_], skip=i)
         sl = self.sl["Bp"]
+        iv, im, ip = S.idx
         if len(ip) and want & set(range(sl.start, sl.stop)):
             k_of = np.searchsorted(self.groups, S.group[ip])
             base_row = 3 * len(iv) + len(im)
@@ -390,10 +396,142 @@ class SensorModel:
                 for j in range(3):
                     c = sl.start + 3 * gi + j
                     if c in want:
-                        col = np.zeros(len(r0))
+                        col = J[:, pos[c]]
+                        col[:] = 0.0
                         col[base_row + 3 * sel + j] = -1.0
-                        out[c] = col
-        return r0, out
+                        done.add(c)
+        return lin["r0"], done
+
+    def _analytic_columns(self, th0, S, cols):
+        """(r0, {column: dr/dtheta_column}) of the columns _analytic_into fills (the
+        docstring there)."""
+        cols = np.asarray(cols)
+        lin = self._linearisation(th0, S)
+        R = len(lin["r0"]) if lin is not None else S.n_rows
+        J = np.empty((R, len(cols)))
+        r0, done = self._analytic_into(th0, S, cols, J, lin)
+        return r0, {int(c): J[:, k].copy() for k, c in enumerate(cols) if int(c) in done}
+
+    def _linearisation(self, th0, S):
+        """The forward pass at th0 and what the analytic columns need (cached for the
+        last (S, theta)): None where the chain has a stage without a closed form."""
+        key = (id(S), S.n, th0.tobytes(), tuple(repr(getattr(e, "hyper", None))
+                                                 for e in self.effects))
+        cache = getattr(self, "_lin_cache", None)
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        stages = {e.stage for e in self.effects}
+        cal = [(i, e) for i, e in enumerate(self.effects) if e.stage == "calibrated"]
+        iv, im, ip = S.idx
+        ok = all(hasattr(e, "calibrated_jvp") for _, e in cal)
+        if ok and len(ip):
+            g = S.group[ip]
+            ok = bool(len(self.groups)) and bool(np.isin(g, self.groups).all())
+        if not ok:
+            return None
+        f = self._forward(th0[None], S)
+        r0 = self._residual_rows(th0[None], S, f["B_out"], f["shift"])[0]
+        B_out = f["B_out"][0]
+        u = None
+        if len(im):
+            nb = np.linalg.norm(B_out[im], axis=1)
+            u = B_out[im] / np.where(nb > 0, nb, 1.0)[:, None]
+        ps = [(i, th0[self.sl[f"e{i}"]][None]) for i, _ in cal]
+
+        def rows(dB, skip=None):
+            """(n, 3, C) field changes before the calibrated stages -> (R, C) rows
+            (skip: the calibrated stage whose own column dB already is, after it)."""
+            for i, p in ps:
+                if skip is not None and i <= skip:
+                    continue
+                dB = self.effects[i].calibrated_jvp(p, S, dB)
+            parts = []
+            if len(iv):
+                parts.append(dB[iv].reshape(-1, dB.shape[2]))
+            if len(im):
+                dm = dB[im]
+                parts.append(u[:, 0, None] * dm[:, 0] + u[:, 1, None] * dm[:, 1]
+                             + u[:, 2, None] * dm[:, 2])
+            if len(ip):
+                parts.append(dB[ip].reshape(-1, dB.shape[2]))
+            return np.concatenate(parts) if parts else np.zeros((0, dB.shape[2]))
+
+        nv, nm = len(iv), len(im)
+        sv = _as_slice(iv)
+        sm = _as_slice(im)
+        sp = _as_slice(ip)
+
+        def rows_into(col, dB, skip=None):
+            """One column: the field change dB (n, 3) before the calibrated stages into
+            the residual rows col (R,), no intermediate copies."""
+            if ps:
+                dB = dB[:, :, None]
+                for i, p in ps:
+                    if skip is None or i > skip:
+                        dB = self.effects[i].calibrated_jvp(p, S, dB)
+                dB = dB[:, :, 0]
+            if nv:
+                col[:3 * nv].reshape(nv, 3)[:] = dB[sv]
+            if nm:
+                dm = dB[sm]
+                np.multiply(u[:, 0], dm[:, 0], out=col[3 * nv:3 * nv + nm])
+                col[3 * nv:3 * nv + nm] += u[:, 1] * dm[:, 1]
+                col[3 * nv:3 * nv + nm] += u[:, 2] * dm[:, 2]
+            if len(ip):
+                col[3 * nv + nm:].reshape(len(ip), 3)[:] = dB[sp]
+
+        lin = {"r0": r0, "powers": f["powers"], "xpp": f["x_final"], "Msum": f["Msum"],
+               "B": f["B"], "st": f["st"], "stages": stages, "rows": rows,
+               "rows_into": rows_into,
+               "M_s": f.get("M_s"), "x_off": f.get("x_off")}
+        self._lin_cache = (key, lin)
+        return lin
+
+    def offset_columns(self, S, e):
+        """The Jacobian columns (R, n_params) of a candidate effect e of the offset stage
+        (linear in its parameters, zero at zero) added to this model at its fit, from this
+        model's own linearisation (the candidate's forward pass is this one); None where
+        they have no closed form here."""
+        if not (e.stage == "offset" and e.linear_offset and e.n_params):
+            return None
+        lin = self._linearisation(self.theta, S)
+        if lin is None or "transform" in lin["stages"]:
+            return None
+        dx = np.asarray(e.offset(np.eye(e.n_params), S, lin["st"]), float)
+        dx = np.broadcast_to(dx, (e.n_params, S.n, 3))
+        dB = np.stack([-_mv(lin["Msum"], dx[a]) for a in range(e.n_params)], axis=2)
+        return lin["rows"](dB)
+
+    def _dB_ds(self, th0, S, lin):
+        """dB/ds (n, 3) at th0 before the calibrated stages, no transform stage: M'(s) x'
+        - Msum (b'(s) + d offsets / ds) (offsets that depend on s by central differences,
+        exact for their polynomials to round-off), zero where T is clamped."""
+        D = self.base.degree
+        s_pow, xpp, Msum, st = lin["powers"], lin["xpp"], lin["Msum"], lin["st"]
+        Bt1 = th0[None]
+        M_s = lin["M_s"][0]                                   # (D+1, 3, 3)
+        b_s = self.b_scaled.copy()
+        if self.free_b:
+            b_s[self.free_b] += th0[self.sl["b"]].reshape(len(self.free_b), 3)
+        dB = np.zeros((S.n, 3))
+        db = np.zeros((S.n, 3))
+        for k in range(1, D + 1):
+            dB += k * s_pow[k - 1][:, None] * (xpp @ M_s[k].T)
+            db += k * s_pow[k - 1][:, None] * b_s[k][None]
+        h = 1e-4
+        for i, e in enumerate(self.effects):
+            if e.stage != "offset":
+                continue
+            p = Bt1[:, self.sl[f"e{i}"]]
+            s0 = st.s
+            up = type(st)(T=st.T, s=s0 + h)
+            dn = type(st)(T=st.T, s=s0 - h)
+            d = (np.asarray(e.offset(p, S, up), float) - np.asarray(e.offset(p, S, dn), float))
+            if np.any(d):
+                db += np.broadcast_to(d, (1, S.n, 3))[0] / (2 * h)
+        dB -= _mv(Msum, db)
+        inside = (st.T[0] > self.base.t_min_C) & (st.T[0] < self.base.t_max_C)
+        return dB * inside[:, None]
 
     def fit(self, S, max_nfev=60) -> "SensorModel":
         """Least squares over all free parameters by Levenberg-Marquardt on the normal

@@ -119,26 +119,34 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     inside each training fold on its own training error)."""
     grid = e.scan_grid(S)
     H = len(grid)
-    trains = np.empty((H, len(cv.folds)))
-    blocks = np.empty((H, cv.n_blocks))
-    tests = np.empty((H, len(cv.r0)))
+    best_train = np.full(len(cv.folds), np.inf)
+    test1 = np.empty(len(cv.r0))
     fulls = np.empty(H)
     masked = hasattr(e, "mask") and e.fd_in_scoring
     if masked:   # a linear effect switched on by a row mask: columns once, masked per value
         e.set_hyper(None)
         d0_all, G_all = candidate_columns(model, S, e, cv.r0)
-    for j, h in enumerate(grid):
+    def keep(j, train, _block, full, test):
+        # per fold: the grid value with the least training error (the first of equals);
+        # the held-out rows only of the folds it improves
+        fulls[j] = full
+        for f, (te, _, _, _) in enumerate(cv.folds):
+            if train[f] < best_train[f]:
+                best_train[f] = train[f]
+                test1[te] = test[te]
+        return best_train
+
+    stepped = masked and d0_all is None and G_all is not None and hasattr(e, "step_key") \
+        and list(grid) == sorted(grid)
+    if stepped:   # a step at each grid value: one pass of sufficient statistics
+        cv.step_scan(G_all, e.step_key(S)[S.row_sample], grid, keep)
+    for j, h in enumerate([] if stepped else grid):
         e.set_hyper(h)
         if masked:
             d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
         else:
             d0, G = candidate_columns(model, S, e, cv.r0)
-        trains[j], blocks[j], fulls[j], tests[j] = cv.evaluate(d0, G)
-    # per fold: the grid value with the least training error
-    chosen = np.argmin(trains, axis=0)
-    test1 = np.empty(len(cv.r0))
-    for f, (te, _, _, _) in enumerate(cv.folds):
-        test1[te] = tests[chosen[f], te]
+        keep(j, *cv.evaluate(d0, G, bound=best_train))
     jbest = int(np.argmin(fulls))
     if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
         return _rescore_refitted(model, S, cv, e, [grid[j] for j in np.argsort(fulls)[:2]],
@@ -223,6 +231,10 @@ def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:
 def candidate_columns(model: SensorModel, S, e, r0):
     """(d0, G): the residual change of the model with e at its initial parameters, and
     the Jacobian columns of e's parameters there (None for scan-only effects)."""
+    if e.fd_in_scoring and not np.any(e.init_params()):
+        G = model.offset_columns(S, e)      # linear offset: from the model's own forward
+        if G is not None:
+            return None, G
     m1 = model.with_effect(e, e.init_params())
     cols = np.arange(model.P, m1.P) if (e.fd_in_scoring and e.n_params) else np.arange(0)
     r1, G = m1.jacobian(S, cols=cols)

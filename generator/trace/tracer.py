@@ -69,6 +69,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.flight.coeffs import CoefficientSet
+from generator.io.formula import add_regressors
 from generator.fit.calibration import SensorCalibration  # noqa: F401 (tests use tr.SensorCalibration)
 from generator.trace import effects as fx  # noqa: F401
 from generator.trace.coefficients import (  # noqa: F401 (the public API lives here too)
@@ -355,6 +356,7 @@ class TraceResult:
                "unexplained": [{**tr.unexplained, "plot": unexplained_plot_name(n)}
                                for n, tr in self.traces.items() if tr.unexplained],
                "elapsed_s": round(self.elapsed_s, 2)}
+        regs = declared_regressors(self.unit)
         for n, tr in self.traces.items():
             out["baseline"][n] = {
                 "rms_nT": tr.baseline_rms_nT, "core_fit_as_given_rms_nT": tr.core_rms_nT,
@@ -375,7 +377,7 @@ class TraceResult:
                            "candidates": [s.summary() for s in tr.last_scores]})
             out["rounds"][n] = rounds
             for st in tr.steps:
-                out["effects"].append(effect_entry(n, tr, st))
+                out["effects"].append(effect_entry(n, tr, st, regs))
         return out
 
     def write(self, out_dir, progress=None) -> dict:
@@ -415,7 +417,7 @@ def _model_text(m: SensorModel) -> str:
     return " + ".join(parts)
 
 
-def effect_entry(name, tr: SensorTrace, st: Step) -> dict:
+def effect_entry(name, tr: SensorTrace, st: Step, regs=()) -> dict:
     e, sc = st.effect, st.score
     m = st.model_after
     entry = {
@@ -426,6 +428,10 @@ def effect_entry(name, tr: SensorTrace, st: Step) -> dict:
         "parameters": e.describe(st.params, m),
         "in_flight_chain": e.in_chain, "flight_form": e.flight_form,
         "physics": e.physics,
+        "regressors": [{"name": r["name"], "formula": r["formula"], "flight": REGRESSOR_FLIGHT}
+                       for r in regs
+                       if any(r["name"] == c or c.startswith(r["name"] + " ")
+                              for c in e.explained_by())],
         "cross_validation": {**sc.summary(),
                              "cv_rms_before_nT": math.sqrt(sc.sse0_cv / tr.S_fit.n_rows),
                              "cv_rms_after_nT": math.sqrt(sc.sse1_cv / tr.S_fit.n_rows)},
@@ -550,6 +556,19 @@ def protocol_text(evaluated_on) -> dict:
     }
 
 
+REGRESSOR_FLIGHT = ("in flight it is a channel computed before the chain: the flight "
+                    "software computes it from its inputs with the same formula and passes it "
+                    "in the aux struct under its name (docs/effects.md)")
+
+
+def declared_regressors(unit) -> list:
+    """The unit file's [[trace.regressor]] entries, parsed (generator.io.formula; the unit
+    file reader has checked them)."""
+    from generator.io.formula import parse
+    return [dict(r, tree=parse(r["formula"]))
+            for r in (getattr(unit, "extra", None) or {}).get("trace_regressors", [])]
+
+
 def _read(unit, items):
     from generator.io.orbit import require_field_reference
     from generator.io.telemetry import Telemetry
@@ -576,9 +595,17 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         unit = load_unit(unit)
     if not data:
         raise InputError(unit.path, "trace: no telemetry files given")
-    tels = _read(unit, data)
-    hold = _read(unit, holdout)
+    regs = declared_regressors(unit)
+    tels = [add_regressors(regs, t) for t in _read(unit, data)]
+    hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
     notes = []
+    for r in regs:
+        have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
+        notes.append(f"regressor {r['name']} = {r['formula']} (unit file [[trace.regressor]]): "
+                     + (f"a candidate channel in {len(have)} of {len(tels + hold)} files; "
+                        if have else "no file carries all of "
+                        f"{', '.join(r['inputs'])}: not a candidate; ")
+                     + REGRESSOR_FLIGHT)
     if coeffs is None:
         base, degrees, bnotes = baseline_coefficients(unit, tels, say)
         notes += bnotes
