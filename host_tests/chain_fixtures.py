@@ -104,6 +104,11 @@ def with_options(rng, cs: CoefficientSet, options: dict, poly_degree=None) -> Co
             v["C_nT_per_unit"] = rng.normal(0, 500, (3, len(o.channels)))
         if o.thermal_lag:
             v["lag_tau_s"] = np.array(rng.uniform(30, 900))
+        if o.lagged_channels:
+            v["C_lag_nT_per_unit"] = rng.normal(0, 500, (3, len(o.lagged_channels)))
+            v["lag_channel_tau_s"] = rng.uniform(30, 900, len(o.lagged_channels))
+        if o.channel_scale:
+            v["g_per_unit"] = rng.normal(0, 1e-3, (3, len(o.channels)))
         if o.nonlinear:
             v["cubic_per_nT2"] = rng.normal(0, 1e-11, 3)
         if o.sr_compensation:

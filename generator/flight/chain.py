@@ -684,7 +684,8 @@ def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: C
 
 # the optional stages folded_sensor_kernel reproduces (thermal_lag acts on the temperature
 # before the kernel: nothing to fold)
-_FOLDED_OPTIONS = ("channels", "thermal_lag", "nonlinear", "sr_compensation")
+_FOLDED_OPTIONS = ("channels", "thermal_lag", "nonlinear", "sr_compensation", "channel_scale",
+                   "lagged_channels")
 
 
 def _axis_scales(sensor: SensorSpec, c: CoeffView, half, set_only):
@@ -730,6 +731,12 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     if o.channels:
         C = c.get("C_nT_per_unit")
         f["C"] = [[C[i][j] / sig[i] for j in range(len(o.channels))] for i in range(3)]
+    if o.lagged_channels:   # the filter acts on the channel: only the coupling scales
+        CL = c.get("C_lag_nT_per_unit")
+        f["C_lag"] = [[CL[i][j] / sig[i] for j in range(len(o.lagged_channels))]
+                      for i in range(3)]
+    if o.channel_scale:     # x_i -= g_ij ch_j x_i is the same in any scale of x_i
+        f["g"] = c.get("g_per_unit")
     if o.nonlinear:
         n3 = c.get("cubic_per_nT2")
         f["cubic"] = [n3[i] * (sig[i] * sig[i]) for i in range(3)]
@@ -781,8 +788,14 @@ def folded_sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_
         coil = _couple(f["K"], coil_A)
         x = [x[i] - coil[i] for i in range(3)]
     if o.channels:
-        ch = _couple(f["C"], channels)
+        ch = _couple(f["C"], list(channels[:len(o.channels)]))
         x = [x[i] - ch[i] for i in range(3)]
+    if o.lagged_channels:
+        chl = _couple(f["C_lag"], list(channels[len(o.channels):]))
+        x = [x[i] - chl[i] for i in range(3)]
+    if o.channel_scale:
+        for j in range(len(o.channels)):
+            x = [x[i] - f["g"][i][j] * channels[j] * x[i] for i in range(3)]
     if o.nonlinear:
         x = [x[i] - f["cubic"][i] * x[i] * x[i] * x[i] for i in range(3)]
     B = [_dot3(M[i], x) for i in range(3)]
