@@ -33,6 +33,7 @@ TPL = "templates/magcal.c.j2"
 REF = "generator/fit/reference.py"        # reference_fit: chamber (reference-vector) fits
 JOINT = "generator/fit/joint.py"          # _joint_nonlinear: vectors + magnitudes
 SCORING = "generator/trace/scoring.py"    # Score.judge, score_round
+PRE = "generator/io/telemetry_csv.py"     # preprocess: counts -> nT, ICD axis mapping
 
 
 @dataclass(frozen=True)
@@ -162,6 +163,15 @@ MUTATIONS = [
     M("agree_one_sided", "agreement tolerance uses one sensor's scatter only",
       ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
       tuple(EXPECT)),
+    # ---- input: the ICD's axis mapping (the fit absorbs it; the truth baseline must not) --
+    M("preprocess_axis_order_ignored", "preprocessing: the ICD's axis order reversed "
+      "(frame axes in the wrong order; a fit on the same data absorbs it into M)",
+      ((PRE, "field_sensor_nT[:, list(idx)]", "field_sensor_nT[:, list(idx)[::-1]]"),),
+      ("host_tests/test_fit_accuracy.py",)),
+    M("preprocess_axis_sign_ignored", "preprocessing: the ICD's axis signs ignored",
+      ((PRE, "* np.asarray(sign, dtype=np.float64)",
+        "* np.abs(np.asarray(sign, dtype=np.float64))"),),
+      ("host_tests/test_fit_accuracy.py",)),
     # ---- fits -------------------------------------------------------------------------
     M("fit_offset_biased", "chamber (reference-vector) fit: offsets b0 biased by 0.3 x "
       "the noise floor per axis (~35 x the stated sigma)",
