@@ -22,30 +22,23 @@ import time
 
 import numpy as np
 import pytest
-from scipy.stats import norm
 
 from generator.fit.thermal import fit_unit
 from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.unitfile import load_unit
-from truth_icd import (icd_frame_field, load_truth_json, read_csv, rms_norm_error,
-                       rms_vector_error, true_parameters_field, unit_sensors)
+from truth_icd import (icd_frame_field, load_truth_json, ratio_bound, read_csv,
+                       rms_norm_error, rms_vector_error, true_parameters_field,
+                       unit_sensors)
 
 SENSORS = ("mmc1", "mpu1", "mpu2", "mmc2", "mpu3")
-# The ratio bound from statistics. The RMS of N samples of noise estimates the noise's
-# RMS with a relative spread of 1/sqrt(2N) (per axis; chi-square with N degrees of
-# freedom). Ours and the true parameters' error are the SAME noise plus the fit's
-# parameter error, which adds ~p/(3N) in variance (p = 48 parameters for a cubic M(T),
-# b(T); observed ratios 0.996-1.0002): 1/sqrt(2N), the spread of one RMS on its own, is a
-# generous bound for the spread of their ratio. z: the normal's one-sided point at ALPHA
-# over the N_RATIOS ratio assertions of this file (Bonferroni). N = 36000 (chamber):
-# 1.014; N = 4000 (hand rotation): 1.043. An offset biased by 0.3 x the noise per axis
-# gives sqrt(1 + 0.09) = 1.044 on the chamber data.
-ALPHA = 1e-3
+# The ratio bound from statistics: truth_icd.ratio_bound (1 + z / sqrt(2N), z Bonferroni over
+# this file's ratio assertions): 1.014 for the chamber's 36000 samples, 1.043 for the
+# rotation's 4000.
 N_RATIOS = 3 * len(SENSORS)     # chamber |B| and vector, rotation |B|
 
 
 def max_ratio(n: int) -> float:
-    return 1.0 + norm.isf(ALPHA / N_RATIOS) / math.sqrt(2 * n)
+    return ratio_bound(n, N_RATIOS)
 
 
 @pytest.fixture(scope="module")

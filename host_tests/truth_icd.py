@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
+from scipy.stats import norm
 
 try:
     import tomllib
@@ -90,3 +92,20 @@ def rms_norm_error(B, B_true) -> float:
 def rms_vector_error(B, B_true) -> float:
     """RMS over samples and axes of B - B_true (nT per axis)."""
     return float(np.sqrt(np.mean(np.sum((np.asarray(B) - B_true) ** 2, axis=1) / 3)))
+
+
+def ratio_bound(n: int, n_ratios: int, alpha: float = 1e-3) -> float:
+    """Upper bound of RMS error (fitted calibration) / RMS error (true parameters) on the
+    same n samples, for a fit that reaches the noise floor.
+
+    The RMS of n samples of noise estimates the noise's RMS with a relative spread of
+    1/sqrt(2n) (per axis; chi-square with n degrees of freedom). The two errors are the
+    SAME noise plus, for the fit, its parameter error, which adds only ~p/(3n) in variance
+    (p parameters: 48 for cubic M(T), b(T); ratio ~1 + p/(6n) = 1.0002 at n = 36000): the
+    spread of one RMS on its own, 1/sqrt(2n), is a generous bound for the spread of their
+    ratio. z: the normal's one-sided point at alpha over the n_ratios ratio assertions of
+    a test file (Bonferroni). n = 36000 (chamber), 15 ratios: 1.014; n = 4000 (hand
+    rotation): 1.043. An offset biased by 0.3 x the noise per axis gives
+    sqrt(1 + 0.09) = 1.044, 3 x the chamber's margin.
+    """
+    return 1.0 + float(norm.isf(alpha / n_ratios)) / math.sqrt(2 * n)
