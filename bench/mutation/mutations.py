@@ -25,7 +25,7 @@ from dataclasses import dataclass
 EXPECT = ["host_tests/test_expectations.py"]
 FLIGHT = EXPECT + ["host_tests/test_flight_chain.py"]
 CHI2 = ["host_tests/test_truth_chi2.py"]
-FIT = CHI2 + ["host_tests/test_fit_accuracy.py"]
+FIT = ["host_tests/test_fit_accuracy.py"] + CHI2    # the tightened ratio test first
 TRACE = ["host_tests/test_trace_decoys.py"]
 TABLES = ["host_tests/test_tables.py"]
 CHAIN = "generator/flight/chain.py"

@@ -205,7 +205,9 @@ def main(argv=None) -> int:
                      f"`{line[:120].replace('|', '/')}` |")
     summary = f"killed {n_k} of {len(rows)}" + (f", {n_na} NOT-APPLIED" if n_na else "")
     if out is not None:
-        out.write_text("\n".join(lines) + "\n")
+        # the hand-written part (from "## Notes" on: equivalents, history) is kept
+        notes = out.read_text().partition("\n## Notes")[2] if out.is_file() else ""
+        out.write_text("\n".join(lines) + "\n" + ("\n## Notes" + notes if notes else ""))
         summary += f"; wrote {out}"
     print(summary)
     return 0 if n_k == len(rows) else 1
