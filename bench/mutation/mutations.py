@@ -164,13 +164,18 @@ MUTATIONS = [
       ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
       tuple(EXPECT)),
     # ---- input: the ICD's axis mapping (the fit absorbs it; the truth baseline must not) --
-    M("preprocess_axis_order_ignored", "preprocessing: the ICD's axis order reversed "
-      "(frame axes in the wrong order; a fit on the same data absorbs it into M)",
-      ((PRE, "field_sensor_nT[:, list(idx)]", "field_sensor_nT[:, list(idx)[::-1]]"),),
+    # a wrong mapping that is a proper rotation (det +1): a fit on the same data absorbs it
+    # into M without looking mirrored, so only a baseline independent of the project's
+    # preprocessing sees it (a reflection would also meet the fit's mirror check)
+    M("preprocess_axes_rotated", "preprocessing: the ICD's frame axes cyclically shifted "
+      "(X <- the sensor axis meant for Y, ...)",
+      ((PRE, "field_sensor_nT[:, list(idx)]",
+        "field_sensor_nT[:, list(idx)[1:] + list(idx)[:1]]"),),
       ("host_tests/test_fit_accuracy.py",)),
-    M("preprocess_axis_sign_ignored", "preprocessing: the ICD's axis signs ignored",
+    M("preprocess_two_signs_flipped", "preprocessing: the ICD's signs of frame X and Y "
+      "inverted (a 180 deg turn about Z)",
       ((PRE, "* np.asarray(sign, dtype=np.float64)",
-        "* np.abs(np.asarray(sign, dtype=np.float64))"),),
+        "* np.asarray(sign, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])"),),
       ("host_tests/test_fit_accuracy.py",)),
     # ---- fits -------------------------------------------------------------------------
     M("fit_offset_biased", "chamber (reference-vector) fit: offsets b0 biased by 0.3 x "
