@@ -8,7 +8,8 @@ The raw data for both come from the CSV through host_tests/truth_icd.py (the ICD
 counts -> nT and axis mapping written out there, not the project's preprocessing), and
 the true parameters are applied there with numpy from truth.json: a wrong axis mapping or
 scale in the project makes the fitted calibration, applied to the ICD's frame field, miss
-the truth, and the test fail.
+the truth, and the test fail (the chamber's vector error sees a permutation or a sign,
+which |B| alone cannot).
 
 thermal_12pos.csv: boom not deployed, so the true field in every sensor's frame is the
 body-frame truth b_body_nT. rotation.csv: boom deployed, boom sensors see H^T B_body, and
