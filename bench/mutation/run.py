@@ -152,6 +152,13 @@ def main(argv=None) -> int:
     out = Path(args.out) if args.out else (None if args.only is not None
                                            else REPO / "docs" / "mutation.md")
     rows = []
+    # the commit tested: taken with the scratch copy, not at the end of a long run
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--",
+                            "generator", "templates", "host_tests", "bench"],
+                           capture_output=True, text=True).stdout.strip()
+    when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     with tempfile.TemporaryDirectory(prefix="magcal_mut_") as tmp:
         base = Path(tmp) / "base"
         base.mkdir()
@@ -178,12 +185,6 @@ def main(argv=None) -> int:
             shutil.rmtree(root, ignore_errors=True)
     n_k = sum(r[1] == "killed" for r in rows)
     n_na = sum(r[1] == "not-applied" for r in rows)
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
-                          capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--",
-                            "generator", "templates", "host_tests", "bench"],
-                           capture_output=True, text=True).stdout.strip()
-    when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     lines = ["# Mutation check", "",
              "_Written by `python3 bench/mutation/run.py`; the mutations are in "
              "`bench/mutation/mutations.py`._", "",
@@ -192,7 +193,8 @@ def main(argv=None) -> int:
              "with `generated/` regenerated, so a kill comes from a behavioural test. The "
              "unmutated tests pass first in the same run. A mutation whose text no longer "
              "occurs in the code is NOT-APPLIED and counts as a failure of the check.", "",
-             f"Run {when} on commit `{head}`{' (with uncommitted changes)' if dirty else ''}.",
+             f"Run started {when} on commit `{head}`"
+             f"{' (with uncommitted changes)' if dirty else ''}.",
              "",
              f"**Killed {n_k} of {len(rows)} ({100 * n_k / max(len(rows), 1):.0f} %)"
              + (f"; {n_na} NOT-APPLIED" if n_na else "") + ".**", "",
