@@ -167,7 +167,7 @@ def test_joint_fit_b_and_K_sigmas_are_honest(draws):
     _K(draws)
 
 
-M_JOINT_BUG = ("bug in the joint reference-vector + magnitude fit (generator/fit/thermal.py, "
+M_JOINT_BUG = ("bug in the joint reference-vector + magnitude fit (generator/fit/joint.py, "
                "method 'reference-vector + magnitude joint'): with the rotation campaign "
                "added, the stated 1-sigma of the M0 diagonal (scale factors) is too small: "
                "sum z^2 / dof = 1.8-2.0 over 20 draws (up to 4 for one sensor), while the "
@@ -229,7 +229,7 @@ FM1_MMC2_BUG = ("on the shared unit the chamber fit of mmc2 (boom MMC5883 in the
                 "a 1-sigma of M(T) about 2x too small: rms z of its 36 M coefficients 2.0, "
                 "M0[1][1] off by 5.6 sigma (body sensors: rms z 0.9-1.2). Something of the "
                 "boom board in the shared data (its temperature or field) is not in the "
-                "fit's model or its covariance (generator/fit/thermal.py reference_fit)")
+                "fit's model or its covariance (generator/fit/reference.py reference_fit)")
 
 
 @pytest.mark.parametrize("sensor", [pytest.param(
