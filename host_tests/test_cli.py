@@ -11,8 +11,9 @@ import pytest
 
 from generator.io import truth as truth_mod
 from generator.cli import main
-from generator.io.telemetry_csv import preprocess, read_telemetry
 from generator.io.unitfile import load_unit
+from truth_icd import (icd_frame_field, load_truth_json, ratio_bound, read_csv,
+                       true_parameters_field, unit_sensors)
 
 
 def read_apply_csv(path) -> dict:
@@ -40,10 +41,14 @@ def fm1_fit(tmp_path_factory, fm1_dir):
     ("thermal_12pos", ["thermal_12pos.csv"]),
     ("rotation", ["rotation.csv"]),
 ])
-def test_fit_then_apply_is_within_1p15_of_the_truth(campaign, fit_files, fm1_dir, tmp_path):
+def test_fit_then_apply_is_at_the_truth_floor(campaign, fit_files, fm1_dir, tmp_path):
     """Issue 2 acceptance: fit a campaign, apply the result to the same file through the
-    flight C; per sensor the |B| RMS error against the truth is at most 1.15 times what the
-    true parameters give on the same raw data."""
+    flight C; per sensor the |B| RMS error against the truth is at most what the true
+    parameters give on the same raw data times truth_icd.ratio_bound (1 + z / sqrt(2N),
+    z Bonferroni over the 10 ratios here: 1.013 for 36000 samples, 1.042 for 4000; was
+    1.15). The true parameters are applied to the CSV's counts by the ICD's mapping
+    (host_tests/truth_icd.py), not by the project's preprocessing. float32 rounding of the
+    C output (~1e-7 x 50000 nT) is far below the noise."""
     unit_path = fm1_dir / "unit.toml"
     assert main(["fit", str(unit_path), *[str(fm1_dir / f) for f in fit_files],
                  "-o", str(tmp_path / "fit"), "-q"]) == 0
@@ -53,9 +58,8 @@ def test_fit_then_apply_is_within_1p15_of_the_truth(campaign, fit_files, fm1_dir
                  "-o", str(out_csv), "-q"]) == 0
     got = read_apply_csv(out_csv)
     unit = load_unit(unit_path)
-    tel = read_telemetry(data, unit)
-    pre = preprocess(tel, unit)
-    truth = truth_mod.load_truth(fm1_dir / "truth.json")
+    cols, specs = read_csv(data), unit_sensors(unit_path)
+    truth = load_truth_json(fm1_dir / "truth.json")
     b_true_body = np.load(fm1_dir / f"{campaign}.truth.npz")["b_body_nT"]
     report = []
     for s in unit.sensors:
@@ -63,12 +67,13 @@ def test_fit_then_apply_is_within_1p15_of_the_truth(campaign, fit_files, fm1_dir
         valid = got[f"{s.name}_valid"] == 1
         assert valid.mean() > 0.99, f"{s.name}: only {valid.mean():.1%} valid"
         ours = truth_mod.rms_norm_error(B[valid], b_true_body[valid])
-        B_truth = truth_mod.true_calibrated_frame(truth, s.name, pre[s.name].field_frame_nT,
-                                                  pre[s.name].temp_C)
+        B_truth = true_parameters_field(truth, s.name, icd_frame_field(cols, specs[s.name]),
+                                        cols[f"{s.name}_temp_C"])
         best = truth_mod.rms_norm_error(B_truth[valid], b_true_body[valid])
+        bound = ratio_bound(int(valid.sum()), 10)
         report.append(f"{s.name}: ours {ours:.1f} nT, true parameters {best:.1f} nT, "
-                      f"ratio {ours / best:.3f}")
-        assert ours <= 1.15 * best, "\n".join(report)
+                      f"ratio {ours / best:.4f} (bound {bound:.4f})")
+        assert ours <= bound * best, "\n".join(report)
     print("\n".join(report))
 
 

@@ -23,14 +23,13 @@ range (the truth is W = M^-1 to second order in T; the cubic's own truncation er
 ~ (W1 dT)^4 ~ 1e-14, is far below any sigma here).
 
 On the shared unit samsat_fm1 (one draw): every |z| below the Bonferroni bound of the
-normal over all coefficients, and the |B| error of the fitted calibration within 1.02 x
+normal over all coefficients, and the |B| error of the fitted calibration within 1.014 x
 that of the TRUE parameters on the same raw data, both computed here from the CSV with
 the ICD's counts -> nT and axis mapping (not the project's preprocessing).
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 
@@ -46,6 +45,8 @@ except ModuleNotFoundError:   # Python 3.10
 
 from generator.campaign import simulate as sim
 from generator.pipeline import fit
+from truth_icd import (icd_frame_field, poly_at, ratio_bound, read_csv, rms_norm_error,
+                       rms_vector_error, true_parameters_field)
 
 ALPHA = 1e-3                  # false-alarm probability of each test (all its statistics)
 SEEDS = list(range(1, 21))    # fixed draws
@@ -166,7 +167,7 @@ def test_joint_fit_b_and_K_sigmas_are_honest(draws):
     _K(draws)
 
 
-M_JOINT_BUG = ("bug in the joint reference-vector + magnitude fit (generator/fit/thermal.py, "
+M_JOINT_BUG = ("bug in the joint reference-vector + magnitude fit (generator/fit/joint.py, "
                "method 'reference-vector + magnitude joint'): with the rotation campaign "
                "added, the stated 1-sigma of the M0 diagonal (scale factors) is too small: "
                "sum z^2 / dof = 1.8-2.0 over 20 draws (up to 4 for one sensor), while the "
@@ -215,32 +216,6 @@ def test_the_statistic_has_power():
 
 
 # ---- the shared unit, from the CSV by the ICD ------------------------------------------
-def read_csv(path) -> dict:
-    with open(path) as f:
-        lines = [ln for ln in f if not ln.startswith("#")]
-    header = next(csv.reader([lines[0]]))
-    data = np.genfromtxt(lines[1:], delimiter=",", dtype=float)
-    return {name: data[:, j] for j, name in enumerate(header)}
-
-
-def icd_frame_field(cols: dict, sensor: dict) -> np.ndarray:
-    """ICD section 1-2: counts -> nT (SET/RESET: (set - reset) / 2 x lsb; else
-    (count - zero) x lsb), then frame axis k = sign x sensor axis named axes[k]."""
-    name, lsb = sensor["name"], sensor["lsb_nT"]
-    if sensor.get("set_reset", False):
-        f = {a: (cols[f"{name}_set_{a}"] - cols[f"{name}_reset_{a}"]) / 2 * lsb for a in "xyz"}
-    else:
-        f = {a: (cols[f"{name}_{a}"] - sensor["zero_count"]) * lsb for a in "xyz"}
-    return np.stack([(1.0 if ax[0] == "+" else -1.0) * f[ax[1]] for ax in sensor["axes"]],
-                    axis=1)
-
-
-def poly_at(poly, dT):
-    poly = np.asarray(poly, float)
-    return sum(poly[k][None] * dT.reshape((-1,) + (1,) * (poly.ndim - 1)) ** k
-               for k in range(poly.shape[0]))
-
-
 @pytest.fixture(scope="module")
 def fm1(fm1_dir, tmp_path_factory):
     """The shared unit fitted from its chamber and coil campaigns (reference vectors)."""
@@ -254,7 +229,7 @@ FM1_MMC2_BUG = ("on the shared unit the chamber fit of mmc2 (boom MMC5883 in the
                 "a 1-sigma of M(T) about 2x too small: rms z of its 36 M coefficients 2.0, "
                 "M0[1][1] off by 5.6 sigma (body sensors: rms z 0.9-1.2). Something of the "
                 "boom board in the shared data (its temperature or field) is not in the "
-                "fit's model or its covariance (generator/fit/thermal.py reference_fit)")
+                "fit's model or its covariance (generator/fit/reference.py reference_fit)")
 
 
 @pytest.mark.parametrize("sensor", [pytest.param(
@@ -282,9 +257,10 @@ def test_fm1_boom_alignment_within_its_covariance(fm1_dir, fm1):
 
 # |B| ratio: ours / true parameters, on the data the fit used (36000 samples, 48 parameters
 # per sensor: the fitted model differs from the truth by ~sqrt(p / 3N) ~ 2 % of the noise
-# in RMS, so the ratio is 1 within ~0.1 %). 1.02 leaves 20x that and still catches an offset
+# in RMS, so the ratio is 1 within ~0.1 %). The bound is truth_icd.ratio_bound (1 + z /
+# sqrt(2N), z Bonferroni over the 10 ratios here: 1.014); it still catches an offset
 # biased by 0.3 x the noise per axis (ratio sqrt(1 + 0.09) = 1.044).
-MAX_NORM_RATIO = 1.02
+MAX_NORM_RATIO = ratio_bound(36000, 2 * len(SENSORS))
 
 
 @pytest.mark.parametrize("sensor", SENSORS)
@@ -295,12 +271,8 @@ def test_fm1_field_error_at_the_truth_floor(fm1, fm1_dir, sensor):
     B_true = np.load(fm1_dir / "thermal_12pos.truth.npz")["b_body_nT"]   # jig: frame = body
     m = icd_frame_field(cols, spec)
     T = cols[f"{sensor}_temp_C"]
-    t_ref = truth["t_ref_C"]
-    t = truth["sensors"][sensor]
     # the true parameters: B = W(T)^-1 (m - b(T)), T as reported
-    dT = T - t_ref
-    W = poly_at(t["W_poly_frame"], dT)
-    best = np.linalg.solve(W, (m - poly_at(t["b_poly_frame_nT"], dT))[..., None])[..., 0]
+    best = true_parameters_field(truth, sensor, m, T)
     # the fit: B = M(T) (m - b(T)), T clamped to the calibrated range
     v = cs.sensors[sensor]
     Tc = np.clip(T, float(v["t_min_C"]), float(v["t_max_C"]))
@@ -308,11 +280,10 @@ def test_fm1_field_error_at_the_truth_floor(fm1, fm1_dir, sensor):
     ours = np.einsum("nij,nj->ni", poly_at(v["M_poly"], dTc), m - poly_at(v["b_poly_nT"], dTc))
 
     def rms_norm(B):
-        return float(np.sqrt(np.mean((np.linalg.norm(B, axis=1)
-                                      - np.linalg.norm(B_true, axis=1)) ** 2)))
+        return rms_norm_error(B, B_true)
 
     def rms_vec(B):
-        return float(np.sqrt(np.mean(np.sum((B - B_true) ** 2, axis=1) / 3)))
+        return rms_vector_error(B, B_true)
 
     noise = spec["noise_nT"] / (math.sqrt(2) if spec.get("set_reset") else 1.0)
     # the true parameters reach the noise floor (checks this file's ICD mapping too)

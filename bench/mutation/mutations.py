@@ -1,9 +1,21 @@
 """The curated mutations: deliberate bugs, one at a time, each with the tests that must
-catch it. A mutation is a list of (file, old text, new text); the old text must occur
-exactly once (the runner refuses a mutation that no longer applies, so the list follows
-the code). Flight mutations change the template and the Python reference alike where the
-bug would be planted in both; generated/ is never regenerated and test_generated.py
-(the byte diff) is never run, so a kill comes from a behavioural test.
+catch it.
+
+A mutation is a list of edits (file, old text, new text). The old text is a SMALL,
+DISTINCTIVE snippet of the current code (one condition, one assignment), so unrelated
+edits around it do not break it; it must occur exactly once (the runner also accepts it
+with different whitespace: re-indented or re-wrapped code still matches). A mutation
+whose snippet no longer occurs once is reported NOT-APPLIED, which fails the check: the
+code moved, and the edit must be re-targeted (keep the BUG, described in `what`, and find
+the snippet that now implements the rule). Check every anchor without running tests:
+
+    python3 bench/mutation/run.py --check
+
+Edits planted in the C template and the Python reference alike are defined once each
+below (CLAMP_UPPER_C, CLAMP_UPPER_PY, ...) and combined, so a re-target is one place.
+Flight mutations change the template and the Python reference alike where the bug would
+be planted in both; generated/ is never regenerated and test_generated.py (the byte
+diff) is never run, so a kill comes from a behavioural test.
 """
 
 from __future__ import annotations
@@ -13,11 +25,15 @@ from dataclasses import dataclass
 EXPECT = ["host_tests/test_expectations.py"]
 FLIGHT = EXPECT + ["host_tests/test_flight_chain.py"]
 CHI2 = ["host_tests/test_truth_chi2.py"]
-FIT = CHI2 + ["host_tests/test_fit_accuracy.py"]
+FIT = ["host_tests/test_fit_accuracy.py"] + CHI2    # the tightened ratio test first
 TRACE = ["host_tests/test_trace_decoys.py"]
 TABLES = ["host_tests/test_tables.py"]
 CHAIN = "generator/flight/chain.py"
 TPL = "templates/magcal.c.j2"
+REF = "generator/fit/reference.py"        # reference_fit: chamber (reference-vector) fits
+JOINT = "generator/fit/joint.py"          # _joint_nonlinear: vectors + magnitudes
+SCORING = "generator/trace/scoring.py"    # Score.judge, score_round
+PRE = "generator/io/telemetry_csv.py"     # preprocess: counts -> nT, ICD axis mapping
 
 
 @dataclass(frozen=True)
@@ -28,68 +44,67 @@ class Mutation:
     tests: tuple
 
 
+# ---- edits planted in both implementations (defined once, combined below) -------------
+# the temperature clamp (wrapper): C `if (T < t_min) {...} else if (T > t_max) {...}`;
+# Python `below, above = t < t_min, t > t_max` then the flags from below/above/far
+_C = "c[{{ UNIT }}_{{ s.NAME }}_"
+CLAMP_UPPER_C = (TPL, "} else if (temp_C > " + _C + "T_MAX_C]) {", "} else if (0) {")
+CLAMP_UPPER_PY = (CHAIN, "below, above = t < t_min, t > t_max",
+                  "below, above = t < t_min, t > np.inf")
+CLAMP_LOWER_C = (TPL, "if (temp_C < " + _C + "T_MIN_C]) {", "if (0) {")
+CLAMP_LOWER_PY = (CHAIN, "below, above = t < t_min, t > t_max",
+                  "below, above = t < -np.inf, t > t_max")
+# beyond the margin at the upper end: TEMP_CLAMPED (invalid) not set
+CLAMP_UPPER_FAR_C = (TPL, "if (temp_C - " + _C + "T_MAX_C] > " + _C + "TEMP_MARGIN_C]) {",
+                     "if (0) {")
+CLAMP_UPPER_FAR_PY = (CHAIN, "(above & ((t - t_max).astype(ft) > margin))", "(above & False)")
+# the margin ignored at the upper end: every sample above t_max invalid
+MARGIN_UPPER_C = (TPL, "if (temp_C - " + _C + "T_MAX_C] > " + _C + "TEMP_MARGIN_C]) {",
+                  "if (temp_C - " + _C + "T_MAX_C] > 0.0f) {")
+MARGIN_UPPER_PY = (CHAIN, "(above & ((t - t_max).astype(ft) > margin))",
+                   "(above & ((t - t_max).astype(ft) > 0))")
+# the selection's majority rule: disagrees when it agrees with FEWER THAN half
+MAJORITY_C = (TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
+              "n_cmp[i] >= 2u && 2u * n_agree[i] <= n_cmp[i]")
+MAJORITY_PY = (CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
+               "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]")
+# the thermal lag on a backward clock step: holds (dt = 0), mutated to step with |dt|
+LAG_C = (TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards")
+LAG_PY = (CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)",
+          "dts = np.abs(dts).astype(ft)")
+
 M = Mutation
 MUTATIONS = [
     # ---- the four bugs of issue 21 ----------------------------------------------------
-    M("clamp_upper_removed", "upper temperature clamp removed (C and Python)",
-      ((TPL, "    } else if (temp_C > c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C]) {\n"
-             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
-             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    }",
-        "    }"),
-       (CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < t_min, t < t_min")),
+    M("clamp_upper_removed", "upper temperature clamp removed (C and Python): above t_max "
+      "the polynomials extrapolate, nothing flagged", (CLAMP_UPPER_C, CLAMP_UPPER_PY),
       tuple(EXPECT)),
     M("majority_at_most_half", "selection: 'fewer than half' -> 'at most half' (C and Python)",
-      ((TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
-        "n_cmp[i] >= 2u && 2u * n_agree[i] <= n_cmp[i]"),
-       (CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
-        "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]")),
-      tuple(EXPECT)),
+      (MAJORITY_C, MAJORITY_PY), tuple(EXPECT)),
     M("lag_abs_dt", "thermal lag steps with |dt| on a backward clock step (C and Python)",
-      ((TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards"),
-       (CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)", "dts = np.abs(dts).astype(ft)")),
-      tuple(EXPECT)),
-    M("trace_no_bonferroni", "trace: the multiple-comparison factor dropped",
-      (("generator/trace/tracer.py", "        s.judge(len(scores), alpha, min_gain)",
-        "        s.judge(1, alpha, min_gain)"),),
+      (LAG_C, LAG_PY), tuple(EXPECT)),
+    M("trace_no_bonferroni", "trace: the multiple-comparison factor dropped (every score "
+      "judged as if alone in its round)",
+      ((SCORING, "s.judge(len(scores), alpha, min_gain)", "s.judge(1, alpha, min_gain)"),),
       tuple(TRACE)),
     # ---- the same three flight bugs in one implementation only (C or Python) ----------
     M("clamp_upper_removed_C", "upper temperature clamp removed in the C only",
-      ((TPL, "    } else if (temp_C > c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C]) {\n"
-             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
-             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    }",
-        "    }"),),
-      tuple(EXPECT)),
+      (CLAMP_UPPER_C,), tuple(EXPECT)),
     M("clamp_upper_removed_py", "upper temperature clamp removed in the Python only",
-      ((CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < t_min, t < t_min"),),
+      (CLAMP_UPPER_PY,), tuple(EXPECT)),
+    M("majority_at_most_half_C", "'at most half' in the C only", (MAJORITY_C,), tuple(EXPECT)),
+    M("majority_at_most_half_py", "'at most half' in the Python only", (MAJORITY_PY,),
       tuple(EXPECT)),
-    M("majority_at_most_half_C", "'at most half' in the C only",
-      ((TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
-        "n_cmp[i] >= 2u && 2u * n_agree[i] <= n_cmp[i]"),),
-      tuple(EXPECT)),
-    M("majority_at_most_half_py", "'at most half' in the Python only",
-      ((CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
-        "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]"),),
-      tuple(EXPECT)),
-    M("lag_abs_dt_C", "|dt| on a backward step in the C only",
-      ((TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards"),),
-      tuple(EXPECT)),
-    M("lag_abs_dt_py", "|dt| on a backward step in the Python only",
-      ((CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)", "dts = np.abs(dts).astype(ft)"),),
-      tuple(EXPECT)),
+    M("lag_abs_dt_C", "|dt| on a backward step in the C only", (LAG_C,), tuple(EXPECT)),
+    M("lag_abs_dt_py", "|dt| on a backward step in the Python only", (LAG_PY,), tuple(EXPECT)),
     # ---- wrappers -------------------------------------------------------------------
     M("clamp_lower_removed", "lower temperature clamp removed (C and Python)",
-      ((TPL, "    if (temp_C < c[{{ UNIT }}_{{ s.NAME }}_T_MIN_C]) {\n"
-             "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MIN_C];\n"
-             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;\n    } else if",
-        "    if (0) {\n    } else if"),
-       (CHAIN, "below, above = t < t_min, t > t_max", "below, above = t < -np.inf, t > t_max")),
-      tuple(EXPECT)),
-    M("clamp_upper_unflagged", "upper clamp applied but not flagged (C and Python)",
-      ((TPL, "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];\n"
-             "        status |= {{ UNIT }}_STATUS_TEMP_CLAMPED;",
-        "        temp_C = c[{{ UNIT }}_{{ s.NAME }}_T_MAX_C];"),
-       (CHAIN, "status[(below | above) & ~zeroed] |= STATUS_TEMP_CLAMPED",
-        "status[below & ~zeroed] |= STATUS_TEMP_CLAMPED")),
+      (CLAMP_LOWER_C, CLAMP_LOWER_PY), tuple(EXPECT)),
+    M("clamp_upper_unflagged", "upper clamp applied but a sample beyond the margin not "
+      "flagged TEMP_CLAMPED, it stays valid (C and Python)",
+      (CLAMP_UPPER_FAR_C, CLAMP_UPPER_FAR_PY), tuple(EXPECT)),
+    M("clamp_upper_margin_ignored", "upper end: the margin ignored, every extrapolated "
+      "sample flagged TEMP_CLAMPED (C and Python)", (MARGIN_UPPER_C, MARGIN_UPPER_PY),
       tuple(EXPECT)),
     M("saturation_low_rail_strict", "saturation: count_min itself not a rail (C and Python)",
       ((TPL, "raw->{{ field }}[{{ k }}] <= {{ s.count_min }} ||",
@@ -148,24 +163,47 @@ MUTATIONS = [
     M("agree_one_sided", "agreement tolerance uses one sensor's scatter only",
       ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
       tuple(EXPECT)),
+    # ---- input: the ICD's axis mapping (the fit absorbs it; the truth baseline must not) --
+    # a wrong mapping that is a proper rotation (det +1): a fit on the same data absorbs it
+    # into M without looking mirrored, so only a baseline independent of the project's
+    # preprocessing sees it (a reflection would also meet the fit's mirror check)
+    M("preprocess_axes_rotated", "preprocessing: the ICD's frame axes cyclically shifted "
+      "(X <- the sensor axis meant for Y, ...)",
+      ((PRE, "field_sensor_nT[:, list(idx)]",
+        "field_sensor_nT[:, list(idx)[1:] + list(idx)[:1]]"),),
+      ("host_tests/test_fit_accuracy.py",)),
+    M("preprocess_two_signs_flipped", "preprocessing: the ICD's signs of frame X and Y "
+      "inverted (a 180 deg turn about Z)",
+      ((PRE, "* np.asarray(sign, dtype=np.float64)",
+        "* np.asarray(sign, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])"),),
+      ("host_tests/test_fit_accuracy.py",)),
+    # a scale error the fit absorbs into M (2 %, inside the part's prior): the fit is at the
+    # floor on its own (wrong) nT, the flight chain (its own counts -> nT) is 2 % off; a
+    # baseline from the project's preprocessing would be 2 % off too and hide it
+    M("preprocess_setreset_scale", "preprocessing: SET/RESET counts -> nT 2 % too large",
+      ((PRE, "(set_counts - reset_counts) / 2.0 * spec.lsb_nT",
+        "(set_counts - reset_counts) / 2.0 * spec.lsb_nT * 1.02"),),
+      ("host_tests/test_fit_accuracy.py",)),
     # ---- fits -------------------------------------------------------------------------
-    M("fit_offset_biased", "fitted offsets biased by 0.3 x the noise per axis",
-      (("generator/fit/thermal.py", "    b_poly = b_s * scale[:, None]\n",
-        "    b_poly = b_s * scale[:, None]\n    b_poly[0] += 0.3 * np.sqrt(sig2)\n"),),
+    M("fit_offset_biased", "chamber (reference-vector) fit: offsets b0 biased by 0.3 x "
+      "the noise floor per axis (~35 x the stated sigma)",
+      ((REF, "    return b_poly, M_poly, info",
+        "    b_poly = b_poly + 0.3 * np.eye(len(b_poly), 1) * info['residual_sigma_nT']\n"
+        "    return b_poly, M_poly, info"),),
       tuple(FIT)),
-    M("fit_b_sigma_halved", "stated sigma of b(T) half the truth",
-      (("generator/fit/thermal.py", '"b_poly_sigma_nT": np.sqrt(var_b) * scale[:, None],',
-        '"b_poly_sigma_nT": 0.5 * np.sqrt(var_b) * scale[:, None],'),),
-      tuple(CHI2)),
-    M("fit_b_sigma_tripled", "stated sigma of b(T) three times the truth",
-      (("generator/fit/thermal.py", '"b_poly_sigma_nT": np.sqrt(var_b) * scale[:, None],',
-        '"b_poly_sigma_nT": 3 * np.sqrt(var_b) * scale[:, None],'),),
-      tuple(CHI2)),
-    M("fit_M_sigma_tripled", "stated sigma of M(T) three times the truth",
-      (("generator/fit/thermal.py",
-        '"M_poly_sigma": np.sqrt(np.maximum(var_M, 0)) * scale[:, None, None],',
-        '"M_poly_sigma": 3 * np.sqrt(np.maximum(var_M, 0)) * scale[:, None, None],'),),
-      tuple(CHI2)),
+    M("fit_b_sigma_halved", "chamber fit: stated sigma of b(T) half the truth",
+      ((REF, "bsig = sig[:3 * K]", "bsig = 0.5 * sig[:3 * K]"),), tuple(CHI2)),
+    M("fit_b_sigma_tripled", "chamber fit: stated sigma of b(T) three times the truth",
+      ((REF, "bsig = sig[:3 * K]", "bsig = 3 * sig[:3 * K]"),), tuple(CHI2)),
+    M("fit_M_sigma_tripled", "chamber fit: stated sigma of M(T) three times the truth",
+      ((REF, "Msig = sig[3 * K:]", "Msig = 3 * sig[3 * K:]"),), tuple(CHI2)),
+    M("joint_offset_biased", "joint vector + magnitude fit: offsets b0 biased by 0.3 x the "
+      "residual scatter per axis",
+      ((JOINT, "bsig = sig[:nb].reshape(degree + 1, 3)",
+        "bsig = sig[:nb].reshape(degree + 1, 3)\n"
+        "    bp = bp + 0.3 * np.sqrt(s2) * np.eye(degree + 1, 1)"),), tuple(CHI2)),
+    M("joint_b_sigma_halved", "joint vector + magnitude fit: stated sigma of b(T) halved",
+      ((JOINT, "bsig = sig[:nb]", "bsig = 0.5 * sig[:nb]"),), tuple(CHI2)),
     M("coil_sigma_halved", "stated sigma of K half the truth",
       (("generator/fit/coils.py", "K_sig = np.sqrt(np.outer(np.diag(Ginv), s2)).T",
         "K_sig = 0.5 * np.sqrt(np.outer(np.diag(Ginv), s2)).T"),),
@@ -191,14 +229,16 @@ MUTATIONS = [
         "        _, cost, JTJ, lm = lm_solve(model, p0)\n        p = p0\n"),),
       ("host_tests/test_ellipsoid_partial.py",)),
     # ---- trace rules ------------------------------------------------------------------
-    M("trace_block_test_ignored", "trace: the block-consistency t-test ignored",
-      (("generator/trace/tracer.py", "        if not self.p_t < BLOCK_LEVEL:",
-        "        if not self.p_t < 2.0:"),),
+    M("trace_block_test_ignored", "trace: the held-out score test over the blocks (p_z; it "
+      "replaced the t-test over blocks) ignored",
+      ((SCORING, "if not self.p_z * m < alpha:", "if not self.p_z * 0 < alpha:"),),
       tuple(TRACE)),
-    M("trace_min_gain_ignored", "trace: the 1 % minimum gain ignored",
-      (("generator/trace/tracer.py", "        if not self.rel_rms_gain >= min_gain:",
-        "        if not self.rel_rms_gain >= -1.0:"),),
+    M("trace_lr_test_ignored", "trace: the held-out likelihood-ratio test (p_lr) ignored",
+      ((SCORING, "if not self.p_lr * m < alpha:", "if not self.p_lr * 0 < alpha:"),),
       tuple(TRACE)),
+    M("trace_min_gain_ignored", "trace: the 1 % minimum held-out RMS gain ignored",
+      ((SCORING, "if not self.rel_rms_gain >= min_gain:",
+        "if not self.rel_rms_gain >= -float('inf'):"),), tuple(TRACE)),
     # ---- uplink table validator ----------------------------------------------------------
     M("table_crc_unchecked", "flight validator: CRC not checked",
       (("templates/table.c.j2",
