@@ -69,7 +69,8 @@ MAJORITY_C = (TPL, "n_cmp[i] >= 2u && 2u * n_agree[i] < n_cmp[i]",
 MAJORITY_PY = (CHAIN, "n_cmp[i] >= 2 and 2 * n_agree[i] < n_cmp[i]",
                "n_cmp[i] >= 2 and 2 * n_agree[i] <= n_cmp[i]")
 # the thermal lag on a backward clock step: holds (dt = 0), mutated to step with |dt|
-LAG_C = (TPL, "dt_s = 0;   /* time going backwards", "dt_s = -dt_s;   /* time going backwards")
+LAG_C = (TPL, "dt_s = 0;   /* time going backwards (a clock step): hold the filter */",
+         "dt_s = -dt_s;   /* time going backwards (a clock step): hold the filter */")
 LAG_PY = (CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)",
           "dts = np.abs(dts).astype(ft)")
 
