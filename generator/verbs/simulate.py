@@ -13,10 +13,6 @@ import math
 import shutil
 from pathlib import Path
 
-import numpy as np
-
-from generator.campaign import plan as plan_mod
-from generator.campaign import simulate as sim
 from generator.errors import InputError
 from generator.io.outputs import check_output_folder, output_folder
 from generator.io.unitfile import load_unit
@@ -68,6 +64,13 @@ def load_truth_override(path) -> dict:
 
 def run_simulate(args, progress) -> tuple:
     """`magcal simulate`: exit status and the JSON result (paths, campaigns, plan)."""
+    # the simulator's imports here, not at module level: the command line's parser imports
+    # this module for its arguments, and every other verb should not pay for them
+    import numpy as np
+
+    from generator.campaign import plan as plan_mod
+    from generator.campaign import simulate as sim
+
     check_output_folder(args.output)
     unit = load_unit(args.unit)
     for name, v, lo, hi in (("--sample-period-s", args.sample_period_s, 1e-2, 3600.0),
