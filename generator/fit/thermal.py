@@ -363,6 +363,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
     """
     from generator.fit.sanity import check_calibration
     from generator.fit.setreset import DEFAULT_FIELD_NT, compensation_decision
+    from generator.fit.setreset_fit import _field_of, _rates_of, compensate_references
     from generator.io import telemetry_csv as _telemetry
     if method not in FIT_METHODS:
         raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
@@ -376,6 +377,21 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         datas = [fit_data_from(tel, sd, unit) for tel, sd in used]
         if not datas:
             raise InputError(telemetries[0].path, f"fit: no file has data of sensor '{s.name}'")
+        # SET/RESET gyro compensation is decided BEFORE the fit, and where it is on, M is
+        # fitted to what the chain will output (compensated): otherwise, under a steady
+        # turn, M absorbs the rotation error and the chain removes it a second time
+        # (setreset_fit.compensate_references)
+        rates = [_rates_of(tel) for tel, _ in used]
+        sr = compensation_decision(
+            s, np.concatenate([r for r in rates if r is not None])
+            if any(r is not None for r in rates) else None,
+            float(_field_of(datas) or unit.lab_field_nT or DEFAULT_FIELD_NT),
+            datas[0].noise_nT)
+        if sr.get("enabled"):
+            datas = compensate_references(datas, rates, float(sr["sr_comp_s_per_deg"]))
+            sr["fit_on_compensated"] = True
+            sr["why"] += ("; M is fitted to the compensated chain output (the reference "
+                          "vectors carry the rotation error the chain then adds back)")
         cal = fit_sensor(s.name, datas, progress=progress, method=method,
                          prior=(prior or {}).get(s.name))
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
@@ -390,12 +406,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         for w in cal.stats["sanity"]["warnings"]:
             (progress or (lambda m: None))(f"WARNING: {w}")
             cal.stats.setdefault("notes", []).append(w)
-        rates = [np.stack([tel.columns[f"rate_{c}_dps"] for c in "xyz"], axis=1)
-                 for tel, _ in used if tel.has("rate_x_dps", "rate_y_dps", "rate_z_dps")]
-        field = (cal.stats.get("predicted_error", {}).get("at_field_nT")
-                 or unit.lab_field_nT or DEFAULT_FIELD_NT)
-        cal.stats["set_reset_compensation"] = compensation_decision(
-            s, np.concatenate(rates) if rates else None, float(field), datas[0].noise_nT)
+        cal.stats["set_reset_compensation"] = sr
         out[s.name] = cal
     return out
 
