@@ -88,7 +88,8 @@ def _has_ref_vectors(tel: Telemetry) -> bool:
     return tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT")
 
 
-def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> CoefficientSet:
+def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
+        accept_misfit=False) -> CoefficientSet:
     """Fit a unit from all the given files jointly.
 
     * b(T), M(T) per sensor: fit.thermal.fit_unit over every file (reference vectors where
@@ -100,7 +101,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
       reference vectors (the jig campaigns carry them with the boom stowed), by Wahba
       between the reference body sensor and the boom MMC5883 (fit_alignment); checked to
       be a rotation.
-    Every calibration passes fit.sanity before anything is written (InputError if not).
+    Every calibration passes fit.sanity before anything is written (InputError if not);
+    a reference-vector fit far beyond the noise floor (fit.goodness: most often a
+    reference in another frame) is InputError unless accept_misfit.
     fit_info["set_reset_compensation"]: per sensor whether the chain compensates the
     SET/RESET rotation error with the gyro, and why; where enabled, the chain has the
     sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision.
@@ -154,7 +157,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
-    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors)
+    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
+                    accept_misfit=accept_misfit)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "

@@ -60,6 +60,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
+from generator.fit.goodness import check_misfit, vector_misfit
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _residuals, _rms, _score)
 from generator.fit.levels import (_fit_segments, _fit_sensor_analytic, _fit_sensor_ellipsoid,
@@ -168,6 +169,9 @@ def _finish(cal, S):
         "note": "every coefficient from the data (this method has no prior); 1-sigma in "
                 "uncertainty_1sigma"}
     st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
+    gof = vector_misfit(cal, S)
+    if gof is not None:
+        st["goodness_of_fit"] = gof
     st["extrapolation"] = extrapolation_growth(cal, S.norm[np.isfinite(S.norm)])
 
 
@@ -348,14 +352,17 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     return cal
 
 
-def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dict:
+def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
+             accept_misfit=False) -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
     else ref_norm_nT (or the unit's lab_field_nT) -> magnitude rows. method: one of
     FIT_METHODS, see fit_sensor. prior: {sensor name: reference.Prior} (a ground
     calibration) or None. Every calibration passes the sanity checks (fit.sanity) before
-    it is returned; stats["sanity"] holds the figures. stats["set_reset_compensation"]:
+    it is returned; stats["sanity"] holds the figures. A reference-vector fit whose
+    residual the noise and the reference's stated error cannot explain (fit.goodness) is
+    refused, unless accept_misfit (then stats["goodness_of_fit"] says so). stats["set_reset_compensation"]:
     whether the chain should compensate the SET/RESET rotation error with the gyro
     (fit.setreset.compensation_decision). Returns {sensor name: SensorCalibration}.
     Raises InputError when a sensor cannot be fitted, a calibration is not physical, or
@@ -397,6 +404,9 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
+        check_misfit(s.name, cal.stats.get("goodness_of_fit"),
+                     vec_files[0] if vec_files else datas[0].source, accept=accept_misfit,
+                     progress=progress)
         held = [p["name"] for p in cal.observability.get("parameters", [])
                 if p["source"] == "prior"]
         if held:
