@@ -33,7 +33,8 @@ this module chooses between them (model selection) and fits the unit.
 
 Temperatures outside -80..150 degC or off their file's running median are rejected and
 counted (samples.screen_temperatures); the calibrated range is that of the rest. A constant
-(degree 0) calibration is valid over the part's operating range.
+(degree 0) calibration keeps that range (outside it the chain flags TEMP_EXTRAPOLATED) and
+is valid at every temperature.
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
@@ -73,8 +74,7 @@ from generator.fit.segments import (Segment, find_segments, group_levels, temper
 
 #: The fit methods of fit_unit / fit_sensor (the CLI's `magcal fit --method`).
 FIT_METHODS = ("auto", "analytic", "ellipsoid")
-# Operating temperature of the parts (MMC5883MA, MPU-9255 datasheets: -40..85 degC): the
-# range a constant calibration is valid over.
+# Operating temperature of the parts (MMC5883MA, MPU-9255 datasheets: -40..85 degC).
 OPERATING_C = (-40.0, 85.0)
 
 
@@ -110,8 +110,9 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
 
     prior: reference.Prior of the coefficients (a ground calibration), used by the
     reference-vector fits for what the data do not determine; None: the part's nominal.
-    A constant (degree 0) calibration is valid at every temperature of the part's
-    operating range (t_min_C, t_max_C = OPERATING_C), whatever temperature it came from.
+    A constant (degree 0) calibration keeps the data's temperature range as its calibrated
+    range (the chain flags TEMP_EXTRAPOLATED outside it) and is valid at every
+    temperature (stats["valid_outside_range"]; flight.coeffs.temp_margin_C).
     stats["observability"]: per coefficient data or prior, with 1-sigma;
     stats["predicted_error"]: field and angle error at the unit's field from the 1-sigma.
     """
@@ -156,11 +157,15 @@ def _finish(cal, S):
     """Temperature range of a constant model, observability, predicted error (fit_sensor)."""
     st = cal.stats
     if np.all(cal.b_poly_nT[1:] == 0) and np.all(cal.M_poly[1:] == 0):
-        cal.t_min_C, cal.t_max_C = OPERATING_C
+        # the calibrated range stays the data's (the chain flags TEMP_EXTRAPOLATED outside
+        # it); the model is valid at every temperature (flight.coeffs.temp_margin_C gives
+        # it the largest margin: st["valid_outside_range"])
+        st["valid_outside_range"] = True
         st["temperature_model"] = (
-            "constant (degree 0): temperature-independent, valid over the part's operating "
-            f"range {OPERATING_C[0]:g}..{OPERATING_C[1]:g} degC; its error away from the "
-            "data's temperatures is the sensor's uncalibrated drift")
+            "constant (degree 0): temperature-independent, valid (usable) at every "
+            f"temperature; calibrated (measured) over {cal.t_min_C:.1f}..{cal.t_max_C:.1f} "
+            "degC, outside it flagged TEMP_EXTRAPOLATED; its error away from the data's "
+            "temperatures is the sensor's uncalibrated drift")
     else:
         st["temperature_model"] = (f"polynomial in temperature, valid (not clamped) over the "
                                    f"data's range {cal.t_min_C:.1f}..{cal.t_max_C:.1f} degC")
