@@ -11,6 +11,7 @@ import numpy as np
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
 from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, covariance, ellipsoid_fit, lm_solve, sym_from6, sym_to6
+from generator.fit.ellipsoid_prior import ellipsoid_fit_prior
 from generator.fit.reference import MAX_REF_COND, T_REF_C, _powers, reference_fit
 from generator.fit.samples import _Samples
 
@@ -170,11 +171,14 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
         b0, M0, _ = reference_fit(S.x[v], S.ref[v], S.T[v], dv, source=source,
                                   **reference_options(S, v))
     else:
-        b0c, M0c, info = ellipsoid_fit(S.x, S.norm, source=source)
+        b0c, M0c, info = ellipsoid_fit_prior(S.x, S.norm, S.prior, float(np.mean(S.T)),
+                                             source=source)
         b0, M0 = b0c[None, :], M0c[None]
         if degree == 0:
-            return _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
-                             info["b_sigma_nT"][None], info["M_sigma"][None])
+            cal = _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
+                            info["b_sigma_nT"][None], info["M_sigma"][None])
+            cal.observability = info["observability"]
+            return cal
     b, M, bs, Ms, lm = _joint_nonlinear(S, degree, t_lo, t_hi, body_frame, (b0, M0), source)
     kind = "reference-vector + magnitude" if body_frame else "ellipsoid"
     return _make_cal(name, b, M, t_lo, t_hi, body_frame, f"{kind} joint, degree {degree}",
