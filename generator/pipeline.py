@@ -118,6 +118,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     def _load_prior(path, unit) -> dict:
         """{sensor: reference.Prior} from a coefficients.json (values and uncertainty_1sigma;
         a coefficient without a 1-sigma keeps the part's)."""
+        from generator.fit.prior_unit import check_prior_unit
         from generator.fit.reference import Prior, nominal_prior
 
         try:
@@ -126,6 +127,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             raise
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise InputError(path, f"--prior: not a readable coefficients.json ({e})") from None
+        for note in check_prior_unit(cs.unit, unit, path):
+            progress(note)
         out = {}
         for s in unit.sensors:
             if s.name not in cs.sensors:
