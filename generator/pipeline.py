@@ -203,9 +203,38 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                                  "vectors): H is the identity")
         if H is None:
             progress(info["notes"][-1])
-    return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
-                                            coils=coils, fit_info=info,
-                                            sensor_options=sr_opts, option_values=sr_values)
+    cs = CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
+                                          coils=coils, fit_info=info,
+                                          sensor_options=sr_opts, option_values=sr_values)
+    # 1-sigma of the blocks fitted here, not by the sensor fits: c of the SET/RESET
+    # compensation (setreset.compensation_decision) and H (per boom sensor: its chain
+    # uses H; from the alignment's rotation covariance)
+    for n, c in cals.items():
+        sr = c.stats.get("set_reset_compensation") or {}
+        if n in sr_values and sr.get("sr_comp_sigma_s_per_deg") is not None:
+            cs.uncertainty.setdefault(n, {})["sr_comp_s_per_deg"] = np.array(
+                float(sr["sr_comp_sigma_s_per_deg"]))
+    if H is not None:
+        sH = rotation_sigma(H, al.result.cov_rad2)
+        for s in unit.sensors:
+            if s.frame == "boom":
+                cs.uncertainty.setdefault(s.name, {})["H_boom_to_body"] = sH
+    return cs
+
+
+def rotation_sigma(H, cov_rad2) -> np.ndarray:
+    """1-sigma of each element of H = exp([d]x) H_true for a small rotation error d
+    (body axes) of covariance cov_rad2: dH = [d]x H, first order."""
+    H = np.asarray(H, float)
+    J = []
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        Kx = np.array([[0, -e[2], e[1]], [e[2], 0, -e[0]], [-e[1], e[0], 0]])
+        J.append(Kx @ H)
+    J = np.stack(J)                                    # (3, 3, 3): d H / d d_k
+    var = np.einsum("kij,kl,lij->ij", J, np.asarray(cov_rad2, float), J)
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 # ---- apply --------------------------------------------------------------------------------

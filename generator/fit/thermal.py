@@ -178,6 +178,37 @@ def _finish(cal, S):
     if gof is not None:
         st["goodness_of_fit"] = gof
     st["extrapolation"] = extrapolation_growth(cal, S.norm[np.isfinite(S.norm)])
+    unfitted = unfitted_degree_sigma(cal)
+    if unfitted:
+        st["observability"] = dict(st["observability"], temperature_terms=unfitted)
+
+
+def unfitted_degree_sigma(cal) -> str | None:
+    """The polynomial degrees the fit did not determine (above the degree fitted: a
+    constant model's temperature terms, or a fit of lower degree padded to POLY_DEGREE)
+    are 0 by construction, not a measurement of a zero drift: their 1-sigma is the part's
+    prior one (reference.PART_PRIOR_SIGMA), not 0. Sets it in place; returns the note
+    for stats["observability"]["temperature_terms"] (None when every degree was fitted).
+    predicted_error and extrapolation_growth are taken before (they treat those degrees
+    themselves)."""
+    from generator.fit.reference import PART_PRIOR_SIGMA
+
+    if cal.b_poly_sigma_nT is None or cal.M_poly_sigma is None:
+        return None
+    K = cal.b_poly_nT.shape[0]
+    fitted = [k for k in range(K) if np.any(cal.b_poly_sigma_nT[k] > 0)
+              or np.any(cal.M_poly_sigma[k] > 0)]
+    top = max(fitted) if fitted else -1
+    rest = [k for k in range(top + 1, K)
+            if np.all(cal.b_poly_nT[k] == 0) and np.all(cal.M_poly[k] == 0)]
+    if not rest:
+        return None
+    prior = PART_PRIOR_SIGMA["default"]
+    for k in rest:
+        cal.b_poly_sigma_nT[k] = prior["b_nT"][k]
+        cal.M_poly_sigma[k] = prior["M"][k]
+    return (f"degree(s) {', '.join(map(str, rest))} not fitted (the model is of degree "
+            f"{top}): value 0, 1-sigma the part's prior (not a measured zero drift)")
 
 
 def extrapolation_growth(cal, field_nT) -> dict:
