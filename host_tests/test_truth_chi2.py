@@ -250,16 +250,7 @@ def fm1(fm1_dir, tmp_path_factory):
     return cs, truth, unit
 
 
-FM1_MMC2_BUG = ("on the shared unit the chamber fit of mmc2 (boom MMC5883 in the jig) states "
-                "a 1-sigma of M(T) about 2x too small: rms z of its 36 M coefficients 2.0, "
-                "M0[1][1] off by 5.6 sigma (body sensors: rms z 0.9-1.2). Something of the "
-                "boom board in the shared data (its temperature or field) is not in the "
-                "fit's model or its covariance (generator/fit/thermal.py reference_fit)")
-
-
-@pytest.mark.parametrize("sensor", [pytest.param(
-    s, marks=pytest.mark.xfail(strict=True, reason=FM1_MMC2_BUG) if s == "mmc2" else ())
-    for s in SENSORS])
+@pytest.mark.parametrize("sensor", SENSORS)
 def test_fm1_coefficients_within_their_sigma(fm1, sensor):
     """Every z below the normal's Bonferroni bound over all 285 coefficients of the unit."""
     cs, truth, _ = fm1
