@@ -431,42 +431,70 @@ def _temperature_error_cov(P, x, bM, w, T, grp, tau, t_range, A):
     not average down with N like the reading noise. Each (file, reported value) is taken
     as one error e_v, independent between values (conservative within a step where the
     true temperature moves, as on a ramp). To first order it moves the residuals by
-    D_n e_v, D_n = dr_n/dT = M'(T_n) (x_n - b(T_n)) - M(T_n) b'(T_n), and the estimate by
-    -A J^T W D e_v (A the fit's response, the data part of the covariance). Returns
-    (C_T, figures for info)."""
-    from generator.fit.segments import temperature_quantum
+    D_n e_v, D_n = dr_n/dT (temperature_derivative), and the estimate by -A J^T W D e_v
+    (A the fit's response, the data part of the covariance). Returns (C_T, figures)."""
+    D = temperature_derivative(P, x, bM, T, tau, t_range)
+    G = vector_gradient_rows(P, x, bM, w, D)
+    Q, fig = temperature_bin_information(G, T, grp)
+    C_T = A @ Q @ A.T
+    return 0.5 * (C_T + C_T.T), fig
 
+
+def temperature_derivative(P, x, bM, T, tau, t_range):
+    """d r_n / dT_n (N, 3) of r = M(T)(x - b(T)) - B: M'(T)(x - b(T)) - M(T) b'(T); P the
+    powers of the scaled dT (P[:, 1] = dT / tau), bM the scaled (b_poly, M_poly); zero
+    where T is clamped (outside t_range)."""
     n, K = P.shape
     inside = (T >= t_range[0]) & (T <= t_range[1])
     dts = P[:, 1] if K > 1 else np.zeros(n)
     dP = np.zeros_like(P)
     for k in range(1, K):
         dP[:, k] = k * dts ** (k - 1) / tau
-    dP[~inside] = 0.0                                  # clamped: T does not enter
+    dP[~inside] = 0.0
     bp, Mp = bM
     MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     dM = (dP @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     y = x - P @ bp
-    D = np.einsum("nij,nj->ni", dM, y) - np.einsum("nij,nj->ni", MT, dP @ bp)
-    # per-sample J_n^T w_n D_n: b[k,l] then M[k,a,c] (vector_normal's gradient formulas)
+    return np.einsum("nij,nj->ni", dM, y) - np.einsum("nij,nj->ni", MT, dP @ bp)
+
+
+def vector_gradient_rows(P, x, bM, w, D):
+    """Per sample J_n^T w_n D_n (N, 12 K) for vector rows (parameters b[k,l], then
+    M[k,a,c]; vector_normal's gradient formulas with r replaced by D)."""
+    n, K = P.shape
+    bp, Mp = bM
+    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
+    y = x - P @ bp
+    w = np.ones(n) if w is None else np.broadcast_to(w, (n,))
     gb = -(w[:, None, None] * P[:, :, None] * np.einsum("nil,ni->nl", MT, D)[:, None, :])
     gM = w[:, None, None, None] * P[:, :, None, None] * D[:, None, :, None] \
         * y[:, None, None, :]
-    G = np.concatenate([gb.reshape(n, -1), gM.reshape(n, -1)], axis=1)
-    q = np.array([temperature_quantum(T[grp == g]) for g in range(int(grp.max()) + 1)])
-    var_g = q ** 2 / 12.0
-    _, key = np.unique(np.stack([grp.astype(float), T], axis=1), axis=0, return_inverse=True)
+    return np.concatenate([gb.reshape(n, -1), gM.reshape(n, -1)], axis=1)
+
+
+def temperature_bin_information(G, T, grp):
+    """Q = sum over (file, reported value) bins v of (q_f^2 / 12) h_v h_v^T, h_v the sum
+    of the rows of G (per-sample J^T W D) in the bin; q_f the file's reporting step (the
+    sensor's over all files where the file reports a single value)."""
+    from generator.fit.segments import temperature_quantum
+
+    grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
+    # a file reporting one value only (a rotation at room temperature) shows no step of
+    # its own: the sensor's step from all its files
+    q_all = temperature_quantum(T)
+    q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
+                  else q_all for g in range(int(grp.max()) + 1)])
+    _, key = np.unique(np.stack([grp.astype(float), T], axis=1), axis=0,
+                       return_inverse=True)
     key = np.asarray(key).ravel()
     Hb = np.zeros((int(key.max()) + 1, G.shape[1]))
     np.add.at(Hb, key, G)
     var_b = np.zeros(len(Hb))
-    var_b[key] = var_g[grp]
-    Q = (Hb * var_b[:, None]).T @ Hb
-    C_T = A @ Q @ A.T
-    return 0.5 * (C_T + C_T.T), {"quantum_C_per_file": q.tolist(),
-                                 "values": int(len(Hb)),
-                                 "note": "temperature reporting step: q^2/12 per reported "
-                                         "value, common to its samples"}
+    var_b[key] = (q ** 2 / 12.0)[grp]
+    return (Hb * var_b[:, None]).T @ Hb, {
+        "quantum_C_per_file": q.tolist(), "values": int(len(Hb)),
+        "note": "temperature reporting step: q^2/12 per reported value, common to its "
+                "samples"}
 
 
 def _split_information(P, x, x_hat, B, bM, w):
