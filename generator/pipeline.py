@@ -106,7 +106,12 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     reference in another frame) is InputError unless accept_misfit.
     fit_info["set_reset_compensation"]: per sensor whether the chain compensates the
     SET/RESET rotation error with the gyro, and why; where enabled, the chain has the
-    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision.
+    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision; the
+    decision is taken before the fit and M is fitted to the compensated chain output
+    (fit.setreset_fit), so a steady turn's rotation error is removed once.
+    `prior` must be a calibration of these sensors (fit.prior_unit: same part, frame, axes,
+    input; another unit id only when every sensor is so): else InputError naming the key.
+    uncertainty_1sigma also carries sr_comp_s_per_deg and, per boom sensor, H_boom_to_body.
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps

@@ -36,6 +36,12 @@ counted (samples.screen_temperatures); the calibrated range is that of the rest.
 (degree 0) calibration keeps that range (outside it the chain flags TEMP_EXTRAPOLATED) and
 is valid at every temperature.
 
+A reference-vector fit whose residual the sensor's noise and the reference's stated error
+cannot explain is refused (fit.goodness: most often a reference in another frame). With
+body rates and a SET/RESET sensor, the gyro compensation is decided before the fit and M
+fitted to the compensated output (fit.setreset_fit). Magnitude-only fits hold what the
+magnitudes do not determine at the prior (fit.ellipsoid_prior).
+
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
 
