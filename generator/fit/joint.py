@@ -10,7 +10,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
-from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, covariance, ellipsoid_fit, lm_solve, sym_from6, sym_to6
+from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, covariance, lm_solve, sym_from6, sym_to6
 from generator.fit.ellipsoid_prior import ellipsoid_fit_prior
 from generator.fit.reference import (MAX_REF_COND, T_REF_C, _powers, reference_fit,
                                      temperature_bin_information, temperature_derivative,

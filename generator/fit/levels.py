@@ -9,7 +9,6 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import SensorCalibration
-from generator.fit.ellipsoid import ellipsoid_fit
 from generator.fit.ellipsoid_prior import ellipsoid_fit_prior
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _rms, _score, reference_options)
