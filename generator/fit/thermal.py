@@ -177,8 +177,9 @@ def _finish(cal, S):
                                    f"data's range {cal.t_min_C:.1f}..{cal.t_max_C:.1f} degC")
     st["calibrated_range_C"] = [float(cal.t_min_C), float(cal.t_max_C)]
     st["observability"] = cal.observability or {
-        "note": "every coefficient from the data (this method has no prior); 1-sigma in "
-                "uncertainty_1sigma"}
+        "note": "every coefficient from the data (this method has no prior"
+                + ("; the --prior given is used only by the constant and per-level fits"
+                   if S.prior is not None else "") + "); 1-sigma in uncertainty_1sigma"}
     st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
     gof = vector_misfit(cal, S)
     if gof is not None:
