@@ -89,7 +89,8 @@ def _has_ref_vectors(tel: Telemetry) -> bool:
     return tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT")
 
 
-def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> CoefficientSet:
+def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
+        accept_misfit=False) -> CoefficientSet:
     """Fit a unit from all the given files jointly.
 
     * b(T), M(T) per sensor: fit.thermal.fit_unit over every file (reference vectors where
@@ -101,10 +102,17 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
       reference vectors (the jig campaigns carry them with the boom stowed), by Wahba
       between the reference body sensor and the boom MMC5883 (fit_alignment); checked to
       be a rotation.
-    Every calibration passes fit.sanity before anything is written (InputError if not).
+    Every calibration passes fit.sanity before anything is written (InputError if not);
+    a reference-vector fit far beyond the noise floor (fit.goodness: most often a
+    reference in another frame) is InputError unless accept_misfit.
     fit_info["set_reset_compensation"]: per sensor whether the chain compensates the
     SET/RESET rotation error with the gyro, and why; where enabled, the chain has the
-    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision.
+    sr_compensation option (SensorOptions) with c = sr_comp_s_per_deg of the decision; the
+    decision is taken before the fit and M is fitted to the compensated chain output
+    (fit.setreset_fit), so a steady turn's rotation error is removed once.
+    `prior` must be a calibration of these sensors (fit.prior_unit: same part, frame, axes,
+    input; another unit id only when every sensor is so): else InputError naming the key.
+    uncertainty_1sigma also carries sr_comp_s_per_deg and, per boom sensor, H_boom_to_body.
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
@@ -116,6 +124,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
     def _load_prior(path, unit) -> dict:
         """{sensor: reference.Prior} from a coefficients.json (values and uncertainty_1sigma;
         a coefficient without a 1-sigma keeps the part's)."""
+        from generator.fit.prior_unit import check_prior_unit
         from generator.fit.reference import Prior, nominal_prior
 
         try:
@@ -124,6 +133,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             raise
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise InputError(path, f"--prior: not a readable coefficients.json ({e})") from None
+        for note in check_prior_unit(cs.unit, unit, path):
+            progress(note)
         out = {}
         for s in unit.sensors:
             if s.name not in cs.sensors:
@@ -160,7 +171,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
-    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors)
+    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
+                    accept_misfit=accept_misfit)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "
@@ -213,9 +225,38 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None) -> Coef
                                  "vectors): H is the identity")
         if H is None:
             progress(info["notes"][-1])
-    return CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
-                                            coils=coils, fit_info=info,
-                                            sensor_options=sr_opts, option_values=sr_values)
+    cs = CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
+                                          coils=coils, fit_info=info,
+                                          sensor_options=sr_opts, option_values=sr_values)
+    # 1-sigma of the blocks fitted here, not by the sensor fits: c of the SET/RESET
+    # compensation (setreset.compensation_decision) and H (per boom sensor: its chain
+    # uses H; from the alignment's rotation covariance)
+    for n, c in cals.items():
+        sr = c.stats.get("set_reset_compensation") or {}
+        if n in sr_values and sr.get("sr_comp_sigma_s_per_deg") is not None:
+            cs.uncertainty.setdefault(n, {})["sr_comp_s_per_deg"] = np.array(
+                float(sr["sr_comp_sigma_s_per_deg"]))
+    if H is not None:
+        sH = rotation_sigma(H, al.result.cov_rad2)
+        for s in unit.sensors:
+            if s.frame == "boom":
+                cs.uncertainty.setdefault(s.name, {})["H_boom_to_body"] = sH
+    return cs
+
+
+def rotation_sigma(H, cov_rad2) -> np.ndarray:
+    """1-sigma of each element of H = exp([d]x) H_true for a small rotation error d
+    (body axes) of covariance cov_rad2: dH = [d]x H, first order."""
+    H = np.asarray(H, float)
+    J = []
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        Kx = np.array([[0, -e[2], e[1]], [e[2], 0, -e[0]], [-e[1], e[0], 0]])
+        J.append(Kx @ H)
+    J = np.stack(J)                                    # (3, 3, 3): d H / d d_k
+    var = np.einsum("kij,kl,lij->ij", J, np.asarray(cov_rad2, float), J)
+    return np.sqrt(np.maximum(var, 0.0))
 
 
 def _prior_coils(prior, unit, info, progress):

@@ -135,18 +135,19 @@ def test_constant_model_growth_is_the_part_prior_slope():
     assert g == pytest.approx(np.sqrt(9 * 1e-6 * F ** 2 / 3 + 3 * 20.0 ** 2), rel=1e-12)
 
 
-def test_fit_writes_a_margin_from_the_unit_requirement(tmp_path):
-    """The whole path: a unit file with [requirements] field_error_nT and a fit from
-    one temperature (constant model) gets temp_margin_C = requirement / growth."""
+def _one_temperature_fit(tmp_path, requirement=150.0):
+    """A unit file with [requirements] field_error_nT and a fit from one temperature
+    (21.5 degC): the constant model. Returns (coefficients.json dict, its path)."""
     import json
     from test_fit_no_temperature import _data
     from generator.cli import main
     from generator.io.icd_write import write_unit_toml
 
+    tables = {"requirements": {"field_error_nT": requirement}} if requirement else None
     unit = write_unit_toml(tmp_path / "unit.toml", "notemp", [   # _data's unit id
         {"name": "mpu", "part": "MPU-9255", "frame": "body", "axes": ["+x", "+y", "+z"],
          "lsb_nT": 15.0, "zero_count": 0, "set_reset": False, "noise_nT": 30.0}],
-        unit_keys={"lab_field_nT": 50000.0}, tables={"requirements": {"field_error_nT": 150.0}})
+        unit_keys={"lab_field_nT": 50000.0}, tables=tables)
     data = _data(tmp_path / "d.csv", np.random.default_rng(8))
     # _data writes two sensors without temperature; give this unit's one a temperature
     text = data.read_text().splitlines()
@@ -156,14 +157,48 @@ def test_fit_writes_a_margin_from_the_unit_requirement(tmp_path):
         text[i] += ",21.5"
     data.write_text("\n".join(text) + "\n")
     assert main(["fit", str(unit), str(data), "-o", str(tmp_path / "fit"), "-q"]) == 0
-    j = json.loads((tmp_path / "fit" / "coefficients.json").read_text())
-    st = j["fit"]["sensors"]["mpu"]["stats"]
-    g = st["extrapolation"]["growth_nT_per_C"]
-    own = st["predicted_error"]["field_error_nT"]
-    assert 0 < own < 150.0
-    assert j["sensors"]["mpu"]["temp_margin_C"] == pytest.approx((150.0 - own) / g,
-                                                                 rel=1e-12)
-    assert 0 < j["sensors"]["mpu"]["temp_margin_C"] < 250.0
+    path = tmp_path / "fit" / "coefficients.json"
+    return json.loads(path.read_text()), path
+
+
+def test_fit_writes_a_margin_from_the_unit_requirement(tmp_path):
+    """The whole path with a constant model (one temperature): its calibrated range is
+    the measured one, and it is valid at every temperature (the largest margin), with or
+    without a requirement; the growth estimate is still reported."""
+    from generator.flight.coeffs import TEMP_MARGIN_MAX_C
+    for req in (150.0, None):
+        (tmp_path / str(req)).mkdir()
+        j, _ = _one_temperature_fit(tmp_path / str(req), req)
+        st = j["fit"]["sensors"]["mpu"]["stats"]
+        assert st["valid_outside_range"] is True
+        assert st["extrapolation"]["growth_nT_per_C"] > 0
+        assert 0 < st["predicted_error"]["field_error_nT"] < 150.0
+        s = j["sensors"]["mpu"]
+        assert (s["t_min_C"], s["t_max_C"]) == (21.5, 21.5)
+        assert s["temp_margin_C"] == TEMP_MARGIN_MAX_C
+
+
+def test_one_temperature_fit_flags_extrapolation_and_stays_valid(tmp_path):
+    """Review fault 4: after a single-temperature fit the bit fires outside the measured
+    temperature (not -40..85), the sample stays valid, and C and reference agree."""
+    _, path = _one_temperature_fit(tmp_path)
+    cs = CoefficientSet.load(path)
+    host = HostUnit(cs)
+    s = cs.unit.sensor("mpu")
+    temps = np.array([21.5, 21.4, 21.6, 0.0, 45.0, -40.0, 85.0, -99.0, 149.0],
+                     dtype=np.float32)
+    raw = np.tile(np.array([2000, -1500, 1000]), (len(temps), 1))
+    got = host.correct("mpu", raw, temps)
+    py = reference_sensor(cs.spec, s, cs.flat_sensor("mpu"), cs.flat_unit(), raw, temps)
+    assert_bit_identical(got, py, "mpu")
+    st = np.asarray(got["status"]).astype(int)
+    ext = (st & chain.STATUS_TEMP_EXTRAPOLATED) != 0
+    assert not ext[0] and ext[1:].all(), st
+    assert not np.any(st & chain.STATUS_TEMP_CLAMPED), st
+    assert chain.is_valid(st).all(), st
+    # the constant model gives the same field at every temperature
+    f = np.asarray(got["field_body_nT"])
+    assert (f == f[0]).all()
 
 
 @pytest.mark.arm

@@ -10,8 +10,11 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
-from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, covariance, ellipsoid_fit, lm_solve, sym_from6, sym_to6
-from generator.fit.reference import MAX_REF_COND, T_REF_C, _powers, reference_fit
+from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, covariance, lm_solve, sym_from6, sym_to6
+from generator.fit.ellipsoid_prior import ellipsoid_fit_prior
+from generator.fit.reference import (MAX_REF_COND, T_REF_C, _powers, reference_fit,
+                                     temperature_bin_information, temperature_derivative,
+                                     vector_gradient_rows)
 from generator.fit.samples import _Samples
 
 DEGREE_STEP_C = 5.0        # one polynomial degree per 5 degC of temperature span
@@ -135,6 +138,9 @@ def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source):
 
     q, cost, JTJ, lm = lm_solve(model, q0, max_iter=60)
     cov, cond, s2 = covariance(JTJ, cost, 3 * nv + nm)
+    if degree > 0 and np.all(np.isfinite(cov)):
+        cov = cov + _temperature_cov(S, P, unpack(q), tau, (t_lo, t_hi), JTJ, body_frame,
+                                     magnitude_rows)
     if not cond < MAX_REF_COND:
         raise InputError(source, f"joint temperature fit: the data do not determine the "
                                  f"degree-{degree} model (condition {cond:.3g}); temperature "
@@ -151,6 +157,30 @@ def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source):
             Msig[:, i, j] = Msig[:, j, i] = m6[:, k]
     return (bp / scale[:, None], Mp / scale[:, None, None], bsig / scale[:, None],
             Msig / scale[:, None, None], lm)
+
+
+def _temperature_cov(S, P, bM, tau, t_range, JTJ, body_frame, magnitude_rows):
+    """The temperature reporting step's covariance of the joint fit's parameters (scaled),
+    as reference._temperature_error_cov: rows perturbed by D_n e_v, vector rows by D_n,
+    magnitude rows by u_n^T D_n; the response (J^T J)^-1 J^T."""
+    vec, mag = S.is_vec, ~S.is_vec
+    bp, Mp = bM
+    D = temperature_derivative(P, S.x, (bp, Mp), S.T, tau, t_range)
+    rows = np.zeros((S.n, JTJ.shape[0]))
+    if vec.any():
+        rows[vec] = vector_gradient_rows(P[vec], S.x[vec], (bp, Mp), None, D[vec])
+    if mag.any():
+        _, J = magnitude_rows(bp, Mp, True)
+        K = P.shape[1]
+        MT = (P[mag] @ Mp.reshape(K, 9)).reshape(-1, 3, 3)
+        z = np.einsum("nij,nj->ni", MT, S.x[mag] - P[mag] @ bp)
+        u = z / np.linalg.norm(z, axis=1)[:, None]
+        rows[mag] = J * np.sum(u * D[mag], axis=1)[:, None]
+    grp = S.file_id if S.file_id is not None else np.zeros(S.n, int)
+    Q, _ = temperature_bin_information(rows, S.T, grp)
+    Ji = np.linalg.pinv(JTJ)
+    C = Ji @ Q @ Ji
+    return 0.5 * (C + C.T)
 
 
 def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
@@ -170,11 +200,14 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
         b0, M0, _ = reference_fit(S.x[v], S.ref[v], S.T[v], dv, source=source,
                                   **reference_options(S, v))
     else:
-        b0c, M0c, info = ellipsoid_fit(S.x, S.norm, source=source)
+        b0c, M0c, info = ellipsoid_fit_prior(S.x, S.norm, S.prior, float(np.mean(S.T)),
+                                             source=source)
         b0, M0 = b0c[None, :], M0c[None]
         if degree == 0:
-            return _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
-                             info["b_sigma_nT"][None], info["M_sigma"][None])
+            cal = _make_cal(name, b0, M0, t_lo, t_hi, False, "ellipsoid, constant",
+                            info["b_sigma_nT"][None], info["M_sigma"][None])
+            cal.observability = info["observability"]
+            return cal
     b, M, bs, Ms, lm = _joint_nonlinear(S, degree, t_lo, t_hi, body_frame, (b0, M0), source)
     kind = "reference-vector + magnitude" if body_frame else "ellipsoid"
     return _make_cal(name, b, M, t_lo, t_hi, body_frame, f"{kind} joint, degree {degree}",

@@ -9,7 +9,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import SensorCalibration
-from generator.fit.ellipsoid import ellipsoid_fit
+from generator.fit.ellipsoid_prior import ellipsoid_fit_prior
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _rms, _score, reference_options)
 from generator.fit.reference import T_REF_C, _powers, reference_fit
@@ -37,7 +37,8 @@ def _level_fits(S: _Samples, levels, body_frame, source, mask=None):
                 out.append((temp, b[0], M[0], info["b_poly_sigma_nT"][0],
                             info["M_poly_sigma"][0], len(iv)))
             else:
-                b, M, info = ellipsoid_fit(S.x[idx], S.norm[idx], source=source)
+                b, M, info = ellipsoid_fit_prior(S.x[idx], S.norm[idx], S.prior, temp,
+                                                 source=source)
                 out.append((temp, b, M, info["b_sigma_nT"], info["M_sigma"], len(idx)))
         except InputError as e:
             dropped.append(f"level {temp:.1f} degC: {e.message}")
@@ -258,7 +259,8 @@ def _fit_sensor_ellipsoid(name, S_all, datas, degree, say, notes, per_file, sour
     """The "ellipsoid" method (see fit_sensor): magnitudes only, per level."""
     n = S_all.n
     S = _Samples(S_all.x, S_all.T, np.full((n, 3), np.nan), S_all.norm, np.zeros(n, bool),
-                 S_all.group, list(S_all.segments), time_s=S_all.time_s)
+                 S_all.group, list(S_all.segments), time_s=S_all.time_s,
+                 file_id=S_all.file_id, noise_nT=S_all.noise_nT, prior=S_all.prior)
     t_lo, t_hi = float(S.T.min()), float(S.T.max())
     span = t_hi - t_lo
     deg = min(degree, _degree_for_span(span))
@@ -278,7 +280,8 @@ def _fit_sensor_ellipsoid(name, S_all, datas, degree, say, notes, per_file, sour
         idx = np.concatenate([s.index for s in lev])
         temp = float(np.mean(S.T[idx]))
         try:
-            b, M, info = ellipsoid_fit(S.x[idx], S.norm[idx], source=source)
+            b, M, info = ellipsoid_fit_prior(S.x[idx], S.norm[idx], S.prior, temp,
+                                             source=source)
         except InputError as e:
             dropped.append(f"level {temp:.1f} degC: {e.message}")
             continue

@@ -43,6 +43,11 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    covariance is S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's
    where held. With no stated reading noise, it is estimated from the first differences
    of the first pass's residuals (_reading_noise_var) for the errors-in-variables term.
+5. The reported temperature's reporting step (0.7 degC for the MMC5883's on-chip sensor)
+   is an error common to every sample reported with one value (a chamber hold), which
+   does not average down like the reading noise: its q^2/12 is propagated through the
+   fit's response into the covariance (_temperature_error_cov), for degree > 0 (a
+   constant model does not use the temperature).
 
 Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
@@ -355,7 +360,13 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     theta = theta - S * (Vp @ zp)      # exactly at the prior where held
     cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
-    C = (Vf @ np.linalg.solve(Fv, Vf.T) + Vp @ Vp.T) * np.outer(S, S)
+    A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
+    C = A + (Vp @ Vp.T) * np.outer(S, S)
+    temp_err = None
+    if degree > 0:
+        C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
+                                               (t_lo, t_hi), A)
+        C = C + C_T
     sig = np.sqrt(np.maximum(np.diag(C), 0))
     frac = np.sum(Vf ** 2, axis=1)
     z = (theta - theta0) / S
@@ -403,11 +414,87 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
                   "reading_nT": float(np.sqrt(eiv_var)), "reading_from": noise_from,
                   "effective_per_file_nT": np.sqrt(v_grp).tolist()},
+        "temperature_error": temp_err,
         "estimator": "calibrated-minus-reference least squares (linear start, Gauss-Newton), "
                      "per-file errors-in-variables weights, unobservable directions held at "
                      "the prior",
     }
     return b_poly, M_poly, info
+
+
+def _temperature_error_cov(P, x, bM, w, T, grp, tau, t_range, A):
+    """Covariance the reported temperature's reporting step adds to the coefficients
+    (scaled units; module docstring, item 5). A temperature reported in steps of q
+    (segments.temperature_quantum, per file) is off by a uniform error of variance q^2/12,
+    and that error is the SAME for every sample reported with the same value while the
+    true temperature stays in the step (a chamber hold: thousands of samples), so it does
+    not average down with N like the reading noise. Each (file, reported value) is taken
+    as one error e_v, independent between values (conservative within a step where the
+    true temperature moves, as on a ramp). To first order it moves the residuals by
+    D_n e_v, D_n = dr_n/dT (temperature_derivative), and the estimate by -A J^T W D e_v
+    (A the fit's response, the data part of the covariance). Returns (C_T, figures)."""
+    D = temperature_derivative(P, x, bM, T, tau, t_range)
+    G = vector_gradient_rows(P, x, bM, w, D)
+    Q, fig = temperature_bin_information(G, T, grp)
+    C_T = A @ Q @ A.T
+    return 0.5 * (C_T + C_T.T), fig
+
+
+def temperature_derivative(P, x, bM, T, tau, t_range):
+    """d r_n / dT_n (N, 3) of r = M(T)(x - b(T)) - B: M'(T)(x - b(T)) - M(T) b'(T); P the
+    powers of the scaled dT (P[:, 1] = dT / tau), bM the scaled (b_poly, M_poly); zero
+    where T is clamped (outside t_range)."""
+    n, K = P.shape
+    inside = (T >= t_range[0]) & (T <= t_range[1])
+    dts = P[:, 1] if K > 1 else np.zeros(n)
+    dP = np.zeros_like(P)
+    for k in range(1, K):
+        dP[:, k] = k * dts ** (k - 1) / tau
+    dP[~inside] = 0.0
+    bp, Mp = bM
+    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
+    dM = (dP @ Mp.reshape(K, 9)).reshape(n, 3, 3)
+    y = x - P @ bp
+    return np.einsum("nij,nj->ni", dM, y) - np.einsum("nij,nj->ni", MT, dP @ bp)
+
+
+def vector_gradient_rows(P, x, bM, w, D):
+    """Per sample J_n^T w_n D_n (N, 12 K) for vector rows (parameters b[k,l], then
+    M[k,a,c]; vector_normal's gradient formulas with r replaced by D)."""
+    n, K = P.shape
+    bp, Mp = bM
+    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
+    y = x - P @ bp
+    w = np.ones(n) if w is None else np.broadcast_to(w, (n,))
+    gb = -(w[:, None, None] * P[:, :, None] * np.einsum("nil,ni->nl", MT, D)[:, None, :])
+    gM = w[:, None, None, None] * P[:, :, None, None] * D[:, None, :, None] \
+        * y[:, None, None, :]
+    return np.concatenate([gb.reshape(n, -1), gM.reshape(n, -1)], axis=1)
+
+
+def temperature_bin_information(G, T, grp):
+    """Q = sum over (file, reported value) bins v of (q_f^2 / 12) h_v h_v^T, h_v the sum
+    of the rows of G (per-sample J^T W D) in the bin; q_f the file's reporting step (the
+    sensor's over all files where the file reports a single value)."""
+    from generator.fit.segments import temperature_quantum
+
+    grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
+    # a file reporting one value only (a rotation at room temperature) shows no step of
+    # its own: the sensor's step from all its files
+    q_all = temperature_quantum(T)
+    q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
+                  else q_all for g in range(int(grp.max()) + 1)])
+    _, key = np.unique(np.stack([grp.astype(float), T], axis=1), axis=0,
+                       return_inverse=True)
+    key = np.asarray(key).ravel()
+    Hb = np.zeros((int(key.max()) + 1, G.shape[1]))
+    np.add.at(Hb, key, G)
+    var_b = np.zeros(len(Hb))
+    var_b[key] = (q ** 2 / 12.0)[grp]
+    return (Hb * var_b[:, None]).T @ Hb, {
+        "quantum_C_per_file": q.tolist(), "values": int(len(Hb)),
+        "note": "temperature reporting step: q^2/12 per reported value, common to its "
+                "samples"}
 
 
 def _split_information(P, x, x_hat, B, bM, w):

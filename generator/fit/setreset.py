@@ -505,7 +505,12 @@ def compensation_decision(spec, rate_dps, field_nT: float = DEFAULT_FIELD_NT,
     # the chain's coefficient c = delay / 2 * pi / 180 (s rad/deg, chain.SensorOptions), at
     # the delay the decision assumed (the unit file does not state t_TM; trace refines c)
     c = delay * 1e-3 / 2.0 * np.pi / 180.0
+    # its 1-sigma: the RMS distance to the c of every measurement time the part has (the
+    # unit file does not say which one runs); trace can measure it
+    c_all = t_delay_ms(np.asarray(T_TM_MS)) * 1e-3 / 2.0 * np.pi / 180.0
+    c_sig = float(np.sqrt(np.mean((c_all - c) ** 2)))
     return {"enabled": bool(enabled), "why": why, "sr_comp_s_per_deg": float(c),
+            "sr_comp_sigma_s_per_deg": c_sig,
             "error_rms_nT": err_rms,
             "error_p95_nT": float(np.percentile(err, 95)), "noise_nT": noise,
             "threshold_nT": limit, "rate_rms_dps": float(np.sqrt(np.mean(rate ** 2))),

@@ -33,7 +33,14 @@ this module chooses between them (model selection) and fits the unit.
 
 Temperatures outside -80..150 degC or off their file's running median are rejected and
 counted (samples.screen_temperatures); the calibrated range is that of the rest. A constant
-(degree 0) calibration is valid over the part's operating range.
+(degree 0) calibration keeps that range (outside it the chain flags TEMP_EXTRAPOLATED) and
+is valid at every temperature.
+
+A reference-vector fit whose residual the sensor's noise and the reference's stated error
+cannot explain is refused (fit.goodness: most often a reference in another frame). With
+body rates and a SET/RESET sensor, the gyro compensation is decided before the fit and M
+fitted to the compensated output (fit.setreset_fit). Magnitude-only fits hold what the
+magnitudes do not determine at the prior (fit.ellipsoid_prior).
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
@@ -60,6 +67,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
+from generator.fit.goodness import check_misfit, vector_misfit
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _residuals, _rms, _score)
 from generator.fit.levels import (_fit_segments, _fit_sensor_analytic, _fit_sensor_ellipsoid,
@@ -72,8 +80,7 @@ from generator.fit.segments import (Segment, find_segments, group_levels, temper
 
 #: The fit methods of fit_unit / fit_sensor (the CLI's `magcal fit --method`).
 FIT_METHODS = ("auto", "analytic", "ellipsoid")
-# Operating temperature of the parts (MMC5883MA, MPU-9255 datasheets: -40..85 degC): the
-# range a constant calibration is valid over.
+# Operating temperature of the parts (MMC5883MA, MPU-9255 datasheets: -40..85 degC).
 OPERATING_C = (-40.0, 85.0)
 
 
@@ -109,8 +116,9 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
 
     prior: reference.Prior of the coefficients (a ground calibration), used by the
     reference-vector fits for what the data do not determine; None: the part's nominal.
-    A constant (degree 0) calibration is valid at every temperature of the part's
-    operating range (t_min_C, t_max_C = OPERATING_C), whatever temperature it came from.
+    A constant (degree 0) calibration keeps the data's temperature range as its calibrated
+    range (the chain flags TEMP_EXTRAPOLATED outside it) and is valid at every
+    temperature (stats["valid_outside_range"]; flight.coeffs.temp_margin_C).
     stats["observability"]: per coefficient data or prior, with 1-sigma;
     stats["predicted_error"]: field and angle error at the unit's field from the 1-sigma.
     """
@@ -155,20 +163,59 @@ def _finish(cal, S):
     """Temperature range of a constant model, observability, predicted error (fit_sensor)."""
     st = cal.stats
     if np.all(cal.b_poly_nT[1:] == 0) and np.all(cal.M_poly[1:] == 0):
-        cal.t_min_C, cal.t_max_C = OPERATING_C
+        # the calibrated range stays the data's (the chain flags TEMP_EXTRAPOLATED outside
+        # it); the model is valid at every temperature (flight.coeffs.temp_margin_C gives
+        # it the largest margin: st["valid_outside_range"])
+        st["valid_outside_range"] = True
         st["temperature_model"] = (
-            "constant (degree 0): temperature-independent, valid over the part's operating "
-            f"range {OPERATING_C[0]:g}..{OPERATING_C[1]:g} degC; its error away from the "
-            "data's temperatures is the sensor's uncalibrated drift")
+            "constant (degree 0): temperature-independent, valid (usable) at every "
+            f"temperature; calibrated (measured) over {cal.t_min_C:.1f}..{cal.t_max_C:.1f} "
+            "degC, outside it flagged TEMP_EXTRAPOLATED; its error away from the data's "
+            "temperatures is the sensor's uncalibrated drift")
     else:
         st["temperature_model"] = (f"polynomial in temperature, valid (not clamped) over the "
                                    f"data's range {cal.t_min_C:.1f}..{cal.t_max_C:.1f} degC")
     st["calibrated_range_C"] = [float(cal.t_min_C), float(cal.t_max_C)]
     st["observability"] = cal.observability or {
-        "note": "every coefficient from the data (this method has no prior); 1-sigma in "
-                "uncertainty_1sigma"}
+        "note": "every coefficient from the data (this method has no prior"
+                + ("; the --prior given is used only by the constant and per-level fits"
+                   if S.prior is not None else "") + "); 1-sigma in uncertainty_1sigma"}
     st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
+    gof = vector_misfit(cal, S)
+    if gof is not None:
+        st["goodness_of_fit"] = gof
     st["extrapolation"] = extrapolation_growth(cal, S.norm[np.isfinite(S.norm)])
+    unfitted = unfitted_degree_sigma(cal)
+    if unfitted:
+        st["observability"] = dict(st["observability"], temperature_terms=unfitted)
+
+
+def unfitted_degree_sigma(cal) -> str | None:
+    """The polynomial degrees the fit did not determine (above the degree fitted: a
+    constant model's temperature terms, or a fit of lower degree padded to POLY_DEGREE)
+    are 0 by construction, not a measurement of a zero drift: their 1-sigma is the part's
+    prior one (reference.PART_PRIOR_SIGMA), not 0. Sets it in place; returns the note
+    for stats["observability"]["temperature_terms"] (None when every degree was fitted).
+    predicted_error and extrapolation_growth are taken before (they treat those degrees
+    themselves)."""
+    from generator.fit.reference import PART_PRIOR_SIGMA
+
+    if cal.b_poly_sigma_nT is None or cal.M_poly_sigma is None:
+        return None
+    K = cal.b_poly_nT.shape[0]
+    fitted = [k for k in range(K) if np.any(cal.b_poly_sigma_nT[k] > 0)
+              or np.any(cal.M_poly_sigma[k] > 0)]
+    top = max(fitted) if fitted else -1
+    rest = [k for k in range(top + 1, K)
+            if np.all(cal.b_poly_nT[k] == 0) and np.all(cal.M_poly[k] == 0)]
+    if not rest:
+        return None
+    prior = PART_PRIOR_SIGMA["default"]
+    for k in rest:
+        cal.b_poly_sigma_nT[k] = prior["b_nT"][k]
+        cal.M_poly_sigma[k] = prior["M"][k]
+    return (f"degree(s) {', '.join(map(str, rest))} not fitted (the model is of degree "
+            f"{top}): value 0, 1-sigma the part's prior (not a measured zero drift)")
 
 
 def extrapolation_growth(cal, field_nT) -> dict:
@@ -348,14 +395,17 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     return cal
 
 
-def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dict:
+def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
+             accept_misfit=False) -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
     else ref_norm_nT (or the unit's lab_field_nT) -> magnitude rows. method: one of
     FIT_METHODS, see fit_sensor. prior: {sensor name: reference.Prior} (a ground
     calibration) or None. Every calibration passes the sanity checks (fit.sanity) before
-    it is returned; stats["sanity"] holds the figures. stats["set_reset_compensation"]:
+    it is returned; stats["sanity"] holds the figures. A reference-vector fit whose
+    residual the noise and the reference's stated error cannot explain (fit.goodness) is
+    refused, unless accept_misfit (then stats["goodness_of_fit"] says so). stats["set_reset_compensation"]:
     whether the chain should compensate the SET/RESET rotation error with the gyro
     (fit.setreset.compensation_decision). Returns {sensor name: SensorCalibration}.
     Raises InputError when a sensor cannot be fitted, a calibration is not physical, or
@@ -363,6 +413,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
     """
     from generator.fit.sanity import check_calibration
     from generator.fit.setreset import DEFAULT_FIELD_NT, compensation_decision
+    from generator.fit.setreset_fit import _field_of, _rates_of, compensate_references
     from generator.io import telemetry_csv as _telemetry
     if method not in FIT_METHODS:
         raise InputError(unit.path, f"fit: unknown method {method!r} (choose from "
@@ -376,11 +427,29 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         datas = [fit_data_from(tel, sd, unit) for tel, sd in used]
         if not datas:
             raise InputError(telemetries[0].path, f"fit: no file has data of sensor '{s.name}'")
+        # SET/RESET gyro compensation is decided BEFORE the fit, and where it is on, M is
+        # fitted to what the chain will output (compensated): otherwise, under a steady
+        # turn, M absorbs the rotation error and the chain removes it a second time
+        # (setreset_fit.compensate_references)
+        rates = [_rates_of(tel) for tel, _ in used]
+        sr = compensation_decision(
+            s, np.concatenate([r for r in rates if r is not None])
+            if any(r is not None for r in rates) else None,
+            float(_field_of(datas) or unit.lab_field_nT or DEFAULT_FIELD_NT),
+            datas[0].noise_nT)
+        if sr.get("enabled"):
+            datas = compensate_references(datas, rates, float(sr["sr_comp_s_per_deg"]))
+            sr["fit_on_compensated"] = True
+            sr["why"] += ("; M is fitted to the compensated chain output (the reference "
+                          "vectors carry the rotation error the chain then adds back)")
         cal = fit_sensor(s.name, datas, progress=progress, method=method,
                          prior=(prior or {}).get(s.name))
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
+        check_misfit(s.name, cal.stats.get("goodness_of_fit"),
+                     vec_files[0] if vec_files else datas[0].source, accept=accept_misfit,
+                     progress=progress)
         held = [p["name"] for p in cal.observability.get("parameters", [])
                 if p["source"] == "prior"]
         if held:
@@ -390,12 +459,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None) -> dic
         for w in cal.stats["sanity"]["warnings"]:
             (progress or (lambda m: None))(f"WARNING: {w}")
             cal.stats.setdefault("notes", []).append(w)
-        rates = [np.stack([tel.columns[f"rate_{c}_dps"] for c in "xyz"], axis=1)
-                 for tel, _ in used if tel.has("rate_x_dps", "rate_y_dps", "rate_z_dps")]
-        field = (cal.stats.get("predicted_error", {}).get("at_field_nT")
-                 or unit.lab_field_nT or DEFAULT_FIELD_NT)
-        cal.stats["set_reset_compensation"] = compensation_decision(
-            s, np.concatenate(rates) if rates else None, float(field), datas[0].noise_nT)
+        cal.stats["set_reset_compensation"] = sr
         out[s.name] = cal
     return out
 
