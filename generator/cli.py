@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import sys
 import threading
@@ -465,7 +466,14 @@ class _Terminated(BaseException):
     """SIGTERM as an exception, so `with` blocks remove their temporary outputs."""
 
 
+_MAIN_PID = [None]
+
+
 def _on_sigterm(signum, frame):
+    if os.getpid() != _MAIN_PID[0]:
+        # a forked worker (the report's figure pool) inherited this handler: it ends the
+        # way SIGTERM ends it by default, quietly, and its parent cleans up
+        os._exit(128 + signal.SIGTERM)
     raise _Terminated()
 
 
@@ -474,6 +482,7 @@ def _raise_on_sigterm():
     caller in another thread keeps its own handling)."""
     if threading.current_thread() is not threading.main_thread():
         return None
+    _MAIN_PID[0] = os.getpid()
     return signal.signal(signal.SIGTERM, _on_sigterm)
 
 

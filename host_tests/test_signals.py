@@ -44,3 +44,16 @@ def test_signal_exits_by_convention_and_leaves_nothing(tmp_path, sig):
     assert "Traceback" not in err
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == [], left
+
+
+def test_a_report_with_figure_workers_leaves_stderr_clean(tmp_path, fm1_dir):
+    """The report draws its figures in forked workers, which the pool ends with SIGTERM:
+    they inherit the verb's SIGTERM handler, which must end them quietly (no
+    '_Terminated' traceback on the stderr of a successful fit)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    data = Path(fm1_dir)
+    proc = subprocess.run([sys.executable, "-m", "generator.cli", "fit", str(data / "unit.toml"),
+                           str(data / "rotation.csv"), "-o", "fit"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "Terminated" not in proc.stderr, proc.stderr
