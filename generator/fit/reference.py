@@ -143,10 +143,84 @@ def _powers(dT_scaled, degree):
     return P
 
 
-def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
+def _temperature_powers(P, top):
+    """[1, d, ..., d^top] per sample (N, top+1) from the powers P (P[:, 1] = d)."""
+    d = P[:, 1] if P.shape[1] > 1 else np.zeros(len(P))
+    return _powers(d, top)
+
+
+def reading_moments(P, x, w=None, x_cross=None):
+    """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
+    with d the scaled temperature (P[:, 1]) and w the weights,
+        W[p] = sum w d^p,  X[p] = sum w d^p x,  XX[p] = sum w d^p x x^T
+    for the powers that J^T W J needs (degree K-1: p up to 4K-4, 3K-3, 2K-2). J^T W J of
+    M(T)(x - b(T)) - B depends on the samples only through these (its entries are
+    polynomials in d, linear and quadratic in x), so it is assembled in a time independent
+    of N, and the same statistics serve every iterate.
+
+    x_cross: a second reading of the same true reading (reference_fit's x_hat): X is then
+    that of m = (x + x_cross) / 2 and XX the symmetrised cross moment (x x_c^T + x_c x^T)/2
+    (_split_information)."""
+    n, K = P.shape
+    D = _temperature_powers(P, 4 * K - 4)
+    w = np.ones(n) if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    Dw = D * w[:, None]
+    if x_cross is None:
+        xm = x
+        xx = (x[:, :, None] * x[:, None, :]).reshape(n, 9)
+    else:
+        xm = 0.5 * (x + x_cross)
+        xx = 0.5 * (x[:, :, None] * x_cross[:, None, :]
+                    + x_cross[:, :, None] * x[:, None, :]).reshape(n, 9)
+    return {"W": Dw.sum(axis=0), "X": Dw[:, :3 * K - 2].T @ xm,
+            "XX": (Dw[:, :2 * K - 1].T @ xx).reshape(2 * K - 1, 3, 3)}
+
+
+def normal_matrix(mom, bp, Mp, eiv_var=0.0):
+    """J^T W J of the vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n (parameters b[k,l], then
+    M[k,a,c]) from reading_moments; the same matrix as the per-sample sums (vector_normal's
+    docstring) up to rounding. With y = x - b(T), every block depends on (k, m) only
+    through s = k + m:
+        M-M  delta_aa' A_s[c,d],   A_s = sum w d^s y y^T
+        b-b  Q_s[l,p],             Q_s = sum w d^s M(T)^T M(T)
+        M-b  -R_s[c,a,l],          R_s = sum w d^s y_c M(T)[a,l]
+    and b(T), M(T) are polynomials in d, so each is a combination of the moments."""
+    K = len(bp)
+    W, X, XX = mom["W"], mom["X"], mom["XX"]
+    ns = 2 * K - 1
+    A = np.empty((ns, 3, 3))
+    Q = np.empty((ns, 3, 3))
+    R = np.empty((ns, 3, 3, 3))
+    MtM = np.einsum("jil,kip->jklp", Mp, Mp)                  # M_j^T M_j'
+    bb_ = bp[:, None, :, None] * bp[None, :, None, :]          # b_j b_j'^T
+    for s in range(ns):
+        Wjj = np.array([[W[s + j + i] for i in range(K)] for j in range(K)])
+        Xs = X[s:s + K]                                       # X[s + j], (K, 3)
+        Xb = Xs.T @ bp                                        # sum_j X[s+j] b_j^T
+        A[s] = XX[s] - Xb - Xb.T + np.einsum("ji,jicd->cd", Wjj, bb_)
+        Q[s] = np.einsum("ji,jilp->lp", Wjj, MtM)
+        # R_s[c,a,l] = sum_j X[s+j]_c M_j[a,l] - sum_{j,j'} W[s+j+j'] b_j'[c] M_j[a,l]
+        Yj = Xs - Wjj @ bp                                    # (K, 3): per j
+        R[s] = np.einsum("jc,jal->cal", Yj, Mp)
+    idx = np.add.outer(np.arange(K), np.arange(K))            # s = k + m
+    G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
+    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
+    bb = Q[idx].transpose(0, 2, 1, 3).reshape(3 * K, 3 * K)   # [k,l,m,p]
+    Mb = -R[idx].transpose(0, 3, 2, 1, 4).reshape(9 * K, 3 * K)   # [k,a,c,m,l]
+    if eiv_var:
+        MM = MM - eiv_var * np.kron(W[idx], np.eye(9))
+    return np.block([[bb, Mb.T], [Mb, MM]])
+
+
+def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
     """Vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n with weights w_n: weighted cost and, in
     closed form, J^T W J and J^T W r (params b[k,l], then M[k,a,c]); no (3N x p) Jacobian
     is formed. P: (N, K) powers of dT. Returns (cost, JTJ, g, r).
+
+    J^T W J comes from the regressor's sufficient statistics (reading_moments, normal_matrix:
+    independent of N); pass `mom` (reading_moments(P, x, w)) to reuse them across calls
+    with the same samples and weights. The cost, r and J^T W r stay per-sample sums (at a
+    good fit they are small differences of large terms, which moments would lose).
 
     eiv_var: variance of the noise in each axis of x (errors in variables). The noise in x
     adds eiv_var |M(T_n)|_F^2 to the expected |r_n|^2 whatever the parameters; it is
@@ -154,38 +228,35 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
     taken for signal (adjusted least squares: without it, a reading axis that carries only
     noise would make its column of M look determined and shrink it towards 0)."""
     n, K = P.shape
-    nb = 3 * K
-    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     y = x - P @ bp
-    r = np.einsum("nij,nj->ni", MT, y) - B
-    sw = np.ones(n) if w is None else np.sqrt(w)
-    rw = r * sw[:, None]
-    Pw = P * sw[:, None]
-    cost = float(np.sum(rw * rw))
+    r = -B
+    for j in range(K):                                        # M(T_n) y_n
+        r = r + P[:, j:j + 1] * (y @ Mp[j].T)
+    w = np.ones(n) if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    rw = r * w[:, None]
+    cost = float(np.einsum("ni,ni->", rw, r))
+    if eiv_var or jac:
+        if mom is None:
+            mom = reading_moments(P, x, w)
+        W = mom["W"]
     if eiv_var:
-        Mw = Pw @ Mp.reshape(K, 9)                   # sqrt(w_n) M(T_n), (N, 9)
-        cost -= eiv_var * float(np.sum(Mw * Mw))
+        Mf = Mp.reshape(K, 9)
+        idx = np.add.outer(np.arange(K), np.arange(K))
+        cost -= eiv_var * float(np.sum(W[idx] * (Mf @ Mf.T)))    # sum w |M(T_n)|_F^2
     if not jac:
         return cost, None, None, r
-    PP = (Pw[:, :, None] * Pw[:, None, :]).reshape(n, K * K)
-    # M-M: delta_aa' sum_n w P_k y_c P_m y_d
-    Py = (Pw[:, :, None] * y[:, None, :]).reshape(n, 3 * K)
-    G = (Py.T @ Py).reshape(K, 3, K, 3)
-    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
-    # b-b: sum_n w P_k P_m (M^T M)[l,p]
-    Q = np.einsum("nil,nip->nlp", MT, MT).reshape(n, 9)
-    bb = (PP.T @ Q).reshape(K, K, 3, 3).transpose(0, 2, 1, 3).reshape(nb, nb)
-    # M-b: -sum_n w P_k P_m y_c M[a,l]
-    YM = (y[:, :, None, None] * MT[:, None, :, :]).reshape(n, 27)       # [c,a,l]
-    Mb = -(PP.T @ YM).reshape(K, K, 3, 3, 3).transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)
-    gM = (Py.T @ rw).reshape(K, 3, 3).transpose(0, 2, 1).reshape(-1)      # [k,a,c]
+    JTJ = normal_matrix(mom, bp, Mp, eiv_var)
+    # J^T W r: sums of w d^s r and w d^k r x^T (per sample, BLAS)
+    D = _temperature_powers(P, 2 * K - 2)
+    Rr = D.T @ rw                                             # (2K-1, 3): sum w d^s r
+    rx = (rw[:, :, None] * x[:, None, :]).reshape(n, 9)
+    RX = (P.T @ rx).reshape(K, 3, 3)                          # sum w d^k r_a x_c
+    gM = RX - np.einsum("jc,kja->kac", bp, np.stack([Rr[k:k + K] for k in range(K)]))
+    gb = -np.stack([sum(Mp[j].T @ Rr[k + j] for j in range(K)) for k in range(K)])
     if eiv_var:
-        PtP = Pw.T @ Pw
-        MM = MM - eiv_var * np.kron(PtP, np.eye(9))
-        gM = gM - eiv_var * (PtP @ Mp.reshape(K, 9)).reshape(-1)
-    JTJ = np.block([[bb, Mb.T], [Mb, MM]])
-    gb = -(Pw.T @ np.einsum("nil,ni->nl", MT, rw)).reshape(-1)            # [k,l]
-    return cost, JTJ, np.concatenate([gb, gM]), r
+        idx = np.add.outer(np.arange(K), np.arange(K))
+        gM = gM - eiv_var * (W[idx] @ Mp.reshape(K, 9)).reshape(K, 3, 3)
+    return cost, JTJ, np.concatenate([gb.reshape(-1), gM.reshape(-1)]), r
 
 
 def _cheb_nodes(lo, hi, degree):
@@ -505,8 +576,7 @@ def _split_information(P, x, x_hat, B, bM, w):
     cross version is 2 J(m) - (J(x) + J(x_hat)) / 2. Not positive definite where the
     two disagree (a negative cross-covariance: the reading does not follow the
     reference); such directions fall below FISHER_THRESHOLD and are held."""
-    J = [vector_normal(P, u, B, *bM, True, w)[1] for u in (x, x_hat, 0.5 * (x + x_hat))]
-    return 2.0 * J[2] - 0.5 * (J[0] + J[1])
+    return normal_matrix(reading_moments(P, x, w, x_cross=x_hat), *bM)
 
 
 def _reading_noise_var(d, grp):
@@ -587,9 +657,10 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         return th
 
     z = (theta[f] - th0_f) / S_f
+    mom = reading_moments(P, x, w)          # J^T W J's statistics: the same every iterate
     first = True
     for _ in range(GN_MAX_ITER):
-        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
         if split is not None and len(f) == len(S):
             ev, EV, fitted = split          # judged once, at the prior (reference_fit)
         else:
@@ -598,14 +669,14 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
-            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
             first = False
         Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
         dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
             z_new = z + step * dz
-            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var)[0]
+            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var, mom)[0]
             if c_new <= cost + 1e-12 * abs(cost):
                 break
             step *= 0.5
@@ -617,5 +688,5 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         if done:
             break
     theta = at(z)
-    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var, mom)
     return theta, JTJ, cost, r
