@@ -149,7 +149,7 @@ def _temperature_powers(P, top):
     return _powers(d, top)
 
 
-def reading_moments(P, x, w=None, x_cross=None):
+def reading_moments(P, x, w=None, x_cross=None, grp=None):
     """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
     with d the scaled temperature (P[:, 1]) and w the weights,
         W[p] = sum w d^p,  X[p] = sum w d^p x,  XX[p] = sum w d^p x x^T
@@ -160,20 +160,36 @@ def reading_moments(P, x, w=None, x_cross=None):
 
     x_cross: a second reading of the same true reading (reference_fit's x_hat): X is then
     that of m = (x + x_cross) / 2 and XX the symmetrised cross moment (x x_c^T + x_c x^T)/2
-    (_split_information)."""
+    (_split_information). grp: (N,) labels 0..G-1: a list of G dicts, one per group (each
+    group's sums; one pass over the samples, one matrix product)."""
     n, K = P.shape
     D = _temperature_powers(P, 4 * K - 4)
-    w = np.ones(n) if w is None else np.broadcast_to(np.asarray(w, float), (n,))
-    Dw = D * w[:, None]
+    if w is not None:
+        D = D * np.broadcast_to(np.asarray(w, float), (n,))[:, None]
     if x_cross is None:
-        xm = x
-        xx = (x[:, :, None] * x[:, None, :]).reshape(n, 9)
+        xm, xx = x, (x[:, :, None] * x[:, None, :]).reshape(n, 9)
     else:
         xm = 0.5 * (x + x_cross)
-        xx = 0.5 * (x[:, :, None] * x_cross[:, None, :]
-                    + x_cross[:, :, None] * x[:, None, :]).reshape(n, 9)
-    return {"W": Dw.sum(axis=0), "X": Dw[:, :3 * K - 2].T @ xm,
-            "XX": (Dw[:, :2 * K - 1].T @ xx).reshape(2 * K - 1, 3, 3)}
+        xx = (x[:, :, None] * x_cross[:, None, :]).reshape(n, 9)
+    H = np.concatenate([np.ones((n, 1)), xm, xx], axis=1)        # (N, 13)
+    if grp is None:
+        sums = [D.T @ H]
+    else:
+        grp = np.asarray(grp)
+        if np.all(grp[1:] >= grp[:-1]):          # files one after another: slices
+            edges = np.concatenate([[0], np.flatnonzero(np.diff(grp)) + 1, [n]])
+            sums = [D[a:b].T @ H[a:b] for a, b in zip(edges[:-1], edges[1:])]
+        else:
+            order = np.argsort(grp, kind="stable")
+            cuts = np.flatnonzero(np.diff(grp[order])) + 1
+            sums = [D[i].T @ H[i] for i in np.split(order, cuts)]
+    out = []
+    for S_ in sums:
+        XX = S_[:2 * K - 1, 4:].reshape(2 * K - 1, 3, 3)
+        if x_cross is not None:
+            XX = 0.5 * (XX + XX.transpose(0, 2, 1))
+        out.append({"W": S_[:, 0], "X": S_[:3 * K - 2, 1:4], "XX": XX})
+    return out if grp is not None else out[0]
 
 
 def normal_matrix(mom, bp, Mp, eiv_var=0.0):
@@ -222,12 +238,8 @@ class ReadingStats:
         grp = np.asarray(grp)
         self.n_grp = int(grp.max()) + 1 if len(grp) else 0
         self.first = np.array([np.flatnonzero(grp == g)[0] for g in range(self.n_grp)])
-        self.vec, self.cross = [], []
-        for g in range(self.n_grp):
-            m = grp == g
-            self.vec.append(reading_moments(P[m], x[m]))
-            if x_hat is not None:
-                self.cross.append(reading_moments(P[m], x[m], x_cross=x_hat[m]))
+        self.vec = reading_moments(P, x, grp=grp)
+        self.cross = [] if x_hat is None else reading_moments(P, x, x_cross=x_hat, grp=grp)
 
     def weighted(self, w, cross=False):
         """The moments with per-sample weights w (constant within each group)."""
