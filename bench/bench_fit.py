@@ -16,7 +16,8 @@ samsat_fm1/thermal_12pos.csv:
 * report: generator.report.report.fit_report of that fit, figures drawn serially in the
   process (the CPU time they cost; `magcal fit` spreads them over 2 cores), best of
   --repeat;
-* memory per sample: peak RSS (wait4) of `magcal fit --no-report` on the campaign
+* memory per sample: peak RSS (wait4) of generator.pipeline.fit (what `magcal fit
+  --no-report` runs; the baseline has no --no-report) on the campaign
   repeated to each of --rows rows (bench_io.write_long_file), as the slope between the
   two lengths -- bytes the fit holds per additional sample, start-up and imports
   excluded.
@@ -61,6 +62,9 @@ print(json.dumps({"fit_s": min(t_fit), "report_s": min(t_rep)}))
 """
 
 
+FIT_ONLY = "import sys; from generator import pipeline; pipeline.fit(sys.argv[1], [sys.argv[2]])"
+
+
 def _env(tree: Path) -> dict:
     return dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1",
                 OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
@@ -85,10 +89,9 @@ def timings(tree: Path, out: Path, repeat: int) -> dict:
 
 
 def peak_rss_mib(tree: Path, data: Path, out: Path) -> float:
-    p = subprocess.Popen([sys.executable, "-m", "generator.cli", "fit",
-                          str(FM1 / "unit.toml"), str(data), "-o", str(out), "--no-report",
-                          "--quiet"], env=_env(tree), stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, cwd=out.parent)
+    p = subprocess.Popen([sys.executable, "-c", FIT_ONLY, str(FM1 / "unit.toml"), str(data)],
+                         env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         cwd=out.parent)
     _, status, rusage = os.wait4(p.pid, 0)
     if status:
         raise SystemExit(f"{tree}: fit of {data} failed: {p.stderr.read().decode()[-300:]}")
@@ -127,7 +130,7 @@ def main():
     print(f"  report: {b['report_s']:.2f} s -> {t['report_s']:.2f} s   "
           f"ratio {b['report_s'] / t['report_s']:.2f}x (figures drawn serially)")
     if "bytes_per_sample" in t:
-        print(f"  fit memory per sample (peak RSS slope, --no-report): "
+        print(f"  fit memory per sample (peak RSS slope, pipeline.fit): "
               f"{b['bytes_per_sample']:.0f} B -> {t['bytes_per_sample']:.0f} B   ratio "
               f"{b['bytes_per_sample'] / max(t['bytes_per_sample'], 1.0):.2f}x  "
               f"(peak RSS baseline {b['rss_MiB']}, today {t['rss_MiB']} MiB)")
