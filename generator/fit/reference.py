@@ -149,6 +149,9 @@ def _temperature_powers(P, top):
     return _powers(d, top)
 
 
+MOMENT_CHUNK = 1 << 15     # samples per block of reading_moments' sums
+
+
 def reading_moments(P, x, w=None, x_cross=None, grp=None):
     """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
     with d the scaled temperature (P[:, 1]) and w the weights,
@@ -163,28 +166,32 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None):
     (_split_information). grp: (N,) labels 0..G-1: a list of G dicts, one per group (each
     group's sums; one pass over the samples, one matrix product)."""
     n, K = P.shape
-    D = _temperature_powers(P, 4 * K - 4)
-    if w is not None:
-        D = D * np.broadcast_to(np.asarray(w, float), (n,))[:, None]
-    if x_cross is None:
-        xm, xx = x, (x[:, :, None] * x[:, None, :]).reshape(n, 9)
-    else:
-        xm = 0.5 * (x + x_cross)
-        xx = (x[:, :, None] * x_cross[:, None, :]).reshape(n, 9)
-    H = np.concatenate([np.ones((n, 1)), xm, xx], axis=1)        # (N, 13)
-    if grp is None:
-        sums = [D.T @ H]
-    else:
-        grp = np.asarray(grp)
-        if np.all(grp[1:] >= grp[:-1]):          # files one after another: slices
-            edges = np.concatenate([[0], np.flatnonzero(np.diff(grp)) + 1, [n]])
-            sums = [D[a:b].T @ H[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    w = None if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    grp_a = np.zeros(n, int) if grp is None else np.asarray(grp)
+    n_grp = int(grp_a.max()) + 1 if n else 1
+    sums = np.zeros((n_grp, 4 * K - 3, 13))
+    for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        D = _temperature_powers(P[sl], 4 * K - 4)
+        if w is not None:
+            D *= w[sl, None]
+        xs = x[sl]
+        if x_cross is None:
+            xm, xx = xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)
         else:
-            order = np.argsort(grp, kind="stable")
-            cuts = np.flatnonzero(np.diff(grp[order])) + 1
-            sums = [D[i].T @ H[i] for i in np.split(order, cuts)]
+            xc = x_cross[sl]
+            xm = 0.5 * (xs + xc)
+            xx = (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)
+        H = np.concatenate([np.ones((len(xs), 1)), xm, xx], axis=1)      # (n, 13)
+        g = grp_a[sl]
+        if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
+            sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
+        else:
+            for k in np.unique(g):
+                m = g == k
+                sums[k] += D[m].T @ H[m]
     out = []
-    for S_ in sums:
+    for S_ in sums[:n_grp]:
         XX = S_[:2 * K - 1, 4:].reshape(2 * K - 1, 3, 3)
         if x_cross is not None:
             XX = 0.5 * (XX + XX.transpose(0, 2, 1))
