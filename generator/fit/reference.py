@@ -581,10 +581,16 @@ def vector_gradient_rows(P, x, bM, w, D):
     MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     y = x - P @ bp
     w = np.ones(n) if w is None else np.broadcast_to(w, (n,))
-    gb = -(w[:, None, None] * P[:, :, None] * np.einsum("nil,ni->nl", MT, D)[:, None, :])
-    gM = w[:, None, None, None] * P[:, :, None, None] * D[:, None, :, None] \
-        * y[:, None, None, :]
-    return np.concatenate([gb.reshape(n, -1), gM.reshape(n, -1)], axis=1)
+    out = np.empty((n, 12 * K))       # written in place: no (N, K, 3, 3) temporaries
+    gb = out[:, :3 * K].reshape(n, K, 3)
+    np.multiply(w[:, None, None] * P[:, :, None],
+                np.einsum("nil,ni->nl", MT, D)[:, None, :], out=gb)
+    np.negative(gb, out=gb)
+    wP = w[:, None] * P
+    gM = out[:, 3 * K:].reshape(n, K, 3, 3)
+    for k in range(K):
+        np.multiply((wP[:, k, None] * D)[:, :, None], y[:, None, :], out=gM[:, k])
+    return out
 
 
 def temperature_bin_information(G, T, grp):
