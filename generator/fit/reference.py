@@ -548,9 +548,15 @@ def _temperature_error_cov(P, x, bM, w, T, grp, tau, t_range, A):
     true temperature moves, as on a ramp). To first order it moves the residuals by
     D_n e_v, D_n = dr_n/dT (temperature_derivative), and the estimate by -A J^T W D e_v
     (A the fit's response, the data part of the covariance). Returns (C_T, figures)."""
-    D = temperature_derivative(P, x, bM, T, tau, t_range)
-    G = vector_gradient_rows(P, x, bM, w, D)
-    Q, fig = temperature_bin_information(G, T, grp)
+    key, var_b, fig = temperature_bins(T, grp)
+    n = len(x)
+    w = np.broadcast_to(np.ones(n) if w is None else np.asarray(w, float), (n,))
+    Hb = np.zeros((len(var_b), P.shape[1] * 12))
+    for a in range(0, n, MOMENT_CHUNK):     # in blocks: no (N, 12 K) array at once
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        D = temperature_derivative(P[sl], x[sl], bM, T[sl], tau, t_range)
+        _bin_sums(Hb, key[sl], vector_gradient_rows(P[sl], x[sl], bM, w[sl], D))
+    Q = (Hb * var_b[:, None]).T @ Hb
     C_T = A @ Q @ A.T
     return 0.5 * (C_T + C_T.T), fig
 
@@ -596,7 +602,16 @@ def vector_gradient_rows(P, x, bM, w, D):
 def temperature_bin_information(G, T, grp):
     """Q = sum over (file, reported value) bins v of (q_f^2 / 12) h_v h_v^T, h_v the sum
     of the rows of G (per-sample J^T W D) in the bin; q_f the file's reporting step (the
-    sensor's over all files where the file reports a single value)."""
+    sensor's over all files where the file reports a single value; temperature_bins)."""
+    key, var_b, fig = temperature_bins(T, grp)
+    Hb = _bin_sums(np.zeros((len(var_b), G.shape[1])), key, G)
+    return (Hb * var_b[:, None]).T @ Hb, fig
+
+
+def temperature_bins(T, grp):
+    """The (file, reported value) bins of temperature_bin_information: (bin of each sample
+    (N,), q_f^2 / 12 per bin, figures). Bins in the order of np.unique over the rows
+    (file, T)."""
     from generator.fit.segments import temperature_quantum
 
     grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
@@ -605,21 +620,26 @@ def temperature_bin_information(G, T, grp):
     q_all = temperature_quantum(T)
     q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
                   else q_all for g in range(int(grp.max()) + 1)])
-    # bins (file, reported value), in the order of np.unique over those rows; summed by a
-    # sort and reduceat (np.unique(axis=0) and np.add.at are ~50x slower on 10^5 rows)
     t_vals, t_idx = np.unique(T, return_inverse=True)
     _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx.ravel(),
                        return_inverse=True)
     key = np.asarray(key).ravel()
-    order = np.argsort(key, kind="stable")
-    starts = np.flatnonzero(np.diff(key[order], prepend=-1))
-    Hb = np.add.reduceat(G[order], starts, axis=0)
-    var_b = np.zeros(len(Hb))
+    var_b = np.zeros(int(key.max()) + 1)
     var_b[key] = (q ** 2 / 12.0)[grp]
-    return (Hb * var_b[:, None]).T @ Hb, {
-        "quantum_C_per_file": q.tolist(), "values": int(len(Hb)),
+    return key, var_b, {
+        "quantum_C_per_file": q.tolist(), "values": int(len(var_b)),
         "note": "temperature reporting step: q^2/12 per reported value, common to its "
                 "samples"}
+
+
+def _bin_sums(Hb, key, G):
+    """Hb[v] += sum of the rows of G whose key is v (a sort and reduceat: np.add.at is
+    ~50x slower on 10^5 rows); returns Hb."""
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    starts = np.flatnonzero(np.diff(ks, prepend=-1))
+    Hb[ks[starts]] += np.add.reduceat(G[order], starts, axis=0)
+    return Hb
 
 
 def _split_information(P, x, x_hat, B, bM, w, stats: ReadingStats | None = None):
