@@ -3,10 +3,14 @@
 today's code against the code at --baseline-commit, measured in the same run.
 
     python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
+                               [--report-baseline-commit f639afc]
                                [--rows 36000,144000] [--no-memory]
 
-The baseline's generator/ is extracted from git (`git archive`) into a temporary
-directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
+Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
+equations) and --report-baseline-commit (the report as this work found it: the same
+figures as today, drawn with constrained layout; the older commit's report has fewer
+figures, so its time is printed but is no baseline). Each baseline's generator/ is
+extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
 tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
 slowed by contention, which would blur the ratio). On the shared campaign
 samsat_fm1/thermal_12pos.csv:
@@ -102,13 +106,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
+    ap.add_argument("--report-baseline-commit", default="f639afc")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
-        trees = {"baseline": extract(a.baseline_commit, tmp / "baseline"), "today": REPO}
+        trees = {"baseline": extract(a.baseline_commit, tmp / "baseline"),
+                 "report_baseline": extract(a.report_baseline_commit, tmp / "rb"),
+                 "today": REPO}
         res = {}
         for k, tree in trees.items():
             res[k] = timings(tree, tmp / f"rep_{k}", a.repeat)
@@ -118,17 +125,21 @@ def main():
             for n in (n1, n2):
                 files[n] = tmp / f"fit_{n}.csv"
                 write_long_file(FM1 / "thermal_12pos.csv", files[n], n)
-            for k, tree in trees.items():
+            for k in ("baseline", "today"):
+                tree = trees[k]
                 m = {n: peak_rss_mib(tree, files[n], tmp / f"out_{k}_{n}") for n in (n1, n2)}
                 res[k]["rss_MiB"] = m
                 res[k]["bytes_per_sample"] = (m[n2] - m[n1]) * 2**20 / (n2 - n1)
-    b, t = res["baseline"], res["today"]
-    print(f"baseline {a.baseline_commit} vs today, samsat_fm1 thermal_12pos "
-          f"(CPU s, best of {a.repeat}, BLAS 1 thread)")
-    print(f"  fit:    {b['fit_s']:.2f} s -> {t['fit_s']:.2f} s   "
-          f"ratio {b['fit_s'] / t['fit_s']:.2f}x")
-    print(f"  report: {b['report_s']:.2f} s -> {t['report_s']:.2f} s   "
-          f"ratio {b['report_s'] / t['report_s']:.2f}x (figures drawn serially)")
+    b, rb, t = res["baseline"], res["report_baseline"], res["today"]
+    print(f"samsat_fm1 thermal_12pos, CPU s, best of {a.repeat}, BLAS 1 thread; "
+          f"baseline {a.baseline_commit}, report baseline {a.report_baseline_commit}")
+    print(f"  fit:    {b['fit_s']:.2f} s ({a.baseline_commit}), "
+          f"{rb['fit_s']:.2f} s ({a.report_baseline_commit}) -> {t['fit_s']:.2f} s   "
+          f"ratio {b['fit_s'] / t['fit_s']:.2f}x, {rb['fit_s'] / t['fit_s']:.2f}x")
+    print(f"  report (figures drawn serially): {rb['report_s']:.2f} s "
+          f"({a.report_baseline_commit}) -> {t['report_s']:.2f} s   ratio "
+          f"{rb['report_s'] / t['report_s']:.2f}x   [{a.baseline_commit}, fewer figures: "
+          f"{b['report_s']:.2f} s]")
     if "bytes_per_sample" in t:
         print(f"  fit memory per sample (peak RSS slope, pipeline.fit): "
               f"{b['bytes_per_sample']:.0f} B -> {t['bytes_per_sample']:.0f} B   ratio "

@@ -315,23 +315,31 @@ def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
     K = degree + 1
     n = len(x)
-    Phi = np.concatenate([(P[:, :, None] * x[:, None, :]).reshape(n, 3 * K), P], axis=1)
     b0, M0, bs, Ms = prior_s
     c0 = np.zeros((K, 3))
     c0[0] = -M0[0] @ b0[0]
     sw = np.sqrt(w)
-    A = Phi * sw[:, None]
-    G = A.T @ A
+    # the normal equations' sums per block of samples (bounded memory whatever N): rows
+    # Phi = [P_k x, P_k] weighted by sqrt(w)
+    G = np.zeros((4 * K, 4 * K))
+    AtB = np.zeros((4 * K, 3))
+    PtP = np.zeros((K, K))
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        Pw = P[sl] * sw[sl, None]
+        A = np.concatenate([(Pw[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K), Pw], axis=1)
+        G += A.T @ A
+        AtB += A.T @ (B[sl] * sw[sl, None])
+        PtP += Pw.T @ Pw
     if eiv_var:
-        Pw = P * sw[:, None]
-        G[:3 * K, :3 * K] -= eiv_var * np.kron(Pw.T @ Pw, np.eye(3))
+        G[:3 * K, :3 * K] -= eiv_var * np.kron(PtP, np.eye(3))
     Mk = np.zeros((K, 3, 3))
     ck = np.zeros((K, 3))
     for i in range(3):
         u0 = np.concatenate([M0[:, i, :].reshape(-1), c0[:, i]])
         s = np.concatenate([Ms[:, i, :].reshape(-1), bs[:, i]])
         D = np.diag(1.0 / s ** 2)
-        u = np.linalg.lstsq(G + D, A.T @ (B[:, i] * sw) + D @ u0, rcond=None)[0]
+        u = np.linalg.lstsq(G + D, AtB[:, i] + D @ u0, rcond=None)[0]
         Mk[:, i, :] = u[:3 * K].reshape(K, 3)
         ck[:, i] = u[3 * K:]
     g = _cheb_nodes(lo_s, hi_s, degree)
