@@ -143,10 +143,127 @@ def _powers(dT_scaled, degree):
     return P
 
 
-def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
+def _temperature_powers(P, top):
+    """[1, d, ..., d^top] per sample (N, top+1) from the powers P (P[:, 1] = d)."""
+    d = P[:, 1] if P.shape[1] > 1 else np.zeros(len(P))
+    return _powers(d, top)
+
+
+MOMENT_CHUNK = 1 << 15     # samples per block of reading_moments' sums
+
+
+def reading_moments(P, x, w=None, x_cross=None, grp=None):
+    """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
+    with d the scaled temperature (P[:, 1]) and w the weights,
+        W[p] = sum w d^p,  X[p] = sum w d^p x,  XX[p] = sum w d^p x x^T
+    for the powers that J^T W J needs (degree K-1: p up to 4K-4, 3K-3, 2K-2). J^T W J of
+    M(T)(x - b(T)) - B depends on the samples only through these (its entries are
+    polynomials in d, linear and quadratic in x), so it is assembled in a time independent
+    of N, and the same statistics serve every iterate.
+
+    x_cross: a second reading of the same true reading (reference_fit's x_hat): X is then
+    that of m = (x + x_cross) / 2 and XX the symmetrised cross moment (x x_c^T + x_c x^T)/2
+    (_split_information). grp: (N,) labels 0..G-1: a list of G dicts, one per group (each
+    group's sums; one pass over the samples, one matrix product)."""
+    n, K = P.shape
+    w = None if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    grp_a = np.zeros(n, int) if grp is None else np.asarray(grp)
+    n_grp = int(grp_a.max()) + 1 if n else 1
+    sums = np.zeros((n_grp, 4 * K - 3, 13))
+    for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        D = _temperature_powers(P[sl], 4 * K - 4)
+        if w is not None:
+            D *= w[sl, None]
+        xs = x[sl]
+        if x_cross is None:
+            xm, xx = xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)
+        else:
+            xc = x_cross[sl]
+            xm = 0.5 * (xs + xc)
+            xx = (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)
+        H = np.concatenate([np.ones((len(xs), 1)), xm, xx], axis=1)      # (n, 13)
+        g = grp_a[sl]
+        if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
+            sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
+        else:
+            for k in np.unique(g):
+                m = g == k
+                sums[k] += D[m].T @ H[m]
+    out = []
+    for S_ in sums[:n_grp]:
+        XX = S_[:2 * K - 1, 4:].reshape(2 * K - 1, 3, 3)
+        if x_cross is not None:
+            XX = 0.5 * (XX + XX.transpose(0, 2, 1))
+        out.append({"W": S_[:, 0], "X": S_[:3 * K - 2, 1:4], "XX": XX})
+    return out if grp is not None else out[0]
+
+
+def normal_matrix(mom, bp, Mp, eiv_var=0.0):
+    """J^T W J of the vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n (parameters b[k,l], then
+    M[k,a,c]) from reading_moments; the same matrix as the per-sample sums (vector_normal's
+    docstring) up to rounding. With y = x - b(T), every block depends on (k, m) only
+    through s = k + m:
+        M-M  delta_aa' A_s[c,d],   A_s = sum w d^s y y^T
+        b-b  Q_s[l,p],             Q_s = sum w d^s M(T)^T M(T)
+        M-b  -R_s[c,a,l],          R_s = sum w d^s y_c M(T)[a,l]
+    and b(T), M(T) are polynomials in d, so each is a combination of the moments."""
+    K = len(bp)
+    W, X, XX = mom["W"], mom["X"], mom["XX"]
+    ns = 2 * K - 1
+    A = np.empty((ns, 3, 3))
+    Q = np.empty((ns, 3, 3))
+    R = np.empty((ns, 3, 3, 3))
+    MtM = np.einsum("jil,kip->jklp", Mp, Mp)                  # M_j^T M_j'
+    bb_ = bp[:, None, :, None] * bp[None, :, None, :]          # b_j b_j'^T
+    for s in range(ns):
+        Wjj = np.array([[W[s + j + i] for i in range(K)] for j in range(K)])
+        Xs = X[s:s + K]                                       # X[s + j], (K, 3)
+        Xb = Xs.T @ bp                                        # sum_j X[s+j] b_j^T
+        A[s] = XX[s] - Xb - Xb.T + np.einsum("ji,jicd->cd", Wjj, bb_)
+        Q[s] = np.einsum("ji,jilp->lp", Wjj, MtM)
+        # R_s[c,a,l] = sum_j X[s+j]_c M_j[a,l] - sum_{j,j'} W[s+j+j'] b_j'[c] M_j[a,l]
+        Yj = Xs - Wjj @ bp                                    # (K, 3): per j
+        R[s] = np.einsum("jc,jal->cal", Yj, Mp)
+    idx = np.add.outer(np.arange(K), np.arange(K))            # s = k + m
+    G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
+    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
+    bb = Q[idx].transpose(0, 2, 1, 3).reshape(3 * K, 3 * K)   # [k,l,m,p]
+    Mb = -R[idx].transpose(0, 3, 2, 1, 4).reshape(9 * K, 3 * K)   # [k,a,c,m,l]
+    if eiv_var:
+        MM = MM - eiv_var * np.kron(W[idx], np.eye(9))
+    return np.block([[bb, Mb.T], [Mb, MM]])
+
+
+class ReadingStats:
+    """reading_moments of one sample set per file group (unweighted), for weights that are
+    constant within each group (reference_fit's errors-in-variables weights): the
+    weighted statistics are then a combination of the groups', with no pass over the
+    samples. `cross` holds those of (x, x_hat) for _split_information."""
+
+    def __init__(self, P, x, grp, x_hat=None):
+        grp = np.asarray(grp)
+        self.n_grp = int(grp.max()) + 1 if len(grp) else 0
+        self.first = np.array([np.flatnonzero(grp == g)[0] for g in range(self.n_grp)])
+        self.vec = reading_moments(P, x, grp=grp)
+        self.cross = [] if x_hat is None else reading_moments(P, x, x_cross=x_hat, grp=grp)
+
+    def weighted(self, w, cross=False):
+        """The moments with per-sample weights w (constant within each group)."""
+        parts = self.cross if cross else self.vec
+        wg = np.asarray(w, float)[self.first]
+        return {k: sum(wg[g] * parts[g][k] for g in range(self.n_grp)) for k in parts[0]}
+
+
+def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
     """Vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n with weights w_n: weighted cost and, in
     closed form, J^T W J and J^T W r (params b[k,l], then M[k,a,c]); no (3N x p) Jacobian
     is formed. P: (N, K) powers of dT. Returns (cost, JTJ, g, r).
+
+    J^T W J comes from the regressor's sufficient statistics (reading_moments, normal_matrix:
+    independent of N); pass `mom` (reading_moments(P, x, w)) to reuse them across calls
+    with the same samples and weights. The cost, r and J^T W r stay per-sample sums (at a
+    good fit they are small differences of large terms, which moments would lose).
 
     eiv_var: variance of the noise in each axis of x (errors in variables). The noise in x
     adds eiv_var |M(T_n)|_F^2 to the expected |r_n|^2 whatever the parameters; it is
@@ -154,38 +271,34 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0):
     taken for signal (adjusted least squares: without it, a reading axis that carries only
     noise would make its column of M look determined and shrink it towards 0)."""
     n, K = P.shape
-    nb = 3 * K
-    MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     y = x - P @ bp
-    r = np.einsum("nij,nj->ni", MT, y) - B
-    sw = np.ones(n) if w is None else np.sqrt(w)
-    rw = r * sw[:, None]
-    Pw = P * sw[:, None]
-    cost = float(np.sum(rw * rw))
+    r = -B
+    for j in range(K):                                        # M(T_n) y_n
+        r = r + P[:, j:j + 1] * (y @ Mp[j].T)
+    w = np.ones(n) if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    rw = r * w[:, None]
+    cost = float(np.einsum("ni,ni->", rw, r))
+    if eiv_var or jac:
+        if mom is None:
+            mom = reading_moments(P, x, w)
+        W = mom["W"]
     if eiv_var:
-        Mw = Pw @ Mp.reshape(K, 9)                   # sqrt(w_n) M(T_n), (N, 9)
-        cost -= eiv_var * float(np.sum(Mw * Mw))
+        Mf = Mp.reshape(K, 9)
+        idx = np.add.outer(np.arange(K), np.arange(K))
+        cost -= eiv_var * float(np.sum(W[idx] * (Mf @ Mf.T)))    # sum w |M(T_n)|_F^2
     if not jac:
         return cost, None, None, r
-    PP = (Pw[:, :, None] * Pw[:, None, :]).reshape(n, K * K)
-    # M-M: delta_aa' sum_n w P_k y_c P_m y_d
-    Py = (Pw[:, :, None] * y[:, None, :]).reshape(n, 3 * K)
-    G = (Py.T @ Py).reshape(K, 3, K, 3)
-    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
-    # b-b: sum_n w P_k P_m (M^T M)[l,p]
-    Q = np.einsum("nil,nip->nlp", MT, MT).reshape(n, 9)
-    bb = (PP.T @ Q).reshape(K, K, 3, 3).transpose(0, 2, 1, 3).reshape(nb, nb)
-    # M-b: -sum_n w P_k P_m y_c M[a,l]
-    YM = (y[:, :, None, None] * MT[:, None, :, :]).reshape(n, 27)       # [c,a,l]
-    Mb = -(PP.T @ YM).reshape(K, K, 3, 3, 3).transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)
-    gM = (Py.T @ rw).reshape(K, 3, 3).transpose(0, 2, 1).reshape(-1)      # [k,a,c]
+    JTJ = normal_matrix(mom, bp, Mp, eiv_var)
+    # J^T W r: gb[k] = -sum w P_k M(T_n)^T r_n, gM[k,a,c] = sum w P_k r_a y_c (BLAS)
+    u = np.zeros_like(x)
+    for j in range(K):
+        u += P[:, j:j + 1] * (rw @ Mp[j])                    # w M(T_n)^T r_n
+    gb = -(P.T @ u)
+    gM = (P.T @ (rw[:, :, None] * y[:, None, :]).reshape(n, 9)).reshape(K, 3, 3)
     if eiv_var:
-        PtP = Pw.T @ Pw
-        MM = MM - eiv_var * np.kron(PtP, np.eye(9))
-        gM = gM - eiv_var * (PtP @ Mp.reshape(K, 9)).reshape(-1)
-    JTJ = np.block([[bb, Mb.T], [Mb, MM]])
-    gb = -(Pw.T @ np.einsum("nil,ni->nl", MT, rw)).reshape(-1)            # [k,l]
-    return cost, JTJ, np.concatenate([gb, gM]), r
+        idx = np.add.outer(np.arange(K), np.arange(K))
+        gM = gM - eiv_var * (W[idx] @ Mp.reshape(K, 9)).reshape(K, 3, 3)
+    return cost, JTJ, np.concatenate([gb.reshape(-1), gM.reshape(-1)]), r
 
 
 def _cheb_nodes(lo, hi, degree):
@@ -202,23 +315,31 @@ def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
     K = degree + 1
     n = len(x)
-    Phi = np.concatenate([(P[:, :, None] * x[:, None, :]).reshape(n, 3 * K), P], axis=1)
     b0, M0, bs, Ms = prior_s
     c0 = np.zeros((K, 3))
     c0[0] = -M0[0] @ b0[0]
     sw = np.sqrt(w)
-    A = Phi * sw[:, None]
-    G = A.T @ A
+    # the normal equations' sums per block of samples (bounded memory whatever N): rows
+    # Phi = [P_k x, P_k] weighted by sqrt(w)
+    G = np.zeros((4 * K, 4 * K))
+    AtB = np.zeros((4 * K, 3))
+    PtP = np.zeros((K, K))
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        Pw = P[sl] * sw[sl, None]
+        A = np.concatenate([(Pw[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K), Pw], axis=1)
+        G += A.T @ A
+        AtB += A.T @ (B[sl] * sw[sl, None])
+        PtP += Pw.T @ Pw
     if eiv_var:
-        Pw = P * sw[:, None]
-        G[:3 * K, :3 * K] -= eiv_var * np.kron(Pw.T @ Pw, np.eye(3))
+        G[:3 * K, :3 * K] -= eiv_var * np.kron(PtP, np.eye(3))
     Mk = np.zeros((K, 3, 3))
     ck = np.zeros((K, 3))
     for i in range(3):
         u0 = np.concatenate([M0[:, i, :].reshape(-1), c0[:, i]])
         s = np.concatenate([Ms[:, i, :].reshape(-1), bs[:, i]])
         D = np.diag(1.0 / s ** 2)
-        u = np.linalg.lstsq(G + D, A.T @ (B[:, i] * sw) + D @ u0, rcond=None)[0]
+        u = np.linalg.lstsq(G + D, AtB[:, i] + D @ u0, rcond=None)[0]
         Mk[:, i, :] = u[:3 * K].reshape(K, 3)
         ck[:, i] = u[3 * K:]
     g = _cheb_nodes(lo_s, hi_s, degree)
@@ -306,6 +427,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     ref_read = np.linalg.solve(M_T0, B[:, :, None])[:, :, 0]          # M0(T)^-1 B
     b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - ref_read, axis=0)
     x_hat = P @ b0_obs + ref_read
+    stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
     # the reading noise: stated, else estimated after the first pass (_reading_noise_var)
     eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
     noise_from = "stated" if noise_nT else "none"
@@ -333,10 +455,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # the data miss is rarely one coefficient, and holding a whole coefficient would
         # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
-        split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w), S,
-                           everything=mirrored)
+        split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
+                           S, everything=mirrored)
         theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
-                                            eiv_var, split)
+                                            eiv_var, split, stats)
         ev, EV, fitted = split
         if _pass == 1:
             break
@@ -353,12 +475,13 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
                 * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
     # covariance of the posterior (module docstring), in scaled units; held: the prior's
-    ev, EV, fitted = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w), S,
-                                everything=mirrored)
+    ev, EV, fitted = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
+                                S, everything=mirrored)
     Vf, Vp = EV[:, fitted], EV[:, ~fitted]
     zp = Vp.T @ ((theta - theta0) / S)
     theta = theta - S * (Vp @ zp)      # exactly at the prior where held
-    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
+                                    stats.weighted(w))
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
@@ -433,9 +556,15 @@ def _temperature_error_cov(P, x, bM, w, T, grp, tau, t_range, A):
     true temperature moves, as on a ramp). To first order it moves the residuals by
     D_n e_v, D_n = dr_n/dT (temperature_derivative), and the estimate by -A J^T W D e_v
     (A the fit's response, the data part of the covariance). Returns (C_T, figures)."""
-    D = temperature_derivative(P, x, bM, T, tau, t_range)
-    G = vector_gradient_rows(P, x, bM, w, D)
-    Q, fig = temperature_bin_information(G, T, grp)
+    key, var_b, fig = temperature_bins(T, grp)
+    n = len(x)
+    w = np.broadcast_to(np.ones(n) if w is None else np.asarray(w, float), (n,))
+    Hb = np.zeros((len(var_b), P.shape[1] * 12))
+    for a in range(0, n, MOMENT_CHUNK):     # in blocks: no (N, 12 K) array at once
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        D = temperature_derivative(P[sl], x[sl], bM, T[sl], tau, t_range)
+        _bin_sums(Hb, key[sl], vector_gradient_rows(P[sl], x[sl], bM, w[sl], D))
+    Q = (Hb * var_b[:, None]).T @ Hb
     C_T = A @ Q @ A.T
     return 0.5 * (C_T + C_T.T), fig
 
@@ -466,16 +595,31 @@ def vector_gradient_rows(P, x, bM, w, D):
     MT = (P @ Mp.reshape(K, 9)).reshape(n, 3, 3)
     y = x - P @ bp
     w = np.ones(n) if w is None else np.broadcast_to(w, (n,))
-    gb = -(w[:, None, None] * P[:, :, None] * np.einsum("nil,ni->nl", MT, D)[:, None, :])
-    gM = w[:, None, None, None] * P[:, :, None, None] * D[:, None, :, None] \
-        * y[:, None, None, :]
-    return np.concatenate([gb.reshape(n, -1), gM.reshape(n, -1)], axis=1)
+    out = np.empty((n, 12 * K))       # written in place: no (N, K, 3, 3) temporaries
+    gb = out[:, :3 * K].reshape(n, K, 3)
+    np.multiply(w[:, None, None] * P[:, :, None],
+                np.einsum("nil,ni->nl", MT, D)[:, None, :], out=gb)
+    np.negative(gb, out=gb)
+    wP = w[:, None] * P
+    gM = out[:, 3 * K:].reshape(n, K, 3, 3)
+    for k in range(K):
+        np.multiply((wP[:, k, None] * D)[:, :, None], y[:, None, :], out=gM[:, k])
+    return out
 
 
 def temperature_bin_information(G, T, grp):
     """Q = sum over (file, reported value) bins v of (q_f^2 / 12) h_v h_v^T, h_v the sum
     of the rows of G (per-sample J^T W D) in the bin; q_f the file's reporting step (the
-    sensor's over all files where the file reports a single value)."""
+    sensor's over all files where the file reports a single value; temperature_bins)."""
+    key, var_b, fig = temperature_bins(T, grp)
+    Hb = _bin_sums(np.zeros((len(var_b), G.shape[1])), key, G)
+    return (Hb * var_b[:, None]).T @ Hb, fig
+
+
+def temperature_bins(T, grp):
+    """The (file, reported value) bins of temperature_bin_information: (bin of each sample
+    (N,), q_f^2 / 12 per bin, figures). Bins in the order of np.unique over the rows
+    (file, T)."""
     from generator.fit.segments import temperature_quantum
 
     grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
@@ -484,20 +628,29 @@ def temperature_bin_information(G, T, grp):
     q_all = temperature_quantum(T)
     q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
                   else q_all for g in range(int(grp.max()) + 1)])
-    _, key = np.unique(np.stack([grp.astype(float), T], axis=1), axis=0,
+    t_vals, t_idx = np.unique(T, return_inverse=True)
+    _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx.ravel(),
                        return_inverse=True)
     key = np.asarray(key).ravel()
-    Hb = np.zeros((int(key.max()) + 1, G.shape[1]))
-    np.add.at(Hb, key, G)
-    var_b = np.zeros(len(Hb))
+    var_b = np.zeros(int(key.max()) + 1)
     var_b[key] = (q ** 2 / 12.0)[grp]
-    return (Hb * var_b[:, None]).T @ Hb, {
-        "quantum_C_per_file": q.tolist(), "values": int(len(Hb)),
+    return key, var_b, {
+        "quantum_C_per_file": q.tolist(), "values": int(len(var_b)),
         "note": "temperature reporting step: q^2/12 per reported value, common to its "
                 "samples"}
 
 
-def _split_information(P, x, x_hat, B, bM, w):
+def _bin_sums(Hb, key, G):
+    """Hb[v] += sum of the rows of G whose key is v (a sort and reduceat: np.add.at is
+    ~50x slower on 10^5 rows); returns Hb."""
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    starts = np.flatnonzero(np.diff(ks, prepend=-1))
+    Hb[ks[starts]] += np.add.reduceat(G[order], starts, axis=0)
+    return Hb
+
+
+def _split_information(P, x, x_hat, B, bM, w, stats: ReadingStats | None = None):
     """J^T W J with the regressor's second moments replaced by the symmetrised cross
     moments of x and x_hat (two readings of the same true reading with independent
     noises: their cross-covariance is the true reading's). J^T W J is a constant plus a
@@ -505,8 +658,8 @@ def _split_information(P, x, x_hat, B, bM, w):
     cross version is 2 J(m) - (J(x) + J(x_hat)) / 2. Not positive definite where the
     two disagree (a negative cross-covariance: the reading does not follow the
     reference); such directions fall below FISHER_THRESHOLD and are held."""
-    J = [vector_normal(P, u, B, *bM, True, w)[1] for u in (x, x_hat, 0.5 * (x + x_hat))]
-    return 2.0 * J[2] - 0.5 * (J[0] + J[1])
+    mom = stats.weighted(w, cross=True) if stats else reading_moments(P, x, w, x_cross=x_hat)
+    return normal_matrix(mom, *bM)
 
 
 def _reading_noise_var(d, grp):
@@ -571,7 +724,8 @@ def _noise_margin(P, w, eiv_var):
     return out
 
 
-def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split=None):
+def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split=None,
+                  stats: ReadingStats | None = None):
     """Gauss-Newton on the weighted cost in whitened coordinates z = (theta - theta0)/S of
     the free parameters (the others stay at the prior), restricted to the directions the
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
@@ -587,9 +741,11 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         return th
 
     z = (theta[f] - th0_f) / S_f
+    # J^T W J's statistics: the same every iterate
+    mom = stats.weighted(w) if stats else reading_moments(P, x, w)
     first = True
     for _ in range(GN_MAX_ITER):
-        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
         if split is not None and len(f) == len(S):
             ev, EV, fitted = split          # judged once, at the prior (reference_fit)
         else:
@@ -598,14 +754,14 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
-            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var)
+            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
             first = False
         Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
         dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
             z_new = z + step * dz
-            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var)[0]
+            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var, mom)[0]
             if c_new <= cost + 1e-12 * abs(cost):
                 break
             step *= 0.5
@@ -617,5 +773,5 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         if done:
             break
     theta = at(z)
-    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var)
+    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var, mom)
     return theta, JTJ, cost, r

@@ -35,7 +35,7 @@ def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
     """Columns x, y, z; rows: the normalised projections B/|B| of the reference sensor and
     of the boom sensor before H, the same after H (seed 000 fig. 8-9), and their difference
     in % before (grey) and after (coloured), where a gap of a percent becomes visible."""
-    fig = _figure(12.0, 7.6, constrained=True)
+    fig = _figure(12.0, 7.6, constrained="fixed")
     axes = fig.subplots(3, 3, sharex=True)
     t = np.asarray(time, float)
     sl = _thin(len(t))
@@ -74,7 +74,7 @@ def sphere_projections(path, title, rows) -> Path:
     (seed 000 fig. 14 and 16). Each plane shows the points within BAND |B| of it (raw: of
     its median), so that a calibrated sensor draws the circle and not a filled disc."""
     n = len(rows)
-    fig = _figure(11.0, 3.3 * n + 0.5, constrained=True)
+    fig = _figure(11.0, 3.3 * n + 0.5, constrained="fixed")
     axes = np.atleast_2d(fig.subplots(n, 3, squeeze=False))
     phi = np.linspace(0, 2 * np.pi, 181)
     for r, (label, raw, cal, radius) in enumerate(rows):
@@ -109,7 +109,7 @@ def temperature_profile(path, title, series, segments, positions) -> Path:
     """series: [(sensor, time_h (N,), temp_C (N,))]; segments: [(sensor, t0_h, t1_h,
     temp_C)] drawn as thick bars on the sensor's curve; positions: [(number, t0_h, t1_h)]
     shaded alternately and numbered (seed 000 fig. 21 and 23)."""
-    fig = _figure(12.0, 4.6, constrained=True)
+    fig = _figure(12.0, 4.6, constrained="fixed")
     ax = fig.subplots()
     for k, (num, t0, t1) in enumerate(positions):
         if k % 2:
@@ -146,7 +146,7 @@ def positions_timeline(path, title, rows) -> Path:
     one row per sensor, columns x, y, z: raw and calibrated minus the reference, nT
     (seed 000 fig. 26; the difference, since the field itself hides the drift)."""
     n = len(rows)
-    fig = _figure(12.0, 2.6 * n + 0.6, constrained=True)
+    fig = _figure(12.0, 2.6 * n + 0.6, constrained="fixed")
     axes = np.atleast_2d(fig.subplots(n, 3, squeeze=False))
     for r, (label, t, raw, cal, ref, bounds) in enumerate(rows):
         t = np.asarray(t, float)
@@ -177,7 +177,7 @@ def axis_rms_bars(path, title, names, before, after) -> Path:
     (coloured by axis), log scale."""
     before = np.asarray(before, float)
     after = np.asarray(after, float)
-    fig = _figure(max(6.0, 1.6 * len(names) + 2), 3.8, constrained=True)
+    fig = _figure(max(6.0, 1.6 * len(names) + 2), 3.8, constrained="fixed")
     ax = fig.subplots()
     x = np.arange(len(names))
     w = 0.13

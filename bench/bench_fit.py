@@ -1,0 +1,160 @@
+#!/usr/bin/env python3
+"""The lean fit (issue 20, item 3): `magcal fit` time, report time and memory per sample,
+today's code against the code at --baseline-commit, measured in the same run.
+
+    python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
+                               [--report-baseline-commit f639afc]
+                               [--rows 36000,144000] [--no-memory]
+
+Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
+equations) and --report-baseline-commit (the report as this work found it: the same
+figures as today, drawn with constrained layout; the older commit's report has fewer
+figures, so its time is printed but is no baseline). Each baseline's generator/ is
+extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
+tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
+slowed by contention, which would blur the ratio). On the shared campaign
+samsat_fm1/thermal_12pos.csv:
+
+* fit: generator.pipeline.fit (read, all five sensors' fits: candidate degrees,
+  held-out folds, covariances, checks), best CPU time (time.process_time) of --repeat;
+* report: generator.report.report.fit_report of that fit, figures drawn serially in the
+  process (the CPU time they cost; `magcal fit` spreads them over 2 cores), best of
+  --repeat;
+* memory per sample: peak RSS (wait4) of generator.pipeline.fit (what `magcal fit
+  --no-report` runs; the baseline has no --no-report) on the campaign
+  repeated to each of --rows rows (bench_io.write_long_file), as the slope between the
+  two lengths -- bytes the fit holds per additional sample, start-up and imports
+  excluded.
+
+Prints the figures of both trees and their ratios (baseline / today): the result is the
+ratio, not the seconds. No thresholds (the issue's targets: fit under 1 s, figures under
+1 s more, memory per sample far below the ~2 kB it measured).
+
+One run (2026-11-24, 2 shared cores under load from other jobs, --repeat 2):
+  fit:    9.90 s (f6f3a45), 11.88 s (f639afc) -> 4.26 s   ratio 2.32x, 2.79x
+  report (figures drawn serially): 8.77 s (f639afc) -> 6.58 s   ratio 1.33x
+  fit memory per sample (peak RSS slope 36,000 -> 144,000 rows): 1962 B -> 1111 B, 1.77x
+Not yet at the issue's targets: the fit makes 145 reference fits (candidate degrees x
+held-out folds x per-level fits) of which each still passes over its samples ~10 times
+for the cost, residuals and gradient; the figures are ~2/3 of the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import io
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "bench"))
+from bench_io import FM1, write_long_file  # noqa: E402
+
+DRIVER = r"""
+import json, sys, time
+from generator import pipeline
+from generator.report import figures as F
+from generator.report.report import fit_report
+unit, data, out, repeat = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+t_fit, t_rep = [], []
+for _ in range(repeat):
+    t0 = time.process_time()
+    cs = pipeline.fit(unit, [data])
+    t_fit.append(time.process_time() - t0)
+    F.parallel.__init__ = lambda self, workers=None: setattr(self, "workers", 1)
+    t0 = time.process_time()
+    fit_report(cs, out, [data])
+    t_rep.append(time.process_time() - t0)
+print(json.dumps({"fit_s": min(t_fit), "report_s": min(t_rep)}))
+"""
+
+
+FIT_ONLY = "import sys; from generator import pipeline; pipeline.fit(sys.argv[1], [sys.argv[2]])"
+
+
+def _env(tree: Path) -> dict:
+    return dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1",
+                OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
+
+
+def extract(rev: str, dest: Path) -> Path:
+    """generator/ (and the templates it reads) of `rev` into dest."""
+    blob = subprocess.run(["git", "-C", str(REPO), "archive", rev, "generator"],
+                          check=True, capture_output=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(blob)) as tf:
+        tf.extractall(dest)
+    return dest
+
+
+def timings(tree: Path, out: Path, repeat: int) -> dict:
+    p = subprocess.run([sys.executable, "-c", DRIVER, str(FM1 / "unit.toml"),
+                        str(FM1 / "thermal_12pos.csv"), str(out), str(repeat)],
+                       env=_env(tree), capture_output=True, text=True, cwd=out.parent)
+    if p.returncode:
+        raise SystemExit(f"{tree}: {p.stderr.strip().splitlines()[-1]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def peak_rss_mib(tree: Path, data: Path, out: Path) -> float:
+    p = subprocess.Popen([sys.executable, "-c", FIT_ONLY, str(FM1 / "unit.toml"), str(data)],
+                         env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         cwd=out.parent)
+    _, status, rusage = os.wait4(p.pid, 0)
+    if status:
+        raise SystemExit(f"{tree}: fit of {data} failed: {p.stderr.read().decode()[-300:]}")
+    return rusage.ru_maxrss / 1024.0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--baseline-commit", default="f6f3a45")
+    ap.add_argument("--report-baseline-commit", default="f639afc")
+    ap.add_argument("--rows", default="36000,144000",
+                    help="two input lengths for the memory slope")
+    ap.add_argument("--no-memory", action="store_true")
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory() as td:
+        tmp = Path(td)
+        trees = {"baseline": extract(a.baseline_commit, tmp / "baseline"),
+                 "report_baseline": extract(a.report_baseline_commit, tmp / "rb"),
+                 "today": REPO}
+        res = {}
+        for k, tree in trees.items():
+            res[k] = timings(tree, tmp / f"rep_{k}", a.repeat)
+        if not a.no_memory:
+            n1, n2 = (int(v) for v in a.rows.split(","))
+            files = {}
+            for n in (n1, n2):
+                files[n] = tmp / f"fit_{n}.csv"
+                write_long_file(FM1 / "thermal_12pos.csv", files[n], n)
+            for k in ("baseline", "today"):
+                tree = trees[k]
+                m = {n: peak_rss_mib(tree, files[n], tmp / f"out_{k}_{n}") for n in (n1, n2)}
+                res[k]["rss_MiB"] = m
+                res[k]["bytes_per_sample"] = (m[n2] - m[n1]) * 2**20 / (n2 - n1)
+    b, rb, t = res["baseline"], res["report_baseline"], res["today"]
+    print(f"samsat_fm1 thermal_12pos, CPU s, best of {a.repeat}, BLAS 1 thread; "
+          f"baseline {a.baseline_commit}, report baseline {a.report_baseline_commit}")
+    print(f"  fit:    {b['fit_s']:.2f} s ({a.baseline_commit}), "
+          f"{rb['fit_s']:.2f} s ({a.report_baseline_commit}) -> {t['fit_s']:.2f} s   "
+          f"ratio {b['fit_s'] / t['fit_s']:.2f}x, {rb['fit_s'] / t['fit_s']:.2f}x")
+    print(f"  report (figures drawn serially): {rb['report_s']:.2f} s "
+          f"({a.report_baseline_commit}) -> {t['report_s']:.2f} s   ratio "
+          f"{rb['report_s'] / t['report_s']:.2f}x   [{a.baseline_commit}, fewer figures: "
+          f"{b['report_s']:.2f} s]")
+    if "bytes_per_sample" in t:
+        print(f"  fit memory per sample (peak RSS slope, pipeline.fit): "
+              f"{b['bytes_per_sample']:.0f} B -> {t['bytes_per_sample']:.0f} B   ratio "
+              f"{b['bytes_per_sample'] / max(t['bytes_per_sample'], 1.0):.2f}x  "
+              f"(peak RSS baseline {b['rss_MiB']}, today {t['rss_MiB']} MiB)")
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()
