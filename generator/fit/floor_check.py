@@ -56,5 +56,6 @@ def floor_warning(sensor: str, rms_nT: float, floor_nT: float, check: dict) -> s
             f"with {check['nu']:.0f} effective degrees of freedom allows "
             f"{check['limit']:.2f}x): the reference does not fit these data. Likely cause: a "
             "time/epoch error ([orbit] epoch_utc, time_s, a GPS-UTC offset) or a position "
-            "mismatch (TLE of another object, wrong position columns); the calibration is "
-            "not trustworthy")
+            "mismatch (TLE of another object, wrong position columns), else an effect the "
+            "calibration model lacks (a temperature dependence of a sensor stated without "
+            "temperature, an unmodelled current); the calibration is not trustworthy")
