@@ -310,6 +310,12 @@ def _orbit_notes(unit, tels, cals, info, progress) -> None:
     from generator.fit.samples import field_noise_nT
     from generator.io.orbit import describe
 
+    for t in tels:          # kp_index beside the file's own ref_norm_nT (io.orbit)
+        if "kp_left_out" in t.meta:
+            k = t.meta["kp_left_out"]
+            info["notes"].append(f"{t.path}: {k['samples']} samples with Kp >= "
+                                 f"{k['threshold']:g} left out (kp_index)")
+            progress(info["notes"][-1])
     refs = {t.path: t.meta["field_reference"] for t in tels if "field_reference" in t.meta}
     if not refs:
         return
