@@ -141,7 +141,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                 continue
             v = cs.sensors[s.name]
             b, M = np.asarray(v["b_poly_nT"], float), np.asarray(v["M_poly"], float)
-            if abs(float(v["t_ref_C"]) - 25.0) > 1e-9:
+            # a sensor without temperature (temperature = false) has a constant model and
+            # no t_ref_C in its block: nothing to check
+            if "t_ref_C" in v and abs(float(v["t_ref_C"]) - 25.0) > 1e-9:
                 raise InputError(path, f"--prior: sensor '{s.name}' has t_ref_C "
                                        f"{float(v['t_ref_C'])}, the fit uses 25")
             u = cs.uncertainty.get(s.name, {})
@@ -179,7 +181,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
-    _orbit_notes(unit, tels, cals, info)
+    _orbit_notes(unit, tels, cals, info, progress)
     sr_opts, sr_values = {}, {}
     for n, c in cals.items():
         sr = c.stats.get("set_reset_compensation") or {}
@@ -301,19 +303,27 @@ def _prior_stages(prior, unit, info, progress):
     return opts, values
 
 
-def _orbit_notes(unit, tels, cals, info) -> None:
+def _orbit_notes(unit, tels, cals, info, progress) -> None:
     """Provenance of a reference computed from the field model (ICD section 4) and, per
     sensor, the floor a calibration against it cannot beat: sqrt(noise^2 + model^2)
     (the sensor's per-axis noise as the fit sees it, the model's |B| error)."""
     from generator.fit.samples import field_noise_nT
     from generator.io.orbit import describe
 
+    for t in tels:          # kp_index beside the file's own ref_norm_nT (io.orbit)
+        if "kp_left_out" in t.meta:
+            k = t.meta["kp_left_out"]
+            info["notes"].append(f"{t.path}: {k['samples']} samples with Kp >= "
+                                 f"{k['threshold']:g} left out (kp_index)")
+            progress(info["notes"][-1])
     refs = {t.path: t.meta["field_reference"] for t in tels if "field_reference" in t.meta}
     if not refs:
         return
     info["field_reference"] = refs
     info["notes"].extend(f"{p}: {describe(v)}" for p, v in refs.items())
     model = max(v["model_floor_nT"] for v in refs.values())
+    duration_s = sum(float(t.time_s[-1] - t.time_s[0]) for t in tels
+                     if "field_reference" in t.meta and t.n)
     for s in unit.sensors:
         noise = field_noise_nT(s)
         if noise is None or s.name not in cals:
@@ -326,6 +336,27 @@ def _orbit_notes(unit, tels, cals, info) -> None:
             "(docs/orbit.md)" + (f"; the fit reached {reached:.0f} nT on its own samples"
                                  if reached is not None else ""))
         cals[s.name].stats["field_model_floor_nT"] = floor
+        fit = cals[s.name].stats.get("fit") or {}
+        if reached is not None and fit.get("n"):
+            _floor_warning(s.name, float(reached), int(fit["n"]), noise, model, floor,
+                           duration_s, cals[s.name], info, progress)
+
+
+def _floor_warning(name, reached, n, noise, model, floor, duration_s, cal, info,
+                   progress) -> None:
+    """fit.floor_check on one sensor: a residual well beyond the floor is a warning in the
+    output, the report's summary (sanity warnings) and the coefficients.json notes."""
+    from generator.fit.floor_check import floor_check, floor_warning
+
+    chk = floor_check(reached, n, noise, model, duration_s)
+    cal.stats["field_model_floor_check"] = chk
+    if not chk["flagged"]:
+        return
+    w = floor_warning(name, reached, floor, chk)
+    cal.stats.setdefault("sanity", {}).setdefault("warnings", []).append(w)
+    cal.stats.setdefault("notes", []).append(w)
+    info["notes"].append("WARNING: " + w)
+    progress(f"WARNING: {w}")
 
 
 # ---- apply --------------------------------------------------------------------------------

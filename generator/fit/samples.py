@@ -12,6 +12,7 @@ import numpy as np
 from generator.errors import InputError
 from generator.fit.reference import T_REF_C
 from generator.fit.segments import find_segments
+from generator.io import parts as _parts
 
 CV_FOLDS = 4
 
@@ -85,10 +86,21 @@ class FitData:
 def field_noise_nT(spec) -> float | None:
     """Stated 1-sigma noise of one axis of the field a sensor's fit sees: noise_nT of one
     reading with the count quantisation (lsb^2/12) added, over sqrt(2) for a SET/RESET
-    pair ((SET - RESET)/2 averages two readings)."""
-    if spec is None or spec.noise_nT is None:
+    pair ((SET - RESET)/2 averages two readings).
+
+    A sensor reading physical units (input = nT, uT, mG, G; ICD section 4) has no count
+    quantisation: its columns hold real numbers, and lsb_nT is then only the input unit's
+    size (1000 nT for uT), not a step of the reading; its noise is the unit's stated
+    noise_nT, else the part's (generator/io/parts.toml)."""
+    if spec is None:
         return None
-    per_reading = float(spec.noise_nT) ** 2 + float(spec.lsb_nT) ** 2 / 12.0
+    noise = spec.noise_nT
+    if noise is None and not spec.counts:
+        noise = _parts.part(spec.part).noise_nT
+    if noise is None:
+        return None
+    quant = float(spec.lsb_nT) ** 2 / 12.0 if spec.counts else 0.0
+    per_reading = float(noise) ** 2 + quant
     return float(np.sqrt(per_reading / (2.0 if spec.set_reset else 1.0)))
 
 

@@ -255,6 +255,10 @@ def track_of(tel, unit) -> Track:
                 ecef = geodetic_to_ecef_km(*(tel.columns[c] for c in cols))
             return Track(times, ecef, f"GNSS {kind} columns ({where} + time_s)")
     tle = ((unit.extra or {}).get("orbit") or {}).get("tle")
+    if tle and tle[0][2:7] != tle[1][2:7]:       # two lines of two objects: no orbit
+        raise InputError(unit.path, f"[orbit] tle: line 1 is catalogue number "
+                                    f"{tle[0][2:7].strip()}, line 2 {tle[1][2:7].strip()}: "
+                                    "the two lines of one element set name one object")
     ok = np.isfinite(tel.time_s)
     try:
         teme = sgp4_teme_km(tle, times[ok])
@@ -306,9 +310,13 @@ def cache_path(key: str) -> Path | None:
     return base / "geomag" / f"{key}.npz"
 
 
-def field_along(track: Track, *, use_cache: bool = True, path=None) -> tuple:
+def field_along(track: Track, *, use_cache: bool = True, path=None, lines=None,
+                where: str = "[orbit] epoch_utc") -> tuple:
     """IGRF field (N, 3) north/east/down (geocentric local frame) in nT along the track,
-    NaN where the position is missing, and its provenance dict."""
+    NaN where the position is missing, and its provenance dict. path, lines (the input
+    file and its samples' line numbers) and where (the epoch's origin) name the input in
+    the message of a time outside the model's span. An unreadable cache entry (damaged,
+    truncated, not a .npz at all) is recomputed and replaced atomically."""
     from generator.io import geomag
 
     info = geomag.model_info()
@@ -321,33 +329,39 @@ def field_along(track: Track, *, use_cache: bool = True, path=None) -> tuple:
     key = h.hexdigest()
     prov = {**info, "position_source": track.source, "cache_key": key[:16],
             "samples": int(track.time_utc.shape[0]), "notes": list(track.notes)}
-    path = cache_path(key) if use_cache else None
-    if path is not None and path.is_file():
+    cached = cache_path(key) if use_cache else None
+    if cached is not None and cached.is_file():
         try:
-            with np.load(path) as z:
+            with np.load(cached) as z:
                 field = np.asarray(z["field_nT"], float)
             if field.shape == (track.time_utc.shape[0], 3):
                 return field, {**prov, "cache": "hit"}
-        except (OSError, ValueError, KeyError):
-            pass                            # a damaged cache entry is recomputed
+        except Exception:       # noqa: BLE001 -- any unreadable entry (BadZipFile,
+            pass                # EOFError, a pickle, ...) is only a cache miss: recomputed
     times = track.time_utc[ok].astype(_dt.datetime)
     try:
         geomag.check_model_dates(list(times))
     except ValueError as e:
-        raise InputError(path, f"[orbit] epoch_utc + time_s: field model: {e}") from None
+        lo, hi = geomag.model_span()
+        bad = np.flatnonzero([not (lo <= t <= hi) for t in times])
+        line = None
+        if lines is not None and bad.size:
+            line = int(np.asarray(lines)[np.flatnonzero(ok)[bad[0]]])
+        raise InputError(path, f"time_s + {where}: field model: {e}", line=line,
+                         column="time_s") from None
     field = np.full((track.time_utc.shape[0], 3), np.nan)
     if ok.any():
         r, colat, lon = ecef_to_spherical(track.ecef_km[ok])
         field[ok] = geomag.field_geocentric_nT(r, colat, lon, list(times))
-    if path is not None:
+    if cached is not None:
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cached.with_name(f".{cached.stem}.{os.getpid()}.tmp.npz")
             np.savez(tmp, field_nT=field, provenance=json.dumps(prov))
-            os.replace(tmp, path)
+            os.replace(tmp, cached)
         except OSError:
             pass                            # no cache: computed each time, never an error
-    return field, {**prov, "cache": "miss" if path is not None else "off"}
+    return field, {**prov, "cache": "miss" if cached is not None else "off"}
 
 
 def attach_field_reference(tel, unit):
@@ -356,6 +370,7 @@ def attach_field_reference(tel, unit):
     KP_DISTURBED); tel.meta["field_reference"] holds the provenance. Other files are
     returned unchanged. Returns tel."""
     if not wants_field_model(tel, unit):
+        _kp_on_own_reference(tel)
         return tel
     if epoch_of(tel, unit)[0] is None:
         # positions are still channels (apply, check need no reference); a fit refuses
@@ -363,7 +378,8 @@ def attach_field_reference(tel, unit):
         tel.meta["field_reference_missing"] = NO_EPOCH
         return tel
     track = track_of(tel, unit)
-    field, prov = field_along(track, path=tel.path)
+    field, prov = field_along(track, path=tel.path, lines=tel.line_numbers,
+                              where=epoch_of(tel, unit)[1])
     norm = np.linalg.norm(field, axis=1)
     kp = tel.columns.get("kp_index")
     if kp is not None:
@@ -371,11 +387,38 @@ def attach_field_reference(tel, unit):
         norm = np.where(disturbed, np.nan, norm)
         prov["kp_left_out"] = int(disturbed.sum())
         prov["kp_threshold"] = KP_DISTURBED
+        _all_disturbed(tel, disturbed, np.isfinite(np.linalg.norm(field, axis=1)))
     years = _years_after_last_epoch(track.time_utc)
     prov["model_floor_nT"] = round(model_floor_nT(years), 1)
     tel.columns["ref_norm_nT"] = norm
     tel.meta["field_reference"] = prov
     return tel
+
+
+def _all_disturbed(tel, disturbed, has_reference) -> None:
+    """Every sample with a reference is disturbed: a fit has nothing left to calibrate
+    against; say so (require_field_reference refuses it), rather than 'no samples'."""
+    if has_reference.any() and np.all(disturbed[has_reference]):
+        tel.meta["field_reference_missing"] = (
+            f"kp_index: every one of the {int(has_reference.sum())} samples is disturbed "
+            f"(Kp >= {KP_DISTURBED:g}) and left out: no quiet interval to calibrate "
+            "against the field model (docs/orbit.md)")
+
+
+def _kp_on_own_reference(tel) -> None:
+    """ICD section 4 honours kp_index whatever the reference: a file with its own
+    ref_norm_nT (and no reference vectors) has its disturbed samples' reference set to
+    NaN, so they are left out too; tel.meta["kp_left_out"] says how many."""
+    kp = tel.columns.get("kp_index")
+    norm = tel.columns.get("ref_norm_nT")
+    if kp is None or norm is None or any(c in tel.columns for c in REF_COLUMNS[:3]):
+        return
+    kp = np.asarray(kp, float)
+    norm = np.asarray(norm, float)
+    disturbed = np.isfinite(kp) & (kp >= KP_DISTURBED)
+    tel.columns["ref_norm_nT"] = np.where(disturbed, np.nan, norm)
+    tel.meta["kp_left_out"] = {"samples": int(disturbed.sum()), "threshold": KP_DISTURBED}
+    _all_disturbed(tel, disturbed, np.isfinite(norm))
 
 
 def _years_after_last_epoch(times) -> float:
