@@ -117,4 +117,6 @@ def test_tle_lines_of_two_objects(camp, tmp_path, capsys):
     u.write_text(text.replace(l2, other))
     assert main(["fit", str(u), str(camp["csv"]), "-o", str(tmp_path / "o"), "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "[orbit] tle" in err[0] and str(u) in err[0]
+    # refused when the unit file is read, whatever the position source: file, line, key
+    assert len(err) == 1 and "[orbit]" in err[0] and "tle" in err[0] and str(u) in err[0]
+    assert "catalogue number" in err[0]

@@ -255,10 +255,7 @@ def track_of(tel, unit) -> Track:
                 ecef = geodetic_to_ecef_km(*(tel.columns[c] for c in cols))
             return Track(times, ecef, f"GNSS {kind} columns ({where} + time_s)")
     tle = ((unit.extra or {}).get("orbit") or {}).get("tle")
-    if tle and tle[0][2:7] != tle[1][2:7]:       # two lines of two objects: no orbit
-        raise InputError(unit.path, f"[orbit] tle: line 1 is catalogue number "
-                                    f"{tle[0][2:7].strip()}, line 2 {tle[1][2:7].strip()}: "
-                                    "the two lines of one element set name one object")
+    # (two lines of two objects are refused when the unit file is read: io/unitfile.py)
     ok = np.isfinite(tel.time_s)
     try:
         teme = sgp4_teme_km(tle, times[ok])

@@ -234,6 +234,9 @@ def _read_orbit(t, extra) -> dict:
             if _tle_checksum(line) != line[68]:
                 t.fail("tle", f"line {k}: checksum {line[68]!r}, the line sums to "
                               f"{_tle_checksum(line)!r}")
+        if tle[0][2:7] != tle[1][2:7]:   # columns 3-7 of both lines: the catalogue number
+            t.fail("tle", f"line 1 is catalogue number {tle[0][2:7].strip()!r} but line 2 is "
+                          f"{tle[1][2:7].strip()!r}: the lines of two different element sets")
         out["tle"] = list(tle)
     t.keep_unknown(ORBIT_KEYS, extra, "orbit_unknown")
     return out
