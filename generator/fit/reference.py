@@ -486,6 +486,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
+    sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
     if degree > 0:
         C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
                                                (t_lo, t_hi), A)
@@ -529,6 +530,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     info = {
         "n": int(n), "degree": int(degree), "cond": cond, "t_range_C": (t_lo, t_hi),
         "b_poly_sigma_nT": bsig, "M_poly_sigma": Msig,
+        # the part of the 1-sigma from the readings' noise alone (without the temperature
+        # reporting error): what a design-only prediction (campaign.check) can compare with
+        "b_poly_sigma_noise_nT": sig_noise[:3 * K].reshape(K, 3) / scale[:, None],
+        "M_poly_sigma_noise": sig_noise[3 * K:].reshape(K, 3, 3) / scale[:, None, None],
         "residual_sigma_nT": np.sqrt(np.sum(read_res ** 2, axis=0) / dof),
         "residual_rms_nT": np.sqrt(np.mean(r ** 2, axis=0)),
         "cost": float(np.sum(r ** 2)),
