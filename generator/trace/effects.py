@@ -316,10 +316,17 @@ class ChannelBias(Effect):
         return out
 
     def to_flight(self, p, values, options, model):
-        options.setdefault("channels", []).append(self.channel)
+        chans = options.setdefault("channels", [])
         C = values.get("C_nT_per_unit")
         col = self.C_nT_per_unit(p).reshape(3, 1)
-        values["C_nT_per_unit"] = col if C is None else np.hstack([C, col])
+        if self.channel in chans:   # already there (a channel scale wrote a zero column):
+            j = chans.index(self.channel)          # one channel, its C and its g column
+            C = np.array(C, float)
+            C[:, j:j + 1] = C[:, j:j + 1] + col
+            values["C_nT_per_unit"] = C
+        else:
+            chans.append(self.channel)
+            values["C_nT_per_unit"] = col if C is None else np.hstack([C, col])
         if self.partial:   # the files that carry the channel are the operating condition
             values["b_poly_nT"][0] = values["b_poly_nT"][0] + np.asarray(p, float)[3:6]
 
