@@ -101,6 +101,10 @@ class Effect:
         """The scanned value that a fit with parameters p amounts to (see ThermalLag)."""
         return self.hyper
 
+    def time_constant_s(self, p):
+        """The effect's time constant at parameters p (a lag), None if it has none."""
+        return None
+
     # ---- hooks (override the one of `stage`) -------------------------------------------
     def temperature(self, p, S, T):
         return T
@@ -402,6 +406,9 @@ class ThermalLag(Effect):
         return float(self.hyper * math.exp(lp))
 
     def hyper_after_fit(self, p):
+        return self.tau_s(p)
+
+    def time_constant_s(self, p):
         return self.tau_s(p)
 
     def temperature(self, p, S, T):
@@ -882,6 +889,9 @@ class LaggedChannelBias(ChannelBias):
 
     def explained_by(self):
         return [f"{self.channel} through a first-order lag"]
+
+    def time_constant_s(self, p):
+        return float(self.hyper) if self.hyper is not None else None
 
     @classmethod
     def candidates(cls, ctx):

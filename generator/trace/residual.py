@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from generator.trace.crossval import _lag1
 from generator.trace.samples import SensorSamples
 
 UNEXPLAINED_RATIO = 2.0   # residual RMS / noise floor above which the rest is reported
@@ -76,9 +77,11 @@ def noise_floor(S: SensorSamples, r) -> dict:
     data = data_noise_nT(S, r)
     part = part_noise_nT(S.spec)
     floor = data if data is not None else part
+    if magnitude_only(S) and part and (floor is None or floor < part):
+        floor = part    # magnitudes alone can be contracted below the noise: not a floor
     rms = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     out = {"residual_rms_nT": rms, "data_noise_nT": data, "part_noise_nT": part,
-           "floor_nT": floor, "source": "data" if data is not None else "part"}
+           "floor_nT": floor, "source": "data" if floor == data else "part"}
     out["ratio"] = rms / floor if floor else None
     out["rms_above_noise_nT"] = math.sqrt(max(rms * rms - floor * floor, 0.0)) if floor \
         else None
@@ -187,3 +190,41 @@ def shrinks(B_new, S: SensorSamples, ref_var: float) -> bool:
     if len(sel) < 2 or ref_var <= 0:
         return False
     return field_variation_nT(np.asarray(B_new)[sel]) < (1.0 - MAX_SHRINK) * ref_var
+
+
+# ---- overfitting: a magnitude-only residual below the part's noise -----------------------
+BELOW_NOISE_ALPHA = 1e-3  # lower-tail probability of chi^2 below which a residual is
+#   too small to be noise: with only |B| known, a calibration contracted toward a constant
+#   vector shrinks the residual below the part's own noise (the field the part reads
+#   carries that noise on every axis, so |B_cal| - |B| cannot be quieter than it).
+
+
+def magnitude_only(S: SensorSamples) -> bool:
+    iv, im, ip = S.idx
+    return len(im) > 0 and not len(iv) and not len(ip)
+
+
+def below_part_noise(S: SensorSamples, r, n_params: int = 0) -> str:
+    """Why the magnitude-only residual r is statistically below the part's stated noise
+    ("" if it is not, if the rows are not magnitude-only, or the noise is not stated):
+    n_eff mean(r^2) / sigma^2 under the BELOW_NOISE_ALPHA quantile of chi^2 with n_eff - n_params
+    degrees of freedom, n_eff the rows deflated by the residual's lag-1 autocorrelation
+    (rho clipped to [0, 0.99]), sigma the part's noise (`part_noise_nT`)."""
+    from scipy import stats as sps
+    sigma = part_noise_nT(S.spec)
+    if not magnitude_only(S) or not sigma or r.size < 3:
+        return ""
+    rho = min(max(_lag1(r, S), 0.0), 0.99)
+    n_eff = r.size * (1 - rho) / (1 + rho)
+    dof = n_eff - n_params
+    if dof < 1:
+        return ""
+    q = n_eff * float(np.mean(r * r)) / (sigma * sigma)
+    lo = float(sps.chi2.ppf(BELOW_NOISE_ALPHA, dof))
+    if q >= lo:
+        return ""
+    rms = float(np.sqrt(np.mean(r * r)))
+    return (f"overfitting: with magnitudes only, the residual ({rms:.1f} nT rms) is below the "
+            f"part's stated noise ({sigma:.1f} nT; chi^2 {q:.0f} < {lo:.0f}, its "
+            f"{BELOW_NOISE_ALPHA:g} quantile for {dof:.0f} effective rows): the calibration "
+            "is contracting toward a constant vector")

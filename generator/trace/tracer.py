@@ -199,8 +199,11 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
     ref_var, ref_what = rv.reference_variation_nT(S_fit, model0.field(S_fit))
     rejected = []
     model = model0.copy().fit(S_fit)
-    if rv.shrinks(model.field(S_fit), S_fit, ref_var):
-        rejected.append(("refit of the baseline", _shrink_text(model, S_fit, ref_var, ref_what)))
+    why_bad = (_shrink_text(model, S_fit, ref_var, ref_what)
+               if rv.shrinks(model.field(S_fit), S_fit, ref_var) else
+               _overfit_text(model0, model, S_fit, S_eval))
+    if why_bad:
+        rejected.append(("refit of the baseline", why_bad))
         say(f"{name}: the refit of the baseline was rejected: {rejected[-1][1]}")
         model = model0.copy()
     base_rms = model.rms(S_eval)
@@ -292,17 +295,57 @@ def _refusal(model, m1, S_fit, S_eval, ref_var, ref_what) -> str:
     generator.trace.scoring, one block per evaluation file, AR(1) inflation)."""
     if rv.shrinks(m1.field(S_fit), S_fit, ref_var):
         return _shrink_text(m1, S_fit, ref_var, ref_what)
+    why = _overfit_text(model, m1, S_fit, S_eval) or _unidentifiable_lag(m1, S_fit)
+    if why:
+        return why
     r0 = model.residual(model.theta[None], S_eval)[0]
     r1 = m1.residual(m1.theta[None], S_eval)[0]
-    if r1 @ r1 <= r0 @ r0:
+    mag_only = rv.magnitude_only(S_eval)
+    if r1 @ r1 <= r0 @ r0 and not mag_only:
         return ""
     rho = min(max(_lag1(r1, S_eval), 0.0), 0.99)
     fb = S_eval.file_index[S_eval.row_sample]
     z = heldout_z(r0, r1, np.searchsorted(np.unique(fb), fb), len(np.unique(fb)),
                   (1 + rho) / (1 - rho))
+    if mag_only and z < Z_WORSE:
+        # |B| alone: a term that moves the field's direction (a drift, a cubic) lowers the
+        # cross-validated error of the fit rows by contracting along the unseen
+        # directions; the evaluation rows must confirm the gain beyond chance
+        return (f"with magnitudes only, the evaluation rows do not confirm it: RMS "
+                f"{_rms(r0):.2f} -> {_rms(r1):.2f} nT (z = {z:.1f} < {Z_WORSE})")
     if z < -Z_WORSE:
         return (f"the refit raised the evaluation RMS from {_rms(r0):.2f} to {_rms(r1):.2f} nT "
                 f"(z = {z:.1f}, beyond chance)")
+    return ""
+
+
+def _overfit_text(model, m1, S_fit, S_eval) -> str:
+    """Magnitude-only rows: m1's residual (held out, or on the fit data with its parameter
+    count) statistically below the part's noise where model's was not (residual.
+    below_part_noise): a contraction, not a better calibration."""
+    for S, n_par in ((S_eval, 0), (S_fit, m1.P)):
+        why = rv.below_part_noise(S, m1.residual(m1.theta[None], S)[0], n_par)
+        if why and not rv.below_part_noise(S, model.residual(model.theta[None], S)[0],
+                                            model.P if n_par else 0):
+            return why + (" (held-out rows)" if S is S_eval else " (fit rows)")
+    return ""
+
+
+def _unidentifiable_lag(m1, S) -> str:
+    """A time constant the data cannot resolve: below half the shortest sample period
+    (the filter has settled before the next sample: it is no lag) or beyond twice the
+    longest file (the filtered channel is a constant or a ramp there)."""
+    dts = [float(np.median(np.diff(f.time_s))) for f in S.files if len(f.time_s) > 1]
+    spans = [float(np.ptp(f.time_s)) for f in S.files if len(f.time_s) > 1]
+    if not dts:
+        return ""
+    lo, hi = 0.5 * min(dts), 2.0 * max(spans)
+    for i, e in enumerate(m1.effects):
+        tau = e.time_constant_s(m1.effect_params(i))
+        if tau is not None and not lo <= tau <= hi:
+            return (f"{e.label()}: time constant {tau:.3g} s is not identifiable from these "
+                    f"data (outside [{lo:.3g}, {hi:.3g}] s: half the shortest sample period "
+                    "to twice the longest file)")
     return ""
 
 
