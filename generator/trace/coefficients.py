@@ -200,8 +200,11 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
     unc = {n: ({} if (traces.get(n) and traces[n].steps) else u)
            for n, u in base.uncertainty.items()}
     cs = CoefficientSet(spec, sensors, dict(base.unit_values), unc, fit_info)
-    CoefficientSet.from_json_dict(json.loads(json.dumps(cs.to_json_dict(),
-                                                        default=_json_default)))
+    try:       # the set the trace writes passes the checks of any coefficient file
+        CoefficientSet.from_json_dict(json.loads(json.dumps(cs.to_json_dict(),
+                                                            default=_json_default)))
+    except InputError as e:    # not the user's input: an inconsistency of the trace
+        raise RuntimeError(f"the traced coefficients fail their own check: {e}") from e
     return cs
 
 

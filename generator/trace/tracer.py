@@ -201,7 +201,7 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
     model = model0.copy().fit(S_fit)
     why_bad = (_shrink_text(model, S_fit, ref_var, ref_what)
                if rv.shrinks(model.field(S_fit), S_fit, ref_var) else
-               _overfit_text(model0, model, S_fit, S_eval))
+               _bad_gain(model) or _overfit_text(model0, model, S_fit, S_eval))
     if why_bad:
         rejected.append(("refit of the baseline", why_bad))
         say(f"{name}: the refit of the baseline was rejected: {rejected[-1][1]}")
@@ -295,7 +295,7 @@ def _refusal(model, m1, S_fit, S_eval, ref_var, ref_what) -> str:
     generator.trace.scoring, one block per evaluation file, AR(1) inflation)."""
     if rv.shrinks(m1.field(S_fit), S_fit, ref_var):
         return _shrink_text(m1, S_fit, ref_var, ref_what)
-    why = _overfit_text(model, m1, S_fit, S_eval) or _unidentifiable_lag(m1, S_fit)
+    why = _bad_gain(m1) or _overfit_text(model, m1, S_fit, S_eval) or _unidentifiable_lag(m1, S_fit)
     if why:
         return why
     r0 = model.residual(model.theta[None], S_eval)[0]
@@ -317,6 +317,20 @@ def _refusal(model, m1, S_fit, S_eval, ref_var, ref_what) -> str:
         return (f"the refit raised the evaluation RMS from {_rms(r0):.2f} to {_rms(r1):.2f} nT "
                 f"(z = {z:.1f}, beyond chance)")
     return ""
+
+
+def _bad_gain(m) -> str:
+    """A reflected or collapsed calibration (the check the coefficient set makes on
+    M(t_ref), generator.flight.coeffs): a degenerate solution, never kept."""
+    from generator.flight.coeffs import GAIN_LIMIT
+    M0 = np.asarray(m.values()["M_poly"])[0]
+    sv = np.linalg.svd(M0, compute_uv=False)
+    det = float(np.linalg.det(M0))
+    if det > 0 and sv[-1] >= 1.0 / GAIN_LIMIT and sv[0] <= GAIN_LIMIT:
+        return ""
+    return (f"a degenerate solution: M(t_ref) would have det {det:.3g} and singular values "
+            f"{sv[-1]:.3g}..{sv[0]:.3g} (a reflected or collapsed calibration; allowed: det > 0, "
+            f"gains {1 / GAIN_LIMIT:g}..{GAIN_LIMIT:g})")
 
 
 def _overfit_text(model, m1, S_fit, S_eval) -> str:
