@@ -7,8 +7,12 @@ reported beside the part's noise (the unit's `noise_nT`, divided by sqrt(2) for 
 SET/RESET part, which averages two readings). The floor used is the data's where it can
 be measured (it includes the reference's noise), else the part's.
 
-A residual "well above the noise" is one whose RMS exceeds UNEXPLAINED_RATIO x the floor:
-then at least 1 - 1 / 2^2 = 3/4 of its variance is not sample-to-sample noise. Such a
+A residual is "at the noise" when its mean square is consistent with the floor's square:
+under white noise at the floor, mean(r^2) / floor^2 follows F(n, d) (n the residual rows;
+d the degrees of freedom of the floor's own estimate: infinite for the part's stated
+noise, 0.37 x half the differences for the data's, the efficiency of the MAD with each
+sample shared by two differences), and the residual is at the noise unless the ratio
+exceeds the upper NOISE_ALPHA quantile of F. Otherwise it is "above the noise". Such a
 residual, with no catalogue effect left that explains it, is listed as `unexplained`
 with what it follows most: for each quantity (time, temperature, the channels, the field
 direction, the body rates, the coil currents) the correlation ratio eta^2, the share of
@@ -26,7 +30,8 @@ import numpy as np
 from generator.trace.crossval import _lag1
 from generator.trace.samples import SensorSamples
 
-UNEXPLAINED_RATIO = 2.0   # residual RMS / noise floor above which the rest is reported
+NOISE_ALPHA = 1e-3        # upper-tail probability of the at-the-noise test (module doc)
+MAD_EFFICIENCY = 0.37     # asymptotic efficiency of the MAD against the standard deviation
 N_BINS = 10               # quantile bins of a quantity (correlation ratio)
 MAD_TO_SIGMA = 1.4826     # MAD of a normal variable -> its standard deviation
 
@@ -45,11 +50,13 @@ def per_sample(S: SensorSamples, r) -> np.ndarray:
     return out
 
 
-def data_noise_nT(S: SensorSamples, r) -> float | None:
+def data_noise_nT(S: SensorSamples, r, n_diff=None) -> float | None:
     """The residual's own sample-to-sample noise (RMS over rows), from robust first
-    differences along time within each file; None with too few samples."""
+    differences along time within each file; None with too few samples. n_diff: a list
+    that receives the number of differences used."""
     rs, ax = S.row_sample, S.row_axis
     var, cnt = 0.0, 0
+    nd = 0
     for a in range(4):
         sel = np.nonzero(ax == a)[0]
         if len(sel) < 3:
@@ -63,6 +70,9 @@ def data_noise_nT(S: SensorSamples, r) -> float | None:
         s = MAD_TO_SIGMA * mad / math.sqrt(2.0)
         var += s * s * len(sel)
         cnt += len(sel)
+        nd += len(d)
+    if n_diff is not None:
+        n_diff.append(nd)
     return math.sqrt(var / cnt) if cnt else None
 
 
@@ -74,7 +84,9 @@ def part_noise_nT(spec) -> float | None:
 
 
 def noise_floor(S: SensorSamples, r) -> dict:
-    data = data_noise_nT(S, r)
+    from scipy import stats as sps
+    nd = []
+    data = data_noise_nT(S, r, nd)
     part = part_noise_nT(S.spec)
     floor = data if data is not None else part
     if magnitude_only(S) and part and (floor is None or floor < part):
@@ -85,7 +97,12 @@ def noise_floor(S: SensorSamples, r) -> dict:
     out["ratio"] = rms / floor if floor else None
     out["rms_above_noise_nT"] = math.sqrt(max(rms * rms - floor * floor, 0.0)) if floor \
         else None
-    out["at_noise"] = bool(floor) and rms <= UNEXPLAINED_RATIO * floor
+    n = int(r.size)
+    d = MAD_EFFICIENCY * nd[0] / 2.0 if out["source"] == "data" and nd else math.inf
+    limit = (float(sps.chi2.isf(NOISE_ALPHA, n)) / n if math.isinf(d) else
+             float(sps.f.isf(NOISE_ALPHA, n, max(d, 1.0)))) if n else math.inf
+    out["at_noise_limit_ratio"] = math.sqrt(limit)     # the largest ratio at the noise
+    out["at_noise"] = bool(floor) and n > 0 and (rms / floor) ** 2 <= limit
     return out
 
 

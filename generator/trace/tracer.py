@@ -381,7 +381,9 @@ def _noise_text(noise) -> str:
             else "")
     return (f"; the residual is {noise['residual_rms_nT']:.2f} nT, {noise['ratio']:.2f} x the "
             f"noise floor {noise['floor_nT']:.2f} nT ({noise['source']}'s sample-to-sample "
-            f"noise{part})")
+            f"noise{part}; consistent with the noise up to "
+            f"{noise.get('at_noise_limit_ratio', float('nan')):.2f} x, test at "
+            f"{rv.NOISE_ALPHA:g})")
 
 
 # =======================================================================================
