@@ -170,6 +170,12 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             if g:                  # channel scales, aligned with the sensor's channels
                 v["g_per_unit"] = np.stack([g.get(ch, np.zeros(3)) for ch in o["channels"]],
                                            axis=1)
+            f = v.pop("_axis_factor", None)
+            if f is not None:      # a per-axis factor on x before the cubic and M (see
+                #                    ChannelScale.to_flight): y = f x, y - n y^3 = f (x - n f^2 x^3)
+                v["M_poly"] = np.asarray(v["M_poly"], float) * f[None, None, :]
+                if "cubic_per_nT2" in v:
+                    v["cubic_per_nT2"] = np.asarray(v["cubic_per_nT2"], float) * f * f
             if m.free_M is None:   # no absolute reference: keep the baseline's mean output
                 _recentre(v, o, tr, m)
             for i in later:        # a step's new offset (the others have no flight form)
