@@ -84,7 +84,7 @@ from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
 from generator.trace.scoring import (  # noqa: F401
-    ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
+    ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
     score_candidate,
     score_round)
@@ -236,6 +236,9 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         m1 = _refine_and_fit(model, S_fit, e, win)
         before, after = model.rms(S_eval), m1.rms(S_eval)
         refusal = _refusal(model, m1, S_fit, S_eval, ref_var, ref_what)
+        if not refusal and not _files_showing(S_fit, model, m1, win)["shown_in"]:
+            refusal = ("no data file shows it on its own (its term is not detectable with a "
+                       "held-out gain beyond chance in any one file)")
         if refusal:             # honesty: never keep an effect the evaluation refutes
             win.significant = False
             win.reasons.append(refusal)
@@ -520,32 +523,37 @@ def carried_by(tr: SensorTrace, st: Step) -> dict:
     coefficients carries everywhere: a thermal lag, say). For a channel effect,
     `channel_in` lists the files that have the channel; the extended coefficients
     describe those (the channel's offset is theirs)."""
-    from scipy import stats as sps
-    zc = float(sps.norm.isf(ALPHA))
     S = tr.S_fit
     m1, m0 = st.model_after, st.model_before
+    out = _files_showing(S, m0, m1, st.score, tr.noise.get("floor_nT"))
+    chans = [ch for ch in st.effect.explained_by() if ch in S.channel_present]
+    if chans:
+        pres = S.channel_present[chans[0]]
+        out["channel_in"] = sorted(set(S.file_names[i] for i in np.unique(S.file_index[pres])))
+    return out
+
+
+def _files_showing(S, m0, m1, score, floor=None) -> dict:
+    """carried_by's per-file figures for the effect m1 adds to m0 (see carried_by)."""
+    from scipy import stats as sps
+    zc = float(sps.norm.isf(ALPHA))
     off = SensorModel(m0.base, free_b=m0.free_b, free_M=m0.free_M, free_K=m0.free_K,
                       groups=m0.groups, Bp0=m0.Bp0, i_rms=m0.i_rms, effects=m0.effects,
                       theta=m1.theta[:m0.P])
     c = m1.field(S) - off.field(S)
-    floor = tr.noise.get("floor_nT") or rv.data_noise_nT(
-        S, m1.residual(m1.theta[None], S)[0]) or 1.0
+    floor = floor or rv.data_noise_nT(S, m1.residual(m1.theta[None], S)[0]) or \
+        rv.part_noise_nT(S.spec) or 1.0
     per = {}
     for fi in np.unique(S.file_index):
         sel = S.file_index == fi
         name = S.file_names[fi]
         cz = float(np.sqrt(np.sum(c[sel] ** 2))) / floor
         per[name] = {"acts": bool(cz > zc), "contribution_z": cz,
-                     "heldout_z": st.score.file_z.get(name)}
+                     "heldout_z": score.file_z.get(name)}
     shown = [f for f, v in per.items() if v["acts"] and (v["heldout_z"] or 0) > zc]
     acts = [f for f, v in per.items() if v["acts"] and f not in shown]
-    out = {"per_file": per, "shown_in": shown, "acts_not_shown_in": acts,
-           "everywhere": len(shown) == len(per)}
-    chans = [ch for ch in st.effect.explained_by() if ch in S.channel_present]
-    if chans:
-        pres = S.channel_present[chans[0]]
-        out["channel_in"] = sorted(set(S.file_names[i] for i in np.unique(S.file_index[pres])))
-    return out
+    return {"per_file": per, "shown_in": shown, "acts_not_shown_in": acts,
+            "everywhere": len(shown) == len(per)}
 
 
 def runner_up_text(st: Step) -> str:
@@ -607,7 +615,8 @@ def protocol_text(evaluated_on) -> dict:
                          f"standard deviation for a useless candidate, from each block's own "
                          f"noise where the candidate acts, one-sided normal, p x m < {ALPHA:g}; "
                          f"(3) held-out RMS reduction >= "
-                         f"{100 * MIN_REL_GAIN:g} %"),
+                         f"{100 * MIN_REL_GAIN:g} % in the blocks where the candidate acts "
+                         f"(those carrying {100 * ACT_SHARE:g} % of its held-out prediction)"),
         "refit": ("after each accepted effect all coefficients (b, M, K, position constants "
                   "and every effect) are refitted jointly by Levenberg-Marquardt"),
         "stop": "when no candidate passes, or after "
