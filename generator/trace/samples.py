@@ -150,10 +150,13 @@ def _ref_rate(time_s, ref, position):
     return out
 
 
-def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None) -> dict:
+def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None,
+                   strict=()) -> dict:
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
-    boom -> body rotation (the rate in a boom sensor's frame is H^T w)."""
+    boom -> body rotation (the rate in a boom sensor's frame is H^T w). strict: channels
+    whose non-finite rows are missing (the samples left out: a user regressor's division
+    by zero); other channels' empty cells are taken as 0."""
     from generator.io.telemetry_csv import preprocess
     notes = notes if notes is not None else []
     H = np.eye(3) if H is None else np.asarray(H, float)
@@ -191,6 +194,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             else:
                 rate = np.zeros((n, 3))
         ch, present = {}, {}
+        missing = np.zeros(n, bool)
         for c in channels:
             v = tel.get(c)
             present[c] = v is not None
@@ -198,8 +202,14 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                 v = np.zeros(n)
             v = np.asarray(v, float)
             if not np.isfinite(v).all():
-                notes.append(f"{tel.path}: channel {c} has {int((~np.isfinite(v)).sum())} "
-                             "empty cells, taken as 0")
+                bad = ~np.isfinite(v)
+                if c in strict:
+                    missing |= bad
+                    notes.append(f"{tel.path}: channel {c} is not finite in "
+                                 f"{int(bad.sum())} rows: those samples are missing")
+                else:
+                    notes.append(f"{tel.path}: channel {c} has {int(bad.sum())} "
+                                 "empty cells, taken as 0")
                 v = np.nan_to_num(v)
             ch[c] = v
         for s in unit.sensors:
@@ -208,7 +218,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             # (its baseline clamps every temperature to dT = 0, so the value is immaterial)
             temp_C = np.asarray(sd.temp_or(T_REF_C), float)
             series = sd.usable & np.isfinite(temp_C)
-            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0)
+            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0) & ~missing
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1

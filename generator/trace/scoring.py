@@ -322,10 +322,12 @@ def equivalent(a: Score, b: Score) -> bool:
 
 def choose(sig: list) -> Score:
     """The significant candidate with the least held-out error, unless an equivalent one
-    (see `equivalent`) has a higher prior (generator.trace.effects.Effect.prior)."""
+    (see `equivalent`) is simpler (fewer parameters, scanned ones counted) or, as simple,
+    has a higher prior (generator.trace.effects.Effect.prior)."""
     best = sig[0]
     for s in sig[1:]:
-        if s.effect.prior > best.effect.prior and equivalent(best, s):
+        simpler = (s.dof, -s.effect.prior) < (best.dof, -best.effect.prior)
+        if simpler and equivalent(best, s):
             best = s
     return best
 

@@ -568,6 +568,8 @@ def runner_up_text(st: Step) -> str:
               "fit data")
     if equivalent(win, ru):
         s += ("; the data cannot tell the two apart (equally good held-out fits): the winner "
+              "has fewer parameters" if win.dof < ru.dof else
+              "; the data cannot tell the two apart (equally good held-out fits): the winner "
               "has the higher prior (a mechanism the part is known to have)" if
               ru.effect.prior < st.effect.prior else
               "; the data cannot tell the two apart (equally good held-out fits)")
@@ -637,6 +639,34 @@ def declared_regressors(unit) -> list:
             for r in (getattr(unit, "extra", None) or {}).get("trace_regressors", [])]
 
 
+def _holdout_not_data(data, holdout):
+    """--holdout may not be a data file (the same path or the same bytes): its figures
+    would be in-sample."""
+    import hashlib
+
+    def key(it):
+        p = getattr(it, "path", it)
+        try:
+            p = Path(p)
+            return p.resolve(), hashlib.sha256(p.read_bytes()).hexdigest()
+        except OSError:
+            return None, None
+    keys = {}
+    for d in data:
+        r, h = key(d)
+        if r is not None:
+            keys[r] = d
+            keys[h] = d
+    for ho in holdout:
+        r, h = key(ho)
+        for k in (r, h):
+            if k is not None and k in keys:
+                raise InputError(getattr(ho, "path", ho),
+                                 f"--holdout: the same {'file' if k == r else 'content'} as "
+                                 f"the data file {getattr(keys[k], 'path', keys[k])}: the "
+                                 "held-out figures would be in-sample")
+
+
 def _read(unit, items):
     from generator.io.orbit import require_field_reference
     from generator.io.telemetry import Telemetry
@@ -664,6 +694,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     if not data:
         raise InputError(unit.path, "trace: no telemetry files given")
     regs = declared_regressors(unit)
+    _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
     hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
     notes = []
@@ -685,6 +716,12 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                              f"the unit has {list(unit.sensor_names)}")
         degrees = {s.name: declared_degree(base, s.name) for s in unit.sensors}
         notes.append("baseline: the supplied coefficient set")
+        for s in unit.sensors:       # the channels the supplied chain reads (as apply)
+            for c in base.spec.opts(s).kernel_channels:
+                for t in tels + hold:
+                    if c not in t.columns:
+                        raise InputError(t.path, f"column '{c}' is missing: the supplied "
+                                                 f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
     channels, partial = candidate_channels(unit, tels, coils)
     if partial:
@@ -695,7 +732,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     roles = [0] * len(tels) + [1] * len(hold)
     H = base.unit_values.get("H_boom_to_body")
     samples = gather_samples(unit, allt, roles, coils=coils, H=H, channels=channels,
-                             notes=notes)
+                             notes=notes, strict={r["name"] for r in regs})
     evaluated_on = "holdout" if hold else "split"
     traces, skipped = {}, {}
     for s in unit.sensors:
