@@ -120,7 +120,8 @@ def quantities(S: SensorSamples, B_cal=None) -> dict:
         w = np.asarray(S.rate_frame_dps, float)
         q["rate magnitude_dps"] = np.linalg.norm(w, axis=1)
         for k, a in enumerate("xyz"):
-            q[f"rate {a}_dps"] = w[:, k]
+            if f"rate_{a}_dps" not in q:      # the rate column itself is a channel already
+                q[f"rate {a}_dps"] = w[:, k]
     if S.coil is not None:
         for k in range(S.coil.shape[1]):
             q[f"coil {k}"] = np.asarray(S.coil[:, k], float)
