@@ -639,6 +639,29 @@ def declared_regressors(unit) -> list:
             for r in (getattr(unit, "extra", None) or {}).get("trace_regressors", [])]
 
 
+def _channel_units_fit(traces, tels):
+    """A channel coefficient the coefficient file cannot hold (nT per unit beyond its
+    plausible magnitude) comes from a channel given in tiny units: bad input, naming the
+    column and a file that carries it."""
+    from generator.flight.coeffs import _BLOCK_LIMITS, GENERIC_LIMIT
+    for n, t in traces.items():
+        m = t.final_model
+        for i, e in enumerate(m.effects):
+            if not isinstance(e, fx.ChannelBias):
+                continue
+            C = np.abs(e.C_nT_per_unit(m.effect_params(i)))
+            block = "C_lag_nT_per_unit" if isinstance(e, fx.LaggedChannelBias) else \
+                "C_nT_per_unit"
+            limit = _BLOCK_LIMITS.get(block, GENERIC_LIMIT)
+            if C.size and float(np.max(C)) > limit:
+                src = next((t_.path for t_ in tels if e.channel in t_.columns), tels[0].path)
+                raise InputError(src, f"column {e.channel}: the field of sensor {n} follows "
+                                      f"it at {float(np.max(C)):.3g} nT per unit, beyond the "
+                                      f"{limit:g} a coefficient file holds: the channel is in "
+                                      "units too small (its spread is "
+                                      f"{e.scale:.3g}); give it in larger units")
+
+
 def _holdout_not_data(data, holdout):
     """--holdout may not be a data file (the same path or the same bytes): its figures
     would be in-sample."""
@@ -775,6 +798,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "in_flight_chain": st.effect.in_chain}
                         for n, tr in traces.items() for st in tr.steps],
             "evaluated_on": evaluated_on}
+    _channel_units_fit(traces, tels)
     cs = to_coefficient_set(base, traces, info)
     sources = {"data": [str(t.path) for t in tels], "holdout": [str(t.path) for t in hold],
                "baseline": "supplied coefficients" if coeffs is not None else
