@@ -540,12 +540,15 @@ def _files_showing(S, m0, m1, score, floor=None) -> dict:
     off = SensorModel(m0.base, free_b=m0.free_b, free_M=m0.free_M, free_K=m0.free_K,
                       groups=m0.groups, Bp0=m0.Bp0, i_rms=m0.i_rms, effects=m0.effects,
                       theta=m1.theta[:m0.P])
-    c = m1.field(S) - off.field(S)
-    floor = floor or rv.data_noise_nT(S, m1.residual(m1.theta[None], S)[0]) or \
-        rv.part_noise_nT(S.spec) or 1.0
+    # the effect's own term in the residual rows (a reference-stage effect, the time
+    # offset, moves the reference, not the calibrated field)
+    r1 = m1.residual(m1.theta[None], S)[0]
+    c = r1 - off.residual(off.theta[None], S)[0]
+    floor = floor or rv.data_noise_nT(S, r1) or rv.part_noise_nT(S.spec) or 1.0
     per = {}
+    row_file = S.file_index[S.row_sample]
     for fi in np.unique(S.file_index):
-        sel = S.file_index == fi
+        sel = row_file == fi
         name = S.file_names[fi]
         cz = float(np.sqrt(np.sum(c[sel] ** 2))) / floor
         per[name] = {"acts": bool(cz > zc), "contribution_z": cz,
