@@ -30,7 +30,8 @@ import numpy as np
 from generator.errors import InputError
 
 MAX_FORMULA_CHARS = 500      # a formula is a short expression; longer is not one
-MAX_DEPTH = 40               # nesting (parentheses, operators): no recursion bombs
+MAX_DEPTH = 40               # nesting: parentheses, unary signs and exponents in a chain
+#                              (each one level; a few Python frames each: no recursion bombs)
 MAX_REGRESSORS = 16
 
 _TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
@@ -88,18 +89,18 @@ def parse(text: str):
 
     def expr(depth):
         expect_operand(depth)
-        a = term(depth + 1)
+        a = term(depth)
         while peek()[1] in ("+", "-") and peek()[0] == "op":
             op = take()[1]
-            a = (op, a, term(depth + 1))
+            a = (op, a, term(depth))
         return a
 
     def term(depth):
         expect_operand(depth)
-        a = unary(depth + 1)
+        a = unary(depth)
         while peek()[1] in ("*", "/") and peek()[0] == "op":
             op = take()[1]
-            a = (op, a, unary(depth + 1))
+            a = (op, a, unary(depth))
         return a
 
     def unary(depth):
@@ -108,11 +109,11 @@ def parse(text: str):
             op = take()[1]
             a = unary(depth + 1)
             return ("neg", a) if op == "-" else a
-        return power(depth + 1)
+        return power(depth)
 
     def power(depth):
         expect_operand(depth)
-        a = atom(depth + 1)
+        a = atom(depth)
         if peek()[0] == "op" and peek()[1] == "**":
             take()
             return ("**", a, unary(depth + 1))
@@ -220,6 +221,11 @@ def read_regressors(path, trace_table, line_of=None) -> list:
             raise InputError(path, f"{key}.name: must be a channel name (letters, digits, "
                                    "_; not starting with a digit; at most 63 characters)",
                              line=line)
+        from generator.io.names import ICD_PREFIXES
+        if name.split("_")[0] in ICD_PREFIXES:
+            raise InputError(path, f"{key}.name: '{name}' is a column name the ICD reserves "
+                                   f"(prefixes {', '.join(sorted(ICD_PREFIXES))}: ref_x_nT, "
+                                   "coil_x_A, rate_x_dps, time_s, ...)", line=line)
         if name in seen:
             raise InputError(path, f"{key}.name: '{name}' is declared twice", line=line)
         seen.add(name)

@@ -170,6 +170,12 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
             if g:                  # channel scales, aligned with the sensor's channels
                 v["g_per_unit"] = np.stack([g.get(ch, np.zeros(3)) for ch in o["channels"]],
                                            axis=1)
+            f = v.pop("_axis_factor", None)
+            if f is not None:      # a per-axis factor on x before the cubic and M (see
+                #                    ChannelScale.to_flight): y = f x, y - n y^3 = f (x - n f^2 x^3)
+                v["M_poly"] = np.asarray(v["M_poly"], float) * f[None, None, :]
+                if "cubic_per_nT2" in v:
+                    v["cubic_per_nT2"] = np.asarray(v["cubic_per_nT2"], float) * f * f
             if m.free_M is None:   # no absolute reference: keep the baseline's mean output
                 _recentre(v, o, tr, m)
             for i in later:        # a step's new offset (the others have no flight form)
@@ -200,8 +206,11 @@ def to_coefficient_set(base: CoefficientSet, traces: dict, info=None) -> Coeffic
     unc = {n: ({} if (traces.get(n) and traces[n].steps) else u)
            for n, u in base.uncertainty.items()}
     cs = CoefficientSet(spec, sensors, dict(base.unit_values), unc, fit_info)
-    CoefficientSet.from_json_dict(json.loads(json.dumps(cs.to_json_dict(),
-                                                        default=_json_default)))
+    try:       # the set the trace writes passes the checks of any coefficient file
+        CoefficientSet.from_json_dict(json.loads(json.dumps(cs.to_json_dict(),
+                                                            default=_json_default)))
+    except InputError as e:    # not the user's input: an inconsistency of the trace
+        raise RuntimeError(f"the traced coefficients fail their own check: {e}") from e
     return cs
 
 

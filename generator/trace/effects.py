@@ -101,6 +101,10 @@ class Effect:
         """The scanned value that a fit with parameters p amounts to (see ThermalLag)."""
         return self.hyper
 
+    def time_constant_s(self, p):
+        """The effect's time constant at parameters p (a lag), None if it has none."""
+        return None
+
     # ---- hooks (override the one of `stage`) -------------------------------------------
     def temperature(self, p, S, T):
         return T
@@ -316,10 +320,17 @@ class ChannelBias(Effect):
         return out
 
     def to_flight(self, p, values, options, model):
-        options.setdefault("channels", []).append(self.channel)
+        chans = options.setdefault("channels", [])
         C = values.get("C_nT_per_unit")
         col = self.C_nT_per_unit(p).reshape(3, 1)
-        values["C_nT_per_unit"] = col if C is None else np.hstack([C, col])
+        if self.channel in chans:   # already there (a channel scale wrote a zero column):
+            j = chans.index(self.channel)          # one channel, its C and its g column
+            C = np.array(C, float)
+            C[:, j:j + 1] = C[:, j:j + 1] + col
+            values["C_nT_per_unit"] = C
+        else:
+            chans.append(self.channel)
+            values["C_nT_per_unit"] = col if C is None else np.hstack([C, col])
         if self.partial:   # the files that carry the channel are the operating condition
             values["b_poly_nT"][0] = values["b_poly_nT"][0] + np.asarray(p, float)[3:6]
 
@@ -395,6 +406,9 @@ class ThermalLag(Effect):
         return float(self.hyper * math.exp(lp))
 
     def hyper_after_fit(self, p):
+        return self.tau_s(p)
+
+    def time_constant_s(self, p):
         return self.tau_s(p)
 
     def temperature(self, p, S, T):
@@ -876,6 +890,9 @@ class LaggedChannelBias(ChannelBias):
     def explained_by(self):
         return [f"{self.channel} through a first-order lag"]
 
+    def time_constant_s(self, p):
+        return float(self.hyper) if self.hyper is not None else None
+
     @classmethod
     def candidates(cls, ctx):
         have = {e.channel for e in ctx.effects if isinstance(e, ChannelBias)}
@@ -976,16 +993,24 @@ class ChannelScale(Effect):
     #                 field held in one direction while the channel moves), the bias, the
     #                 commoner mechanism, is named
 
-    def __init__(self, channel, scale):
+    def __init__(self, channel, scale, present=None):
         super().__init__()
         self.channel = channel
         self.scale = float(scale)      # the channel's spread
+        # a channel that only some files carry (0 elsewhere): a scale offset h of its own
+        # for the files that carry it, so that only its variation counts (as ChannelBias)
+        self.partial = present is not None
+        self.n_params = 6 if self.partial else 3
 
     def key(self):
         return f"{self.name}:{self.channel}"
 
     def explained_by(self):
         return [f"{self.channel} x reading"]
+
+    def scale_offset(self, p):
+        """h (3,): the files that carry the channel read (1 - h - g ch) of x (partial)."""
+        return np.asarray(p, float)[3:6] / FIELD_SCALE_nT if self.partial else np.zeros(3)
 
     @classmethod
     def candidates(cls, ctx):
@@ -1002,32 +1027,45 @@ class ChannelScale(Effect):
             if name in have:
                 continue
             v = np.asarray(v, float)
-            sd = float(np.std(v)) if len(v) else 0.0
-            if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(v)))):
+            present = S.channel_present.get(name)
+            partial = present is not None and not present.all()
+            where = present if partial else np.ones(len(v), bool)
+            vv = v[where]
+            sd = float(np.std(vv)) if len(vv) else 0.0
+            if not np.isfinite(sd) or sd <= 1e-12 * max(1.0, float(np.max(np.abs(vv)))):
                 continue
             # a scale is told from a bias in the same channel only where the channel
             # moves while the field takes several directions (as the cubic, 6); else
             # g ch x is a bias, plus a contraction of the reading's own noise
-            vals, cnt = np.unique(v[absolute], return_counts=True)
-            moved = absolute & (v != vals[np.argmax(cnt)]) if len(vals) else absolute
+            vals, cnt = np.unique(v[absolute & where], return_counts=True)
+            moved = absolute & where & (v != vals[np.argmax(cnt)]) if len(vals) else \
+                absolute & where
             if distinct_rows(u[moved], 0.1, at_most=6) < 6:
                 why = (f"{name}: the field takes fewer than 6 directions while it moves: a "
                        "scale is not separable from a bias")
                 continue
-            out.append(cls(name, sd))
+            out.append(cls(name, sd, present if partial else None))
         return out, ("" if out else why)
 
     def g_per_unit(self, p):
-        return np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)
+        return np.asarray(p, float)[:3] / (FIELD_SCALE_nT * self.scale)
 
     def transform(self, p, S, x, st):
-        g = np.asarray(p, float) / (FIELD_SCALE_nT * self.scale)          # (batch, 3)
+        p = np.asarray(p, float)
+        g = p[:, :3] / (FIELD_SCALE_nT * self.scale)                        # (batch, 3)
         ch = S.channels[self.channel]
-        return x - g[:, None, :] * ch[None, :, None] * x
+        f = g[:, None, :] * ch[None, :, None]
+        if self.partial:
+            has = S.channel_present[self.channel].astype(float)
+            f = f + (p[:, 3:6] / FIELD_SCALE_nT)[:, None, :] * has[None, :, None]
+        return x - f * x
 
     def describe(self, p, model=None):
-        return {"g_per_unit": self.g_per_unit(p).tolist(), "channel_std": self.scale,
-                "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
+        out = {"g_per_unit": self.g_per_unit(p).tolist(), "channel_std": self.scale,
+               "ppm_per_channel_std": (1e6 * self.g_per_unit(p) * self.scale).tolist()}
+        if self.partial:
+            out["scale_offset_where_present"] = self.scale_offset(p).tolist()
+        return out
 
     def to_flight(self, p, values, options, model):
         """The channel among the sensor's channels (a zero C column if new), its g by
@@ -1040,7 +1078,13 @@ class ChannelScale(Effect):
             values["C_nT_per_unit"] = np.zeros((3, 1)) if C is None else \
                 np.hstack([C, np.zeros((3, 1))])
         options["channel_scale"] = True
-        values.setdefault("_g_by_channel", {})[self.channel] = self.g_per_unit(p)
+        # partial: the files that carry the channel read (1 - h - g ch) x = (1 - h)
+        # (1 - g / (1 - h) ch) x exactly; the factor (1 - h) per axis is folded into M's
+        # columns and the cubic once every effect is written (generator.trace.coefficients)
+        h = self.scale_offset(p)
+        values.setdefault("_g_by_channel", {})[self.channel] = self.g_per_unit(p) / (1 - h)
+        if self.partial:
+            values["_axis_factor"] = values.get("_axis_factor", np.ones(3)) * (1 - h)
 
     @classmethod
     def from_flight(cls, sv, options, S, info):

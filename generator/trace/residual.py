@@ -7,8 +7,12 @@ reported beside the part's noise (the unit's `noise_nT`, divided by sqrt(2) for 
 SET/RESET part, which averages two readings). The floor used is the data's where it can
 be measured (it includes the reference's noise), else the part's.
 
-A residual "well above the noise" is one whose RMS exceeds UNEXPLAINED_RATIO x the floor:
-then at least 1 - 1 / 2^2 = 3/4 of its variance is not sample-to-sample noise. Such a
+A residual is "at the noise" when its mean square is consistent with the floor's square:
+under white noise at the floor, mean(r^2) / floor^2 follows F(n, d) (n the residual rows;
+d the degrees of freedom of the floor's own estimate: infinite for the part's stated
+noise, 0.37 x half the differences for the data's, the efficiency of the MAD with each
+sample shared by two differences), and the residual is at the noise unless the ratio
+exceeds the upper NOISE_ALPHA quantile of F. Otherwise it is "above the noise". Such a
 residual, with no catalogue effect left that explains it, is listed as `unexplained`
 with what it follows most: for each quantity (time, temperature, the channels, the field
 direction, the body rates, the coil currents) the correlation ratio eta^2, the share of
@@ -23,9 +27,11 @@ import math
 
 import numpy as np
 
+from generator.trace.crossval import _lag1
 from generator.trace.samples import SensorSamples
 
-UNEXPLAINED_RATIO = 2.0   # residual RMS / noise floor above which the rest is reported
+NOISE_ALPHA = 1e-3        # upper-tail probability of the at-the-noise test (module doc)
+MAD_EFFICIENCY = 0.37     # asymptotic efficiency of the MAD against the standard deviation
 N_BINS = 10               # quantile bins of a quantity (correlation ratio)
 MAD_TO_SIGMA = 1.4826     # MAD of a normal variable -> its standard deviation
 
@@ -44,11 +50,13 @@ def per_sample(S: SensorSamples, r) -> np.ndarray:
     return out
 
 
-def data_noise_nT(S: SensorSamples, r) -> float | None:
+def data_noise_nT(S: SensorSamples, r, n_diff=None) -> float | None:
     """The residual's own sample-to-sample noise (RMS over rows), from robust first
-    differences along time within each file; None with too few samples."""
+    differences along time within each file; None with too few samples. n_diff: a list
+    that receives the number of differences used."""
     rs, ax = S.row_sample, S.row_axis
     var, cnt = 0.0, 0
+    nd = 0
     for a in range(4):
         sel = np.nonzero(ax == a)[0]
         if len(sel) < 3:
@@ -62,6 +70,9 @@ def data_noise_nT(S: SensorSamples, r) -> float | None:
         s = MAD_TO_SIGMA * mad / math.sqrt(2.0)
         var += s * s * len(sel)
         cnt += len(sel)
+        nd += len(d)
+    if n_diff is not None:
+        n_diff.append(nd)
     return math.sqrt(var / cnt) if cnt else None
 
 
@@ -73,16 +84,25 @@ def part_noise_nT(spec) -> float | None:
 
 
 def noise_floor(S: SensorSamples, r) -> dict:
-    data = data_noise_nT(S, r)
+    from scipy import stats as sps
+    nd = []
+    data = data_noise_nT(S, r, nd)
     part = part_noise_nT(S.spec)
     floor = data if data is not None else part
+    if magnitude_only(S) and part and (floor is None or floor < part):
+        floor = part    # magnitudes alone can be contracted below the noise: not a floor
     rms = float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
     out = {"residual_rms_nT": rms, "data_noise_nT": data, "part_noise_nT": part,
-           "floor_nT": floor, "source": "data" if data is not None else "part"}
+           "floor_nT": floor, "source": "data" if floor == data else "part"}
     out["ratio"] = rms / floor if floor else None
     out["rms_above_noise_nT"] = math.sqrt(max(rms * rms - floor * floor, 0.0)) if floor \
         else None
-    out["at_noise"] = bool(floor) and rms <= UNEXPLAINED_RATIO * floor
+    n = int(r.size)
+    d = MAD_EFFICIENCY * nd[0] / 2.0 if out["source"] == "data" and nd else math.inf
+    limit = (float(sps.chi2.isf(NOISE_ALPHA, n)) / n if math.isinf(d) else
+             float(sps.f.isf(NOISE_ALPHA, n, max(d, 1.0)))) if n else math.inf
+    out["at_noise_limit_ratio"] = math.sqrt(limit)     # the largest ratio at the noise
+    out["at_noise"] = bool(floor) and n > 0 and (rms / floor) ** 2 <= limit
     return out
 
 
@@ -100,7 +120,8 @@ def quantities(S: SensorSamples, B_cal=None) -> dict:
         w = np.asarray(S.rate_frame_dps, float)
         q["rate magnitude_dps"] = np.linalg.norm(w, axis=1)
         for k, a in enumerate("xyz"):
-            q[f"rate {a}_dps"] = w[:, k]
+            if f"rate_{a}_dps" not in q:      # the rate column itself is a channel already
+                q[f"rate {a}_dps"] = w[:, k]
     if S.coil is not None:
         for k in range(S.coil.shape[1]):
             q[f"coil {k}"] = np.asarray(S.coil[:, k], float)
@@ -187,3 +208,41 @@ def shrinks(B_new, S: SensorSamples, ref_var: float) -> bool:
     if len(sel) < 2 or ref_var <= 0:
         return False
     return field_variation_nT(np.asarray(B_new)[sel]) < (1.0 - MAX_SHRINK) * ref_var
+
+
+# ---- overfitting: a magnitude-only residual below the part's noise -----------------------
+BELOW_NOISE_ALPHA = 1e-3  # lower-tail probability of chi^2 below which a residual is
+#   too small to be noise: with only |B| known, a calibration contracted toward a constant
+#   vector shrinks the residual below the part's own noise (the field the part reads
+#   carries that noise on every axis, so |B_cal| - |B| cannot be quieter than it).
+
+
+def magnitude_only(S: SensorSamples) -> bool:
+    iv, im, ip = S.idx
+    return len(im) > 0 and not len(iv) and not len(ip)
+
+
+def below_part_noise(S: SensorSamples, r, n_params: int = 0) -> str:
+    """Why the magnitude-only residual r is statistically below the part's stated noise
+    ("" if it is not, if the rows are not magnitude-only, or the noise is not stated):
+    n_eff mean(r^2) / sigma^2 under the BELOW_NOISE_ALPHA quantile of chi^2 with n_eff - n_params
+    degrees of freedom, n_eff the rows deflated by the residual's lag-1 autocorrelation
+    (rho clipped to [0, 0.99]), sigma the part's noise (`part_noise_nT`)."""
+    from scipy import stats as sps
+    sigma = part_noise_nT(S.spec)
+    if not magnitude_only(S) or not sigma or r.size < 3:
+        return ""
+    rho = min(max(_lag1(r, S), 0.0), 0.99)
+    n_eff = r.size * (1 - rho) / (1 + rho)
+    dof = n_eff - n_params
+    if dof < 1:
+        return ""
+    q = n_eff * float(np.mean(r * r)) / (sigma * sigma)
+    lo = float(sps.chi2.ppf(BELOW_NOISE_ALPHA, dof))
+    if q >= lo:
+        return ""
+    rms = float(np.sqrt(np.mean(r * r)))
+    return (f"overfitting: with magnitudes only, the residual ({rms:.1f} nT rms) is below the "
+            f"part's stated noise ({sigma:.1f} nT; chi^2 {q:.0f} < {lo:.0f}, its "
+            f"{BELOW_NOISE_ALPHA:g} quantile for {dof:.0f} effective rows): the calibration "
+            "is contracting toward a constant vector")

@@ -115,13 +115,24 @@ def candidate_channels(unit, tels, coils=()) -> tuple:
     Returns (all names in first-seen order, the names only some files carry)."""
     prefixes = tuple(f"{s.name}_" for s in unit.sensors) + ("ref_",)
     skip = {"time_s", "position", *coils}
-    per = [[c for c in t.columns if c not in skip and not c.startswith(prefixes)]
+    # a sensor without temperature: the other sensors' temperature columns (a board it
+    # shares) are its candidates (gather_samples gives them to such sensors only)
+    temps = board_temperatures(unit)
+    per = [[c for c in t.columns if c not in skip and (c in temps or not c.startswith(prefixes))]
            for t in tels]
     if not per:
         return [], []
     names = list(dict.fromkeys(c for cols in per for c in cols))
     partial = [c for c in names if not all(c in cols for cols in per)]
     return names, partial
+
+
+def board_temperatures(unit) -> set:
+    """The temperature columns of the unit's sensors that report one, where another
+    sensor reports none (those become its candidate channels); else empty."""
+    if all(s.temperature for s in unit.sensors):
+        return set()
+    return {s.temp_column for s in unit.sensors if s.temperature}
 
 
 def _ref_rate(time_s, ref, position):
@@ -150,10 +161,13 @@ def _ref_rate(time_s, ref, position):
     return out
 
 
-def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None) -> dict:
+def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None,
+                   strict=()) -> dict:
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
-    boom -> body rotation (the rate in a boom sensor's frame is H^T w)."""
+    boom -> body rotation (the rate in a boom sensor's frame is H^T w). strict: channels
+    whose non-finite rows are missing (the samples left out: a user regressor's division
+    by zero); other channels' empty cells are taken as 0."""
     from generator.io.telemetry_csv import preprocess
     notes = notes if notes is not None else []
     H = np.eye(3) if H is None else np.asarray(H, float)
@@ -191,6 +205,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             else:
                 rate = np.zeros((n, 3))
         ch, present = {}, {}
+        missing = np.zeros(n, bool)
         for c in channels:
             v = tel.get(c)
             present[c] = v is not None
@@ -198,22 +213,31 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                 v = np.zeros(n)
             v = np.asarray(v, float)
             if not np.isfinite(v).all():
-                notes.append(f"{tel.path}: channel {c} has {int((~np.isfinite(v)).sum())} "
-                             "empty cells, taken as 0")
+                bad = ~np.isfinite(v)
+                if c in strict:
+                    missing |= bad
+                    notes.append(f"{tel.path}: channel {c} is not finite in "
+                                 f"{int(bad.sum())} rows: those samples are missing")
+                else:
+                    notes.append(f"{tel.path}: channel {c} has {int(bad.sum())} "
+                                 "empty cells, taken as 0")
                 v = np.nan_to_num(v)
             ch[c] = v
+        temps = board_temperatures(unit)
         for s in unit.sensors:
             sd = pre[s.name]
+            # a sensor with its own temperature does not take the boards' as channels
+            chs = {c: v for c, v in ch.items() if not (s.temperature and c in temps)}
             # a sensor without temperature (temperature = false): the constant stand-in
             # (its baseline clamps every temperature to dT = 0, so the value is immaterial)
             temp_C = np.asarray(sd.temp_or(T_REF_C), float)
             series = sd.usable & np.isfinite(temp_C)
-            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0)
+            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0) & ~missing
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
             files[s.name].append(FileSeries(names[fi], t[series], temp_C[series],
-                                            {c: v[series] for c, v in ch.items()}))
+                                            {c: v[series] for c, v in chs.items()}))
             i = np.nonzero(ok)[0]
             w = None
             if rate is not None:
@@ -225,8 +249,8 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                     np.nan_to_num(ref[i]), axis=1), norm[i]),
                 group=np.where(kind[i] == POS, fi * 1_000_000 + pos[i], -1).astype(np.int64),
                 ref_rate=ref_rate[i], coil=None if coil is None else coil[i], rate=w,
-                channels={c: v[i] for c, v in ch.items()}, role=np.full(len(i), role),
-                present={c: np.full(len(i), present[c]) for c in ch}))
+                channels={c: v[i] for c, v in chs.items()}, role=np.full(len(i), role),
+                present={c: np.full(len(i), present[c]) for c in chs}))
         order0 += n
     out = {}
     for s in unit.sensors:
@@ -239,9 +263,9 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             s, cat("time_s"), cat("file_index"), cat("file_row"), cat("order"), cat("x"),
             cat("temp_C"), cat("kind"), cat("ref"), cat("norm"), cat("group"),
             cat("ref_rate"), cat("coil"), cat("rate"),
-            {c: np.concatenate([p["channels"][c] for p in parts]) for c in channels},
+            {c: np.concatenate([p["channels"][c] for p in parts]) for c in parts[0]["channels"]},
             files[s.name], names, cat("role"),
-            {c: np.concatenate([p["present"][c] for p in parts]) for c in channels})
+            {c: np.concatenate([p["present"][c] for p in parts]) for c in parts[0]["present"]})
     return out
 
 

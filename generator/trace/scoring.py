@@ -22,7 +22,11 @@ Significance rule (all three; m = candidates in the round, Bonferroni; ALPHA = 1
      once) counts in full where it acts, and nothing is diluted by the blocks where its
      regressor is quiet (there u = 0). This replaced a t-test over the blocks' gains, which
      treats 49 quiet blocks as evidence against an effect seen in one;
-  3. large enough to matter: the held-out RMS falls by at least MIN_REL_GAIN (1 %).
+  3. large enough to matter: the held-out RMS falls by at least MIN_REL_GAIN (1 %) in
+     the blocks where the candidate acts (those that carry ACT_SHARE of its held-out
+     prediction sum(u^2), largest first): an effect confined to a few blocks (a switch on
+     3 % of the samples) is not diluted by the blocks where it is quiet, and an effect
+     spread over all blocks is judged on all of them as before.
 """
 
 from __future__ import annotations
@@ -41,6 +45,8 @@ from generator.trace.samples import SensorSamples
 ALPHA = 1e-3              # family-wise level per sensor and round (Bonferroni over candidates)
 MIN_REL_GAIN = 0.01       # least held-out RMS reduction of an accepted effect
 N_FOLDS = 5               # cross-validation folds (blocks dealt in turn)
+ACT_SHARE = 0.9           # rule 3: the blocks carrying this share of sum(u^2) (largest
+#                           first) are where a candidate acts
 
 
 @dataclass
@@ -61,6 +67,8 @@ class Score:
     lr_fit: float             # the same on the fit data (information)
     file_z: dict = field(default_factory=dict)  # file name -> held-out z on its rows
     m: int = 1
+    act_gain: float | None = None    # rule 3: held-out RMS gain in the blocks where it acts
+    act_blocks: int | None = None
     significant: bool = False
     reasons: list = field(default_factory=list)
     explained: np.ndarray | None = None      # r0 - full-data residual (rows of the fit set)
@@ -90,8 +98,11 @@ class Score:
         if not self.p_z * m < alpha:
             self.reasons.append(f"held-out gain within the noise of the blocks where it acts "
                                 f"(z = {self.z:.2f}, p x {m} = {min(self.p_z * m, 1):.2g})")
-        if not self.rel_rms_gain >= min_gain:
-            self.reasons.append(f"held-out RMS gain {100 * self.rel_rms_gain:.2f} % "
+        gain = self.rel_rms_gain if self.act_gain is None else self.act_gain
+        if not gain >= min_gain:
+            where = "" if self.act_blocks is None else \
+                f" in the {self.act_blocks} blocks where it acts"
+            self.reasons.append(f"held-out RMS gain {100 * gain:.2f} %{where} "
                                 f"< {100 * min_gain:g} %")
         self.significant = not self.reasons
         return self.significant
@@ -105,6 +116,8 @@ class Score:
                 "fit_likelihood_ratio": _f(self.lr_fit),
                 "n_eff": _f(self.n_eff), "candidates_in_round": self.m,
                 "heldout_z_per_file": {k: _f(v) for k, v in self.file_z.items()},
+                "cv_rms_gain_where_it_acts_pct": None if self.act_gain is None else
+                _f(100 * self.act_gain), "blocks_where_it_acts": self.act_blocks,
                 "significant": self.significant, "why_not": list(self.reasons)}
 
 
@@ -201,8 +214,24 @@ def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Sco
     lr = n_eff * math.log(sse0_cv / sse1_cv) if sse1_cv > 0 and sse0_cv > 0 else 0.0
     dof = e.n_dof
     p_lr = float(sps.chi2.sf(max(lr, 0.0), dof))
+    act_gain, act_blocks = _gain_where_it_acts(test0 - test1, rb, nb, base_block, block1)
     return Score(e, h, dof, sse0_cv, sse1_cv, gain, z, p_z, sse0_full, sse1_full, n_eff, lr,
-                 p_lr, lr_fit, file_z=file_z, explained=r0 - res_full)
+                 p_lr, lr_fit, file_z=file_z, explained=r0 - res_full, act_gain=act_gain,
+                 act_blocks=act_blocks)
+
+
+def _gain_where_it_acts(u, row_block, n_blocks, sse0_block, sse1_block):
+    """(held-out RMS gain, block count) over the blocks that carry ACT_SHARE of the
+    candidate's held-out prediction sum(u^2), largest first (rule 3)."""
+    uu = np.bincount(row_block, weights=u * u, minlength=n_blocks)
+    tot = float(uu.sum())
+    if tot <= 0:
+        return 0.0, 0
+    o = np.argsort(-uu)
+    k = int(np.searchsorted(np.cumsum(uu[o]), ACT_SHARE * tot)) + 1
+    act = o[:k]
+    s0, s1 = float(sse0_block[act].sum()), float(sse1_block[act].sum())
+    return (1.0 - math.sqrt(s1 / s0) if s0 > 0 else 0.0), k
 
 
 def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:
@@ -293,10 +322,12 @@ def equivalent(a: Score, b: Score) -> bool:
 
 def choose(sig: list) -> Score:
     """The significant candidate with the least held-out error, unless an equivalent one
-    (see `equivalent`) has a higher prior (generator.trace.effects.Effect.prior)."""
+    (see `equivalent`) is simpler (fewer parameters, scanned ones counted) or, as simple,
+    has a higher prior (generator.trace.effects.Effect.prior)."""
     best = sig[0]
     for s in sig[1:]:
-        if s.effect.prior > best.effect.prior and equivalent(best, s):
+        simpler = (s.dof, -s.effect.prior) < (best.dof, -best.effect.prior)
+        if simpler and equivalent(best, s):
             best = s
     return best
 

@@ -84,7 +84,7 @@ from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
 from generator.trace.scoring import (  # noqa: F401
-    ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
+    ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
     score_candidate,
     score_round)
@@ -199,8 +199,11 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
     ref_var, ref_what = rv.reference_variation_nT(S_fit, model0.field(S_fit))
     rejected = []
     model = model0.copy().fit(S_fit)
-    if rv.shrinks(model.field(S_fit), S_fit, ref_var):
-        rejected.append(("refit of the baseline", _shrink_text(model, S_fit, ref_var, ref_what)))
+    why_bad = (_shrink_text(model, S_fit, ref_var, ref_what)
+               if rv.shrinks(model.field(S_fit), S_fit, ref_var) else
+               _bad_gain(model) or _overfit_text(model0, model, S_fit, S_eval))
+    if why_bad:
+        rejected.append(("refit of the baseline", why_bad))
         say(f"{name}: the refit of the baseline was rejected: {rejected[-1][1]}")
         model = model0.copy()
     base_rms = model.rms(S_eval)
@@ -233,6 +236,9 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         m1 = _refine_and_fit(model, S_fit, e, win)
         before, after = model.rms(S_eval), m1.rms(S_eval)
         refusal = _refusal(model, m1, S_fit, S_eval, ref_var, ref_what)
+        if not refusal and not _files_showing(S_fit, model, m1, win)["shown_in"]:
+            refusal = ("no data file shows it on its own (its term is not detectable with a "
+                       "held-out gain beyond chance in any one file)")
         if refusal:             # honesty: never keep an effect the evaluation refutes
             win.significant = False
             win.reasons.append(refusal)
@@ -292,17 +298,71 @@ def _refusal(model, m1, S_fit, S_eval, ref_var, ref_what) -> str:
     generator.trace.scoring, one block per evaluation file, AR(1) inflation)."""
     if rv.shrinks(m1.field(S_fit), S_fit, ref_var):
         return _shrink_text(m1, S_fit, ref_var, ref_what)
+    why = _bad_gain(m1) or _overfit_text(model, m1, S_fit, S_eval) or _unidentifiable_lag(m1, S_fit)
+    if why:
+        return why
     r0 = model.residual(model.theta[None], S_eval)[0]
     r1 = m1.residual(m1.theta[None], S_eval)[0]
-    if r1 @ r1 <= r0 @ r0:
+    mag_only = rv.magnitude_only(S_eval)
+    if r1 @ r1 <= r0 @ r0 and not mag_only:
         return ""
     rho = min(max(_lag1(r1, S_eval), 0.0), 0.99)
     fb = S_eval.file_index[S_eval.row_sample]
     z = heldout_z(r0, r1, np.searchsorted(np.unique(fb), fb), len(np.unique(fb)),
                   (1 + rho) / (1 - rho))
+    if mag_only and z < Z_WORSE:
+        # |B| alone: a term that moves the field's direction (a drift, a cubic) lowers the
+        # cross-validated error of the fit rows by contracting along the unseen
+        # directions; the evaluation rows must confirm the gain beyond chance
+        return (f"with magnitudes only, the evaluation rows do not confirm it: RMS "
+                f"{_rms(r0):.2f} -> {_rms(r1):.2f} nT (z = {z:.1f} < {Z_WORSE})")
     if z < -Z_WORSE:
         return (f"the refit raised the evaluation RMS from {_rms(r0):.2f} to {_rms(r1):.2f} nT "
                 f"(z = {z:.1f}, beyond chance)")
+    return ""
+
+
+def _bad_gain(m) -> str:
+    """A reflected or collapsed calibration (the check the coefficient set makes on
+    M(t_ref), generator.flight.coeffs): a degenerate solution, never kept."""
+    from generator.flight.coeffs import GAIN_LIMIT
+    M0 = np.asarray(m.values()["M_poly"])[0]
+    sv = np.linalg.svd(M0, compute_uv=False)
+    det = float(np.linalg.det(M0))
+    if det > 0 and sv[-1] >= 1.0 / GAIN_LIMIT and sv[0] <= GAIN_LIMIT:
+        return ""
+    return (f"a degenerate solution: M(t_ref) would have det {det:.3g} and singular values "
+            f"{sv[-1]:.3g}..{sv[0]:.3g} (a reflected or collapsed calibration; allowed: det > 0, "
+            f"gains {1 / GAIN_LIMIT:g}..{GAIN_LIMIT:g})")
+
+
+def _overfit_text(model, m1, S_fit, S_eval) -> str:
+    """Magnitude-only rows: m1's residual (held out, or on the fit data with its parameter
+    count) statistically below the part's noise where model's was not (residual.
+    below_part_noise): a contraction, not a better calibration."""
+    for S, n_par in ((S_eval, 0), (S_fit, m1.P)):
+        why = rv.below_part_noise(S, m1.residual(m1.theta[None], S)[0], n_par)
+        if why and not rv.below_part_noise(S, model.residual(model.theta[None], S)[0],
+                                            model.P if n_par else 0):
+            return why + (" (held-out rows)" if S is S_eval else " (fit rows)")
+    return ""
+
+
+def _unidentifiable_lag(m1, S) -> str:
+    """A time constant the data cannot resolve: below half the shortest sample period
+    (the filter has settled before the next sample: it is no lag) or beyond twice the
+    longest file (the filtered channel is a constant or a ramp there)."""
+    dts = [float(np.median(np.diff(f.time_s))) for f in S.files if len(f.time_s) > 1]
+    spans = [float(np.ptp(f.time_s)) for f in S.files if len(f.time_s) > 1]
+    if not dts:
+        return ""
+    lo, hi = 0.5 * min(dts), 2.0 * max(spans)
+    for i, e in enumerate(m1.effects):
+        tau = e.time_constant_s(m1.effect_params(i))
+        if tau is not None and not lo <= tau <= hi:
+            return (f"{e.label()}: time constant {tau:.3g} s is not identifiable from these "
+                    f"data (outside [{lo:.3g}, {hi:.3g}] s: half the shortest sample period "
+                    "to twice the longest file)")
     return ""
 
 
@@ -324,7 +384,9 @@ def _noise_text(noise) -> str:
             else "")
     return (f"; the residual is {noise['residual_rms_nT']:.2f} nT, {noise['ratio']:.2f} x the "
             f"noise floor {noise['floor_nT']:.2f} nT ({noise['source']}'s sample-to-sample "
-            f"noise{part})")
+            f"noise{part}; consistent with the noise up to "
+            f"{noise.get('at_noise_limit_ratio', float('nan')):.2f} x, test at "
+            f"{rv.NOISE_ALPHA:g})")
 
 
 # =======================================================================================
@@ -461,32 +523,40 @@ def carried_by(tr: SensorTrace, st: Step) -> dict:
     coefficients carries everywhere: a thermal lag, say). For a channel effect,
     `channel_in` lists the files that have the channel; the extended coefficients
     describe those (the channel's offset is theirs)."""
-    from scipy import stats as sps
-    zc = float(sps.norm.isf(ALPHA))
     S = tr.S_fit
     m1, m0 = st.model_after, st.model_before
-    off = SensorModel(m0.base, free_b=m0.free_b, free_M=m0.free_M, free_K=m0.free_K,
-                      groups=m0.groups, Bp0=m0.Bp0, i_rms=m0.i_rms, effects=m0.effects,
-                      theta=m1.theta[:m0.P])
-    c = m1.field(S) - off.field(S)
-    floor = tr.noise.get("floor_nT") or rv.data_noise_nT(
-        S, m1.residual(m1.theta[None], S)[0]) or 1.0
-    per = {}
-    for fi in np.unique(S.file_index):
-        sel = S.file_index == fi
-        name = S.file_names[fi]
-        cz = float(np.sqrt(np.sum(c[sel] ** 2))) / floor
-        per[name] = {"acts": bool(cz > zc), "contribution_z": cz,
-                     "heldout_z": st.score.file_z.get(name)}
-    shown = [f for f, v in per.items() if v["acts"] and (v["heldout_z"] or 0) > zc]
-    acts = [f for f, v in per.items() if v["acts"] and f not in shown]
-    out = {"per_file": per, "shown_in": shown, "acts_not_shown_in": acts,
-           "everywhere": len(shown) == len(per)}
+    out = _files_showing(S, m0, m1, st.score, tr.noise.get("floor_nT"))
     chans = [ch for ch in st.effect.explained_by() if ch in S.channel_present]
     if chans:
         pres = S.channel_present[chans[0]]
         out["channel_in"] = sorted(set(S.file_names[i] for i in np.unique(S.file_index[pres])))
     return out
+
+
+def _files_showing(S, m0, m1, score, floor=None) -> dict:
+    """carried_by's per-file figures for the effect m1 adds to m0 (see carried_by)."""
+    from scipy import stats as sps
+    zc = float(sps.norm.isf(ALPHA))
+    off = SensorModel(m0.base, free_b=m0.free_b, free_M=m0.free_M, free_K=m0.free_K,
+                      groups=m0.groups, Bp0=m0.Bp0, i_rms=m0.i_rms, effects=m0.effects,
+                      theta=m1.theta[:m0.P])
+    # the effect's own term in the residual rows (a reference-stage effect, the time
+    # offset, moves the reference, not the calibrated field)
+    r1 = m1.residual(m1.theta[None], S)[0]
+    c = r1 - off.residual(off.theta[None], S)[0]
+    floor = floor or rv.data_noise_nT(S, r1) or rv.part_noise_nT(S.spec) or 1.0
+    per = {}
+    row_file = S.file_index[S.row_sample]
+    for fi in np.unique(S.file_index):
+        sel = row_file == fi
+        name = S.file_names[fi]
+        cz = float(np.sqrt(np.sum(c[sel] ** 2))) / floor
+        per[name] = {"acts": bool(cz > zc), "contribution_z": cz,
+                     "heldout_z": score.file_z.get(name)}
+    shown = [f for f, v in per.items() if v["acts"] and (v["heldout_z"] or 0) > zc]
+    acts = [f for f, v in per.items() if v["acts"] and f not in shown]
+    return {"per_file": per, "shown_in": shown, "acts_not_shown_in": acts,
+            "everywhere": len(shown) == len(per)}
 
 
 def runner_up_text(st: Step) -> str:
@@ -501,6 +571,8 @@ def runner_up_text(st: Step) -> str:
               "fit data")
     if equivalent(win, ru):
         s += ("; the data cannot tell the two apart (equally good held-out fits): the winner "
+              "has fewer parameters" if win.dof < ru.dof else
+              "; the data cannot tell the two apart (equally good held-out fits): the winner "
               "has the higher prior (a mechanism the part is known to have)" if
               ru.effect.prior < st.effect.prior else
               "; the data cannot tell the two apart (equally good held-out fits)")
@@ -548,7 +620,8 @@ def protocol_text(evaluated_on) -> dict:
                          f"standard deviation for a useless candidate, from each block's own "
                          f"noise where the candidate acts, one-sided normal, p x m < {ALPHA:g}; "
                          f"(3) held-out RMS reduction >= "
-                         f"{100 * MIN_REL_GAIN:g} %"),
+                         f"{100 * MIN_REL_GAIN:g} % in the blocks where the candidate acts "
+                         f"(those carrying {100 * ACT_SHARE:g} % of its held-out prediction)"),
         "refit": ("after each accepted effect all coefficients (b, M, K, position constants "
                   "and every effect) are refitted jointly by Levenberg-Marquardt"),
         "stop": "when no candidate passes, or after "
@@ -567,6 +640,57 @@ def declared_regressors(unit) -> list:
     from generator.io.formula import parse
     return [dict(r, tree=parse(r["formula"]))
             for r in (getattr(unit, "extra", None) or {}).get("trace_regressors", [])]
+
+
+def _channel_units_fit(traces, tels):
+    """A channel coefficient the coefficient file cannot hold (nT per unit beyond its
+    plausible magnitude) comes from a channel given in tiny units: bad input, naming the
+    column and a file that carries it."""
+    from generator.flight.coeffs import _BLOCK_LIMITS, GENERIC_LIMIT
+    for n, t in traces.items():
+        m = t.final_model
+        for i, e in enumerate(m.effects):
+            if not isinstance(e, fx.ChannelBias):
+                continue
+            C = np.abs(e.C_nT_per_unit(m.effect_params(i)))
+            block = "C_lag_nT_per_unit" if isinstance(e, fx.LaggedChannelBias) else \
+                "C_nT_per_unit"
+            limit = _BLOCK_LIMITS.get(block, GENERIC_LIMIT)
+            if C.size and float(np.max(C)) > limit:
+                src = next((t_.path for t_ in tels if e.channel in t_.columns), tels[0].path)
+                raise InputError(src, f"column {e.channel}: the field of sensor {n} follows "
+                                      f"it at {float(np.max(C)):.3g} nT per unit, beyond the "
+                                      f"{limit:g} a coefficient file holds: the channel is in "
+                                      "units too small (its spread is "
+                                      f"{e.scale:.3g}); give it in larger units")
+
+
+def _holdout_not_data(data, holdout):
+    """--holdout may not be a data file (the same path or the same bytes): its figures
+    would be in-sample."""
+    import hashlib
+
+    def key(it):
+        p = getattr(it, "path", it)
+        try:
+            p = Path(p)
+            return p.resolve(), hashlib.sha256(p.read_bytes()).hexdigest()
+        except OSError:
+            return None, None
+    keys = {}
+    for d in data:
+        r, h = key(d)
+        if r is not None:
+            keys[r] = d
+            keys[h] = d
+    for ho in holdout:
+        r, h = key(ho)
+        for k in (r, h):
+            if k is not None and k in keys:
+                raise InputError(getattr(ho, "path", ho),
+                                 f"--holdout: the same {'file' if k == r else 'content'} as "
+                                 f"the data file {getattr(keys[k], 'path', keys[k])}: the "
+                                 "held-out figures would be in-sample")
 
 
 def _read(unit, items):
@@ -596,6 +720,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     if not data:
         raise InputError(unit.path, "trace: no telemetry files given")
     regs = declared_regressors(unit)
+    _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
     hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
     notes = []
@@ -617,6 +742,12 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                              f"the unit has {list(unit.sensor_names)}")
         degrees = {s.name: declared_degree(base, s.name) for s in unit.sensors}
         notes.append("baseline: the supplied coefficient set")
+        for s in unit.sensors:       # the channels the supplied chain reads (as apply)
+            for c in base.spec.opts(s).kernel_channels:
+                for t in tels + hold:
+                    if c not in t.columns:
+                        raise InputError(t.path, f"column '{c}' is missing: the supplied "
+                                                 f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
     channels, partial = candidate_channels(unit, tels, coils)
     if partial:
@@ -627,7 +758,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     roles = [0] * len(tels) + [1] * len(hold)
     H = base.unit_values.get("H_boom_to_body")
     samples = gather_samples(unit, allt, roles, coils=coils, H=H, channels=channels,
-                             notes=notes)
+                             notes=notes, strict={r["name"] for r in regs})
     evaluated_on = "holdout" if hold else "split"
     traces, skipped = {}, {}
     for s in unit.sensors:
@@ -670,6 +801,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "in_flight_chain": st.effect.in_chain}
                         for n, tr in traces.items() for st in tr.steps],
             "evaluated_on": evaluated_on}
+    _channel_units_fit(traces, tels)
     cs = to_coefficient_set(base, traces, info)
     sources = {"data": [str(t.path) for t in tels], "holdout": [str(t.path) for t in hold],
                "baseline": "supplied coefficients" if coeffs is not None else
