@@ -148,7 +148,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             nom = nominal_prior(b.shape[0] - 1)
             bs = np.asarray(u.get("b_poly_nT", nom.b_sigma_nT), float)
             Ms = np.asarray(u.get("M_poly", nom.M_sigma), float)
-            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})")
+            rng = ((float(v["t_min_C"]), float(v["t_max_C"]))
+                   if "t_min_C" in v and "t_max_C" in v else None)
+            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})", rng)
         return out
 
     progress = progress or Progress(quiet=True)

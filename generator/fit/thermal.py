@@ -308,6 +308,9 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     say(f"{name}: {S.n} samples, {t_lo:.1f}..{t_hi:.1f} degC, "
         f"{'reference vectors' if body_frame else 'magnitude only'}")
 
+    if not body_frame and S.prior is not None:
+        return _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say)
+
     # ---- temperature levels for the segments method
     levels, stats["segments"] = _temperature_levels(S, datas, deg)
 
@@ -391,6 +394,35 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
         cal = _fit_joint(name, S, body_frame, deg, t_lo, t_hi, source)
     stats["fit"] = _score(S, cal)
     say(f"{name}: {cal.method}; held-out winner {chosen}")
+    cal.stats = stats
+    return cal
+
+
+def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
+    """Magnitudes only with a prior (in-flight recalibration against a ground calibration):
+    ellipsoid_prior.ellipsoid_fit_on_prior, what the data determine on top of the prior
+    (offset change of the degree the data's span supports, symmetric scale change where
+    the attitude coverage determines it), the rotation and the prior's other temperature
+    terms held. The calibrated range is the union of the prior's and the data's: the
+    prior's terms remain valid over its range."""
+    from generator.fit.ellipsoid_prior import ellipsoid_fit_on_prior
+
+    b, M, bs, Ms, info = ellipsoid_fit_on_prior(S.x, S.norm, S.T, S.prior, deg,
+                                                source=source, noise_nT=S.noise_nT)
+    lo, hi = t_lo, t_hi
+    if S.prior.t_range_C is not None:
+        lo, hi = min(lo, S.prior.t_range_C[0]), max(hi, S.prior.t_range_C[1])
+    cal = _make_cal(name, b, M, lo, hi, False, f"ellipsoid on the prior, offset change of "
+                    f"degree {deg}", bs, Ms)
+    cal.observability = info["observability"]
+    stats["chosen"] = "on the prior"
+    stats["why"] = (f"magnitudes only with a prior ({S.prior.source}): the change from it "
+                    f"is fitted (offset of degree {deg} from the data's "
+                    f"{t_hi - t_lo:.1f} degC span), the rotation and the prior's other "
+                    "temperature terms held; calibrated range the union of the prior's "
+                    "and the data's")
+    stats["fit"] = _score(S, cal)
+    say(f"{name}: recalibrated on the prior ({cal.method})")
     cal.stats = stats
     return cal
 
