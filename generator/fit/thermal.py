@@ -40,7 +40,12 @@ A reference-vector fit whose residual the sensor's noise and the reference's sta
 cannot explain is refused (fit.goodness: most often a reference in another frame). With
 body rates and a SET/RESET sensor, the gyro compensation is decided before the fit and M
 fitted to the compensated output (fit.setreset_fit). Magnitude-only fits hold what the
-magnitudes do not determine at the prior (fit.ellipsoid_prior).
+magnitudes do not determine at the prior (fit.ellipsoid_prior). With a prior (--prior, a
+ground calibration; in-flight recalibration) a magnitude-only fit estimates the change ON
+the prior (ellipsoid_prior.ellipsoid_fit_on_prior): an offset change of the degree the
+held-out error picks, a symmetric scale change where the attitude coverage determines it;
+the rotation and the prior's temperature terms are kept, and the calibrated range is the
+union of the prior's and the data's.
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
@@ -407,6 +412,37 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
     prior's terms remain valid over its range."""
     from generator.fit.ellipsoid_prior import ellipsoid_fit_on_prior
 
+    # the offset change's degree: held-out |B| error over the file's contiguous time
+    # blocks (the orbital thermal cycle repeats, so each block spans the data's range),
+    # among degrees 0..deg (deg: one per DEGREE_STEP_C of span); a failed fold rules
+    # that degree out
+    groups = np.unique(S.group)
+    k = min(CV_FOLDS, len(groups))
+    scores = {}
+    if deg > 0 and k >= 2:
+        fold_of = {g: i % k for i, g in enumerate(groups)}
+        fold = np.array([fold_of[g] for g in S.group])
+        for d in range(deg + 1):
+            res = []
+            for f in range(k):
+                tr, te = fold != f, fold == f
+                try:
+                    b, M, *_ = ellipsoid_fit_on_prior(S.x[tr], S.norm[tr], S.T[tr], S.prior,
+                                                      d, source=source, noise_nT=S.noise_nT)
+                except InputError:
+                    res = None
+                    break
+                c = _make_cal(name, b, M, t_lo, t_hi, False, "fold")
+                res.append(np.linalg.norm(c.apply64(S.x[te], S.T[te]), axis=1) - S.norm[te])
+            if res:
+                scores[d] = _rms(np.concatenate(res))
+        if scores:
+            deg = min(scores, key=scores.get)
+            stats["holdout"] = {"scheme": f"contiguous time blocks, {k} folds",
+                                "metric": "|B| RMS",
+                                "offset_change_degree_nT": {str(d): v for d, v in
+                                                            scores.items()}}
+            stats["degree"] = int(deg)
     b, M, bs, Ms, info = ellipsoid_fit_on_prior(S.x, S.norm, S.T, S.prior, deg,
                                                 source=source, noise_nT=S.noise_nT)
     lo, hi = t_lo, t_hi
@@ -417,10 +453,11 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
     cal.observability = info["observability"]
     stats["chosen"] = "on the prior"
     stats["why"] = (f"magnitudes only with a prior ({S.prior.source}): the change from it "
-                    f"is fitted (offset of degree {deg} from the data's "
-                    f"{t_hi - t_lo:.1f} degC span), the rotation and the prior's other "
-                    "temperature terms held; calibrated range the union of the prior's "
-                    "and the data's")
+                    f"is fitted (offset of degree {deg}: "
+                    + ("smallest held-out error" if scores else
+                       f"the data's {t_hi - t_lo:.1f} degC span")
+                    + "), the rotation and the prior's other temperature terms held; "
+                    "calibrated range the union of the prior's and the data's")
     stats["fit"] = _score(S, cal)
     say(f"{name}: recalibrated on the prior ({cal.method})")
     cal.stats = stats
