@@ -516,9 +516,12 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
-        check_misfit(s.name, cal.stats.get("goodness_of_fit"),
-                     vec_files[0] if vec_files else datas[0].source, accept=accept_misfit,
-                     progress=progress)
+        misfit = check_misfit(s.name, cal.stats.get("goodness_of_fit"),
+                              vec_files[0] if vec_files else datas[0].source,
+                              accept=accept_misfit)
+        if misfit:      # accepted (--accept-misfit): a warning of the fit, in the report
+            cal.stats["sanity"]["warnings"].append(
+                f"misfit accepted with --accept-misfit, the calibration may be wrong: {misfit}")
         held = [p["name"] for p in cal.observability.get("parameters", [])
                 if p["source"] == "prior"]
         if held:
