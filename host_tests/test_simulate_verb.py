@@ -300,9 +300,6 @@ def test_boom_unit_with_a_sensor_without_temperature(tmp_path):
                  str(tmp_path / "fit"), "-q"]) == 0
 
 
-@pytest.mark.xfail(strict=True, reason="magcal fit: internal error (LinAlgError in "
-                   "fit/reference.reference_fit) for a sensor whose input is in gauss; the "
-                   "same readings in uT or nT fit (fit/, not this module's)")
 def test_gauss_input_fits(tmp_path):
     unit = Unit("gee", (_sensor(0, "generic", "body", ("+x", "+y", "+z"), True, "G", False),),
                 lab_field_nT=48000.0)

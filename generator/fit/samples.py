@@ -85,10 +85,14 @@ class FitData:
 def field_noise_nT(spec) -> float | None:
     """Stated 1-sigma noise of one axis of the field a sensor's fit sees: noise_nT of one
     reading with the count quantisation (lsb^2/12) added, over sqrt(2) for a SET/RESET
-    pair ((SET - RESET)/2 averages two readings)."""
+    pair ((SET - RESET)/2 averages two readings). A physical input (ICD section 4,
+    input = nT | uT | mG | G) has no count quantisation: its lsb_nT is the unit's nT
+    factor (1e5 for gauss), not a step of the reading, so nothing is added."""
     if spec is None or spec.noise_nT is None:
         return None
-    per_reading = float(spec.noise_nT) ** 2 + float(spec.lsb_nT) ** 2 / 12.0
+    counts = getattr(spec, "input", "counts") == "counts"
+    per_reading = float(spec.noise_nT) ** 2 + (float(spec.lsb_nT) ** 2 / 12.0 if counts
+                                                else 0.0)
     return float(np.sqrt(per_reading / (2.0 if spec.set_reset else 1.0)))
 
 
