@@ -76,7 +76,6 @@ def test_rotation_of_the_ground_calibration_kept(recal):
 
 def test_calibrated_range_is_the_union(recal):
     g, n = recal["ground"], recal["new"]
-    T = recal["fit_on"]["arrays"]
     for s in n.sensors:
         lo, hi = float(n.sensors[s]["t_min_C"]), float(n.sensors[s]["t_max_C"])
         assert lo <= float(g.sensors[s]["t_min_C"]) and hi >= float(g.sensors[s]["t_max_C"])
