@@ -442,7 +442,6 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
                                 "metric": "|B| RMS",
                                 "offset_change_degree_nT": {str(d): v for d, v in
                                                             scores.items()}}
-            stats["degree"] = int(deg)
     b, M, bs, Ms, info = ellipsoid_fit_on_prior(S.x, S.norm, S.T, S.prior, deg,
                                                 source=source, noise_nT=S.noise_nT)
     lo, hi = t_lo, t_hi
@@ -451,6 +450,11 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
     cal = _make_cal(name, b, M, lo, hi, False, f"ellipsoid on the prior, offset change of "
                     f"degree {deg}", bs, Ms)
     cal.observability = info["observability"]
+    # the model's degree (trace reads it: model.declared_degree) is the prior's with the
+    # change's: the prior's temperature terms are part of the calibration
+    nz = [j for j in range(b.shape[0]) if np.any(b[j] != 0) or np.any(M[j] != 0)]
+    stats["degree"] = int(max([deg] + nz))
+    stats["offset_change_degree"] = int(deg)
     stats["chosen"] = "on the prior"
     stats["why"] = (f"magnitudes only with a prior ({S.prior.source}): the change from it "
                     f"is fitted (offset of degree {deg}: "
