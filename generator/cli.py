@@ -86,7 +86,8 @@ def cmd_fit(args):
 
     progress = _progress(args)
     check_output_folder(args.output)
-    cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior)
+    cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior,
+             accept_misfit=args.accept_misfit)
     cs.check_plausible(args.data[0] if len(args.data) == 1 else
                        f"{args.data[0]} (and {len(args.data) - 1} more)")
     extra = []
@@ -134,6 +135,11 @@ def _args_fit(p):
     p.add_argument("--prior", default=None, metavar="COEFFS.json",
                    help="a ground calibration (coefficients.json with its 1-sigma): what the "
                         "data do not determine is held at it instead of the part's nominal")
+    p.add_argument("--accept-misfit", action="store_true",
+                   help="write the calibration even where the vector residual is far beyond "
+                        "the noise and the reference's stated error (otherwise exit 2: most "
+                        "often reference vectors in another frame); the report and "
+                        "coefficients.json then carry a warning")
     p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
                    help="auto: reference vectors where the data carry them (joint or "
                         "per-level cubic, chosen on held-out data), else the ellipsoid fit; "

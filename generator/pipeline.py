@@ -150,7 +150,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             nom = nominal_prior(b.shape[0] - 1)
             bs = np.asarray(u.get("b_poly_nT", nom.b_sigma_nT), float)
             Ms = np.asarray(u.get("M_poly", nom.M_sigma), float)
-            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})")
+            rng = ((float(v["t_min_C"]), float(v["t_max_C"]))
+                   if "t_min_C" in v and "t_max_C" in v else None)
+            out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})", rng)
         return out
 
     progress = progress or Progress(quiet=True)
@@ -182,13 +184,11 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
     _orbit_notes(unit, tels, cals, info, progress)
-    sr_opts, sr_values = {}, {}
-    for n, c in cals.items():
-        sr = c.stats.get("set_reset_compensation") or {}
-        if sr.get("enabled"):
-            sr_opts[n] = SensorOptions(sr_compensation=True)
-            sr_values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
-            progress(f"{n}: SET/RESET gyro compensation in the chain: {sr['why']}")
+    from generator.trace.coefficients import sr_chain_options
+    sr_opts, sr_values = sr_chain_options(cals)
+    for n in sr_opts:
+        progress(f"{n}: SET/RESET gyro compensation in the chain: "
+                 f"{cals[n].stats['set_reset_compensation']['why']}")
     if prior:     # the chain on board is fixed: its optional stages stay (values too)
         kept, kept_values = _prior_stages(prior, unit, info, progress)
         for n, o in kept.items():

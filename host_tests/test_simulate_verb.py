@@ -288,10 +288,6 @@ def test_simulate_then_fit_any_unit(tmp_path_factory, drawn):
         assert rms_cal < 1.25 * per_axis, (s.name, s.part, rms_cal, rms_raw, per_axis)
 
 
-@pytest.mark.xfail(strict=True, reason="generator/fit/alignment.calibrated_fields applies a "
-                   "temperature-free sensor's calibration at its NaN temperature and ands every "
-                   "sensor into one mask: every sample is left out, 'alignment: 0 sample "
-                   "pair(s)' (fit/alignment.py, not this module's)")
 def test_boom_unit_with_a_sensor_without_temperature(tmp_path):
     unit = Unit("boomy", (_sensor(0, "MMC5983MA", "body", ("+x", "+y", "+z"), True, "uT", True),
                           _sensor(1, "IST8310", "boom", ("+y", "+x", "-z"), False, "uT", False)),
@@ -304,9 +300,6 @@ def test_boom_unit_with_a_sensor_without_temperature(tmp_path):
                  str(tmp_path / "fit"), "-q"]) == 0
 
 
-@pytest.mark.xfail(strict=True, reason="magcal fit: internal error (LinAlgError in "
-                   "fit/reference.reference_fit) for a sensor whose input is in gauss; the "
-                   "same readings in uT or nT fit (fit/, not this module's)")
 def test_gauss_input_fits(tmp_path):
     unit = Unit("gee", (_sensor(0, "generic", "body", ("+x", "+y", "+z"), True, "G", False),),
                 lab_field_nT=48000.0)

@@ -410,11 +410,15 @@ def _coil_currents(tel):
     return names, np.column_stack([tel.columns[c] for c in names])
 
 
-def calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A=None, data=None):
+def calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A=None, data=None,
+                      mask_of=None):
     """{sensor: (N, 3) calibrated field in the sensor's own frame (body or boom)} and the
-    common usable mask. coil_K_nT_per_A: optional {sensor: (3, ncoil)} subtracted before M
-    with the file's coil_*_A columns (sorted by name); without it samples with any
-    non-zero coil current are left out. data: preprocess(tel, unit) if already done."""
+    common usable mask of the sensors named in mask_of (default: every calibrated one).
+    coil_K_nT_per_A: optional {sensor: (3, ncoil)} subtracted before M with the file's
+    coil_*_A columns (sorted by name); without it samples with any non-zero coil current
+    are left out. data: preprocess(tel, unit) if already done. A sensor without a
+    temperature (temperature = false) is calibrated at its constant model's t_ref (the
+    fit's stand-in, telemetry.SensorData.temp_or), not at NaN."""
     if data is None:
         from generator.io import telemetry_csv as _telemetry
         data = _telemetry.preprocess(tel, unit)
@@ -434,8 +438,10 @@ def calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A=None, data=None):
                     raise InputError(tel.path, f"alignment: K for {s.name} has shape {K.shape}, "
                                                f"the file has coils {coil_names}")
                 x = x - np.nan_to_num(coil_A) @ K.T
-        out[s.name] = calibrations[s.name].apply64(x, sd.temp_C)
-        mask &= sd.usable & np.isfinite(out[s.name]).all(axis=1)
+        out[s.name] = calibrations[s.name].apply64(
+            x, sd.temp_or(calibrations[s.name].t_ref_C))
+        if mask_of is None or s.name in mask_of:
+            mask &= sd.usable & np.isfinite(out[s.name]).all(axis=1)
     if coil_A is not None and coil_K_nT_per_A is None:
         mask &= np.all(np.nan_to_num(coil_A, nan=1.0) == 0.0, axis=1)
     return out, mask
@@ -480,18 +486,21 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
                          "unknown): H then also absorbs that sensor's unknown rotation")
     from generator.io import telemetry_csv as _telemetry
     data = _telemetry.preprocess(tel, unit)
-    fields, mask = calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A, data)
+    # H from the samples both sensors of the fit have (another sensor's gaps, e.g. no
+    # reading at all, do not remove them); each cross-check pair uses its own
+    fields, mask = calibrated_fields(unit, tel, calibrations, coil_K_nT_per_A, data,
+                                     mask_of=needed)
     if mask.sum() < tel.n:
         notes.append(f"{tel.n - int(mask.sum())} of {tel.n} samples unusable or with coil "
                      "current, left out")
+    temp_all = {n: data[n].temp_or(calibrations[n].t_ref_C) for n in fields}
+    temps = {n: temp_all[n][mask] for n in fields}
 
-    temps = {n: data[n].temp_C[mask] for n in fields}
-
-    def cal_cov(body_name, boom_name, H):
+    def cal_cov(body_name, boom_name, H, m=slice(None)):
         if not include_calibration_sigma:
             return None
-        c1 = calibration_rotation_cov(calibrations[body_name], temps[body_name])
-        c2 = calibration_rotation_cov(calibrations[boom_name], temps[boom_name])
+        c1 = calibration_rotation_cov(calibrations[body_name], temps[body_name][m])
+        c2 = calibration_rotation_cov(calibrations[boom_name], temps[boom_name][m])
         return c1 + H @ c2 @ H.T
 
     B1 = fields[ref][mask]
@@ -513,12 +522,15 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
                 partners.append(same[0])
         for p in partners:
             key = f"{p}/{b.name}"
-            P1, P2 = fields[p][mask], fields[b.name][mask]
+            pm = np.isfinite(fields[p][mask]).all(axis=1) & \
+                np.isfinite(fields[b.name][mask]).all(axis=1) & data[p].usable[mask] & \
+                data[b.name].usable[mask]
+            P1, P2 = fields[p][mask][pm], fields[b.name][mask][pm]
             pairs[key] = {"before": figures_of_merit(P1, P2, None),
                           "after": figures_of_merit(P1, P2, H)}
             if b.name != fit_sensor or p != ref:
                 r0 = fit_H(P1, P2, min_spread_deg=min_spread_deg, source=src)
-                checks[key] = fit_H(P1, P2, extra_cov_rad2=cal_cov(p, b.name, r0.H),
+                checks[key] = fit_H(P1, P2, extra_cov_rad2=cal_cov(p, b.name, r0.H, pm),
                                     min_spread_deg=min_spread_deg, source=src)
     if any(unit.sensor(k.split("/")[0]).set_reset != unit.sensor(k.split("/")[1]).set_reset
            for k in pairs):

@@ -187,3 +187,181 @@ def ellipsoid_fit_prior(field_nT, ref_norm_nT, prior=None, temp_C=T_REF_C, *, so
                          "but some direction below the prior's information")}
     out["observability"] = _tags(p, p0, S, sig, frac, ~fitted, EV, ev, pr.source)
     return b, M, out
+
+
+# =======================================================================================
+# Recalibration ON TOP OF a polynomial prior (in-flight, magnitudes only)
+# =======================================================================================
+def _on_prior_model(prior, x, T, t_ref_C, degree):
+    """The residual |M_p(T) (I + E) (x - b_p(T) - db(T))| - |B| and its Jacobian in
+    q = (E (6, ellipsoid.SYM_INDEX order), db_poly (degree+1, 3) k-major)."""
+    d = np.asarray(T, float) - t_ref_C
+    K = len(prior.b_poly_nT)
+    Pp = d[:, None] ** np.arange(K)
+    bp = Pp @ np.asarray(prior.b_poly_nT, float)
+    Mp = np.einsum("nk,kij->nij", Pp, np.asarray(prior.M_poly, float))
+    P = d[:, None] ** np.arange(degree + 1)
+
+    def resid_jac(q, R):
+        E = sym_from6(q[:6])
+        C = q[6:].reshape(degree + 1, 3)
+        v = x - bp - P @ C
+        w = v + v @ E                       # (I + E) v, E symmetric
+        B = np.einsum("nij,nj->ni", Mp, w)
+        nB = np.linalg.norm(B, axis=1)
+        r = nB - R
+        g = np.einsum("nij,ni->nj", Mp, B / nB[:, None])     # dr/dw
+        JE = np.empty((len(x), 6))
+        for k, (i, j) in enumerate(SYM_INDEX):
+            JE[:, k] = g[:, i] * v[:, i] if i == j else g[:, i] * v[:, j] + g[:, j] * v[:, i]
+        gw = g + g @ E                      # (I + E)^T g
+        JC = -(P[:, :, None] * gw[:, None, :]).reshape(len(x), -1)
+        return r, np.hstack([JE, JC])
+
+    return resid_jac
+
+
+def ellipsoid_fit_on_prior(field_nT, ref_norm_nT, temp_C, prior, degree, *, t_ref_C=T_REF_C,
+                           source=None, noise_nT=None):
+    """In-flight recalibration from magnitudes only, on top of a polynomial prior (a ground
+    calibration): B = M_p(T) (I + E) (x - b_p(T) - db(T)).
+
+    E symmetric (scale and non-orthogonality relative to the prior), db(T) a polynomial of
+    `degree` (the degree the data's temperature span supports; the caller picks it). The
+    rotation (the antisymmetric part of M, which magnitudes cannot see) and every
+    temperature term of the prior (M's, and b's above `degree`) are held at the prior.
+    Prior 1-sigma of the change q: E_ij the prior's symmetric M 1-sigma at the data's
+    mean temperature (prior_at), db_k the prior's b_k 1-sigma (Prior.truncated), each
+    combined (root sum square) with the part's (reference.PART_PRIOR_SIGMA): a change
+    after the ground calibration is bounded by the part's spread, not by the ground fit's
+    precision. Then as
+    ellipsoid_fit_prior steps 2-3: the maximum a posteriori estimate, the whitened
+    information split at reference.FISHER_THRESHOLD, least squares in the directions the
+    data determine, the rest exactly at the prior (E = 0, db = 0 there).
+
+    Returns (b_poly (K, 3), M_poly (K, 3, 3), b_sigma, M_sigma, info); K the prior's
+    length. 1-sigma: b_k for k <= degree from the covariance of db_k, above it the prior's;
+    M_k for k >= 1 the prior's; M_0: diagonal the covariance of E_ii, off-diagonal
+    sqrt(sigma(E_ij)^2 + prior_ij^2 / 2) (the symmetric part from the fit, the
+    antisymmetric - rotation - half of the prior's variance held).
+    info["observability"]: per parameter data/prior tags (as ellipsoid_fit_prior) and
+    "held" saying what was kept from the prior."""
+    x = np.asarray(field_nT, float)
+    T = np.asarray(temp_C, float)
+    R = np.broadcast_to(np.asarray(ref_norm_nT, float), (len(x),)).astype(float)
+    n = len(x)
+    K = max(len(prior.b_poly_nT), degree + 1)
+    pr = prior.truncated(K - 1)
+    resid_jac = _on_prior_model(pr, x, T, t_ref_C, degree)
+    _, s_pr = prior_at(pr, float(np.mean(T)), t_ref_C)
+    nq = 6 + 3 * (degree + 1)
+    # the CHANGE since the ground calibration (a deployed panel, a new current, drift) is
+    # not bounded by the ground fit's 1-sigma: its 1-sigma is that combined with the
+    # part's own (reference.PART_PRIOR_SIGMA, the spread of an uncalibrated part)
+    part = nominal_prior(K - 1)
+    S = np.concatenate([np.hypot(s_pr[3:], part.M_sigma[0, 0, 0]),
+                        np.hypot(np.asarray(pr.b_sigma_nT, float)[:degree + 1],
+                                 part.b_sigma_nT[:degree + 1]).ravel()])
+    names = ([f"E_{'xyz'[i]}{'xyz'[j]}" for i, j in SYM_INDEX]
+             + [f"db{k}_{'xyz'[i]}" for k in range(degree + 1) for i in range(3)])
+    def map_fit(z0, s2_, weight):
+        """Minimum of |r|^2 / s2_ + weight |z|^2 (weight 1: the posterior)."""
+        def map_model(z_, jac):
+            r, J = resid_jac(S * z_, R)
+            cost = float(r @ r) / s2_ + weight * float(z_ @ z_)
+            if not jac:
+                return cost, None, None, n + nq
+            Jz = J * S
+            return (cost, Jz.T @ Jz / s2_ + weight * np.eye(nq),
+                    Jz.T @ r / s2_ + weight * z_, n + nq)
+        return lm_solve(map_model, z0)[0]
+
+    z = np.zeros(nq)
+    if noise_nT:
+        s2 = float(noise_nT) ** 2
+    else:
+        # no stated noise: the residual variance of the model fitted to the data alone (a
+        # prior weight of 1e-9 only regularises the directions the data leave free). Not
+        # the posterior's residual: a prior far from the data (a post-launch shift many
+        # sigma away) would inflate it and so make the data look uninformative.
+        z = map_fit(z, (1e-2 * float(np.mean(R))) ** 2, 1e-9)
+        r, _ = resid_jac(S * z, R)
+        s2 = max(float(r @ r) / max(n - nq, 1), 1e-6)
+    # 2. maximum a posteriori, whitened z = q / S (the prior is q = 0)
+    z = map_fit(z, s2, 1.0)
+
+    def whitened_info(q):
+        J = resid_jac(q, R)[1] * S
+        F = J.T @ J / s2
+        return 0.5 * (F + F.T)
+
+    ev, EV = np.linalg.eigh(whitened_info(S * z))
+    fitted = ev >= FISHER_THRESHOLD
+    # 3. least squares in the directions the data determine, the rest at the prior
+    Vf = EV[:, fitted]
+    if Vf.shape[1]:
+        SV = S[:, None] * Vf
+
+        def sub_model(u, jac):
+            r, J = resid_jac(SV @ u, R)
+            if not jac:
+                return float(r @ r), None, None, n
+            Ju = J @ SV
+            return float(r @ r), Ju.T @ Ju, Ju.T @ r, n
+
+        u, _, _, lm = lm_solve(sub_model, Vf.T @ z)
+        q = SV @ u
+    else:
+        q, lm = np.zeros(nq), {"iterations": 0, "converged": True}
+    E = sym_from6(q[:6])
+    C = q[6:].reshape(degree + 1, 3)
+    if np.linalg.eigvalsh(np.eye(3) + E)[0] <= 0:
+        raise InputError(source, "recalibration on the prior: the scale left is not positive "
+                                 "definite; the magnitudes contradict the prior")
+    r, _ = resid_jac(q, R)
+    Ft = whitened_info(q)
+    Vp = EV[:, ~fitted]
+    Cov = Vp @ Vp.T
+    if Vf.shape[1]:
+        Cov = Cov + Vf @ np.linalg.solve(Vf.T @ Ft @ Vf, Vf.T)
+    Cov = Cov * np.outer(S, S)
+    sig = np.sqrt(np.maximum(np.diag(Cov), 0))
+    frac = np.sum(Vf ** 2, axis=1)
+    b_poly = np.asarray(pr.b_poly_nT, float).copy()
+    b_poly[:degree + 1] += C
+    M_poly = np.einsum("kij,jl->kil", np.asarray(pr.M_poly, float), np.eye(3) + E)
+    b_sig = np.asarray(pr.b_sigma_nT, float).copy()
+    b_sig[:degree + 1] = sig[6:].reshape(degree + 1, 3)
+    M_sig = np.asarray(pr.M_sigma, float).copy()
+    sE = _sym_sigma(sig[:6])
+    M_sig[0] = np.where(np.eye(3, dtype=bool), sE, np.sqrt(sE ** 2 + M_sig[0] ** 2 / 2))
+    params = [{"name": nm, "value": float(q[i]), "sigma": float(sig[i]), "prior": 0.0,
+               "prior_sigma": float(S[i]), "data_fraction": float(frac[i]),
+               "source": "data" if frac[i] >= DATA_FRACTION else "prior"}
+              for i, nm in enumerate(names)]
+    unobs = []
+    for j in np.nonzero(~fitted)[0]:
+        v = EV[:, j]
+        top = np.argsort(-np.abs(v))[:4]
+        unobs.append({"information_vs_prior": float(ev[j]),
+                      "direction": {names[i]: round(float(v[i]), 3) for i in top
+                                    if abs(v[i]) > 0.2}})
+    held = ["the rotation (antisymmetric part of M): magnitudes do not see it",
+            "every temperature term of M (degrees 1..): the prior's"]
+    if K > degree + 1:
+        held.append(f"b's temperature terms of degree {degree + 1}..{K - 1}: the prior's "
+                    f"(the data's span supports degree {degree})")
+    held += [f"{p['name']} (scale/non-orthogonality E or offset change db relative to the "
+             "prior)" for p in params if p["source"] == "prior"]
+    dof = max(n - int(fitted.sum()), 1)
+    obs = {"parameters": params, "unobservable": unobs, "prior_source": pr.source,
+           "held_at_prior": held,
+           "estimator": ("recalibration on the prior from magnitudes only: B = M_p(T) "
+                         "(I + E) (x - b_p(T) - db(T)), E symmetric and db of degree "
+                         f"{degree} where the data determine them better than the prior, "
+                         "the rest held at the prior"),
+           "note": "E and db are changes relative to the prior (" + pr.source + ")"}
+    info = {"n": int(n), "cov": Cov, "lm": lm, "degree": int(degree),
+            "residual_sigma_nT": float(np.sqrt(float(r @ r) / dof)),
+            "rms_nT": float(np.sqrt(np.mean(r ** 2))), "observability": obs}
+    return b_poly, M_poly, b_sig, M_sig, info

@@ -73,16 +73,19 @@ def vector_misfit(cal, S) -> dict | None:
 
 
 def check_misfit(name, gof, source, accept=False, progress=None):
-    """InputError (exit 2, one line) when gof (vector_misfit) refuses, unless accept."""
+    """InputError (exit 2, one line) when gof (vector_misfit) refuses, unless accept; then
+    gof["accepted"] is set and the refusal's message returned (the caller puts it in the
+    calibration's warnings). None when nothing is refused."""
     if not gof or not gof["refuse"]:
-        return
+        return None
     msg = (f"sensor '{name}': {gof['rms_vector_per_axis_nT']:.0f} nT per axis left against "
            f"the reference vectors, chi2/dof {gof['chi2_per_dof']:.3g} > {gof['limit']:.3g} "
            f"(noise + reference good to {REF_ANGLE_SIGMA_DEG:g} deg); likely cause: "
            "ref_x/y/z_nT in another frame (ENU vs NED, a rotated mounting or axis mapping); "
            "fix them, or fit magnitudes only (--method ellipsoid)")
     if accept:
+        gof["accepted"] = True
         if progress:
             progress(f"WARNING (accepted): {msg}")
-        return
+        return msg
     raise InputError(source, msg)

@@ -100,6 +100,7 @@ class Prior:
     b_sigma_nT: np.ndarray       # (K, 3)
     M_sigma: np.ndarray          # (K, 3, 3)
     source: str = "part nominal"
+    t_range_C: tuple | None = None   # the prior's calibrated range (a ground calibration)
 
     def truncated(self, degree):
         """This prior for a degree-`degree` model (missing degrees: nominal 0, part sigma)."""
@@ -113,7 +114,7 @@ class Prior:
         ps, pM = np.asarray(self.b_sigma_nT[:k], float), np.asarray(self.M_sigma[:k], float)
         bs[:k] = np.where(ps > 0, ps, bs[:k])
         Ms[:k] = np.where(pM > 0, pM, Ms[:k])
-        return Prior(b, M, bs, Ms, self.source)
+        return Prior(b, M, bs, Ms, self.source, self.t_range_C)
 
 
 def nominal_prior(degree, part="default") -> Prior:

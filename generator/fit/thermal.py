@@ -40,7 +40,12 @@ A reference-vector fit whose residual the sensor's noise and the reference's sta
 cannot explain is refused (fit.goodness: most often a reference in another frame). With
 body rates and a SET/RESET sensor, the gyro compensation is decided before the fit and M
 fitted to the compensated output (fit.setreset_fit). Magnitude-only fits hold what the
-magnitudes do not determine at the prior (fit.ellipsoid_prior).
+magnitudes do not determine at the prior (fit.ellipsoid_prior). With a prior (--prior, a
+ground calibration; in-flight recalibration) a magnitude-only fit estimates the change ON
+the prior (ellipsoid_prior.ellipsoid_fit_on_prior): an offset change of the degree the
+held-out error picks, a symmetric scale change where the attitude coverage determines it;
+the rotation and the prior's temperature terms are kept, and the calibrated range is the
+union of the prior's and the data's.
 
 Samples with non-zero magnetorquer current are not used (coil coupling is fitted
 elsewhere); they are counted in stats.
@@ -308,6 +313,9 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     say(f"{name}: {S.n} samples, {t_lo:.1f}..{t_hi:.1f} degC, "
         f"{'reference vectors' if body_frame else 'magnitude only'}")
 
+    if not body_frame and S.prior is not None:
+        return _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say)
+
     # ---- temperature levels for the segments method
     levels, stats["segments"] = _temperature_levels(S, datas, deg)
 
@@ -395,6 +403,71 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
     return cal
 
 
+def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
+    """Magnitudes only with a prior (in-flight recalibration against a ground calibration):
+    ellipsoid_prior.ellipsoid_fit_on_prior, what the data determine on top of the prior
+    (offset change of the degree the data's span supports, symmetric scale change where
+    the attitude coverage determines it), the rotation and the prior's other temperature
+    terms held. The calibrated range is the union of the prior's and the data's: the
+    prior's terms remain valid over its range."""
+    from generator.fit.ellipsoid_prior import ellipsoid_fit_on_prior
+
+    # the offset change's degree: held-out |B| error over the file's contiguous time
+    # blocks (the orbital thermal cycle repeats, so each block spans the data's range),
+    # among degrees 0..deg (deg: one per DEGREE_STEP_C of span); a failed fold rules
+    # that degree out
+    groups = np.unique(S.group)
+    k = min(CV_FOLDS, len(groups))
+    scores = {}
+    if deg > 0 and k >= 2:
+        fold_of = {g: i % k for i, g in enumerate(groups)}
+        fold = np.array([fold_of[g] for g in S.group])
+        for d in range(deg + 1):
+            res = []
+            for f in range(k):
+                tr, te = fold != f, fold == f
+                try:
+                    b, M, *_ = ellipsoid_fit_on_prior(S.x[tr], S.norm[tr], S.T[tr], S.prior,
+                                                      d, source=source, noise_nT=S.noise_nT)
+                except InputError:
+                    res = None
+                    break
+                c = _make_cal(name, b, M, t_lo, t_hi, False, "fold")
+                res.append(np.linalg.norm(c.apply64(S.x[te], S.T[te]), axis=1) - S.norm[te])
+            if res:
+                scores[d] = _rms(np.concatenate(res))
+        if scores:
+            deg = min(scores, key=scores.get)
+            stats["holdout"] = {"scheme": f"contiguous time blocks, {k} folds",
+                                "metric": "|B| RMS",
+                                "offset_change_degree_nT": {str(d): v for d, v in
+                                                            scores.items()}}
+    b, M, bs, Ms, info = ellipsoid_fit_on_prior(S.x, S.norm, S.T, S.prior, deg,
+                                                source=source, noise_nT=S.noise_nT)
+    lo, hi = t_lo, t_hi
+    if S.prior.t_range_C is not None:
+        lo, hi = min(lo, S.prior.t_range_C[0]), max(hi, S.prior.t_range_C[1])
+    cal = _make_cal(name, b, M, lo, hi, False, f"ellipsoid on the prior, offset change of "
+                    f"degree {deg}", bs, Ms)
+    cal.observability = info["observability"]
+    # the model's degree (trace reads it: model.declared_degree) is the prior's with the
+    # change's: the prior's temperature terms are part of the calibration
+    nz = [j for j in range(b.shape[0]) if np.any(b[j] != 0) or np.any(M[j] != 0)]
+    stats["degree"] = int(max([deg] + nz))
+    stats["offset_change_degree"] = int(deg)
+    stats["chosen"] = "on the prior"
+    stats["why"] = (f"magnitudes only with a prior ({S.prior.source}): the change from it "
+                    f"is fitted (offset of degree {deg}: "
+                    + ("smallest held-out error" if scores else
+                       f"the data's {t_hi - t_lo:.1f} degC span")
+                    + "), the rotation and the prior's other temperature terms held; "
+                    "calibrated range the union of the prior's and the data's")
+    stats["fit"] = _score(S, cal)
+    say(f"{name}: recalibrated on the prior ({cal.method})")
+    cal.stats = stats
+    return cal
+
+
 def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
              accept_misfit=False) -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
@@ -447,9 +520,12 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source)
-        check_misfit(s.name, cal.stats.get("goodness_of_fit"),
-                     vec_files[0] if vec_files else datas[0].source, accept=accept_misfit,
-                     progress=progress)
+        misfit = check_misfit(s.name, cal.stats.get("goodness_of_fit"),
+                              vec_files[0] if vec_files else datas[0].source,
+                              accept=accept_misfit)
+        if misfit:      # accepted (--accept-misfit): a warning of the fit, in the report
+            cal.stats["sanity"]["warnings"].append(
+                f"misfit accepted with --accept-misfit, the calibration may be wrong: {misfit}")
         held = [p["name"] for p in cal.observability.get("parameters", [])
                 if p["source"] == "prior"]
         if held:

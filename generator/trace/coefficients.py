@@ -78,10 +78,30 @@ def baseline_coefficients(unit, tels, progress=None) -> tuple:
                 H = align_boom(unit, deployed[0], cals, coil_K_nT_per_A=K).H
             except InputError as err:
                 notes.append(f"boom alignment not fitted ({err.message}); H = identity")
+    # the fit's SET/RESET decision is the chain's, as in pipeline.fit: M was fitted to the
+    # compensated output where the decision is on
+    sr_opts, sr_values = sr_chain_options(cals)
+    for n in sr_opts:
+        notes.append(f"{n}: SET/RESET gyro compensation in the baseline chain (c = "
+                     f"{sr_values[n]['sr_comp_s_per_deg']:.4g} s/deg, the fit's decision)")
     cs = CoefficientSet.from_calibrations(unit, cals, H_boom_to_body=H, K_nT_per_A=K,
-                                          coils=coils, fit_info={"core": core})
+                                          coils=coils, fit_info={"core": core},
+                                          sensor_options=sr_opts, option_values=sr_values)
     say(f"baseline: {core}" + (f", coils {', '.join(coils)}" if coils else ""))
     return cs, degrees, notes
+
+
+def sr_chain_options(cals) -> tuple:
+    """({sensor: SensorOptions(sr_compensation=True)}, {sensor: {"sr_comp_s_per_deg": c}})
+    for the sensors whose fit decided on the SET/RESET gyro compensation
+    (stats["set_reset_compensation"], fit.setreset.compensation_decision)."""
+    opts, values = {}, {}
+    for n, c in cals.items():
+        sr = c.stats.get("set_reset_compensation") or {}
+        if sr.get("enabled"):
+            opts[n] = SensorOptions(sr_compensation=True)
+            values[n] = {"sr_comp_s_per_deg": sr["sr_comp_s_per_deg"]}
+    return opts, values
 
 
 def initial_effects(cs: CoefficientSet, name: str, S: SensorSamples, model_info=None):
