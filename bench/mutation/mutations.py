@@ -238,8 +238,8 @@ MUTATIONS = [
       ((SCORING, "if not self.p_lr * m < alpha:", "if not self.p_lr * 0 < alpha:"),),
       tuple(TRACE)),
     M("trace_min_gain_ignored", "trace: the 1 % minimum held-out RMS gain ignored",
-      ((SCORING, "if not self.rel_rms_gain >= min_gain:",
-        "if not self.rel_rms_gain >= -float('inf'):"),), tuple(TRACE)),
+      ((SCORING, "        if not gain >= min_gain:",
+        "        if not gain >= -float('inf'):"),), tuple(TRACE)),
     # ---- uplink table validator ----------------------------------------------------------
     M("table_crc_unchecked", "flight validator: CRC not checked",
       (("templates/table.c.j2",

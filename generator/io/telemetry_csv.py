@@ -43,7 +43,7 @@ POSITION_COLUMN = "position"
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.-]*)\s*:(.*)")
 # linear: no two adjacent runs of digits that could share a digit (\d+\.?\d* backtracks
 # quadratically on a long cell of digits that ends in a letter)
-_NUMBER_RE = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?")
+_NUMBER_RE = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?", re.ASCII)
 
 # Physical bounds of cells (bad input beyond them, exit 2 naming the row):
 # * temperatures: the parts are rated -40..+85/+125 degC (automotive grade 0: 150 degC);
@@ -286,7 +286,8 @@ def _parse_rows(path, names, rows: list, row_lines: list) -> np.ndarray:
     """The data rows as (N, ncol) float64: the C parsers first, cell by cell (naming the
     faulty cell) when they cannot be sure."""
     values = _parse_arrow("\n".join(rows), len(names), len(rows)) if rows else None
-    if values is None:
+    if values is None and all(r.isascii() for r in rows):
+        # numpy's float parser takes other scripts' digits ('１２' as 12): only ASCII rows
         values = _parse_fast(rows, len(names))
     if values is None:
         values = _parse_slow(path, names, rows, row_lines)
