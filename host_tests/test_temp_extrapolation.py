@@ -20,7 +20,7 @@ from generator.fit.calibration import SensorCalibration
 from generator.fit.thermal import extrapolation_growth
 from generator.flight import chain
 from generator.flight.chain import reference_select, reference_sensor
-from generator.flight.coeffs import CoefficientSet, temp_margin_C
+from generator.flight.coeffs import TEMP_MARGIN_MAX_C, CoefficientSet, temp_margin_C
 from generator.flight.host import HostUnit
 
 MARGIN_C = 3.0
@@ -163,39 +163,49 @@ def _one_temperature_fit(tmp_path, requirement=150.0):
 
 def test_fit_writes_a_margin_from_the_unit_requirement(tmp_path):
     """The whole path with a constant model (one temperature): its calibrated range is
-    the measured one, and it is valid at every temperature (the largest margin), with or
-    without a requirement; the growth estimate is still reported."""
-    from generator.flight.coeffs import TEMP_MARGIN_MAX_C
+    the measured one; its margin is where the error of its unfitted temperature terms
+    (the part's prior slope 1-sigma, extrapolation_growth) reaches the requirement,
+    (requirement - predicted error) / growth, not the largest margin (issue 16 review 1);
+    without a requirement the polynomial models' rule, 0."""
     for req in (150.0, None):
         (tmp_path / str(req)).mkdir()
         j, _ = _one_temperature_fit(tmp_path / str(req), req)
         st = j["fit"]["sensors"]["mpu"]["stats"]
-        assert st["valid_outside_range"] is True
-        assert st["extrapolation"]["growth_nT_per_C"] > 0
-        assert 0 < st["predicted_error"]["field_error_nT"] < 150.0
+        g = st["extrapolation"]["growth_nT_per_C"]
+        own = st["predicted_error"]["field_error_nT"]
+        assert g > 0
+        assert 0 < own < 150.0
         s = j["sensors"]["mpu"]
         assert (s["t_min_C"], s["t_max_C"]) == (21.5, 21.5)
-        assert s["temp_margin_C"] == TEMP_MARGIN_MAX_C
+        want = (150.0 - own) / g if req else 0.0
+        assert s["temp_margin_C"] == pytest.approx(want, rel=1e-12)
+        assert s["temp_margin_C"] < TEMP_MARGIN_MAX_C
 
 
-def test_one_temperature_fit_flags_extrapolation_and_stays_valid(tmp_path):
-    """Review fault 4: after a single-temperature fit the bit fires outside the measured
-    temperature (not -40..85), the sample stays valid, and C and reference agree."""
-    _, path = _one_temperature_fit(tmp_path)
+def test_one_temperature_fit_flags_extrapolation_and_clamps_past_the_margin(tmp_path):
+    """After a single-temperature fit the extrapolated bit fires outside the measured
+    temperature; within the margin the sample stays valid (TEMP_EXTRAPOLATED only),
+    beyond it it is TEMP_CLAMPED and invalid; C and reference agree bit for bit."""
+    j, path = _one_temperature_fit(tmp_path)
     cs = CoefficientSet.load(path)
     host = HostUnit(cs)
     s = cs.unit.sensor("mpu")
-    temps = np.array([21.5, 21.4, 21.6, 0.0, 45.0, -40.0, 85.0, -99.0, 149.0],
-                     dtype=np.float32)
+    m = float(j["sensors"]["mpu"]["temp_margin_C"])
+    assert 0.5 < m < 100.0
+    inside = [21.5 - 0.5 * m, 21.5 + 0.5 * m]
+    outside = [21.5 - m - 1.0, 21.5 + m + 1.0, -99.0, 149.0]
+    temps = np.array([21.5] + inside + outside, dtype=np.float32)
     raw = np.tile(np.array([2000, -1500, 1000]), (len(temps), 1))
     got = host.correct("mpu", raw, temps)
     py = reference_sensor(cs.spec, s, cs.flat_sensor("mpu"), cs.flat_unit(), raw, temps)
     assert_bit_identical(got, py, "mpu")
     st = np.asarray(got["status"]).astype(int)
     ext = (st & chain.STATUS_TEMP_EXTRAPOLATED) != 0
+    clamped = (st & chain.STATUS_TEMP_CLAMPED) != 0
     assert not ext[0] and ext[1:].all(), st
-    assert not np.any(st & chain.STATUS_TEMP_CLAMPED), st
-    assert chain.is_valid(st).all(), st
+    assert not clamped[:3].any() and clamped[3:].all(), st
+    valid = chain.is_valid(st)
+    assert valid[:3].all() and not valid[3:].any(), st
     # the constant model gives the same field at every temperature
     f = np.asarray(got["field_body_nT"])
     assert (f == f[0]).all()

@@ -34,12 +34,27 @@ def max_condition(part="default") -> float:
 
 
 def offset_range_nT(spec) -> float:
-    """Full scale of one raw axis in nT: range_nT when the unit file gives it, else the
-    count range from the zero count to the further rail times lsb_nT."""
+    """Full scale of one raw axis in nT. Counts input: range_nT when the unit file gives
+    it, else the count range from the zero count to the further rail times lsb_nT.
+    Physical input (nT, uT, G, ...): the sensor's full scale (the unit file's range_nT,
+    else the part's, Sensor.full_scale_nT), which does not depend on the input unit; a
+    generic part without range_nT has no known full scale (inf: no offset check)."""
     if getattr(spec, "range_nT", None):
         return float(spec.range_nT)
-    return float(max(spec.count_max - spec.zero_count, spec.zero_count - spec.count_min)
-                 * spec.lsb_nT)
+    if getattr(spec, "counts", True):
+        return float(max(spec.count_max - spec.zero_count, spec.zero_count - spec.count_min)
+                     * spec.lsb_nT)
+    fs = float(spec.full_scale_nT)
+    return fs if fs > 0 else float("inf")
+
+
+def offset_cause(spec) -> str:
+    """Likely cause of an offset beyond the part's range, for the error message."""
+    if getattr(spec, "counts", True):
+        return ("wrong lsb_nT or zero_count in the unit file, or a reference in other "
+                "units")
+    return (f"wrong input unit (input = \"{spec.input}\" in the unit file: the readings "
+            "are in other units), or a reference in other units")
 
 
 def check_calibration(cal, spec, source=None) -> dict:
@@ -81,10 +96,10 @@ def check_calibration(cal, spec, source=None) -> dict:
     bmax = float(np.max(np.abs(b)))
     if bmax > lim:
         raise InputError(source, f"sensor '{name}': fitted offset {bmax:.0f} nT exceeds the "
-                                 f"part's range {lim:.0f} nT; likely cause: wrong lsb_nT or "
-                                 "zero_count in the unit file, or a reference in other units")
+                                 f"part's range {lim:.0f} nT; likely cause: {offset_cause(spec)}")
     return {"det_M_min": float(np.min(det)), "cond_M_max": float(np.max(cond)),
-            "cond_M_limit": cmax, "offset_max_nT": bmax, "offset_limit_nT": lim,
+            "cond_M_limit": cmax, "offset_max_nT": bmax,
+            "offset_limit_nT": lim if np.isfinite(lim) else None,
             "warnings": warnings}
 
 

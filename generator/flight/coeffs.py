@@ -42,12 +42,14 @@ def temp_margin_C(unit, cal) -> float:
     outside the range (stats["extrapolation"]["growth_nT_per_C"],
     fit.thermal.extrapolation_growth), reaches the unit's requirement ([requirements]
     field_error_nT, ICD section 4). No requirement or no growth estimate: 0 (every
-    sample outside the range is invalid). A temperature-independent (constant) model,
-    stats["valid_outside_range"], is valid at every temperature: TEMP_MARGIN_MAX_C
-    (outside its measured range the samples are still flagged TEMP_EXTRAPOLATED)."""
+    sample outside the range is invalid). A temperature-independent (constant,
+    one-temperature) model follows the same rule: its growth is the error its unfitted
+    temperature terms add, from the part's prior 1-sigma of the slope
+    (fit.thermal.extrapolation_growth; uncertainty_1sigma, fit.thermal.
+    unfitted_degree_sigma), so it stays valid only as far as that drift keeps the error
+    within the requirement (beyond its measured range the samples are flagged
+    TEMP_EXTRAPOLATED, beyond the margin TEMP_CLAMPED and invalid)."""
     st = cal.stats or {}
-    if st.get("valid_outside_range"):
-        return TEMP_MARGIN_MAX_C
     req = ((unit.extra or {}).get("requirements") or {}).get("field_error_nT")
     g = (st.get("extrapolation") or {}).get("growth_nT_per_C")
     if not req or not g or not np.isfinite(g) or g <= 0:
