@@ -48,9 +48,14 @@ def temp_margin_C(unit, cal) -> float:
     (fit.thermal.extrapolation_growth; uncertainty_1sigma, fit.thermal.
     unfitted_degree_sigma), so it stays valid only as far as that drift keeps the error
     within the requirement (beyond its measured range the samples are flagged
-    TEMP_EXTRAPOLATED, beyond the margin TEMP_CLAMPED and invalid)."""
+    TEMP_EXTRAPOLATED, beyond the margin TEMP_CLAMPED and invalid). Without a requirement
+    a constant model has nothing to be held to and stays valid everywhere (the maximum
+    margin), flagged TEMP_EXTRAPOLATED outside its measured range: a one-temperature
+    ground calibration must not make every orbit sample invalid (issue 16)."""
     st = cal.stats or {}
     req = ((unit.extra or {}).get("requirements") or {}).get("field_error_nT")
+    if not req and st.get("valid_outside_range"):
+        return TEMP_MARGIN_MAX_C
     g = (st.get("extrapolation") or {}).get("growth_nT_per_C")
     if not req or not g or not np.isfinite(g) or g <= 0:
         return 0.0
