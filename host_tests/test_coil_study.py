@@ -127,6 +127,10 @@ def test_fit_report_has_the_coil_study(tmp_path, capsys):
     sec = md.split("## Coil study")[1].split("\n## ")[0]
     assert "Distance law per sensor and panel state" in sec
     assert sec.count("| mmc2 | coil_x_A |") == 2 + 2 * 3     # 2 laws, 2 x 3 points (fast)
+    # review 19 F10e: the point count and the law's exponent n are not both headed "n"
+    header = next(l for l in sec.splitlines() if l.startswith("| sensor |") and "exponent n" in l)
+    cols = [c.strip() for c in header.strip("|").split("|")]
+    assert "points" in cols and "n" not in cols, cols
 
 
 def test_interference_table_takes_the_fall_off_and_distance_from_the_study(tmp_path):

@@ -65,7 +65,7 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
             f"{s} {c}: {r:.2f}" for (s, c), r in ratios.items()) + ".")
     paragraphs += [f"Note: {n}" for n in study.notes]
     return [Section(f"Coil study: interference against distance at {current_A:g} A", paragraphs,
-                    [Table(["sensor", "coil", "panel", "n", "exponent n",
+                    [Table(["sensor", "coil", "panel", "points", "exponent n",
                             f"at 30 cm, {current_A:g} A nT", "seed 000 nT", "ratio to seed",
                             "chi2/dof"], law_rows, "Distance law per sensor and panel state"),
                      Table(["sensor", "coil", "panel", "distance cm", "|K| nT/A",

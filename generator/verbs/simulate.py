@@ -106,9 +106,11 @@ def run_simulate(args, progress) -> tuple:
                                 samples_per_segment=(args.samples_per_segment
                                                      or DEFAULT_SAMPLES_PER_SEGMENT))
         tau_true = max(truth.board_tau_s[b] for b in sim.boards_of(unit))
-        if plan.board_tau_s < tau_true:
-            notes.append(f"the plan assumes a board time constant of {plan.board_tau_s / 60:.1f} "
-                         f"min, the simulated boards have {tau_true / 60:.1f} min: its holds "
+        # compare at the printed rounding (0.1 min), so the note never says "16.5 < 16.5"
+        plan_tau_min, true_tau_min = round(plan.board_tau_s / 60, 1), round(tau_true / 60, 1)
+        if plan_tau_min < true_tau_min:
+            notes.append(f"the plan assumes a board time constant of {plan_tau_min:.1f} "
+                         f"min, the simulated boards have {true_tau_min:.1f} min: its holds "
                          "may end before the boards settle")
         progress(f"unit {unit.id}: thermal program {len(plan.positions)} positions x "
                  f"{len(plan.levels_C)} levels, {plan.total_duration_s / 3600:.1f} h, "
