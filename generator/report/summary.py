@@ -71,6 +71,17 @@ def sensor_figures(cs, analysis, name) -> dict:
         B = cal.apply64(S.x, S.T)
         out["norm_before_nT"] = _rms(np.linalg.norm(S.x, axis=1) - S.norm)
         out["norm_after_nT"] = _rms(np.linalg.norm(B, axis=1) - S.norm)
+        # per file: an RMS over every sample can hide one campaign the calibration worsens
+        per_file = []
+        for f in np.unique(S.file):
+            k = S.file == f
+            per_file.append({
+                "file": str(analysis.tels[int(f)].path) if int(f) < len(analysis.tels)
+                else str(int(f)),
+                "n": int(k.sum()),
+                "norm_before_nT": _rms(np.linalg.norm(S.x[k], axis=1) - S.norm[k]),
+                "norm_after_nT": _rms(np.linalg.norm(B[k], axis=1) - S.norm[k])})
+        out["per_file"] = per_file
         vec = S.is_vec
         if vec.any() and analysis.body_frame(name):
             out["angle_before_deg"] = _rms(_angle_deg(S.x[vec], S.ref[vec]))
@@ -124,6 +135,11 @@ def verdict(fig, req) -> tuple:
             unknown.append("|B| (no samples)")
         elif a > lim:
             fails.append(f"|B| RMS {a:.1f} nT > {lim:g} nT")
+        # every file must meet it, not only the RMS over all of them
+        for pf in fig.get("per_file") or []:
+            if a is not None and a <= lim and pf["norm_after_nT"] > lim:
+                fails.append(f"|B| RMS {pf['norm_after_nT']:.1f} nT > {lim:g} nT on "
+                             f"{Path(pf['file']).name}")
     lim = req.get("angle_deg")
     if lim is not None:
         a = fig.get("angle_after_deg")
@@ -163,6 +179,13 @@ def summary_section(cs, analysis) -> Section:
             vt + (": " + "; ".join(why) if why else "")])
         for w in (st.get("sanity") or {}).get("warnings", []):
             warn_rows.append([s.name, w])
+        for pf in f.get("per_file") or []:
+            if pf["n"] and pf["norm_after_nT"] > pf["norm_before_nT"]:
+                warn_rows.append([s.name, (
+                    f"the calibration makes |B| worse on {Path(pf['file']).name}: "
+                    f"{pf['norm_before_nT']:.1f} nT RMS before, {pf['norm_after_nT']:.1f} "
+                    "after (a campaign unlike the others: its reference, frame or "
+                    "conditions?)")])
     if req:
         head = ("Requirements from " + src + ": "
                 + ", ".join(f"{k} = {v:g}" for k, v in req.items())
