@@ -55,23 +55,25 @@ def _sym_sigma(s6):
     return out
 
 
-def _tags(p, p0, S, sig, frac, held, EV, ev, source_name):
+def _tags(p, p0, S, sig, frac, held, EV, ev, source_name, names=NAMES,
+          estimator="ellipsoid (magnitudes only, M symmetric); directions the magnitudes "
+                    "do not determine held at the prior"):
+    """Per-parameter data/prior tags and the directions held at the prior."""
     params = [{"name": nm, "value": float(p[i]), "sigma": float(sig[i]), "prior": float(p0[i]),
                "prior_sigma": float(S[i]), "data_fraction": float(frac[i]),
                "source": "data" if frac[i] >= DATA_FRACTION else "prior"}
-              for i, nm in enumerate(NAMES)]
+              for i, nm in enumerate(names)]
     z = (p - p0) / S
     unobs = []
     for j in np.nonzero(held)[0]:
         v = EV[:, j]
         top = np.argsort(-np.abs(v))[:4]
         unobs.append({"information_vs_prior": float(ev[j]),
-                      "direction": {NAMES[i]: round(float(v[i]), 3) for i in top
+                      "direction": {names[i]: round(float(v[i]), 3) for i in top
                                     if abs(v[i]) > 0.2},
                       "vector": [float(a) for a in v], "offset_from_prior": float(v @ z)})
     return {"parameters": params, "unobservable": unobs, "prior_source": source_name,
-            "estimator": "ellipsoid (magnitudes only, M symmetric); directions the "
-                         "magnitudes do not determine held at the prior"}
+            "estimator": estimator}
 
 
 def ellipsoid_fit_prior(field_nT, ref_norm_nT, prior=None, temp_C=T_REF_C, *, source=None,
@@ -335,17 +337,12 @@ def ellipsoid_fit_on_prior(field_nT, ref_norm_nT, temp_C, prior, degree, *, t_re
     M_sig = np.asarray(pr.M_sigma, float).copy()
     sE = _sym_sigma(sig[:6])
     M_sig[0] = np.where(np.eye(3, dtype=bool), sE, np.sqrt(sE ** 2 + M_sig[0] ** 2 / 2))
-    params = [{"name": nm, "value": float(q[i]), "sigma": float(sig[i]), "prior": 0.0,
-               "prior_sigma": float(S[i]), "data_fraction": float(frac[i]),
-               "source": "data" if frac[i] >= DATA_FRACTION else "prior"}
-              for i, nm in enumerate(names)]
-    unobs = []
-    for j in np.nonzero(~fitted)[0]:
-        v = EV[:, j]
-        top = np.argsort(-np.abs(v))[:4]
-        unobs.append({"information_vs_prior": float(ev[j]),
-                      "direction": {names[i]: round(float(v[i]), 3) for i in top
-                                    if abs(v[i]) > 0.2}})
+    obs = _tags(q, np.zeros_like(q), S, sig, frac, ~fitted, EV, ev, pr.source, names,
+                ("recalibration on the prior from magnitudes only: B = M_p(T) (I + E) "
+                 "(x - b_p(T) - db(T)), E symmetric and db of degree "
+                 f"{degree} where the data determine them better than the prior, the rest "
+                 "held at the prior"))
+    params = obs["parameters"]
     held = ["the rotation (antisymmetric part of M): magnitudes do not see it",
             "every temperature term of M (degrees 1..): the prior's"]
     if K > degree + 1:
@@ -354,13 +351,8 @@ def ellipsoid_fit_on_prior(field_nT, ref_norm_nT, temp_C, prior, degree, *, t_re
     held += [f"{p['name']} (scale/non-orthogonality E or offset change db relative to the "
              "prior)" for p in params if p["source"] == "prior"]
     dof = max(n - int(fitted.sum()), 1)
-    obs = {"parameters": params, "unobservable": unobs, "prior_source": pr.source,
-           "held_at_prior": held,
-           "estimator": ("recalibration on the prior from magnitudes only: B = M_p(T) "
-                         "(I + E) (x - b_p(T) - db(T)), E symmetric and db of degree "
-                         f"{degree} where the data determine them better than the prior, "
-                         "the rest held at the prior"),
-           "note": "E and db are changes relative to the prior (" + pr.source + ")"}
+    obs.update({"held_at_prior": held,
+                "note": "E and db are changes relative to the prior (" + pr.source + ")"})
     info = {"n": int(n), "cov": Cov, "lm": lm, "degree": int(degree),
             "residual_sigma_nT": float(np.sqrt(float(r @ r) / dof)),
             "rms_nT": float(np.sqrt(np.mean(r ** 2))), "observability": obs}
