@@ -22,6 +22,27 @@ from noise and an honest reference. Its usual cause is a reference in another fr
 fit.sanity cannot see); M cannot take it up, because an M that far from the part's
 nominal is held at the prior (fit.reference, observability). The caller may accept it
 (fit_unit(..., accept_misfit=True)); it is then reported, not refused.
+
+A second test, noise_misfit, asks the sharper question: does the reading noise alone
+(through M) plus the reference model's own stated floor explain the residual? Per row
+
+    vector rows, per axis:  sigma^2 = noise_nT^2 |M|_F^2 / 3 + floor^2 / 3 + q^2/12 |dz/dT|^2 / 3
+    magnitude rows:         sigma^2 = noise_nT^2 |M^T u|^2   + floor^2     + q^2/12 (u . dz/dT)^2
+
+(u the calibrated field's direction; floor the |B| error 1-sigma the reference states
+of itself, e.g. the geomagnetic field model's, io.orbit.model_floor_nT, 0 for reference
+vectors and a lab field; q the temperature channel's reporting step, an error the model
+carries by construction, fit.reference point 5). chi2 / n over the rows is tested against
+the chi-square quantile 1 - NOISE_ALPHA with the effective degrees of freedom (3 N_eff
+for vectors plus N_eff for magnitudes, reference._correlation_inflation per file),
+widened by the stated noise's own uncertainty (reference.NOISE_VAR_UNCERTAINTY: the
+variance is known to +-25 %, so a residual is beyond the noise only when it passes the
+quantile times 1.25). The fit's own parameters (at most 12 (degree + 1)) take some
+degrees of freedom, which only makes the test more lenient. Passing it is a WARNING, not
+a refusal: the reference may honestly carry more error than the sensor (an attitude
+estimate, a magnetically disturbed lab). Its causes are named in the message
+(noise_warning): a reference worse than the sensor, a stuck or wrong temperature column,
+an effect the model lacks (magcal trace finds those).
 """
 
 from __future__ import annotations
@@ -33,6 +54,9 @@ from generator.errors import InputError
 REF_ANGLE_SIGMA_DEG = 10.0     # reference direction error, 1-sigma per axis (see docstring)
 REF_SCALE_SIGMA = 0.02         # reference magnitude error, 1-sigma, relative
 MISFIT_ALPHA = 1e-6            # false-refusal probability of the test for a right reference
+# false-warning probability per sensor of the noise-only test (noise_misfit) on data the
+# noise, the reference's stated floor and the model explain
+NOISE_ALPHA = 1e-3
 
 
 def vector_misfit(cal, S) -> dict | None:
@@ -89,3 +113,101 @@ def check_misfit(name, gof, source, accept=False, progress=None):
             progress(f"WARNING (accepted): {msg}")
         return msg
     raise InputError(source, msg)
+
+
+def noise_misfit(cal, S, floor_nT=None) -> dict | None:
+    """The noise-only test of the module docstring on the samples S (fit.samples._Samples)
+    of a fitted calibration. floor_nT: per file (S.file_id) the reference's stated |B|
+    error 1-sigma (None or 0: none stated). None when the sensor states no noise. JSON-able:
+    chi2_per_row, limit, n_eff, flagged, rms_residual_nT / explained_nT (per axis for
+    vector rows, of |B| for magnitude rows), excess_field_error_nT (the vector error the
+    noise does not explain, sqrt(3 (rms^2 - explained^2)) for vector rows, rms^2 -
+    explained^2 of |B| for magnitude-only fits)."""
+    from scipy.stats import chi2 as _chi2
+
+    from generator.fit.reference import NOISE_VAR_UNCERTAINTY, _correlation_inflation
+    from generator.fit.segments import temperature_quantum
+
+    noise = float(S.noise_nT or 0.0)
+    if noise <= 0 or S.n == 0:
+        return None
+    fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
+    floor = np.zeros(S.n)
+    if floor_nT is not None:
+        fl = np.asarray([float(f or 0.0) for f in floor_nT])
+        floor = fl[np.clip(fid, 0, len(fl) - 1)] if len(fl) else floor
+    z = cal.apply64(S.x, S.T)
+    M = cal.M_at(S.T)
+    # the temperature's reporting step: z's change per degC times q^2/12 (per file)
+    q2 = np.zeros(S.n)
+    for f in np.unique(fid):
+        m = fid == f
+        q2[m] = temperature_quantum(S.T[m]) ** 2 / 12.0
+    h = 0.5
+    dz = (cal.apply64(S.x, S.T + h) - cal.apply64(S.x, S.T - h)) / (2 * h)
+    v = S.is_vec
+    vec_var = (noise ** 2 * np.einsum("nij,nij->n", M, M) / 3.0 + floor ** 2 / 3.0
+               + q2 * np.sum(dz ** 2, axis=1) / 3.0)
+    nz = np.linalg.norm(z, axis=1)
+    u = z / np.where(nz > 0, nz, 1.0)[:, None]
+    Mtu = np.einsum("nji,nj->ni", M, u)
+    mag_var = (noise ** 2 * np.sum(Mtu ** 2, axis=1) + floor ** 2
+               + q2 * np.sum(u * dz, axis=1) ** 2)
+    parts, n_rows, n_eff, chi2 = [], 0, 0.0, 0.0
+    for f in np.unique(fid):
+        m = fid == f
+        mv, mm = m & v, m & ~v
+        if mv.any():
+            w = (z[mv] - S.ref[mv]) / np.sqrt(vec_var[mv])[:, None]
+            chi2 += float(np.sum(w ** 2))
+            n_rows += w.size
+            n_eff += 3.0 * mv.sum() / _correlation_inflation(w)
+        if mm.any():
+            w = ((nz[mm] - S.norm[mm]) / np.sqrt(mag_var[mm]))[:, None]
+            chi2 += float(np.sum(w ** 2))
+            n_rows += w.size
+            n_eff += mm.sum() / _correlation_inflation(w)
+    if n_rows == 0:
+        return None
+    dof = max(n_eff, 1.0)
+    quant = float(_chi2.ppf(1.0 - NOISE_ALPHA, dof) / dof)
+    limit = (1.0 + NOISE_VAR_UNCERTAINTY) * quant
+    per_row = chi2 / n_rows
+    out = {"chi2_per_row": per_row, "limit": limit, "quantile": quant,
+           "n_eff": float(n_eff), "n_rows": int(n_rows), "alpha": NOISE_ALPHA,
+           "flagged": bool(per_row > limit), "noise_nT": noise,
+           "floor_nT": float(np.max(floor)) if floor.size else 0.0}
+    if v.any():
+        r2 = float(np.mean((z[v] - S.ref[v]) ** 2))
+        e2 = float(np.mean(vec_var[v]))
+        out.update(kind="vector", rms_residual_nT=float(np.sqrt(r2)),
+                   explained_nT=float(np.sqrt(e2)),
+                   excess_field_error_nT=float(np.sqrt(3.0 * max(r2 - e2, 0.0))))
+    else:
+        r2 = float(np.mean((nz - S.norm) ** 2))
+        e2 = float(np.mean(mag_var))
+        out.update(kind="magnitude", rms_residual_nT=float(np.sqrt(r2)),
+                   explained_nT=float(np.sqrt(e2)),
+                   excess_field_error_nT=float(np.sqrt(max(r2 - e2, 0.0))))
+    out["from"] = (f"reading noise {noise:.1f} nT per axis through M"
+                   + (f", reference floor {out['floor_nT']:.0f} nT" if out["floor_nT"] else "")
+                   + f", temperature reporting step; chi-square quantile 1 - {NOISE_ALPHA:g} "
+                   f"with {n_eff:.0f} effective degrees of freedom, times "
+                   f"{1 + NOISE_VAR_UNCERTAINTY:g} for the stated noise's uncertainty")
+    return out
+
+
+def noise_warning(name, gof) -> str | None:
+    """The one-line warning of a flagged noise_misfit (None when not flagged)."""
+    if not gof or not gof.get("flagged"):
+        return None
+    what = "per axis against the reference vectors" if gof["kind"] == "vector" else \
+        "of |B| against the reference magnitude"
+    return (f"sensor '{name}': the fit leaves {gof['rms_residual_nT']:.0f} nT rms {what}, "
+            f"beyond what the reading noise explains ({gof['explained_nT']:.0f} nT: "
+            f"{gof['from']}; chi2/row {gof['chi2_per_row']:.3g} > {gof['limit']:.3g}). "
+            "Likely causes: the reference carries more error than the sensor noise (an "
+            "attitude estimate, a field model, a disturbed lab), a stuck or wrong "
+            "temperature column, or an effect the model lacks (run `magcal trace` to find "
+            "it); the calibration is kept, its predicted error is raised to the "
+            f"unexplained part, {gof['excess_field_error_nT']:.0f} nT")

@@ -16,6 +16,17 @@
 * offsets b(T) within the part's range: an offset larger than the full scale of the raw
   output cannot come from a sensor that still reads the field.
 * H orthogonal with det +1 (boom alignment): |H^T H - I| < 1e-6.
+* the rotation part of M (polar decomposition M = R S, R a proper rotation, S symmetric
+  positive definite) within the sensor's mounting tolerance: a reference rotated against
+  the sensor frame is absorbed into M unseen (M = R M_true; one campaign cannot tell a
+  rotated reference from a rotated mounting). A flag, not an error (it may be a real
+  mounting rotation): warned when the angle exceeds the tolerance by more than 3 sigma
+  of its estimate (from M's 1-sigma); the rotation stays in M. The tolerance is the unit
+  file's [[sensor]] key mounting_tolerance_deg (an optional extension key, kept in
+  Unit.extra like every key the ICD does not name), else MOUNTING_TOLERANCE_DEG. With a
+  ground calibration given as --prior, the rotation is taken relative to the prior's
+  (whose own rotation was judged when it was fitted). Body-frame (reference-vector)
+  calibrations only: a magnitude-only M is known only up to a rotation.
 """
 
 from __future__ import annotations
@@ -26,6 +37,13 @@ from generator.errors import InputError
 from generator.fit.reference import PART_PRIOR_SIGMA, min_abs_det
 
 ORTHO_TOL = 1e-6
+# Default mounting tolerance of a sensor's axes against the unit's frame, degrees: a
+# PCB-mounted chip sits within ~1 deg of its footprint (placement and die-to-package
+# rotation), the board within ~1 deg of the structure, and non-orthogonal sensing axes
+# put up to half their ~1 deg skew into the rotation part of M: 3 deg covers the sum.
+# (The simulator's units, campaign.simulate.random_truth, rotate by at most ~2 deg.)
+MOUNTING_TOLERANCE_DEG = 3.0
+MOUNTING_KEY = "mounting_tolerance_deg"
 
 
 def max_condition(part="default") -> float:
@@ -57,9 +75,73 @@ def offset_cause(spec) -> str:
             "are in other units), or a reference in other units")
 
 
-def check_calibration(cal, spec, source=None) -> dict:
+def mounting_tolerance_deg(unit, name) -> tuple:
+    """(tolerance in degrees, where it came from) of sensor `name`: the unit file's
+    [[sensor]] mounting_tolerance_deg, else MOUNTING_TOLERANCE_DEG. InputError naming the
+    key when the value is not a number in (0, 180]."""
+    extra = (((getattr(unit, "extra", None) or {}).get("sensor") or {}).get(name) or {})
+    if MOUNTING_KEY not in extra:
+        return MOUNTING_TOLERANCE_DEG, "default"
+    v = extra[MOUNTING_KEY]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) \
+            or not 0.0 < float(v) <= 180.0:
+        raise InputError(getattr(unit, "path", None),
+                         f"key 'sensor.{name}.{MOUNTING_KEY}': {v!r} is not a number of "
+                         "degrees in (0, 180]")
+    return float(v), "unit file"
+
+
+def rotation_part(M, M_ref=None) -> dict:
+    """Angle (deg) and unit axis of the rotation R of the polar decomposition M = R S,
+    relative to that of M_ref when given (R R_ref^T)."""
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    R = polar(np.asarray(M, float))[0]
+    if M_ref is not None:
+        R = R @ polar(np.asarray(M_ref, float))[0].T
+    rv = Rotation.from_matrix(R).as_rotvec()
+    ang = float(np.linalg.norm(rv))
+    axis = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
+    return {"angle_deg": float(np.degrees(ang)), "axis": axis.tolist()}
+
+
+def _rotation_check(cal, spec, unit, prior) -> tuple:
+    """(figures, warning or None) of the mounting-rotation check (module docstring)."""
+    tol, where = mounting_tolerance_deg(unit, cal.name)
+    T = float(np.clip(cal.t_ref_C, cal.t_min_C, cal.t_max_C))
+    M = cal.M_at(T)
+    M_ref = None
+    if prior is not None and not str(getattr(prior, "source", "")).startswith("part nominal"):
+        M_ref = np.asarray(prior.M_poly[0], float)
+    rot = rotation_part(M, M_ref)
+    # 1-sigma of the angle: the small-angle rotation vector is w_x = (M_zy - M_yz) / 2 etc.
+    sig = 0.0
+    if cal.M_poly_sigma is not None:
+        s = np.asarray(cal.M_poly_sigma[0], float)
+        sw = np.array([np.hypot(s[2, 1], s[1, 2]), np.hypot(s[0, 2], s[2, 0]),
+                       np.hypot(s[1, 0], s[0, 1])]) / 2.0
+        sig = float(np.degrees(np.sqrt(np.sum((np.asarray(rot["axis"]) * sw) ** 2))))
+    fig = dict(rot, sigma_deg=sig, tolerance_deg=tol, tolerance_from=where,
+               relative_to="the --prior calibration" if M_ref is not None
+               else "the unit file's axes")
+    if rot["angle_deg"] - 3.0 * sig <= tol:
+        return fig, None
+    ax = ", ".join(f"{a:+.2f}" for a in rot["axis"])
+    return fig, (f"sensor '{cal.name}': the fitted M rotates the sensor's axes by "
+                 f"{rot['angle_deg']:.1f} deg (1-sigma {sig:.2f}) about ({ax}) relative to "
+                 f"{fig['relative_to']}, beyond the mounting tolerance {tol:g} deg "
+                 f"({where}; key {MOUNTING_KEY}): a real mounting rotation, or a reference "
+                 "in a rotated frame (one campaign cannot tell them apart); the rotation is "
+                 "kept in M. Check the reference's frame; if the mounting is known to be "
+                 f"rotated, set {MOUNTING_KEY}")
+
+
+def check_calibration(cal, spec, source=None, unit=None, prior=None) -> dict:
     """Raise InputError when a calibration is not physical (module docstring); else
-    return the figures checked (JSON-able) for the fit report."""
+    return the figures checked (JSON-able) for the fit report. unit: for the sensor's
+    mounting tolerance (Unit.extra); prior: the reference.Prior the fit used (a ground
+    calibration's rotation is the mounting's)."""
     n_grid = 1 if np.all(cal.M_poly[1:] == 0) and np.all(cal.b_poly_nT[1:] == 0) else 21
     T = np.linspace(cal.t_min_C, cal.t_max_C, n_grid)
     M = cal.M_at(T)
@@ -97,10 +179,15 @@ def check_calibration(cal, spec, source=None) -> dict:
     if bmax > lim:
         raise InputError(source, f"sensor '{name}': fitted offset {bmax:.0f} nT exceeds the "
                                  f"part's range {lim:.0f} nT; likely cause: {offset_cause(spec)}")
-    return {"det_M_min": float(np.min(det)), "cond_M_max": float(np.max(cond)),
-            "cond_M_limit": cmax, "offset_max_nT": bmax,
-            "offset_limit_nT": lim if np.isfinite(lim) else None,
-            "warnings": warnings}
+    out = {"det_M_min": float(np.min(det)), "cond_M_max": float(np.max(cond)),
+           "cond_M_limit": cmax, "offset_max_nT": bmax,
+           "offset_limit_nT": lim if np.isfinite(lim) else None,
+           "warnings": warnings}
+    if cal.body_frame:
+        out["rotation"], w = _rotation_check(cal, spec, unit, prior)
+        if w:
+            warnings.append(w)
+    return out
 
 
 def check_rotation(H, what="boom alignment H", source=None) -> dict:

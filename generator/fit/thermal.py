@@ -72,7 +72,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
-from generator.fit.goodness import check_misfit, vector_misfit
+from generator.fit.goodness import check_misfit, noise_misfit, noise_warning, vector_misfit
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _residuals, _rms, _score)
 from generator.fit.levels import (_fit_segments, _fit_sensor_analytic, _fit_sensor_ellipsoid,
@@ -93,7 +93,7 @@ OPERATING_C = (-40.0, 85.0)
 # Entry points
 # =======================================================================================
 def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
-               method="auto", prior=None) -> SensorCalibration:
+               method="auto", prior=None, ref_floor_nT=None) -> SensorCalibration:
     """Temperature calibration of one sensor from all its files (list of FitData).
 
     degree: highest polynomial degree in temperature; the degree used is also limited to
@@ -125,7 +125,10 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
     range (the chain flags TEMP_EXTRAPOLATED outside it) and is valid at every
     temperature (stats["valid_outside_range"]; flight.coeffs.temp_margin_C).
     stats["observability"]: per coefficient data or prior, with 1-sigma;
-    stats["predicted_error"]: field and angle error at the unit's field from the 1-sigma.
+    stats["predicted_error"]: field and angle error at the unit's field from the 1-sigma,
+    raised to the residual the noise does not explain where fit.goodness.noise_misfit
+    flags it (stats["noise_goodness"]; ref_floor_nT: per data the reference's stated |B|
+    error, e.g. the field model's floor).
     """
     if method not in FIT_METHODS:
         raise InputError(datas[0].source if datas else None,
@@ -142,7 +145,7 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
             cal, fallback = _fit_sensor_analytic(name, S, datas, degree, say, notes,
                                                  per_file, source)
             if cal is not None:
-                return _with_method(cal, "analytic", "analytic", S)
+                return _with_method(cal, "analytic", "analytic", S, ref_floor_nT)
         else:
             fallback = ("no file carries reference vectors for this sensor: the known-vector "
                         "method needs them; fitted with auto")
@@ -150,21 +153,21 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
         say(f"{name}: analytic method not used ({fallback})")
     elif method == "ellipsoid":
         cal = _fit_sensor_ellipsoid(name, S, datas, degree, say, notes, per_file, source)
-        return _with_method(cal, "ellipsoid", "ellipsoid", S)
+        return _with_method(cal, "ellipsoid", "ellipsoid", S, ref_floor_nT)
     cal = _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source)
     if fallback:
         cal.stats["method_fallback"] = fallback
-    return _with_method(cal, method, "auto", S)
+    return _with_method(cal, method, "auto", S, ref_floor_nT)
 
 
-def _with_method(cal, requested, used, S):
+def _with_method(cal, requested, used, S, ref_floor_nT=None):
     cal.stats["method_requested"] = requested
     cal.stats["method"] = used
-    _finish(cal, S)
+    _finish(cal, S, ref_floor_nT)
     return cal
 
 
-def _finish(cal, S):
+def _finish(cal, S, ref_floor_nT=None):
     """Temperature range of a constant model, observability, predicted error (fit_sensor)."""
     st = cal.stats
     if np.all(cal.b_poly_nT[1:] == 0) and np.all(cal.M_poly[1:] == 0):
@@ -185,7 +188,10 @@ def _finish(cal, S):
         "note": "every coefficient from the data (this method has no prior"
                 + ("; the --prior given is used only by the constant and per-level fits"
                    if S.prior is not None else "") + "); 1-sigma in uncertainty_1sigma"}
-    st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)])
+    noise_gof = noise_misfit(cal, S, ref_floor_nT)
+    if noise_gof is not None:
+        st["noise_goodness"] = noise_gof
+    st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)], noise_gof)
     gof = vector_misfit(cal, S)
     if gof is not None:
         st["goodness_of_fit"] = gof
@@ -269,13 +275,46 @@ def extrapolation_growth(cal, field_nT) -> dict:
                      if deg else "the part's prior 1-sigma of the slope (constant model)")}
 
 
-def predicted_error(cal, field_nT) -> dict:
+def predicted_error(cal, field_nT, noise_gof=None) -> dict:
     """Calibration error expected from the coefficients' 1-sigma at the unit's field
     (median of the reference magnitudes), for a field in a random direction:
     per body axis var_i = sum_j sigma(M_ij)^2 |B|^2 / 3 + sum_j M_ij^2 sigma(b_j)^2, at
     the worst of t_ref and the ends of the calibrated range (sigma(T)^2 = sum_k sigma_k^2
     dT^2k); correlations between coefficients ignored. Field error: the vector's RMS;
-    angle error: its part across the field, sqrt(2/3) of it, over |B|."""
+    angle error: its part across the field, sqrt(2/3) of it, over |B|.
+
+    The one definition of the calibration's predicted error (stats["predicted_error"],
+    flight.coeffs.temp_margin_C, the report). It is never below what the fit achieved on
+    its own data: noise_gof (fit.goodness.noise_misfit) gives the residual the reading
+    noise does not explain (excess_field_error_nT; the noise itself is not an error of the
+    calibration). Where that test flags the residual and the excess is larger than the
+    1-sigma figure, field_error_nT and angle_error_deg are the excess (conservatively all
+    of it taken as the calibration's), "raised_to_achieved" says so, and the 1-sigma
+    figure stays as field_error_from_sigma_nT / angle_error_from_sigma_deg. Where the test
+    does not flag, the excess is consistent with 0 (the noise explains the residual) and
+    the 1-sigma figure stands; "achieved" holds the residual and what explains it."""
+    out = _sigma_error(cal, field_nT)
+    if noise_gof is None or "field_error_nT" not in out:
+        return out
+    F = out["at_field_nT"]
+    ex = float(noise_gof["excess_field_error_nT"])
+    out["field_error_from_sigma_nT"] = out["field_error_nT"]
+    out["angle_error_from_sigma_deg"] = out["angle_error_deg"]
+    out["achieved"] = {k: noise_gof[k] for k in ("kind", "rms_residual_nT", "explained_nT",
+                                                 "excess_field_error_nT", "flagged")}
+    out["raised_to_achieved"] = bool(noise_gof["flagged"] and ex > out["field_error_nT"])
+    if out["raised_to_achieved"]:
+        out["field_error_per_axis_nT"] = [float(a * ex / out["field_error_nT"])
+                                          for a in out["field_error_per_axis_nT"]]
+        out["field_error_nT"] = ex
+        out["angle_error_deg"] = float(np.degrees(np.sqrt(2.0 / 3.0) * ex / F))
+        out["from"] = ("the fit's own residual beyond the reading noise (larger than the "
+                       "coefficients' 1-sigma figure, field_error_from_sigma_nT)")
+    return out
+
+
+def _sigma_error(cal, field_nT) -> dict:
+    """predicted_error from the coefficients' 1-sigma alone."""
     if cal.b_poly_sigma_nT is None or cal.M_poly_sigma is None or len(field_nT) == 0:
         return {"note": "no 1-sigma for this calibration"}
     F = float(np.median(field_nT))
@@ -515,11 +554,18 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
             sr["fit_on_compensated"] = True
             sr["why"] += ("; M is fitted to the compensated chain output (the reference "
                           "vectors carry the rotation error the chain then adds back)")
+        # the reference's own stated |B| error per file (the field model's floor, ICD 4)
+        floors = [(tel.meta.get("field_reference") or {}).get("model_floor_nT")
+                  for tel, _ in used]
         cal = fit_sensor(s.name, datas, progress=progress, method=method,
-                         prior=(prior or {}).get(s.name))
+                         prior=(prior or {}).get(s.name), ref_floor_nT=floors)
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
-                                                else datas[0].source)
+                                                else datas[0].source, unit=unit,
+                                                prior=(prior or {}).get(s.name))
+        noisy = noise_warning(s.name, cal.stats.get("noise_goodness"))
+        if noisy:     # a warning, not a refusal (fit.goodness): the reference may be worse
+            cal.stats["sanity"]["warnings"].append(noisy)
         misfit = check_misfit(s.name, cal.stats.get("goodness_of_fit"),
                               vec_files[0] if vec_files else datas[0].source,
                               accept=accept_misfit)
