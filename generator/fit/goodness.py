@@ -128,15 +128,20 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     from generator.fit.reference import NOISE_VAR_UNCERTAINTY, _correlation_inflation
     from generator.fit.segments import temperature_quantum
 
-    noise = float(S.noise_nT or 0.0)
-    if noise <= 0 or S.n == 0:
+    if S.n == 0:
         return None
     fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
+    noise = float(S.noise_nT or 0.0)
+    stated = noise > 0
+    z = cal.apply64(S.x, S.T)
+    if not stated:      # none stated (a generic part): from the residual's own differences
+        noise = _difference_noise(cal, S, z, fid)
+        if noise <= 0:
+            return None
     floor = np.zeros(S.n)
     if floor_nT is not None:
         fl = np.asarray([float(f or 0.0) for f in floor_nT])
         floor = fl[np.clip(fid, 0, len(fl) - 1)] if len(fl) else floor
-    z = cal.apply64(S.x, S.T)
     M = cal.M_at(S.T)
     # the temperature's reporting step: z's change per degC times q^2/12 (per file)
     q2 = np.zeros(S.n)
@@ -189,12 +194,39 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
         out.update(kind="magnitude", rms_residual_nT=float(np.sqrt(r2)),
                    explained_nT=float(np.sqrt(e2)),
                    excess_field_error_nT=float(np.sqrt(max(r2 - e2, 0.0))))
+    out["noise_from"] = "stated" if stated else "sample-to-sample differences"
     out["from"] = (f"reading noise {noise:.1f} nT per axis through M"
+                   + ("" if stated else " (none stated: estimated from the residual's "
+                      "sample-to-sample differences)")
                    + (f", reference floor {out['floor_nT']:.0f} nT" if out["floor_nT"] else "")
-                   + f", temperature reporting step; chi-square quantile 1 - {NOISE_ALPHA:g} "
+                   + (", temperature reporting step" if np.any(q2 > 0) else "")
+                   + f"; chi-square quantile 1 - {NOISE_ALPHA:g} "
                    f"with {n_eff:.0f} effective degrees of freedom, times "
                    f"{1 + NOISE_VAR_UNCERTAINTY:g} for the stated noise's uncertainty")
     return out
+
+
+def _difference_noise(cal, S, z, fid) -> float:
+    """Per-axis reading noise (nT, in the reading's scale) when the sensor states none:
+    from the first differences of the residual within each file, mapped back through
+    M^-1 for vector rows (the |B| residual for magnitude rows is one axis's worth),
+    robustly (1.4826 MAD) and / sqrt(2) for a difference of two samples. Only what
+    changes from sample to sample counts (white noise of the reading and of the
+    reference); a slow error is exactly what the test is to find. 0 with too few rows."""
+    v = S.is_vec
+    parts = []
+    for f in np.unique(fid):
+        m = fid == f
+        if (m & v).sum() >= 3:
+            r = z[m & v] - S.ref[m & v]
+            Minv = np.linalg.inv(cal.M_at(S.T[m & v]))
+            parts.append(np.diff(np.einsum("nij,nj->ni", Minv, r), axis=0).ravel())
+        if (m & ~v).sum() >= 3:
+            parts.append(np.diff(np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]))
+    if not parts:
+        return 0.0
+    d = np.concatenate(parts)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
 def noise_warning(name, gof) -> str | None:
