@@ -270,6 +270,7 @@ def test_warning_reaches_report_summary(tmp_path):
     assert st["predicted_error"]["raised_to_achieved"]
     md = (out / "report.md").read_text()
     assert "beyond what the reading noise explains" in md
+    assert "raised to the fit's own residual beyond the reading noise" in md
 
 
 # ---- the statistics of the noise test on synthetic draws -----------------------------------

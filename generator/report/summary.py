@@ -14,7 +14,11 @@ report's CampaignAnalysis):
   widened by the chain's margin temp_margin_C (docs/chain.md);
 * the calibrated temperature range; what was fitted and what held at the prior (the
   reference fit's per-coefficient "data"/"prior" tags, fit stats "observability");
-* warnings (the sanity checks before a calibration is written).
+* warnings (the sanity checks before a calibration is written, the noise-only goodness
+  test and the mounting-rotation check, fit.goodness and fit.sanity);
+* the predicted calibration error at the unit's field (fit stats "predicted_error": from
+  the coefficients' 1-sigma, raised to the fit's residual beyond the reading noise where
+  that is larger, and then said so).
 
 Verdict (ICD section 4): field_error_nT is the |B| RMS after calibration, angle_deg the
 angle RMS against the reference, per sensor. A sensor meets the requirements when every
@@ -123,6 +127,28 @@ def fitted_vs_prior(cs, name) -> str:
     return note.split(";")[0]
 
 
+def predicted_line(cs) -> str | None:
+    """One paragraph: per sensor the predicted field and angle error (fit stats
+    predicted_error), labelled where it was raised to the fit's own residual."""
+    parts = []
+    for s in cs.unit.sensors:
+        st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
+        pe = st.get("predicted_error") or {}
+        if pe.get("field_error_nT") is None:
+            continue
+        txt = f"{s.name} {pe['field_error_nT']:.1f} nT / {pe['angle_error_deg']:.3f} deg"
+        if pe.get("raised_to_achieved"):
+            txt += (f" (raised to the fit's own residual beyond the reading noise; from the "
+                    f"coefficients' 1-sigma alone {pe['field_error_from_sigma_nT']:.1f} nT / "
+                    f"{pe['angle_error_from_sigma_deg']:.3f} deg)")
+        parts.append(txt)
+    if not parts:
+        return None
+    return ("Predicted calibration error at the unit's field (field / angle, from the "
+            "coefficients' 1-sigma, never below the fit's own residual beyond the reading "
+            "noise): " + "; ".join(parts) + ".")
+
+
 def verdict(fig, req) -> tuple:
     """(verdict text, [reasons]) of one sensor against the requirements."""
     if not req:
@@ -206,6 +232,9 @@ def summary_section(cs, analysis) -> Section:
              "for the angle, on sensors whose M maps to the reference's frame). Valid: rows "
              "of all files the flight chain keeps valid by their inputs (present, not "
              "saturated, temperature within the calibrated range plus the chain's margin)."]
+    pred = predicted_line(cs)
+    if pred:
+        paras.append(pred)
     tables = [Table(["sensor", "part", "stated noise nT/axis", "|B| RMS before nT", "|B| RMS after nT",
                      "angle RMS before deg", "angle RMS after deg", "valid",
                      "calibrated degC", "fitted / held at the prior", "verdict"], rows,
