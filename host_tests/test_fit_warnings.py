@@ -196,6 +196,24 @@ def test_stuck_temperature_column_warns_and_raises_predicted_error(tmp_path):
         achieved = math.sqrt(3.0 * (ng["rms_residual_nT"] ** 2 - ng["explained_nT"] ** 2))
         assert pe["field_error_nT"] >= achieved * (1 - 1e-9)
         assert pe["angle_error_deg"] > pe["angle_error_from_sigma_deg"]
+        assert "predicted error is raised" in w[0]
+        # every column stuck: no sensor of the board to tell a stuck column from a steady
+        # board, so no direct claim (the noise test covers it)
+        assert not [x for x in st["sanity"]["warnings"] if "holds one value" in x]
+
+
+def test_one_stuck_column_among_swept_ones_is_named(tmp_path):
+    # the other two sensors of the same body board sweep -20..55 degC; mmc's column holds
+    # one value: named directly (goodness.stuck_temperatures), besides the noise test
+    up, p = _simulate(tmp_path, UNIT3, 5)
+    bad = _rewrite(p, tmp_path / "stuck.csv", _stuck(["mmc"]))
+    stats = _fit(up, [bad])
+    stuck = {n: [w for w in st["sanity"]["warnings"] if "holds one value" in w]
+             for n, st in stats.items()}
+    assert len(stuck["mmc"]) == 1 and "mmc_temp_C" in stuck["mmc"][0]
+    assert stuck["lis"] == [] and stuck["qmc"] == []
+    assert _noise_warned(stats["mmc"])
+    assert not _noise_warned(stats["lis"]) and not _noise_warned(stats["qmc"])
 
 
 def test_rotated_reference_warns_with_angle_and_axis(tmp_path):

@@ -229,10 +229,22 @@ def _difference_noise(cal, S, z, fid) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
-def noise_warning(name, gof) -> str | None:
-    """The one-line warning of a flagged noise_misfit (None when not flagged)."""
+def noise_warning(name, gof, predicted=None) -> str | None:
+    """The one-line warning of a flagged noise_misfit (None when not flagged); predicted:
+    the calibration's stats["predicted_error"] (whether it was raised)."""
     if not gof or not gof.get("flagged"):
         return None
+    pe = predicted or {}
+    if pe.get("raised_to_achieved"):
+        tail = (f"its predicted error is raised to that residual's part beyond the noise, "
+                f"{pe['field_error_nT']:.0f} nT (from the coefficients' 1-sigma alone "
+                f"{pe['field_error_from_sigma_nT']:.0f} nT)")
+    elif pe.get("field_error_nT") is not None:
+        tail = (f"its predicted error from the coefficients' 1-sigma, "
+                f"{pe['field_error_nT']:.0f} nT, already covers the residual's part beyond "
+                f"the noise ({gof['excess_field_error_nT']:.0f} nT)")
+    else:
+        tail = f"{gof['excess_field_error_nT']:.0f} nT of it the noise does not explain"
     what = "per axis against the reference vectors" if gof["kind"] == "vector" else \
         "of |B| against the reference magnitude"
     return (f"sensor '{name}': the fit leaves {gof['rms_residual_nT']:.0f} nT rms {what}, "
@@ -241,5 +253,42 @@ def noise_warning(name, gof) -> str | None:
             "Likely causes: the reference carries more error than the sensor noise (an "
             "attitude estimate, a field model, a disturbed lab), a stuck or wrong "
             "temperature column, or an effect the model lacks (run `magcal trace` to find "
-            "it); the calibration is kept, its predicted error is raised to the "
-            f"unexplained part, {gof['excess_field_error_nT']:.0f} nT")
+            f"it); the calibration is kept, {tail}")
+
+
+# A temperature column that stays on one reported value while another sensor of the same
+# board frame sweeps: sensors of one board share its temperature to within their
+# self-heating (a degree or two), so a sweep of more than STUCK_SWEEP_C there and not one
+# reporting step here is a stuck (or wrongly mapped) column, not a steady board.
+STUCK_SWEEP_C = 10.0
+
+
+def stuck_temperatures(unit, temps) -> dict:
+    """{sensor name: warning} for the case above. temps: {sensor name: [(file, temp_C of
+    the usable samples)]} of the sensors that report a temperature."""
+    frame = {s.name: s.frame for s in unit.sensors}
+    out = {}
+    for name, files in temps.items():
+        for src, T in files:
+            T = np.asarray(T, float)
+            T = T[np.isfinite(T)]
+            if len(T) < 2 or np.ptp(T) > 0:
+                continue
+            for other, ofiles in temps.items():
+                if other == name or frame.get(other) != frame.get(name):
+                    continue
+                for osrc, OT in ofiles:
+                    OT = np.asarray(OT, float)
+                    OT = OT[np.isfinite(OT)]
+                    if osrc == src and len(OT) and np.ptp(OT) > STUCK_SWEEP_C:
+                        out[name] = (
+                            f"sensor '{name}': its temperature column holds one value "
+                            f"({T[0]:g} degC) over all of {src}, while sensor '{other}' on "
+                            f"the same ({frame[name]}) board spans {OT.min():.1f}.."
+                            f"{OT.max():.1f} degC there: a stuck or wrongly mapped "
+                            f"temperature column (the fit took this sensor as one "
+                            f"temperature); check {name}_temp_C")
+                        break
+                if name in out:
+                    break
+    return out

@@ -72,7 +72,8 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
-from generator.fit.goodness import check_misfit, noise_misfit, noise_warning, vector_misfit
+from generator.fit.goodness import (check_misfit, noise_misfit, noise_warning,
+                                    stuck_temperatures, vector_misfit)
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _residuals, _rms, _score)
 from generator.fit.levels import (_fit_segments, _fit_sensor_analytic, _fit_sensor_ellipsoid,
@@ -533,7 +534,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
     if not telemetries:
         raise InputError(unit.path, "fit: no telemetry files given")
     pre = [(_telemetry.preprocess(tel, unit), tel) for tel in telemetries]
-    out = {}
+    out, temps = {}, {}
     for s in unit.sensors:
         used = [(tel, data[s.name]) for data, tel in pre if s.name in data]
         datas = [fit_data_from(tel, sd, unit) for tel, sd in used]
@@ -563,7 +564,8 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source, unit=unit,
                                                 prior=(prior or {}).get(s.name))
-        noisy = noise_warning(s.name, cal.stats.get("noise_goodness"))
+        noisy = noise_warning(s.name, cal.stats.get("noise_goodness"),
+                              cal.stats.get("predicted_error"))
         if noisy:     # a warning, not a refusal (fit.goodness): the reference may be worse
             cal.stats["sanity"]["warnings"].append(noisy)
         misfit = check_misfit(s.name, cal.stats.get("goodness_of_fit"),
@@ -583,6 +585,12 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
             cal.stats.setdefault("notes", []).append(w)
         cal.stats["set_reset_compensation"] = sr
         out[s.name] = cal
+        if s.temperature:
+            temps[s.name] = [(d.source, d.temp_C[d.usable]) for d in datas]
+    for n, w in stuck_temperatures(unit, temps).items():
+        out[n].stats["sanity"]["warnings"].append(w)
+        out[n].stats.setdefault("notes", []).append(w)
+        (progress or (lambda m: None))(f"WARNING: {w}")
     return out
 
 
