@@ -128,8 +128,8 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     from generator.fit.reference import NOISE_VAR_UNCERTAINTY, _correlation_inflation
     from generator.fit.segments import temperature_quantum
 
-    if S.n == 0:
-        return None
+    if S.n == 0 or not (np.all(np.isfinite(cal.M_poly)) and np.all(np.isfinite(cal.b_poly_nT))):
+        return None       # nothing to test (non-finite coefficients: fit.sanity refuses them)
     fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
     noise = float(S.noise_nT or 0.0)
     stated = noise > 0
@@ -219,7 +219,8 @@ def _difference_noise(cal, S, z, fid) -> float:
         m = fid == f
         if (m & v).sum() >= 3:
             r = z[m & v] - S.ref[m & v]
-            Minv = np.linalg.inv(cal.M_at(S.T[m & v]))
+            Minv = np.linalg.pinv(cal.M_at(S.T[m & v]))   # pinv: a degenerate M
+            # is refused by fit.sanity after this, not here
             parts.append(np.diff(np.einsum("nij,nj->ni", Minv, r), axis=0).ravel())
         if (m & ~v).sum() >= 3:
             parts.append(np.diff(np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]))

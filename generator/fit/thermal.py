@@ -305,7 +305,9 @@ def predicted_error(cal, field_nT, noise_gof=None) -> dict:
                                                  "excess_field_error_nT", "flagged")}
     out["raised_to_achieved"] = bool(noise_gof["flagged"] and ex > out["field_error_nT"])
     if out["raised_to_achieved"]:
-        out["field_error_per_axis_nT"] = [float(a * ex / out["field_error_nT"])
+        tot = out["field_error_nT"]
+        out["field_error_per_axis_nT"] = [float(a * ex / tot) if tot > 0
+                                          else ex / np.sqrt(3.0)
                                           for a in out["field_error_per_axis_nT"]]
         out["field_error_nT"] = ex
         out["angle_error_deg"] = float(np.degrees(np.sqrt(2.0 / 3.0) * ex / F))
