@@ -377,3 +377,27 @@ def load_unit_spec():
     from types import SimpleNamespace
     return SimpleNamespace(part="MMC5983MA", range_nT=800000.0, counts=False,
                            full_scale_nT=800000.0, input="nT")
+
+
+def test_rotation_is_judged_relative_to_a_ground_prior(tmp_path):
+    # a ground calibration that already holds the 5 deg (warned when it was fitted) is the
+    # mounting; a later fit on --prior with the same rotation is not warned again. One
+    # whose reference is rotated by another 5 deg: the ground calibration's 1-sigma is far
+    # tighter than what these data say of M, so M stays at the prior (observability) and
+    # the rotation shows as a residual beyond the noise instead
+    up, p = _simulate(tmp_path / "g", UNIT1.format(extra=""), 6)
+    ground = _rewrite(p, tmp_path / "ground_rot5.csv", _rotated(5.0))
+    cs = pipeline.fit(up, [str(ground)], progress=lambda m: None)
+    assert _rot_warned(cs.fit_info["sensors"]["lis"]["stats"])
+    prior = tmp_path / "ground.json"
+    cs.save(prior)
+    again = pipeline.fit(up, [str(ground)], progress=lambda m: None, prior=str(prior))
+    st = again.fit_info["sensors"]["lis"]["stats"]
+    assert st["sanity"]["rotation"]["relative_to"] == "the --prior calibration"
+    assert st["sanity"]["rotation"]["angle_deg"] < 1.0
+    assert not _rot_warned(st)
+    more = _rewrite(p, tmp_path / "rot10.csv", _rotated(10.0))
+    st = pipeline.fit(up, [str(more)], progress=lambda m: None,
+                      prior=str(prior)).fit_info["sensors"]["lis"]["stats"]
+    assert st["sanity"]["rotation"]["angle_deg"] < 1.0 and not _rot_warned(st)
+    assert _noise_warned(st) and st["predicted_error"]["raised_to_achieved"]
