@@ -158,7 +158,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     Mtu = np.einsum("nji,nj->ni", M, u)
     mag_var = (noise ** 2 * np.sum(Mtu ** 2, axis=1) + floor ** 2
                + q2 * np.sum(u * dz, axis=1) ** 2)
-    parts, n_rows, n_eff, chi2 = [], 0, 0.0, 0.0
+    n_rows, n_eff, chi2 = 0, 0.0, 0.0
     for f in np.unique(fid):
         m = fid == f
         mv, mm = m & v, m & ~v
