@@ -401,3 +401,18 @@ def test_rotation_is_judged_relative_to_a_ground_prior(tmp_path):
                       prior=str(prior)).fit_info["sensors"]["lis"]["stats"]
     assert st["sanity"]["rotation"]["angle_deg"] < 1.0 and not _rot_warned(st)
     assert _noise_warned(st) and st["predicted_error"]["raised_to_achieved"]
+
+
+def test_magnitude_only_calibration_is_judged_on_the_magnitude():
+    # the ellipsoid method's M is known only up to a rotation: its vector residual is no
+    # measure of anything, so the test takes |B| (vectors present or not)
+    rng = np.random.default_rng(4)
+    cal, S = _synthetic(rng)
+    from scipy.spatial.transform import Rotation
+    R = Rotation.from_rotvec([0.0, 0.0, 0.5]).as_matrix()     # 29 deg: M = R M_true
+    cal = SensorCalibration.constant("s", cal.b_poly_nT[0], R @ cal.M_poly[0],
+                                     t_min_C=20.0, t_max_C=30.0, body_frame=False)
+    g = noise_misfit(cal, S)
+    assert g["kind"] == "magnitude" and not g["flagged"]
+    cal.body_frame = True
+    assert noise_misfit(cal, S)["flagged"]

@@ -150,7 +150,8 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
         q2[m] = temperature_quantum(S.T[m]) ** 2 / 12.0
     h = 0.5
     dz = (cal.apply64(S.x, S.T + h) - cal.apply64(S.x, S.T - h)) / (2 * h)
-    v = S.is_vec
+    # a magnitude-only calibration (M symmetric, known up to a rotation) is judged on |B|
+    v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
     vec_var = (noise ** 2 * np.einsum("nij,nij->n", M, M) / 3.0 + floor ** 2 / 3.0
                + q2 * np.sum(dz ** 2, axis=1) / 3.0)
     nz = np.linalg.norm(z, axis=1)
@@ -213,7 +214,7 @@ def _difference_noise(cal, S, z, fid) -> float:
     robustly (1.4826 MAD) and / sqrt(2) for a difference of two samples. Only what
     changes from sample to sample counts (white noise of the reading and of the
     reference); a slow error is exactly what the test is to find. 0 with too few rows."""
-    v = S.is_vec
+    v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
     parts = []
     for f in np.unique(fid):
         m = fid == f
