@@ -203,7 +203,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
                    + (", temperature reporting step" if np.any(q2 > 0) else "")
                    + f"; chi-square quantile 1 - {NOISE_ALPHA:g} "
                    f"with {n_eff:.0f} effective degrees of freedom, times "
-                   f"{1 + NOISE_VAR_UNCERTAINTY:g} for the stated noise's uncertainty")
+                   f"{1 + NOISE_VAR_UNCERTAINTY:g} for the noise figure's uncertainty")
     return out
 
 
