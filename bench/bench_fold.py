@@ -12,7 +12,14 @@ unchanged unit measured in the same run as the baseline.
 Fold subsets (each a variant, measured):
   all       scale and axis signs into b and M, H M for boom sensors, band limits squared;
   no_H      as `all`, but a boom sensor keeps H as a separate stage (H M not formed);
-  band      only the band limits squared once (the chain otherwise unchanged).
+  band      only the band limits squared once (the chain otherwise unchanged);
+  all_asis  `all` without forcing the kernels inline (see below).
+
+The folded kernels of two sensors that differ only in their axis signs (mpu1, mpu2 of the
+example unit) become the same code once the signs are data: GCC's identical-code folding
+(on at -O2) then merges them into one function called from two wrappers, which it no
+longer inlines, and the arguments go through memory (arg[], res[]). The variants other than
+all_asis mark CasADi's kernel bodies always_inline, as a generated design would have to.
 
 Before counting, each variant's outputs are compared bit for bit with a float32 Python
 reference that runs the same folding and the same folded kernel (chain.reference_sensor
@@ -53,7 +60,7 @@ from generator.flight.c_syntax import c_literal  # noqa: E402
 from generator.flight.coeffs import CoefficientSet  # noqa: E402
 
 EXAMPLE = REPO / "generated" / "samsat_fm1" / "coefficients.json"
-VARIANTS = ("all", "no_H", "band")
+VARIANTS = ("all", "no_H", "band", "all_asis")
 
 
 # ---- the folded chain under a fold subset ------------------------------------------------
@@ -185,7 +192,7 @@ def kernel_fn(cs, s, set_only, which):
     return fn, flat
 
 
-def variant_sources(cs, which):
+def variant_sources(cs, which, force_inline=True):
     """{file: text}: the generated sources with the variant kernels and their prepared
     constants; None when the wrapper is not laid out as expected."""
     spec = cs.spec
@@ -221,7 +228,15 @@ def variant_sources(cs, which):
     with tempfile.TemporaryDirectory() as d:
         cg.generate(d + "/")
         text = (Path(d) / f"{unit}_kernels.c").read_text()
-    files[f"{unit}_kernels.inc"] = codegen._internal_helpers_static(text)
+    text = codegen._internal_helpers_static(text)
+    if force_inline:
+        text = re.sub(r"^static int (casadi_f\d+)\(",
+                      r"static inline __attribute__((always_inline)) int \1(", text, flags=re.M)
+    files[f"{unit}_kernels.inc"] = text
+    if force_inline:
+        magcal = magcal.replace("#define CASADI_SYMBOL_EXPORT static inline\n",
+                                "#define CASADI_SYMBOL_EXPORT static inline "
+                                "__attribute__((always_inline))\n", 1)
     marker = f'#include "{unit}_kernels.inc"'
     magcal = magcal.replace(marker, marker + "\n\n/* prepared coefficients (bench_fold) */\n"
                             + "\n".join(consts), 1)
@@ -301,12 +316,13 @@ def main(argv=None) -> int:
                          "per_call": e.bound["kernel_per_call"]}
             for e in base["entries"] if e.entry.kind != "select"}
     for which in args.variants.split(","):
-        files = variant_sources(cs, which)
+        files = variant_sources(cs, which.replace("_asis", ""),
+                                force_inline=not which.endswith("_asis"))
         if files is None:
             print(f"{which}: the wrapper is not laid out as expected; not measured")
             continue
         arm = ArmUnit(cs, sources=files)
-        n, bad = check_bits(cs, arm, which)
+        n, bad = check_bits(cs, arm, which.replace("_asis", ""))
         if bad:
             print(f"{which}: C and float32 reference differ ({', '.join(bad)}); not reported")
             continue
