@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 from generator.flight import chain  # noqa: E402
 from generator.flight import codegen  # noqa: E402
 from generator.flight.arm_build import missing_tools  # noqa: E402
-from generator.flight.arm_measure import measure  # noqa: E402
+from generator.flight.arm_measure import _leaves, measure  # noqa: E402
 from generator.flight.arm_runner import ArmUnit, random_inputs  # noqa: E402
 from generator.flight.c_syntax import c_literal  # noqa: E402
 from generator.flight.coeffs import CoefficientSet  # noqa: E402
@@ -97,9 +97,10 @@ class _UnitView:
 
 
 def _band_kernel(spec, s, raw, temp_C, coil_A, c, u, half, set_only, channels, rate_dps,
-                 f_min2, f_max2):
-    """sensor_kernel with the squared band limits given (the 'band' subset)."""
-    out = chain.sensor_kernel(spec, s, raw, temp_C, coil_A, c, u, half, set_only=set_only,
+                 f_min2, f_max2, base=None):
+    """sensor_kernel (or `base`, the unreplaced one) with the squared band limits given
+    (the 'band' subset)."""
+    out = (base or chain.sensor_kernel)(spec, s, raw, temp_C, coil_A, c, u, half, set_only=set_only,
                               channels=channels, rate_dps=rate_dps)
     B = out["field_body_nT"]
     norm2 = B[0] * B[0] + B[1] * B[1] + B[2] * B[2]
@@ -121,14 +122,6 @@ def _folded_out(spec, s, raw, temp, coil, f, half, set_only, channels, rate_dps)
         return out
     return chain.folded_sensor_kernel(spec, s, raw, temp, coil, f, half, set_only=set_only,
                                       channels=channels, rate_dps=rate_dps)
-
-
-def _leaves(v):
-    if isinstance(v, dict):
-        return [x for k in v for x in _leaves(v[k])]
-    if isinstance(v, (list, tuple)):
-        return [x for e in v for x in _leaves(e)]
-    return [v]
 
 
 def _rebuild(template, it):
@@ -257,12 +250,8 @@ def reference_kernel(cs, which):
                rate_dps=()):
         if which == "band":
             lo, hi = u.scalar("field_min_nT"), u.scalar("field_max_nT")
-            chain.sensor_kernel = orig
-            try:
-                return _band_kernel(spec, s, raw, temp_C, coil_A, c, u, half, set_only,
-                                    channels, rate_dps, lo * lo, hi * hi)
-            finally:
-                chain.sensor_kernel = kernel
+            return _band_kernel(spec, s, raw, temp_C, coil_A, c, u, half, set_only,
+                                channels, rate_dps, lo * lo, hi * hi, base=orig)
         f = _fold(spec, s, c, u, half, set_only, which)
         return _folded_out(spec, s, raw, temp_C, coil_A, f, half, set_only, channels,
                            rate_dps)
