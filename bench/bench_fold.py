@@ -13,7 +13,14 @@ Fold subsets (each a variant, measured):
   all       scale and axis signs into b and M, H M for boom sensors, band limits squared;
   no_H      as `all`, but a boom sensor keeps H as a separate stage (H M not formed);
   band      only the band limits squared once (the chain otherwise unchanged);
-  all_asis  `all` without forcing the kernels inline (see below).
+  all_asis  `all` without forcing the kernels inline (see below);
+  +wrap     (suffix; `none+wrap`: no fold) one cut of the wrapper's overhead (item 2), the
+            shared inputs a sensor reads (coil currents, body rate) copied once into
+            locals that both the finiteness probe and the kernel read, instead of
+            loading them from `aux` twice; the arithmetic is unchanged;
+  +nn       (suffix) another cut: the kernel writes its vector outputs into locals that the
+            wrapper copies to `out`, so that CasADi's `if (res[k] != 0)` tests are on
+            pointers the compiler knows to be non-null.
 
 The folded kernels of two sensors that differ only in their axis signs (mpu1, mpu2 of the
 example unit) become the same code once the signs are data: GCC's identical-code folding
@@ -60,7 +67,7 @@ from generator.flight.c_syntax import c_literal  # noqa: E402
 from generator.flight.coeffs import CoefficientSet  # noqa: E402
 
 EXAMPLE = REPO / "generated" / "samsat_fm1" / "coefficients.json"
-VARIANTS = ("all", "no_H", "band", "all_asis")
+VARIANTS = ("all", "no_H", "band", "all_asis", "none+wrap", "none+nn", "all+nn")
 
 
 # ---- the folded chain under a fold subset ------------------------------------------------
@@ -245,6 +252,9 @@ def reference_kernel(cs, which):
     """chain.reference_sensor with its kernel replaced by the variant's arithmetic
     (folding in float32 on the table's values, then the folded kernel)."""
     orig = chain.sensor_kernel
+    if which == "none":     # the chain as generated: the reference as it is
+        yield
+        return
 
     def kernel(spec, s, raw, temp_C, coil_A, c, u, half, set_only=False, channels=(),
                rate_dps=()):
@@ -291,6 +301,73 @@ def check_bits(cs, arm, which, n=2000, seed=11):
     return sum(len(c[2]) for c in calls), bad
 
 
+def wrapper_cut(magcal: str) -> str | None:
+    """The +wrap cut applied to `<unit>_magcal.c`: each sensor wrapper copies the aux
+    vectors it reads into locals (in the probe's `if (aux != 0)` block) and passes those to
+    its kernel. None when the wrapper is not laid out as expected."""
+    parts = re.split(r"(?m)^(?=uint\d+_t \w+\()", magcal)
+    out, n_done = [], 0
+    for part in parts:
+        names = sorted(set(re.findall(r"finite_probe \+= aux->(\w+)\[\d+\]", part)))
+        for name in names:
+            size = 1 + max(int(k) for k in re.findall(rf"aux->{name}\[(\d+)\]", part))
+            real = re.search(r"const (\w+_real_t) \*c", part).group(1)
+            part = part.replace("    unsigned int status = 0u;\n",
+                                f"    unsigned int status = 0u;\n    {real} {name}[{size}];\n",
+                                1)
+            part = re.sub(rf"finite_probe \+= aux->{name}\[(\d+)\] - aux->{name}\[\d+\];",
+                          rf"{name}[\1] = aux->{name}[\1];\n        "
+                          rf"finite_probe += {name}[\1] - {name}[\1];", part)
+            part, k = re.subn(rf"= \(aux != 0\) \? aux->{name} : 0;",
+                              rf"= (aux != 0) ? {name} : 0;", part)
+            if k == 0:
+                return None
+            n_done += 1
+        out.append(part)
+    return "".join(out) if n_done else None
+
+
+def nonnull_cut(magcal: str) -> str | None:
+    """The +nn cut: res[k] = out->X becomes a local X_out copied to out->X after the
+    kernel call. None when the wrapper is not laid out as expected."""
+    parts = re.split(r"(?m)^(?=uint\d+_t \w+\()", magcal)
+    out, n_done = [], 0
+    for part in parts:
+        names = re.findall(r"res\[\d+\] = out->(\w+);", part)
+        if names:
+            real = re.search(r"const (\w+_real_t) \*c", part).group(1)
+            decl = "".join(f"    {real} {n}_out[3];\n" for n in names)
+            copy = "".join(f"    {n2}\n" for n in names for n2 in
+                           (f"out->{n}[{k}] = {n}_out[{k}];" for k in range(3)))
+            part = part.replace("    unsigned int status = 0u;\n",
+                                "    unsigned int status = 0u;\n" + decl, 1)
+            for n in names:
+                part = part.replace(f"= out->{n};", f"= {n}_out;")
+            part, k = re.subn(r"(    \(void\)\w+_kernel\(arg, res, 0, 0, 0\);\n)",
+                              lambda m: m.group(1) + copy, part, count=1)
+            if k != 1:
+                return None
+            n_done += 1
+        out.append(part)
+    return "".join(out) if n_done else None
+
+
+CUTS = {"wrap": lambda m: wrapper_cut(m), "nn": lambda m: nonnull_cut(m)}
+
+
+def build_variant(cs, which):
+    """(sources, fold subset) of a variant name '<fold>[+wrap][_asis]'."""
+    asis = which.endswith("_asis")
+    fold, _, wrap = which.replace("_asis", "").partition("+")
+    files = codegen.render(cs) if fold == "none" else \
+        variant_sources(cs, fold, force_inline=not asis)
+    if files is not None and wrap:
+        name = f"{cs.unit.id}_magcal.c"
+        cut = CUTS[wrap](files[name])
+        files = None if cut is None else {**files, name: cut}
+    return files, fold
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("coeffs", nargs="?", default=str(EXAMPLE))
@@ -305,13 +382,12 @@ def main(argv=None) -> int:
                          "per_call": e.bound["kernel_per_call"]}
             for e in base["entries"] if e.entry.kind != "select"}
     for which in args.variants.split(","):
-        files = variant_sources(cs, which.replace("_asis", ""),
-                                force_inline=not which.endswith("_asis"))
+        files, fold = build_variant(cs, which)
         if files is None:
             print(f"{which}: the wrapper is not laid out as expected; not measured")
             continue
         arm = ArmUnit(cs, sources=files)
-        n, bad = check_bits(cs, arm, which.replace("_asis", ""))
+        n, bad = check_bits(cs, arm, fold)
         if bad:
             print(f"{which}: C and float32 reference differ ({', '.join(bad)}); not reported")
             continue
