@@ -383,8 +383,8 @@ def test_instructions_within_twice_the_minimum_flops(measured):
 @pytest.mark.xfail(strict=True, reason="issue 20 goal not met: instructions per call are "
                    "2.22-2.68 x the flop bound (the chain with every constant folded) on "
                    "this unit (measured 2026-11-24); the generated code does not fold yet; "
-                   "folding measured on the example unit (bench/bench_fold.py) saves 5-35 "
-                   "instructions of a call, leaving 2.07-2.37 x; docs/flight_target.md, "
+                   "folding measured on the example unit (bench/bench_fold.py) saves 6-36 "
+                   "instructions of a call, leaving 2.05-2.36 x; docs/flight_target.md, "
                    "'The flop bound'")
 def test_instructions_within_the_flop_bound_goal(measured):
     cs, m = measured
