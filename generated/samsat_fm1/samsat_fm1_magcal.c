@@ -130,8 +130,9 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[4] = c;
     arg[5] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     res[2] = chip_offset_nT;
@@ -245,8 +246,9 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[4] = c;
     arg[5] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mmc1_set_kernel(arg, res, 0, 0, 0);
@@ -333,8 +335,9 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[3] = c;
     arg[4] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu1_kernel(arg, res, 0, 0, 0);
@@ -421,8 +424,9 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[3] = c;
     arg[4] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu2_kernel(arg, res, 0, 0, 0);
@@ -537,8 +541,9 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[4] = c;
     arg[5] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     res[2] = chip_offset_nT;
@@ -655,8 +660,9 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[4] = c;
     arg[5] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mmc2_set_kernel(arg, res, 0, 0, 0);
@@ -746,8 +752,9 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[3] = c;
     arg[4] = coeffs->unit;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
-     * the compiler drops those tests only for pointers it knows (measured: 1 to 5
-     * instructions per call less on the Cortex-M4F; bench/bench_fold.py, variant +nn) */
+     * the compiler drops those tests only for pointers it knows (measured on the
+     * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
+     * non-finite one; docs/flight_target.md, bench/bench_fold.py variant +nn) */
     res[0] = field_body_nT;
     res[1] = band_margin_nT2;
     (void)samsat_fm1_mpu3_kernel(arg, res, 0, 0, 0);
