@@ -186,7 +186,9 @@ class Truth:
         B = np.asarray(B_body_nT, dtype=float)
         return B @ self.H_boom_to_body if (frame == "boom" and deployed) else B.copy()
 
-    def to_json(self) -> dict:
+    def to_json(self, simulation: dict | None = None) -> dict:
+        """truth.json; `simulation` (simulation_record) records how the run was made: its
+        seed and magcal version, so that it can be reproduced."""
         note = ("m_frame = W(T) B_frame + b(T) + K i_coil; W(T)=W0+W1 dT+W2 dT^2, "
                 "b(T)=sum b_k dT^k, dT=T-t_ref")
         return {
@@ -207,6 +209,7 @@ class Truth:
             "board_tau_s": dict(self.board_tau_s),
             "board_self_heating_C": dict(self.board_self_heating_C),
             "coil_study": dict(self.coil_study),
+            **({"simulation": dict(simulation)} if simulation is not None else {}),
         }
 
     @staticmethod
@@ -234,6 +237,14 @@ class Truth:
         truth.board_self_heating_C.update(d.get("board_self_heating_C", {}))
         truth.coil_study.update(d.get("coil_study", {}))
         return truth
+
+
+def simulation_record(seed: int, **how) -> dict:
+    """truth.json's "simulation" entry: the seed, the magcal version that drew the unit and
+    its campaigns, and `how` (the options of the run). The same seed, options and version
+    give the same bytes."""
+    from generator import __version__
+    return {"seed": int(seed), "magcal_version": __version__, **how}
 
 
 def load_truth(path, unit: Unit | None = None) -> Truth:
@@ -744,7 +755,10 @@ def make_example(out_dir, seed: int = 0, size: str = "example") -> dict:
     truth = random_truth(unit, np.random.default_rng(truth_seed))
     paths = {"unit": out_dir / "unit.toml", "truth": out_dir / "truth.json"}
     write_unit_toml(unit, paths["unit"])
-    paths["truth"].write_text(json.dumps(truth.to_json(), indent=1) + "\n", encoding="utf-8")
+    record = simulation_record(seed, by="generator.campaign.simulate.make_example",
+                               size=size, campaigns=list(EXAMPLE_CAMPAIGNS))
+    paths["truth"].write_text(json.dumps(truth.to_json(record), indent=1) + "\n",
+                              encoding="utf-8")
     for kind, ss in zip(EXAMPLE_CAMPAIGNS, campaign_seeds):
         csv_path, _ = simulate_campaign(kind, unit, truth, np.random.default_rng(ss), out_dir,
                                         **EXAMPLE_SIZES[size].get(kind, {}))
