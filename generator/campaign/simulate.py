@@ -64,7 +64,8 @@ EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation", "coil_study")
 T_REF_C = 25.0
 SET_RESET_DELAY_s = 0.012          # RESET reading is taken this long after the SET one
 DEFAULT_NOISE_nT = {"MMC5883MA": 40.0, "MPU-9255": 250.0}
-MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = 0.7, -75.0   # MMC5883MA temperature output: 0.7 degC/LSB
+# MMC5883MA temperature output: the catalogue's step (0.7 degC/LSB), 0 = -75 degC
+MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = _parts.temperature_lsb_C("MMC5883MA"), -75.0
 
 # The coil study's test coil (seed 000: a magnetorquer at points 1-6, 5 to 30 cm from the
 # magnetometer, 0.1 A): |field per ampere| at 30 cm on the coil's axis, the fall-off
