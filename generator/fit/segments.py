@@ -112,14 +112,15 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
 
     A sample is settled when some window of `window_s` that contains it keeps the
     (5-sample median filtered) temperature within `band_C`. A settled run is split into
-    plateaus: the value interval of width band_C that holds most of the run's samples,
-    and the longest stretch of consecutive samples inside it, is a plateau; what is left
-    before and after it is split the same way (a run that joins two holds by a slow
-    transition, or a hold and the tail of the board's approach to it, gives one plateau
-    per hold). Plateaus of at least `min_duration_s` are segments; segments of the same
-    position less than min_duration_s apart whose union stays within band_C are merged (a
-    glitch does not split a plateau). The boards lag the chamber, so nothing about the
-    chamber profile is assumed.
+    plateaus: the longest stretch of consecutive samples that stays inside one interval
+    of width band_C is a plateau, and what is left before and after it is split the same
+    way (a run that joins two holds by a slow transition, or a hold and the tail of the
+    board's approach to it, gives a plateau per hold). Neighbouring pieces of one hold
+    are joined again (a glitch, or a hold whose true temperature crosses one code
+    boundary while it dithers, cuts a hold into pieces): less than min_duration_s apart,
+    together within max(band_C, 2 q) and their means within max(min_band_C, 1.5 q), q the
+    reporting step. What lasts `min_duration_s` is a segment. The boards lag the chamber,
+    so nothing about the chamber profile is assumed.
 
     band_C defaults to segment_band_C (6 sigma of noise and quantisation: 1.21 degC for
     the MMC5883's 0.7 degC step, which a hold dithering between two codes stays within;
@@ -165,34 +166,39 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
     return segs
 
 
-# ranges of quantised values are compared with this relative slack (0.7 * 3 is
-# 2.1000000000000001 in binary; a span of whole steps must not miss by rounding)
+# ranges of quantised values are compared with this relative slack (11.8 - 9.7 is
+# 2.1000000000000014 in binary; a span of whole steps must not miss by rounding)
 _SLACK = 1e-9
 
 
 def _plateaus(Tf, a, b, width_C, out):
-    """Split Tf[a:b] into plateaus (see find_segments): appends (start, stop) to out.
+    """Split Tf[a:b] into plateaus (see find_segments): appends (start, stop) to out, in
+    time order.
 
     The plateau is the longest stretch of consecutive samples whose values stay inside
     one interval [v, v + width_C]; v runs over a grid from the smallest value in steps of
-    width_C / 20 (a quantised reading's codes lie on its step, which a grid that starts
-    at a code and is finer than the step meets within width_C / 20)."""
-    if b - a <= 0:
-        return
-    seg = Tf[a:b]
-    lo, hi = float(seg.min()), float(seg.max())
-    edges = lo + np.arange(int((hi - lo) / (width_C / 20.0)) + 1) * (width_C / 20.0)
-    best = (0, 0, 0)
-    for v in edges:
-        inside = (seg >= v - _SLACK * width_C) & (seg <= v + width_C * (1 + _SLACK))
-        for s0, e0 in _runs(inside):
-            if e0 - s0 > best[0]:
-                best = (int(e0 - s0), int(s0), int(e0))
-    _, s, e = best
-    s, e = a + s, a + e
-    _plateaus(Tf, a, s, width_C, out)
-    out.append((s, e))
-    _plateaus(Tf, e, b, width_C, out)
+    width_C / 20 (a quantised reading's codes lie on its step, and the grid meets each
+    code within width_C / 20). What is left before and after it is split the same way
+    (iteratively: a run of many small pieces must not exhaust the call stack)."""
+    found = []
+    todo = [(a, b)]
+    while todo:
+        a, b = todo.pop()
+        if b - a <= 0:
+            continue
+        seg = Tf[a:b]
+        lo, hi = float(seg.min()), float(seg.max())
+        edges = lo + np.arange(int((hi - lo) / (width_C / 20.0)) + 1) * (width_C / 20.0)
+        best = (0, 0, 0)
+        for v in edges:
+            inside = (seg >= v - _SLACK * width_C) & (seg <= v + width_C * (1 + _SLACK))
+            for s0, e0 in _runs(inside):
+                if e0 - s0 > best[0]:
+                    best = (int(e0 - s0), int(s0), int(e0))
+        _, s, e = best
+        found.append((a + s, a + e))
+        todo += [(a, a + s), (a + e, b)]
+    out.extend(sorted(found))
 
 
 def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band_C,
