@@ -102,18 +102,18 @@ def _edit_column(path, column, row, value):
 def test_bad_study_column_is_one_line_naming_line_and_column(tmp_path, column, value, fault):
     unit, _, _, path = _study(tmp_path, 1, fast=True)
     line = _edit_column(path, column, 7, value)
-    with pytest.raises(InputError) as e:
-        fit_coil_study(unit, [read_telemetry(path, unit)])
+    with pytest.raises(InputError) as e:        # refused when read, before any fit
+        read_telemetry(path, unit)
     msg = str(e.value)
-    assert f"line {line}" in msg and column in msg and fault in msg
+    assert f"coil_study.csv:{line}: column '{column}'" in msg and fault in msg
 
 
 def test_unknown_test_sensor_is_refused(tmp_path):
     unit, _, _, path = _study(tmp_path, 1, fast=True)
     path.write_text(path.read_text().replace("# coil_test_sensor: mmc2",
                                              "# coil_test_sensor: mmc9"))
-    with pytest.raises(InputError, match="mmc9"):
-        fit_coil_study(unit, [read_telemetry(path, unit)])
+    with pytest.raises(InputError, match="mmc9"):         # refused when read
+        read_telemetry(path, unit)
 
 
 def test_fit_report_has_the_coil_study(tmp_path, capsys):

@@ -64,7 +64,8 @@ EXTRA_CAMPAIGNS = ("yaw_flight", "planar_rotation", "coil_study")
 T_REF_C = 25.0
 SET_RESET_DELAY_s = 0.012          # RESET reading is taken this long after the SET one
 DEFAULT_NOISE_nT = {"MMC5883MA": 40.0, "MPU-9255": 250.0}
-MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = 0.7, -75.0   # MMC5883MA temperature output: 0.7 degC/LSB
+# MMC5883MA temperature output: the catalogue's step (0.7 degC/LSB), 0 = -75 degC
+MMC_TEMP_STEP_C, MMC_TEMP_ZERO_C = _parts.temperature_lsb_C("MMC5883MA"), -75.0
 
 # The coil study's test coil (seed 000: a magnetorquer at points 1-6, 5 to 30 cm from the
 # magnetometer, 0.1 A): |field per ampere| at 30 cm on the coil's axis, the fall-off
@@ -186,7 +187,9 @@ class Truth:
         B = np.asarray(B_body_nT, dtype=float)
         return B @ self.H_boom_to_body if (frame == "boom" and deployed) else B.copy()
 
-    def to_json(self) -> dict:
+    def to_json(self, simulation: dict | None = None) -> dict:
+        """truth.json; `simulation` (simulation_record) records how the run was made: its
+        seed and magcal version, so that it can be reproduced."""
         note = ("m_frame = W(T) B_frame + b(T) + K i_coil; W(T)=W0+W1 dT+W2 dT^2, "
                 "b(T)=sum b_k dT^k, dT=T-t_ref")
         return {
@@ -207,6 +210,7 @@ class Truth:
             "board_tau_s": dict(self.board_tau_s),
             "board_self_heating_C": dict(self.board_self_heating_C),
             "coil_study": dict(self.coil_study),
+            **({"simulation": dict(simulation)} if simulation is not None else {}),
         }
 
     @staticmethod
@@ -234,6 +238,14 @@ class Truth:
         truth.board_self_heating_C.update(d.get("board_self_heating_C", {}))
         truth.coil_study.update(d.get("coil_study", {}))
         return truth
+
+
+def simulation_record(seed: int, **how) -> dict:
+    """truth.json's "simulation" entry: the seed, the magcal version that drew the unit and
+    its campaigns, and `how` (the options of the run). The same seed, options and version
+    give the same bytes."""
+    from generator import __version__
+    return {"seed": int(seed), "magcal_version": __version__, **how}
 
 
 def load_truth(path, unit: Unit | None = None) -> Truth:
@@ -744,7 +756,10 @@ def make_example(out_dir, seed: int = 0, size: str = "example") -> dict:
     truth = random_truth(unit, np.random.default_rng(truth_seed))
     paths = {"unit": out_dir / "unit.toml", "truth": out_dir / "truth.json"}
     write_unit_toml(unit, paths["unit"])
-    paths["truth"].write_text(json.dumps(truth.to_json(), indent=1) + "\n", encoding="utf-8")
+    record = simulation_record(seed, by="generator.campaign.simulate.make_example",
+                               size=size, campaigns=list(EXAMPLE_CAMPAIGNS))
+    paths["truth"].write_text(json.dumps(truth.to_json(record), indent=1) + "\n",
+                              encoding="utf-8")
     for kind, ss in zip(EXAMPLE_CAMPAIGNS, campaign_seeds):
         csv_path, _ = simulate_campaign(kind, unit, truth, np.random.default_rng(ss), out_dir,
                                         **EXAMPLE_SIZES[size].get(kind, {}))

@@ -37,6 +37,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from generator.errors import InputError
+from generator.io.coil_study import (DISTANCE_COLUMN, PANEL_COLUMN, TEST_SENSOR_KEY,  # noqa: F401
+                                     check_study, coil_columns, is_coil_study, panel_flags,
+                                     static_rows, study_sensors)
 
 # Seed 000: coil at 30 cm (point 6, the boom length) driven at 0.1 A, mean absolute error
 SEED_CURRENT_A = 0.1
@@ -49,11 +52,6 @@ SEED_30CM_PANEL_NT = 307.57                  # 0.61 %
 #   body: 10 cm -- an assumption: the flight computer inside a ~10 cm CubeSat body, about
 #         one body width from the torquer coils. Pass distance_cm to override.
 DEFAULT_DISTANCE_CM = {"boom": 30.0, "body": 10.0}
-
-
-def coil_columns(tel) -> list:
-    """The magnetorquer current columns of a telemetry file: coil_<name>_A, sorted."""
-    return sorted(c for c in tel.columns if c.startswith("coil_") and c.endswith("_A"))
 
 
 @dataclass
@@ -403,18 +401,11 @@ def has_coil_steps(tel) -> bool:
 
 
 # =======================================================================================
-# The coil study: interference at known distances (docs/coil_study.md)
+# The coil study: interference at known distances (docs/coil_study.md). Its format and
+# input rules (distances > 0, panel 0/1, known test sensors, two or more distances per
+# panel state, a current that steps) are generator/io/coil_study.py, checked when the
+# file is read.
 # =======================================================================================
-DISTANCE_COLUMN = "coil_distance_cm"
-PANEL_COLUMN = "panel"
-TEST_SENSOR_KEY = "coil_test_sensor"
-
-
-def is_coil_study(tel) -> bool:
-    """A coil-study file: it has a coil_distance_cm column."""
-    return DISTANCE_COLUMN in tel.columns
-
-
 @dataclass
 class StudyPoint:
     sensor: str
@@ -538,19 +529,15 @@ def fit_coil_study(unit, telemetries) -> CoilStudy:
     groups = {}                                        # (sensor, coil, panel, r) -> data
     notes = []
     for tel in study:
+        check_study(tel, unit)          # the input rules, also for a Telemetry made in memory
         coils = coil_columns(tel)
-        if not coils:
-            raise InputError(tel.path, "coil study: no coil_*_A current column")
-        names = _test_sensors(unit, tel)
+        names = study_sensors(tel.path, tel.meta, unit)
         dist = np.asarray(tel.columns[DISTANCE_COLUMN], float)
-        panel = (np.asarray(tel.columns[PANEL_COLUMN], float) if PANEL_COLUMN in tel.columns
-                 else np.zeros(tel.n))
-        _check_study_columns(tel, dist, panel)
+        panel = panel_flags(tel)
         I = np.column_stack([tel.columns[c] for c in coils])
         pos = (np.asarray(tel.columns["position"], float) if "position" in tel.columns
                else np.ones(tel.n))
-        ok = np.isfinite(dist) & np.isfinite(panel) & np.isfinite(I).all(axis=1) \
-            & np.isfinite(pos) & (pos > 0)
+        ok = static_rows(tel) & np.isfinite(I).all(axis=1)
         data = _telemetry.preprocess(tel, unit)
         for n in names:
             sd = data[n]
@@ -583,30 +570,3 @@ def fit_coil_study(unit, telemetries) -> CoilStudy:
                                      [p.K_norm_sigma_nT_per_A for p in pts],
                                      sensor=key[0], coil=key[1], panel=key[2], source=src))
     return CoilStudy(points=points, laws=laws, sources=[t.path for t in study], notes=notes)
-
-
-def _test_sensors(unit, tel) -> list:
-    text = tel.meta.get(TEST_SENSOR_KEY)
-    if not text:
-        return list(unit.sensor_names)
-    names = [x.strip() for x in text.split(",") if x.strip()]
-    for n in names:
-        if n not in unit.sensor_names:
-            raise InputError(tel.path, f"'# {TEST_SENSOR_KEY}: {text}': unit {unit.id} has no "
-                                       f"sensor {n!r} ({', '.join(unit.sensor_names)})")
-    return names
-
-
-def _check_study_columns(tel, dist, panel) -> None:
-    """A distance that is not positive or a panel flag other than 0/1: InputError naming
-    the line and column."""
-    bad = np.isfinite(dist) & ~(dist > 0)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {DISTANCE_COLUMN}: "
-                                   f"{dist[i]!r} is not a positive distance")
-    bad = np.isfinite(panel) & ~np.isin(panel, (0.0, 1.0))
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {PANEL_COLUMN}: "
-                                   f"{panel[i]!r} is not 0 (without) or 1 (with the panel)")

@@ -4,6 +4,7 @@
     find("MPU-9250")           # Part or None
     names()                    # canonical names, in file order
     count_range(part, lsb_nT, zero_count, range_nT)   # raw range of one sensor
+    temperature_lsb_C("MMC5883MA")                    # 0.7: its temperature's step
 
 The file is data: adding a part is adding a table there (keys documented at its top).
 """
@@ -47,6 +48,7 @@ class Part:
     temperature: bool                 # reports a temperature
     noise_nT: float | None            # typical 1-sigma per axis and reading
     noise_note: str = ""
+    temp_lsb_C: float | None = None   # step of the reported temperature (None: not given)
     resolutions: tuple = ()
     generic: bool = False
 
@@ -73,6 +75,7 @@ def _load() -> dict:
                          range_nT=float(d["range_nT"]), set_reset=bool(d["set_reset"]),
                          temperature=bool(d["temperature"]), noise_nT=d.get("noise_nT"),
                          noise_note=d.get("noise_note", ""), resolutions=res,
+                         temp_lsb_C=(float(d["temp_lsb_C"]) if "temp_lsb_C" in d else None),
                          generic=bool(d.get("generic", False)))
     return out
 
@@ -102,6 +105,13 @@ def part(name) -> Part:
     if p is None:
         raise KeyError(f"unknown part {name!r}; known parts: {known_text()}")
     return p
+
+
+def temperature_lsb_C(name) -> float | None:
+    """The step of a part's reported temperature (degC), None when the catalogue gives
+    none or the part is unknown; for find_segments(temp_lsb_C=...)."""
+    p = find(name)
+    return p.temp_lsb_C if p is not None else None
 
 
 def known_text() -> str:

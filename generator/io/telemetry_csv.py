@@ -32,6 +32,7 @@ import re
 import numpy as np
 
 from generator.errors import InputError
+from generator.io import coil_study
 from generator.io.arrow_np import to_float64
 from generator.io.telemetry import SensorData, Telemetry
 from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
@@ -76,6 +77,10 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     number of cells, a count outside the part's raw range. Empty cells are missing values
     (NaN) and are allowed. Extra columns are kept as channels.
 
+    A coil study (a coil_distance_cm column, docs/coil_study.md) is checked against its
+    rules here (io/coil_study.py), before any fit: its test sensors, distances, panel flags,
+    two or more distances per panel state, a current that steps at each distance.
+
     ICD section 4: a file with a position (columns, or the unit's [orbit] TLE) and no ref_*
     column gets ref_norm_nT from the field model along its track (io/orbit.py; its
     provenance in meta["field_reference"]).
@@ -83,6 +88,7 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     peak memory is the columns themselves plus one chunk, not copies of the whole text.
     """
     tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors))
+    coil_study.check_file(tel)           # a coil study's whole-file rules (io/coil_study.py)
     # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
     from generator.io.orbit import attach_field_reference
     return attach_field_reference(tel, unit)
@@ -146,6 +152,7 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
                     raise InputError(path, f"'# unit: {st.meta['unit']}' but the unit file is "
                                            f"for '{unit.id}': telemetry of another unit?")
                 names = _check_header(path, st.header, st.header_line, unit, require_sensors)
+                coil_study.check_meta(path, names, st.meta, unit)
             values, row_lines = _parse_chunk(path, names, raw, first_no, st)
             del raw
             tel = _validated(path, names, values, row_lines, unit, st, prev)
@@ -215,6 +222,7 @@ def _iter_parquet(path, unit, require_sensors, chunk_bytes):
         raise InputError(path, f"metadata 'unit: {st.meta['unit']}' but the unit file is "
                                f"for '{unit.id}': telemetry of another unit?")
     names = _check_header(path, pt.names, None, unit, require_sensors)
+    coil_study.check_meta(path, names, st.meta, unit)
     rows = max(1, chunk_bytes // (8 * len(names)))    # as many values as a CSV chunk's text
     prev, yielded = None, False
     for first, values in pt.blocks(rows):
@@ -257,6 +265,7 @@ def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
     _check_position(path, columns, line_numbers)
     _check_geo(path, columns, line_numbers)
     _check_physical(path, columns, line_numbers)
+    coil_study.check_cells(path, columns, line_numbers)
     return Telemetry(path=str(path), columns=columns, line_numbers=line_numbers,
                      meta=st.meta, comments=st.comments)
 

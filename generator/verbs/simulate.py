@@ -2,8 +2,15 @@
 campaigns of a user's own unit from the project's simulator (docs/simulate.md).
 
 Writes DIR/unit.toml (the unit file as given), DIR/truth.json (the simulated unit's
-parameters: what a fit should recover), DIR/plan.json (the program the thermal campaign
-followed) and per campaign DIR/<campaign>.csv (ICD telemetry) with <campaign>.truth.npz.
+parameters: what a fit should recover, and under "simulation" the seed, the magcal version
+and the options of the run), DIR/plan.json (the program the thermal campaign followed)
+and per campaign DIR/<campaign>.csv (ICD telemetry) with <campaign>.truth.npz.
+
+DIR must be new or empty: one run's files belong together (its truth is what its campaigns
+were drawn from), and campaigns of two runs in one folder would be fitted against the
+wrong truth. --force writes into a folder that is not empty: each file of this run
+replaces its namesake atomically (written beside it, then renamed); files of this run's
+names only are replaced, others are kept and listed in a note.
 """
 
 from __future__ import annotations
@@ -40,6 +47,28 @@ def add_simulate_args(p):
     p.add_argument("--samples-per-segment", type=int, default=None,
                    help=f"thermal campaign without --plan: samples recorded per hold "
                         f"(default {DEFAULT_SAMPLES_PER_SEGMENT})")
+    p.add_argument("--force", action="store_true",
+                   help="write into an output folder that is not empty: the files of this "
+                        "run replace their namesakes (atomically), other files are kept")
+
+
+def check_empty_folder(path, force: bool) -> list:
+    """The entries of an existing output folder (sorted names); InputError when it has any
+    and force is not given: a run's files belong together."""
+    p = Path(path)
+    if not p.is_dir():
+        return []
+    try:
+        names = sorted(e.name for e in p.iterdir())
+    except OSError as e:
+        raise InputError(path, f"output folder: cannot list it: {e.strerror or e}") from None
+    if names and not force:
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        raise InputError(path, f"output folder: not empty ({shown}); the campaigns of two "
+                               "runs would mix, each fitted against the other's truth. Give a "
+                               "new or empty folder, or --force to replace the files this run "
+                               "writes")
+    return names
 
 
 def load_truth_override(path) -> dict:
@@ -72,6 +101,7 @@ def run_simulate(args, progress) -> tuple:
     from generator.campaign import simulate as sim
 
     check_output_folder(args.output)
+    before = check_empty_folder(args.output, getattr(args, "force", False))
     unit = load_unit(args.unit)
     for name, v, lo, hi in (("--sample-period-s", args.sample_period_s, 1e-2, 3600.0),
                             ("--samples-per-segment", args.samples_per_segment, 1, 10000)):
@@ -79,8 +109,9 @@ def run_simulate(args, progress) -> tuple:
             raise InputError(None, f"{name} {v!r} is outside [{lo:g}, {hi:g}]")
     truth_ss, *camp_ss = np.random.SeedSequence(args.seed).spawn(1 + len(CAMPAIGNS))
     truth = sim.random_truth(unit, np.random.default_rng(truth_ss))
-    if args.truth:
-        truth = sim.override_truth(truth, load_truth_override(args.truth), unit, args.truth)
+    override = load_truth_override(args.truth) if args.truth else None
+    if override is not None:
+        truth = sim.override_truth(truth, override, unit, args.truth)
     notes = []
     if not unit.lab_field_nT:
         notes.append(f"the unit file has no lab_field_nT: the lab field is seed 000's "
@@ -121,7 +152,16 @@ def run_simulate(args, progress) -> tuple:
     with output_folder(args.output) as folder:
         tmp = folder.tmp
         shutil.copyfile(args.unit, tmp / "unit.toml")
-        (tmp / "truth.json").write_text(json.dumps(truth.to_json(), indent=1) + "\n",
+        record = sim.simulation_record(
+            args.seed, by="magcal simulate", campaigns=list(args.campaigns),
+            plan=None if args.plan is None else str(args.plan),
+            sample_period_s=args.sample_period_s,
+            samples_per_segment=args.samples_per_segment, truth_override=override,
+            reproduce=_reproduce_command(args),
+            files=["unit.toml", "truth.json", *(["plan.json"] if plan is not None else []),
+                   *(f"{k}{ext}" for k in CAMPAIGNS if k in args.campaigns
+                     for ext in (".csv", ".truth.npz"))])
+        (tmp / "truth.json").write_text(json.dumps(truth.to_json(record), indent=1) + "\n",
                                         encoding="utf-8")
         files = {"unit": tmp / "unit.toml", "truth": tmp / "truth.json"}
         if plan is not None:
@@ -139,8 +179,33 @@ def run_simulate(args, progress) -> tuple:
             progress(f"{kind}: {written[kind]} samples")
     files = {k: folder.final(v) for k, v in files.items()}
     progress(f"wrote {len(files)} files to {folder.final(folder.tmp)}")
-    return 0, {"unit": unit.id, "seed": args.seed, "files": {k: str(v) for k, v in files.items()},
+    kept = sorted(set(before) - set(record["files"]))
+    if kept:
+        notes.append(f"--force: {len(kept)} file(s) of {args.output} not written by this run "
+                     f"are kept: {', '.join(kept)}")
+        progress(f"note: {notes[-1]}")
+    return 0, {"unit": unit.id, "seed": args.seed,
+               "files": {k: str(v) for k, v in files.items()}, "kept_files": kept,
                "samples": written, "notes": notes,
                "plan": None if plan is None else {
                    "levels_C": plan.levels_C, "hold_s": [s.hold_s for s in plan.steps],
                    "board_tau_s": plan.board_tau_s, "sample_period_s": plan.sample_period_s}}
+
+
+def _reproduce_command(args) -> str:
+    """The command line that draws the same unit and campaigns (same magcal version), with
+    the unit file, plan and truth override as given on this run."""
+    import shlex
+    parts = ["magcal", "simulate", str(args.unit), "--seed", str(args.seed)]
+    if args.plan:
+        parts += ["--plan", str(args.plan)]
+    if args.truth:
+        parts += ["--truth", str(args.truth)]
+    if list(args.campaigns) != list(CAMPAIGNS):
+        parts += ["--campaigns", *args.campaigns]
+    for opt, v in (("--sample-period-s", args.sample_period_s),
+                   ("--samples-per-segment", args.samples_per_segment)):
+        if v is not None:
+            parts += [opt, repr(v)]
+    parts += ["-o", "DIR"]
+    return " ".join(shlex.quote(x) for x in parts)
