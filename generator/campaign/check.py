@@ -36,6 +36,7 @@ import numpy as np
 
 from generator.fit.calibration import POLY_DEGREE
 from generator.errors import InputError
+from generator.io.parts import temperature_lsb_C
 from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, coverage
 from generator.fit.thermal import (DEGREE_STEP_C, T_REF_C, _powers, find_segments,
                           temperature_quantum)
@@ -371,7 +372,8 @@ def gather_samples(unit, tels, pres=None) -> dict:
                 np.asarray(pos, float), nan=0).astype(int)
             keep = np.nonzero(use)[0]
             has_pos = tel.get("position") is not None
-            fsegs = find_segments(tel.time_s, temp_C, tel.get("position"), use)
+            fsegs = find_segments(tel.time_s, temp_C, tel.get("position"), use,
+                                  temp_lsb_C=temperature_lsb_C(s.part))
             remap = -np.ones(n, int)
             remap[keep] = offset + np.arange(len(keep))
             for sg in fsegs:

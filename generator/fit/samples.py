@@ -81,6 +81,7 @@ class FitData:
     # False: the sensor reports no temperature (temperature = false); temp_C is then the
     # constant T_REF_C (SensorData.temp_or), so the fit is the constant (degree 0) model
     has_temperature: bool = True
+    temp_lsb_C: float | None = None           # the part's temperature step (parts.toml)
 
 
 def field_noise_nT(spec) -> float | None:
@@ -134,7 +135,8 @@ def fit_data_from(tel, sensor_data, unit) -> FitData:
                    position=None if pos is None else np.asarray(pos, float),
                    ref_body_nT=ref, ref_norm_nT=norm, coil_A=coil,
                    reference_kind=" + ".join(kind) or "none", noise_nT=field_noise_nT(spec),
-                   has_temperature=bool(sensor_data.has_temperature))
+                   has_temperature=bool(sensor_data.has_temperature),
+                   temp_lsb_C=None if spec is None else _parts.temperature_lsb_C(spec.part))
 
 
 @dataclass
@@ -220,7 +222,7 @@ def _gather(name, datas, notes, per_file):
             rank = np.cumsum(use) - 1
             g = np.minimum(rank * CV_FOLDS // max(int(use.sum()), 1), CV_FOLDS - 1)
         # segments in this file's reported temperature
-        fsegs = find_segments(d.time_s, d.temp_C, d.position, use)
+        fsegs = find_segments(d.time_s, d.temp_C, d.position, use, temp_lsb_C=d.temp_lsb_C)
         remap = -np.ones(n, int)
         remap[keep] = offset + np.arange(len(keep))
         for s in fsegs:
