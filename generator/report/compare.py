@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from generator.errors import InputError
+from generator.fit.reference import T_REF_C
 from generator.fit.thermal import FIT_METHODS, fit_unit
 from generator.report.document import Section, Table
 
@@ -95,13 +96,16 @@ def _eval_data(tel, unit):
         if s.name not in data:
             continue
         d = data[s.name]
-        use = (d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
+        # a sensor without temperature (ICD section 4) is scored at the constant model's
+        # stand-in temperature (SensorData.temp_or), as it was fitted, not dropped at NaN
+        T = np.asarray(d.temp_or(T_REF_C), float)
+        use = (d.usable & np.isfinite(T) & np.isfinite(d.field_frame_nT).all(axis=1)
                & ~coil & np.isfinite(norm) & (norm > 0))
         vec = None
         if ref is not None:   # a file with vector columns is scored on its vector rows
             use &= np.isfinite(ref).all(axis=1)
             vec = ref[use]
-        out[s.name] = {"x": d.field_frame_nT[use], "T": d.temp_C[use], "ref": vec,
+        out[s.name] = {"x": d.field_frame_nT[use], "T": T[use], "ref": vec,
                        "norm": norm[use], "n": int(use.sum())}
     return out
 
