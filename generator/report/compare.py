@@ -280,7 +280,8 @@ def compare_methods(unit, telemetries, truth=None, *, evaluate=(), methods=COMPA
                     "temp_C", "samples", "residual_rms_seed001_nT", "residual_rms_nT",
                     "R_angle_deg", "R_rotvec_deg", "R_rotvec_sigma_deg", "k", "k_sigma",
                     "e_deg", "e_sigma_deg", "b_nT", "b_sigma_nT")})
-        sensors[s.name] = {"part": s.part, "frame": s.frame, "rows": rows,
+        sensors[s.name] = {"part": s.part, "frame": s.frame, "temperature": s.temperature,
+                           "rows": rows,
                            "analytic_levels": levels}
     return {"files": fit_paths, "evaluate_files": [t.path for t in evaluate],
             "truth": (str(truth) if isinstance(truth, (str, Path)) else
@@ -363,7 +364,8 @@ def sections(result) -> list:
             continue
         rows = []
         for L in srow["analytic_levels"]:
-            rows.append([f"{L['temp_C']:.1f}", L["samples"],
+            rows.append([f"{L['temp_C']:.1f}" if srow.get("temperature", True)
+                         else "all (no temperature)", L["samples"],
                          _f(L["residual_rms_seed001_nT"]), _f(L["residual_rms_nT"]),
                          _f(L["R_angle_deg"], ".3f"),
                          " ".join(f"{v:+.3f}±{e:.3f}" for v, e in

@@ -268,6 +268,21 @@ class CampaignAnalysis:
         def rms(m):
             return (int(m.sum()), float(np.sqrt(np.mean(before[m] ** 2))),
                     float(np.sqrt(np.mean(after[m] ** 2))))
+        if self.cs.unit.sensor(name).temperature:
+            temp = self._temperature_groups(name, S, rms)
+        else:    # no temperature (ICD section 4): S.T is the constant model's stand-in,
+            # not a reading; a temperature bin of it would be invented: all samples only
+            temp = [("all (no temperature)", *rms(np.ones(S.n, bool)))]
+        pos = []
+        for q in np.unique(S.position):
+            m = S.position == q
+            pos.append((f"{q}" if q > 0 else "moving", *rms(m)))
+        return {"temperature": temp, "position": pos if len(pos) > 1 or
+                (len(pos) == 1 and pos[0][0] != "moving") else []}
+
+    def _temperature_groups(self, name, S, rms):
+        """Constant-temperature levels (with 'ramps' between them), else 10 degC bins,
+        then all samples."""
         temp = []
         in_level = np.zeros(S.n, bool)
         # one level alone is no temperature axis: then 10 degC bins, as with none
@@ -286,12 +301,7 @@ class CampaignAnalysis:
         elif (~in_level).any():
             temp.append(("ramps", *rms(~in_level)))
         temp.append(("all", *rms(np.ones(S.n, bool))))
-        pos = []
-        for q in np.unique(S.position):
-            m = S.position == q
-            pos.append((f"{q}" if q > 0 else "moving", *rms(m)))
-        return {"temperature": temp, "position": pos if len(pos) > 1 or
-                (len(pos) == 1 and pos[0][0] != "moving") else []}
+        return temp
 
 
 # =======================================================================================
@@ -398,8 +408,9 @@ def rms_section(cs, analysis: CampaignAnalysis, out_dir) -> Section:
     for s in cs.unit.sensors:
         g = analysis.rms_groups(s.name)
         panels = []
-        for kind, title, xl in (("temperature", "per temperature", "level, °C"),
-                                ("position", "per position", "position")):
+        t_group = ("temperature", "per temperature", "level, °C") if s.temperature else \
+            ("temperature", "all samples (no temperature)", "")
+        for kind, title, xl in (t_group, ("position", "per position", "position")):
             if not g[kind]:
                 continue
             panels.append({"title": title, "xlabel": xl,
