@@ -44,7 +44,7 @@ import numpy as np
 from generator.errors import InputError
 from generator.fit.reference import T_REF_C
 from generator.fit.thermal import FIT_METHODS, fit_unit
-from generator.report.document import Section, Table
+from generator.report.document import Section, Table, pm
 
 #: Seed 000, section 4: |B| after calibration of MMC5883 No.2, mean and standard deviation
 #: ("СКО") in nT.
@@ -298,6 +298,11 @@ def _f(v, fmt=".2f"):
     return "-" if v is None else format(v, fmt)
 
 
+def _pms(values, sigmas, sign=False):
+    """Per-axis values with their 1-sigma, each to its sigma's precision (pm)."""
+    return "; ".join(pm(v, e, sign=sign) for v, e in zip(values, sigmas))
+
+
 def _name(path):
     return Path(path).name
 
@@ -368,13 +373,10 @@ def sections(result) -> list:
                          else "all (no temperature)", L["samples"],
                          _f(L["residual_rms_seed001_nT"]), _f(L["residual_rms_nT"]),
                          _f(L["R_angle_deg"], ".3f"),
-                         " ".join(f"{v:+.3f}±{e:.3f}" for v, e in
-                                  zip(L["R_rotvec_deg"], L["R_rotvec_sigma_deg"])),
-                         " ".join(f"{v:.5f}±{e:.5f}" for v, e in zip(L["k"], L["k_sigma"])),
-                         " ".join(f"{v:+.3f}±{e:.3f}" for v, e in
-                                  zip(L["e_deg"], L["e_sigma_deg"])),
-                         " ".join(f"{v:.1f}±{e:.1f}" for v, e in
-                                  zip(L["b_nT"], L["b_sigma_nT"]))])
+                         _pms(L["R_rotvec_deg"], L["R_rotvec_sigma_deg"], sign=True),
+                         _pms(L["k"], L["k_sigma"]),
+                         _pms(L["e_deg"], L["e_sigma_deg"], sign=True),
+                         _pms(L["b_nT"], L["b_sigma_nT"])])
         lev.tables.append(Table(["level degC", "samples", "residual seed 001 nT",
                                  "residual with R nT", "R angle deg", "R rotation vector deg",
                                  "k", "e deg", "b nT"], rows, f"{name} ({srow['part']})"))

@@ -569,17 +569,22 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
         rows = []
         for s in cs.unit.sensors:
             K = np.asarray(cs.sensors[s.name].get("K_nT_per_A", np.zeros((3, 0))), float)
-            # printed to a tenth of the sensor's LSB per ampere: below that a coupling moves
-            # the reading by less than 0.1 LSB at 1 A (more than any coil draws), so it is
-            # 0 (the fit's numerical zeros, -4.5e-15, are not printed as values)
-            lsb = float(s.lsb_nT) if s.lsb_nT and np.isfinite(s.lsb_nT) and s.lsb_nT > 0 \
-                else float(s.noise_nT or 1.0)
+            sig = (coils.get("sensors", {}).get(s.name) or {}).get("K_sigma_nT_per_A")
+            sig = np.asarray(sig, float) if sig is not None else None
+            # without the fit's 1-sigma (K from a prior): printed to a tenth of the
+            # sensor's resolution per ampere -- its LSB (counts) or, for physical input,
+            # its noise: below that a coupling moves the reading by less than a tenth of
+            # it at 1 A (more than any coil draws), so it is 0 (the fit's numerical
+            # zeros, -4.5e-15, are not printed as values)
+            res = float(s.lsb_nT) if s.counts and s.lsb_nT and np.isfinite(s.lsb_nT) \
+                and s.lsb_nT > 0 else float(s.noise_nT or 1.0)
             for i, ax in enumerate("xyz"):
-                rows.append([s.name, ax] + [resolved(K[i, j], 0.1 * lsb)
-                                            for j in range(K.shape[1])])
+                rows.append([s.name, ax] + [
+                    pm(K[i, j], sig[i, j]) if sig is not None and sig.shape == K.shape
+                    else resolved(K[i, j], 0.1 * res) for j in range(K.shape[1])])
         out.append(Section("Magnetorquer coupling K", [
             f"dB = K i, nT per A, one column per coil ({', '.join(cs.spec.coils)}), fitted "
-            "from the coil-step campaign (seed 000 sec. 1)."],
+            "from the coil-step campaign (seed 000 sec. 1), with its 1-sigma."],
             [Table(["sensor", "axis"] + [f"{c} nT/A" for c in cs.spec.coils], rows, "K")]))
     al = info.get("alignment")
     if al and analysis is not None:
@@ -610,8 +615,8 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
                      float(seed.get("proj_diff_max_pct", 0.5)), "-",
                      float(seed.get("angle_max_deg", 0.07))])
         out.append(Section("Agreement of the two magnetometers: figures of merit", [
-            f"H (boom -> body) from {al.get('source')}: {al['angle_deg']:.4f} ± "
-            f"{al['sigma_angle_deg']:.4f} deg (1-sigma). Difference of the normalised "
+            f"H (boom -> body) from {al.get('source')}: "
+            f"{pm(al['angle_deg'], al['sigma_angle_deg'])} deg (1-sigma). Difference of the normalised "
             "projections per axis and angle between the reference and the boom vectors, before "
             "and after H (seed 000 eq. 2-3). Noise alone gives a mean angle of "
             f"{al.get('noise_floor_angle_mean_deg', float('nan')):.4f} deg."],
