@@ -186,6 +186,15 @@ class CampaignAnalysis:
         for s in cs.unit.sensors:
             self._levels(s.name)
 
+    def coil_study(self):
+        """The coil study of the input files that are one (fit_coil_study), fitted once
+        for every section that shows it; None when no file is a coil study."""
+        if not hasattr(self, "_coil_study"):
+            from generator.fit.coils import fit_coil_study, is_coil_study
+            tels = [t for t in self.tels if is_coil_study(t)]
+            self._coil_study = fit_coil_study(self.cs.unit, tels) if tels else None
+        return self._coil_study
+
     # ---- levels and per-level fits ------------------------------------------------------
     def _levels(self, name):
         from generator.campaign.check import level_tolerance_C
@@ -638,45 +647,72 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 
 
 def _coil_sections(cs, analysis, out_dir) -> list:
-    from generator.fit.coils import (SEED_POINTS_CM, correction_table, fit_coils,
-                            interference_table)
-    from generator.fit.coils import fit_coil_study, has_coil_steps, is_coil_study
+    from generator.fit.coils import (PANEL_STATE, SEED_POINTS_CM, correction_table, fit_coils,
+                                     has_coil_steps, interference_table)
 
     k = next((i for i, t in enumerate(analysis.tels) if has_coil_steps(t)), None)
     if k is None:
         return []
     tel = analysis.tels[k]
     cf = fit_coils(cs.unit, [tel])
-    study_tels = [t for t in analysis.tels if is_coil_study(t)]
-    study = fit_coil_study(cs.unit, study_tels) if study_tels else None
+    study = analysis.coil_study()
     rows = interference_table(cs.unit, cf, current_A=0.1, study=study)
-    if study is not None and rows:
-        how = (f"scaled by the distance law the coil study measured ({rows[0]['distance_source']}"
-               f"; see the coil study section) from the distance where that law gives the "
-               f"measured interference")
+    pts = [float(r) for r in SEED_POINTS_CM]
+    if study is not None:
+        how = ("each row takes the distance law the coil study measured for its sensor and "
+               "coil, or that coil's law on another sensor carried to this one (said so in "
+               "the row); r is where that law gives the row's measured interference. A "
+               "law gives the same interference at 5, 15 and 30 cm for every row that uses "
+               "it, so those values are printed once, in the law's own row. A coil the "
+               "study did not measure has no distance ('not measured')")
     else:
         how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
                "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
                "given, so nothing about distance is measured")
-    pts = [float(r) for r in SEED_POINTS_CM]
-    table = [[r["sensor"], r["coil"], r["K_col_nT_per_A"], r["interference_nT"],
-              r["pct_of_lab_field"], r["distance_cm"]] + [r["at_cm"][p] for p in pts]
-             for r in rows]
+    table, laws = [], []
+    for r in rows:
+        law, r0 = r["law"], r["distance_cm"]
+        if law is not None and all(w is not law for w in laws):
+            laws.append(law)
+        at = (["not measured"] * len(pts) if r0 is None else ["law row"] * len(pts)
+              if law is not None else [r["at_cm"][p] for p in pts])
+        flags = list(r["flags"]) + (["assumed distance, dipole fall-off"]
+                                    if r["distance_source"] == "assumed" else [])
+        table.append([r["sensor"], r["coil"],
+                      pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]),
+                      pm(r["interference_nT"], r["interference_sigma_nT"]),
+                      r["pct_of_lab_field"], r["distance_source"],
+                      "not measured" if r0 is None else f"{r0:.3g}"] + at
+                     + ["; ".join(flags) or "-"])
+    for w in laws:
+        table.append(["law", f"{w.sensor} {w.coil}, {PANEL_STATE[w.panel]}", "-", "-", "-",
+                      "n = " + (pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
+                                else f"{w.exponent:.3f} (2 points)"),
+                      f"measured {w.r_min_cm:g}..{w.r_max_cm:g}"]
+                     + [float(w.at(p, 0.1)) for p in pts] + ["; ".join(w.flags(*pts)) or "-"])
     seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
-    table.append(["seed 000", "no panel", "-", seed_np[30.0], 100 * seed_np[30.0] / 51540.0,
-                  30.0] + [seed_np[p] for p in pts])
-    table.append(["seed 000", "with panel", "-", seed_p[30.0], 100 * seed_p[30.0] / 51540.0,
-                  30.0] + [seed_p[p] for p in pts])
+    for label, seed in (("no panel", seed_np), ("with panel", seed_p)):
+        table.append(["seed 000", label, "-", seed[30.0], 100 * seed[30.0] / 51540.0,
+                      "measured at 30 cm only; 5 and 15 cm scaled by the law above"
+                      if laws else "measured at 30 cm only; 5 and 15 cm scaled as 1/r^3",
+                      30.0] + [seed[p] for p in pts] + ["-"])
     sec = Section("Magnetorquer interference at 0.1 A", [
-        f"|K column| x 0.1 A per sensor and coil from {tel.path}; {how}, to the seed's "
-        "points 5, 15 and 30 cm. The seed measured 167.87 nT without and 307.57 nT with the "
-        "solar panel at 30 cm and 0.1 A."],
+        f"|K column| x 0.1 A per sensor and coil from {tel.path} (1-sigma after ±); {how}. "
+        "The seed's points are 5, 15 and 30 cm; it measured 167.87 nT without and 307.57 nT "
+        "with the solar panel at 30 cm and 0.1 A.",
+        "Flags: a law whose points scatter beyond their errors (chi2 above its 99 % "
+        "quantile at the law's degrees of freedom) and a law used outside the distances "
+        "it was measured at (extrapolated)."],
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
-                "r cm (measured law)" if study is not None else "assumed r cm"]
-               + [f"at {p:g} cm nT" for p in pts], table,
-               "Interference by sensor and coil")])
-    series = {f"{r['sensor']} {r['coil']}": [r["at_cm"][p] for p in pts] for r in rows
-              if r["frame"] == "boom"}
+                "distance law", "r cm"] + [f"at {p:g} cm nT" for p in pts] + ["flags"],
+               table, "Interference by sensor and coil")])
+    if laws:
+        series = {f"law {w.sensor} {w.coil}, {PANEL_STATE[w.panel]}":
+                  [float(w.at(p, 0.1)) for p in pts] for w in laws}
+    else:
+        shown = [r for r in rows if r["frame"] == "boom"] or rows   # no boom: the body's
+        series = {f"{r['sensor']} {r['coil']} (assumed {r['distance_cm']:g} cm)":
+                  [r["at_cm"][p] for p in pts] for r in shown if r["distance_cm"] is not None}
     series["seed 000, no panel"] = [seed_np[p] for p in pts]
     series["seed 000, with panel"] = [seed_p[p] for p in pts]
     dist = coil_distance_section(out_dir, pts, series, current_A=0.1)

@@ -186,6 +186,7 @@ def summary_section(cs, analysis) -> Section:
                     f"{pf['norm_before_nT']:.1f} nT RMS before, {pf['norm_after_nT']:.1f} "
                     "after (a campaign unlike the others: its reference, frame or "
                     "conditions?)")])
+    warn_rows += coil_study_warnings(analysis)
     if req:
         head = ("Requirements from " + src + ": "
                 + ", ".join(f"{k} = {v:g}" for k, v in req.items())
@@ -215,3 +216,17 @@ def summary_section(cs, analysis) -> Section:
     else:
         paras.append("Warnings: none (the fit's sanity checks passed for every sensor).")
     return Section("Summary and verdict", paras, tables)
+
+
+def coil_study_warnings(analysis) -> list:
+    """[sensor, warning] rows for the distance laws of a coil study (DistanceLaw.flags):
+    points that scatter beyond their errors, and a law the report evaluates outside its
+    measured distances -- at 30 cm (the seed's comparison, always) and at the seed's 5 and
+    15 cm (the interference table, when a coil campaign is given too)."""
+    study = analysis.coil_study() if analysis is not None else None
+    if study is None:
+        return []
+    from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM, has_coil_steps
+    at = SEED_POINTS_CM if any(has_coil_steps(t) for t in analysis.tels) else (30.0,)
+    return [[w.sensor, f"coil study, law of {w.coil} {PANEL_STATE[w.panel]}: {f}"]
+            for w in study.laws for f in w.flags(*at)]
