@@ -678,9 +678,9 @@ def _check_study_columns(tel, dist, panel) -> None:
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {DISTANCE_COLUMN}: "
-                                   f"{dist[i]!r} is not a positive distance")
+                                   f"{float(dist[i]):g} is not a positive distance")
     bad = np.isfinite(panel) & ~np.isin(panel, (0.0, 1.0))
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(tel.path, f"line {int(tel.line_numbers[i])}, column {PANEL_COLUMN}: "
-                                   f"{panel[i]!r} is not 0 (without) or 1 (with the panel)")
+                                   f"{float(panel[i]):g} is not 0 (without) or 1 (with the panel)")
