@@ -236,7 +236,7 @@ def pm(value, sigma, digits=None, sign=False) -> str:
     """'value ± sigma' to the sigma's precision: sigma to 2 significant digits, the value
     rounded to the same decimal place (1234.5678 ± 45.6 -> '1235 ± 46', 2696 ± 107 ->
     '2700 ± 110'). digits: a fixed number of decimals instead. Very large or small values
-    share one power of ten: '(1.234 ± 0.032)e-06'. sign: always print the value's sign.
+    share one power of ten: '1.234e-06 ± 0.032e-06'. sign: always print the value's sign.
     The one helper for every value with a 1-sigma in the report."""
     v = float(value)
     s = float(sigma) if sigma is not None else float("nan")
@@ -248,7 +248,8 @@ def pm(value, sigma, digits=None, sign=False) -> str:
     big = max(abs(v), s)
     if digits is None and (big >= 1e7 or big < 1e-4):
         e = int(np.floor(np.log10(big)))
-        return f"({pm(v / 10.0 ** e, s / 10.0 ** e, sign=sign)})e{e:+03d}"
+        mv, ms = pm(v / 10.0 ** e, s / 10.0 ** e, sign=sign).split(" ± ")
+        return f"{mv}e{e:+03d} ± {ms}e{e:+03d}"
     place = digits if digits is not None else 1 - int(np.floor(np.log10(s)))
     if place >= 0:
         v = round(v, place) + 0.0        # + 0.0: a value rounded to zero prints '0', not '-0'
