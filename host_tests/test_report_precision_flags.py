@@ -77,12 +77,21 @@ def test_chi2_flag_at_the_quantile_of_the_laws_dof():
 def test_summary_warns_of_the_flags_at_the_points_the_report_uses():
     law = _law(0.2)                                 # misfit, measured 10..20 cm
     study = CoilStudy(points=[], laws=[law], sources=["s.csv"])
-    analysis = SimpleNamespace(coil_study=lambda: study, tels=[])
+    analysis = SimpleNamespace(coil_study=lambda: study, coil_interference=lambda c: None,
+                               tels=[])
     warns = coil_study_warnings(analysis)
     assert all(w[0] == "mag" for w in warns)
     text = " | ".join(w[1] for w in warns)
     assert "chi2/dof" in text and "extrapolated to 30 cm" in text
     assert "extrapolated to 5 cm" not in text       # no coil campaign: 30 cm only
+    # with a coil campaign: the seed's 5 cm, and a sensor's distance beyond the span
+    rows = [{"sensor": "mag", "coil": "coil_x_A", "law": law, "distance_cm": 15.0},
+            {"sensor": "far", "coil": "coil_x_A", "law": law, "distance_cm": 41.0},
+            {"sensor": "far", "coil": "coil_y_A", "law": None, "distance_cm": None}]
+    analysis.coil_interference = lambda c: (None, None, rows)
+    text = " | ".join(f"{w[0]}: {w[1]}" for w in coil_study_warnings(analysis))
+    assert "extrapolated to 5 cm" in text and "far: coil_x_A" in text and "41 cm" in text
+    assert "coil_y_A" not in text and "to 15 cm" not in text
     assert coil_study_warnings(SimpleNamespace(coil_study=lambda: None, tels=[])) == []
     assert coil_study_warnings(None) == []
 

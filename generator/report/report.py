@@ -195,6 +195,22 @@ class CampaignAnalysis:
             self._coil_study = fit_coil_study(self.cs.unit, tels) if tels else None
         return self._coil_study
 
+    def coil_interference(self, current_A=0.1):
+        """(coil campaign Telemetry, CoilFit, interference_table rows at current_A with the
+        coil study's laws) of the first file whose magnetorquer currents step, fitted once
+        for the summary and the interference section; None without such a file."""
+        key = ("_coil_interference", float(current_A))
+        if key not in self.__dict__:
+            from generator.fit.coils import fit_coils, has_coil_steps, interference_table
+            tel = next((t for t in self.tels if has_coil_steps(t)), None)
+            out = None
+            if tel is not None:
+                cf = fit_coils(self.cs.unit, [tel])
+                out = (tel, cf, interference_table(self.cs.unit, cf, current_A=current_A,
+                                                   study=self.coil_study()))
+            self.__dict__[key] = out
+        return self.__dict__[key]
+
     # ---- levels and per-level fits ------------------------------------------------------
     def _levels(self, name):
         from generator.campaign.check import level_tolerance_C
@@ -647,16 +663,13 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 
 
 def _coil_sections(cs, analysis, out_dir) -> list:
-    from generator.fit.coils import (PANEL_STATE, SEED_POINTS_CM, correction_table, fit_coils,
-                                     has_coil_steps, interference_table)
+    from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM, correction_table
 
-    k = next((i for i, t in enumerate(analysis.tels) if has_coil_steps(t)), None)
-    if k is None:
+    got = analysis.coil_interference(0.1)
+    if got is None:
         return []
-    tel = analysis.tels[k]
-    cf = fit_coils(cs.unit, [tel])
+    tel, cf, rows = got
     study = analysis.coil_study()
-    rows = interference_table(cs.unit, cf, current_A=0.1, study=study)
     pts = [float(r) for r in SEED_POINTS_CM]
     if study is not None:
         how = ("each row takes the distance law the coil study measured for its sensor and "
