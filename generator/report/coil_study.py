@@ -132,7 +132,9 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
         law = study.law(*key)
         if law is not None:
             ax.loglog(grid, law.at(grid, current_A), "-" if key[2] == 0 else "--", lw=0.8,
-                      color=color, label=f"law, {PANEL[key[2]]}: n = {law.exponent:.2f}")
+                      color=color, label=f"law, {PANEL[key[2]]}: n = "
+                      + (pm(law.exponent, law.exponent_sigma) if law.exponent_sigma
+                         else f"{law.exponent:.2f}"))
     seed = current_A / SEED_CURRENT_A
     ax.loglog([30.0], [SEED_30CM_NO_PANEL_NT * seed], "*", ms=10, color="k",
               label="seed 000, 30 cm, no panel")
