@@ -116,6 +116,21 @@ def test_coil_sections_of_a_one_sensor_unit(report):
     assert "| measured cm |" in law and "| flags |" in law
 
 
+def test_sections_left_out_say_why(report):
+    """No boom, no SET/RESET part, no temperature: those sections are not in the report,
+    and the Inputs section says why (without coils: why no coil sections either)."""
+    _, files, html = report
+    md = (html.parent / "report.md").read_text()
+    gone = next(ln for ln in _section(md, "Inputs").splitlines()
+                if ln.startswith("Left out for this unit and these files:"))
+    assert "chamber profile (seed 000 fig. 21, 23): no sensor reports a temperature" in gone
+    assert "the unit has no boom sensor" in gone and "no SET/RESET part" in gone
+    assert ("no coil campaign" in gone) == ("coils.csv" not in files)
+    assert ("no coil-study file" in gone) == ("coil_study.csv" not in files)
+    for title in ("Chamber profile", "Agreement of the two magnetometers", "SET/RESET"):
+        assert f"\n## {title}" not in md
+
+
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
         p = shutil.which(name)

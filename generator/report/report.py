@@ -776,7 +776,7 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     rep = Report(f"magcal fit: unit {cs.unit.id}")
     from generator.report.summary import summary_section
     rep.add(summary_section(cs, analysis))     # first: the verdict
-    rep.add(inputs_section(cs, analysis, data_paths))
+    inputs = rep.add(inputs_section(cs, analysis, data_paths))
     rep.extend(fit_sections(cs))
     m = method_section(cs)
     if m:
@@ -808,6 +808,10 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     if compare:
         from generator.report.seed_sections import comparison_sections
         rep.extend(comparison_sections(cs, analysis, progress))
+    gone = left_out(cs, analysis, [s.title for s in rep.sections], compare)
+    if gone:
+        inputs.paragraphs.append("Left out for this unit and these files: "
+                                 + "; ".join(gone) + ".")
     notes = [n for n in cs.fit_info.get("notes", [])]
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
@@ -815,6 +819,41 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     if notes:
         rep.add(Section("Notes", notes))
     return rep
+
+
+def left_out(cs, analysis, titles, compare=True) -> list:
+    """Why a seed 000 section of the fit report is not in it, one clause per section left
+    out (the report never shows an empty section instead)."""
+    if analysis is None:
+        return []
+    from generator.fit.coils import has_coil_steps, is_coil_study
+
+    def missing(prefix):
+        return not any(t.startswith(prefix) for t in titles)
+    out = []
+    if missing("Chamber profile"):
+        out.append("the chamber profile (seed 000 fig. 21, 23): " + (
+            "no sensor reports a temperature (temperature = false)"
+            if not any(s.temperature for s in cs.unit.sensors)
+            else "no file with static positions"))
+    if missing("Agreement of the two magnetometers"):
+        out.append("the agreement of the two magnetometers, H (seed 000 fig. 8-10): " + (
+            "the unit has no boom sensor" if not any(s.frame == "boom" for s in cs.unit.sensors)
+            else "H was not fitted (no rotation with the boom deployed among the files)"))
+    if missing("Magnetorquer"):
+        out.append("magnetorquer coupling and interference (seed 000 fig. 5-6): " + (
+            "no coil campaign (static positions, stepped magnetorquer currents) among the "
+            "files" if not any(has_coil_steps(t) for t in analysis.tels)
+            else "the unit's chain has no coil term"))
+    if missing("Coil study") and not any(is_coil_study(t) for t in analysis.tels):
+        out.append("the coil study: no coil-study file (a coil_distance_cm column, "
+                   "docs/coil_study.md)")
+    if missing("SET/RESET") and not any(s.set_reset for s in cs.unit.sensors):
+        out.append("SET/RESET offset error (seed 000 fig. 12-13): no SET/RESET part")
+    if compare and missing("Fit methods compared"):
+        out.append("the fit methods compared: they need a file with reference vectors in "
+                   "static positions and a rotation without them")
+    return out
 
 
 def write_fit_report(cs, out_dir, data_paths=(), progress=None, extra_sections=()) -> Path:
