@@ -109,3 +109,26 @@ def test_render_check_passes_plain_numbers(tmp_path):
     html = Report("t", [Section("s", ["n = 2.9971 ± 0.0035, an array of 12 points"],
                                 [Table(["a"], [[1.0]])])]).write(tmp_path)
     assert render_check.problems(html) == []
+
+
+def test_coil_study_section_shows_the_span_and_flags(tmp_path):
+    """The law table of the report's coil-study section: measured span, chi2/dof beside
+    its quantile, and the flags (here: misfit, and 30 cm outside the measured 10..20 cm)."""
+    from generator.fit.coils import StudyPoint
+    from generator.report.coil_study import coil_study_sections
+
+    law = _law(0.2)
+    K = 1000.0 * (30.0 / R_CM) ** 3
+    points = [StudyPoint("mag", "coil_x_A", 0, float(r), np.array([k, 0.0, 0.0]),
+                         np.array([0.01 * k] * 3), float(k), 0.01 * float(k), 60)
+              for r, k in zip(R_CM, K)]
+    study = CoilStudy(points=points, laws=[law], sources=["s.csv"])
+    cs = SimpleNamespace(unit=None)
+    [sec] = coil_study_sections(cs, SimpleNamespace(coil_study=lambda: study), tmp_path)
+    table = sec.tables[0]
+    row = dict(zip(table.header, table.rows[0]))
+    assert row["measured cm"] == "10..20"
+    assert f"(99 %: {law.chi2_limit_per_dof():.2f})" in row["chi2/dof"]
+    assert "chi2/dof" in row["flags"] and "extrapolated to 30 cm" in row["flags"]
+    assert " ± " in row["exponent n"] and "np." not in repr(table.rows)
+    assert (tmp_path / sec.figures[0][0]).stat().st_size > 10000

@@ -501,7 +501,7 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
         tables.append(Table(["row", "x", "y", "z"],
                             [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)]
                              for i, ax in enumerate("xyz")],
-                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.4f} deg"
+                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
                                                   if sigma_angle_deg is not None else "")))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
                    [(png.name, f"{pair}: angle between the vectors before and after H. Look "
