@@ -719,16 +719,19 @@ def _coil_sections(cs, analysis, out_dir) -> list:
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
                 "distance law", "r cm"] + [f"at {p:g} cm nT" for p in pts] + ["flags"],
                table, "Interference by sensor and coil")])
-    if laws:
-        series = {f"law {w.sensor} {w.coil}, {PANEL_STATE[w.panel]}":
-                  [float(w.at(p, 0.1)) for p in pts] for w in laws}
+    dist = None
+    if laws:     # the study's own figure shows its laws against the seed, measured points
+        sec.paragraphs.append("Against distance: the coil study's figure (section 'Coil "
+                              "study') shows the measured points, the laws and the seed's "
+                              "figures; the laws' values at the seed's points are their rows "
+                              "here.")
     else:
         shown = [r for r in rows if r["frame"] == "boom"] or rows   # no boom: the body's
         series = {f"{r['sensor']} {r['coil']} (assumed {r['distance_cm']:g} cm)":
                   [r["at_cm"][p] for p in pts] for r in shown if r["distance_cm"] is not None}
-    series["seed 000, no panel"] = [seed_np[p] for p in pts]
-    series["seed 000, with panel"] = [seed_p[p] for p in pts]
-    dist = coil_distance_section(out_dir, pts, series, current_A=0.1)
+        series["seed 000, no panel"] = [seed_np[p] for p in pts]
+        series["seed 000, with panel"] = [seed_p[p] for p in pts]
+        dist = coil_distance_section(out_dir, pts, series, current_A=0.1)
     cals = {s.name: cs.calibration(s.name) for s in cs.unit.sensors}
     corr = correction_table(cs.unit, tel, cals, cf)
     crow = [[n, r["rms_norm_nT"]["without"], r["rms_norm_nT"]["with"],
@@ -737,7 +740,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
     sec.tables.append(Table(["sensor", "|B| RMS without K nT", "with K nT",
                              "current on: without nT", "with nT"], crow,
                             "The coil term in the chain: |B| error before and after"))
-    return [sec, dist]
+    return [sec] if dist is None else [sec, dist]
 
 
 def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
