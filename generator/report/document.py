@@ -128,6 +128,8 @@ class Report:
                "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
                "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
                "th{background:#eee}td:first-child,th:first-child,td.t{text-align:left}"
+               # a number and its sigma stay on one line ('9803 ± 48', not broken at ±)
+               "td:not(.t){white-space:nowrap}"
                "details{margin:0.4em 0 1.2em 0}.tw{overflow-x:auto;max-width:100%}caption{font-weight:bold;text-align:left;padding:2px 0}"
                "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
                "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"

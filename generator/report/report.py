@@ -687,7 +687,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
         law, r0 = r["law"], r["distance_cm"]
         if law is not None and all(w is not law for w in laws):
             laws.append(law)
-        at = (["not measured"] * len(pts) if r0 is None else ["law row"] * len(pts)
+        at = (["-"] * len(pts) if r0 is None else ["law row"] * len(pts)
               if law is not None else [r["at_cm"][p] for p in pts])
         flags = list(r["flags"]) + (["assumed distance, dipole fall-off"]
                                     if r["distance_source"] == "assumed" else [])
@@ -695,7 +695,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                       pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]),
                       pm(r["interference_nT"], r["interference_sigma_nT"]),
                       r["pct_of_lab_field"], r["distance_source"],
-                      "not measured" if r0 is None else f"{r0:.3g}"] + at
+                      "-" if r0 is None else f"{r0:.3g}"] + at
                      + ["; ".join(flags) or "-"])
     for w in laws:
         table.append(["law", f"{w.sensor} {w.coil}, {PANEL_STATE[w.panel]}", "-", "-", "-",
