@@ -229,8 +229,13 @@ def coil_study_warnings(analysis) -> list:
     if study is None:
         return []
     from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM
-    inter = analysis.coil_interference(0.1) if hasattr(analysis, "coil_interference") \
-        else None
+    inter = None
+    if hasattr(analysis, "coil_interference"):
+        from generator.errors import InputError
+        try:
+            inter = analysis.coil_interference(0.1)
+        except InputError:     # the interference section says why; the laws still warn
+            inter = None
     at = SEED_POINTS_CM if inter is not None else (30.0,)
     out = [[w.sensor, f"coil study, law of {w.coil} {PANEL_STATE[w.panel]}: {f}"]
            for w in study.laws for f in w.flags(*at)]
