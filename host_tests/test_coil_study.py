@@ -135,8 +135,9 @@ def test_fit_report_has_the_coil_study(tmp_path, capsys):
 
 def test_interference_table_takes_the_fall_off_and_distance_from_the_study(tmp_path):
     """With a study: the exponent is the measured one (not 3) and each sensor's distance is
-    where the study's coil gives that sensor's measured interference; without one the
-    rows say the distance is assumed."""
+    where the study's coil gives that sensor's measured interference; a coil the study
+    never measured gets no distance (review of issue 19: no law carried to a coil it was
+    not measured for); without a study the rows say the distance is assumed."""
     from generator.fit.coils import fit_coils, interference_table
 
     unit, truth, tel, _ = _study(tmp_path, 6, {"exponent": 2.5})
@@ -144,7 +145,15 @@ def test_interference_table_takes_the_fall_off_and_distance_from_the_study(tmp_p
     ex = sim.make_example(tmp_path / "ex", seed=6, size="fast")
     cf = fit_coils(unit, [read_telemetry(ex["coils"], unit)])
     law = next(w for w in study.laws if w.panel == 0)
-    for r in interference_table(unit, cf, study=study):
+    rows = interference_table(unit, cf, study=study)
+    measured = {p.coil for p in study.points}
+    assert {r["coil"] for r in rows} - measured            # the example has unmeasured coils
+    for r in rows:
+        if r["coil"] not in measured:
+            assert r["distance_cm"] is None and r["at_cm"] == {} and r["law"] is None
+            assert r["distance_source"].startswith("not measured")
+            continue
+        assert r["law_is_own"] == (r["sensor"] == law.sensor)
         assert r["exponent"] == pytest.approx(law.exponent)
         assert abs(r["exponent"] - 2.5) < 4 * law.exponent_sigma
         assert r["distance_source"].startswith("coil study")

@@ -53,6 +53,11 @@ SEED_30CM_PANEL_NT = 307.57                  # 0.61 %
 #         one body width from the torquer coils. Pass distance_cm to override.
 DEFAULT_DISTANCE_CM = {"boom": 30.0, "body": 10.0}
 
+# A distance law is flagged when its chi2 exceeds this quantile of the chi2 distribution at
+# its degrees of freedom: with points that scatter only by their stated 1-sigma that
+# happens to one law in a hundred; beyond it the errors or the power law are off.
+CHI2_QUANTILE = 0.99
+
 
 @dataclass
 class SensorCoilFit:
@@ -233,19 +238,24 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
                        lab_field_nT: float | None = None, distance_cm: dict | None = None,
                        points_cm=SEED_POINTS_CM, study: "CoilStudy | None" = None) -> list:
     """Rows {sensor, coil, K_col_nT_per_A, sigma, interference_nT, pct_of_lab_field,
-    distance_cm, distance_source, exponent, at_cm {r: nT}, seed_no_panel_at_cm {r: nT}
-    (the seed's 30 cm figure scaled by r^-exponent; only 30 cm is measured in the seed),
-    seed_panel_at_cm, equivalent_distance_cm}.
+    distance_cm, distance_source, law (DistanceLaw or None), law_is_own, exponent,
+    at_cm {r: nT}, seed_no_panel_at_cm {r: nT} (the seed's 30 cm figure scaled by
+    r^-exponent; only 30 cm is measured in the seed), seed_panel_at_cm,
+    equivalent_distance_cm, flags [str]}.
 
-    With a coil study (fit_coil_study) the fall-off is the measured law (its exponent, not
-    3), and a sensor's distance is where the study's coil gives the interference measured
-    on that sensor (distance_source "coil study"); distance_cm {sensor: cm} given here wins.
-    Without a study nothing is measured about distance: the distance is the assumption
-    DEFAULT_DISTANCE_CM by frame and the fall-off a dipole's (distance_source "assumed").
+    With a coil study (fit_coil_study) each row takes the law measured for its own sensor
+    and coil (law_is_own), else the law the study measured for that coil on another sensor,
+    carried to this sensor (law_is_own False, said so in distance_source); the fall-off is
+    that law's (its exponent, not 3) and the sensor's distance is where the law gives the
+    interference measured on that sensor. A coil the study never measured gets no distance
+    and no values by distance (distance_source 'not measured ...', distance_cm None,
+    at_cm {}). flags: the law's misfit and its extrapolation beyond the measured distances
+    (DistanceLaw.flags) at the row's distance and at points_cm. distance_cm {sensor: cm}
+    given here wins over the study's distance. Without a study nothing is measured about
+    distance: the distance is the assumption DEFAULT_DISTANCE_CM by frame and the
+    fall-off a dipole's (distance_source 'assumed').
     """
     lab = lab_field_nT if lab_field_nT is not None else unit.lab_field_nT
-    law = _study_law(study)
-    n = 3.0 if law is None else law.exponent
     rows = []
     for name, f in coil_fit.sensors.items():
         spec = unit.sensor(name)
@@ -253,47 +263,69 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
         sig = f.column_norm_sigma_nT_per_A()
         for j, coil in enumerate(f.coils):
             x = float(norms[j] * current_A)
+            law, own = _study_law(study, name, coil)
+            n = 3.0 if law is None else law.exponent
+            flags = []
             if (distance_cm or {}).get(name) is not None:
                 r0, source = float(distance_cm[name]), "given"
+            elif study is not None and law is None:
+                r0, source = None, (f"not measured: the coil study has no {coil}")
             elif law is not None and norms[j] > 0:
                 r0 = float(30.0 * (law.K_30cm_nT_per_A / norms[j]) ** (1.0 / n))
-                source = f"coil study ({law.sensor} {law.coil}, n = {n:.2f})"
+                source = (f"coil study, this sensor's law ({PANEL_STATE[law.panel]})" if own
+                          else f"coil study, the law of {law.sensor} {law.coil} "
+                               f"({PANEL_STATE[law.panel]}) carried to this sensor")
             else:
                 r0, source = default_distance_cm(spec), "assumed"
+            if law is not None:
+                flags = law.flags(r0, *points_cm)
+            seed_n = 3.0 if r0 is None else n
             rows.append({
                 "sensor": name, "coil": coil, "frame": spec.frame,
                 "K_col_nT_per_A": float(norms[j]), "K_col_sigma_nT_per_A": float(sig[j]),
                 "current_A": current_A, "interference_nT": x,
                 "interference_sigma_nT": float(sig[j] * current_A),
                 "pct_of_lab_field": (100.0 * x / lab) if lab else None,
-                "distance_cm": float(r0), "distance_source": source, "exponent": n,
-                "at_cm": {float(r): float(scale_power(x, r0, r, n)) for r in points_cm},
+                "distance_cm": r0, "distance_source": source, "law": law,
+                "law_is_own": bool(own), "exponent": n if r0 is not None else None,
+                "at_cm": ({} if r0 is None else
+                          {float(r): float(scale_power(x, r0, r, n)) for r in points_cm}),
                 "seed_no_panel_at_cm": {float(r): float(scale_power(
-                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
+                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, seed_n))
                     for r in points_cm},
                 "seed_panel_at_cm": {float(r): float(scale_power(
-                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n))
+                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, seed_n))
                     for r in points_cm},
                 "equivalent_distance_cm": (equivalent_distance_cm(
-                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=n)
+                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=seed_n)
                     if x > 0 else None),
+                "flags": flags,
             })
     return rows
 
 
-def _study_law(study):
-    """The law a coil study measured without the panel (the flight configuration's
-    torquer field): the one with the most points, None without a study."""
+PANEL_STATE = {0: "without panel", 1: "with panel"}
+
+
+def _study_law(study, sensor, coil) -> tuple:
+    """(law, own) a sensor and coil take from a coil study: the study's law of that sensor
+    and coil (own True), else of that coil on another sensor (own False), else (None,
+    False); without the panel (the flight configuration's torquer field) where measured,
+    then the one with the most points."""
     if study is None:
-        return None
-    laws = [w for w in study.laws if w.panel == 0] or list(study.laws)
-    return max(laws, key=lambda w: w.n_points) if laws else None
+        return None, False
+    laws = [w for w in study.laws if w.coil == coil]
+    for own in (True, False):
+        ws = [w for w in laws if (w.sensor == sensor) == own]
+        if ws:
+            return min(ws, key=lambda w: (w.panel, -w.n_points)), own
+    return None, False
 
 
 def format_interference_table(rows) -> str:
     if not rows:
         return ""
-    pts = list(rows[0]["at_cm"])
+    pts = list(rows[0]["seed_no_panel_at_cm"])
     head = ("| sensor | coil | K col nT/A | at {I} A nT | % lab | assumed r cm | "
             + " | ".join(f"@{r:g} cm" for r in pts)
             + " | seed no panel " + "/".join(f"{r:g}" for r in pts)
@@ -307,8 +339,8 @@ def format_interference_table(rows) -> str:
         lines.append(
             f"| {r['sensor']} | {r['coil']} | {r['K_col_nT_per_A']:.0f} +- "
             f"{r['K_col_sigma_nT_per_A']:.0f} | {r['interference_nT']:.1f} | {pct} | "
-            f"{r['distance_cm']:g} | "
-            + " | ".join(f"{r['at_cm'][p]:.1f}" for p in pts)
+            + ("not measured | " if r["distance_cm"] is None else f"{r['distance_cm']:g} | ")
+            + " | ".join(f"{r['at_cm'][p]:.1f}" if p in r["at_cm"] else "-" for p in pts)
             + f" | {seed_np} | {seed_p} | "
             + (f"{r['equivalent_distance_cm']:.1f} |" if r["equivalent_distance_cm"] else "- |"))
     lines.append("seed 000 measured only the 30 cm point (167.87 nT without the solar panel, "
@@ -442,15 +474,56 @@ class DistanceLaw:
     K_30cm_nT_per_A: float
     K_30cm_sigma_nT_per_A: float | None
     chi2_per_dof: float | None
+    r_min_cm: float | None = None       # the measured distances' span (None: not recorded)
+    r_max_cm: float | None = None
 
     def at(self, r_cm, current_A=1.0):
         return self.K_30cm_nT_per_A * (30.0 / np.asarray(r_cm, float)) ** self.exponent \
             * current_A
 
+    @property
+    def dof(self) -> int:
+        return self.n_points - 2
+
+    def chi2_limit_per_dof(self) -> float | None:
+        """CHI2_QUANTILE quantile of chi2 at the law's dof, per dof (None: no dof)."""
+        if self.dof <= 0:
+            return None
+        from scipy.stats import chi2
+        return float(chi2.ppf(CHI2_QUANTILE, self.dof) / self.dof)
+
+    def misfit(self) -> str | None:
+        """The flag when the points scatter about the law more than their 1-sigma allows:
+        chi2 beyond its CHI2_QUANTILE quantile at the law's dof; else None."""
+        lim = self.chi2_limit_per_dof()
+        if lim is None or self.chi2_per_dof is None or self.chi2_per_dof <= lim:
+            return None
+        return (f"chi2/dof {self.chi2_per_dof:.2f} above {lim:.2f} (its "
+                f"{100 * CHI2_QUANTILE:g} % quantile at {self.dof} dof): the points scatter "
+                "more than their errors, the law or the errors are off")
+
+    def extrapolated(self, r_cm) -> str | None:
+        """The flag when the law is used at r_cm outside the measured distances; else None
+        (also when the span was not recorded)."""
+        if self.r_min_cm is None or self.r_max_cm is None or r_cm is None:
+            return None
+        r = float(r_cm)
+        # the span's own ends are measured: a relative 1e-9 only absorbs float rounding
+        if self.r_min_cm * (1 - 1e-9) <= r <= self.r_max_cm * (1 + 1e-9):
+            return None
+        return (f"extrapolated to {r:.3g} cm, outside the measured "
+                f"{self.r_min_cm:g}..{self.r_max_cm:g} cm")
+
+    def flags(self, *r_cm) -> list:
+        """Every flag of the law used at the distances r_cm (misfit, extrapolation)."""
+        out = [self.misfit()] + [self.extrapolated(r) for r in r_cm]
+        return [f for f in out if f]
+
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("sensor", "coil", "panel", "n_points",
                                               "exponent", "exponent_sigma", "K_30cm_nT_per_A",
-                                              "K_30cm_sigma_nT_per_A", "chi2_per_dof")}
+                                              "K_30cm_sigma_nT_per_A", "chi2_per_dof",
+                                              "r_min_cm", "r_max_cm")}
 
 
 @dataclass
@@ -510,7 +583,8 @@ def fit_distance_law(r_cm, K_norm, K_sigma, *, sensor="", coil="", panel=0, sour
                        exponent_sigma=float(np.sqrt(cov[1, 1])) if dof > 0 else None,
                        K_30cm_nT_per_A=K30,
                        K_30cm_sigma_nT_per_A=float(K30 * np.sqrt(cov[0, 0])) if dof > 0 else None,
-                       chi2_per_dof=chi2 / dof if dof > 0 else None)
+                       chi2_per_dof=chi2 / dof if dof > 0 else None,
+                       r_min_cm=float(r.min()), r_max_cm=float(r.max()))
 
 
 def fit_coil_study(unit, telemetries) -> CoilStudy:

@@ -22,11 +22,8 @@ PANEL = {0: "without panel", 1: "with panel"}
 def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list:
     """The coil-study section of the fit report, from the input files that are coil
     studies (a coil_distance_cm column); [] when there are none."""
-    tels = [t for t in getattr(analysis, "tels", []) if is_coil_study(t)]
-    if not tels:
-        return []
-    study = fit_coil_study(cs.unit, tels)
-    if not study.points:
+    study = analysis.coil_study() if hasattr(analysis, "coil_study") else _fit(cs, analysis)
+    if study is None or not study.points:
         return []
     png = coil_study_figure(Path(out_dir) / "coil_study.png", study, current_A)
     point_rows = []
@@ -39,13 +36,17 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
                            p.n_samples])
     law_rows = []
     for w, c in zip(study.laws, study.seed_comparison(current_A)):
+        lim = w.chi2_limit_per_dof()
         law_rows.append([w.sensor, w.coil, PANEL[w.panel], w.n_points,
+                         f"{w.r_min_cm:g}..{w.r_max_cm:g}",
                          pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
                          else f"{w.exponent:.3f} (2 points)",
                          pm(c["at_30cm_nT"], c["sigma_nT"]) if c["sigma_nT"]
                          else f"{c['at_30cm_nT']:.1f}",
-                         f"{c['seed_nT']:.2f}", f"{c['ratio_to_seed']:.2f}",
-                         "-" if w.chi2_per_dof is None else f"{w.chi2_per_dof:.2f}"])
+                         f"{c['seed_nT']:.2f}", _ratio(c),
+                         "-" if w.chi2_per_dof is None else
+                         f"{w.chi2_per_dof:.2f} (99 %: {lim:.2f})",
+                         "; ".join(w.flags(30.0)) or "-"])
     paragraphs = [
         f"Coil interference measured at known distances (coil_distance_cm) without and with "
         f"the solar panel (panel), from {', '.join(str(s) for s in study.sources)}. Per "
@@ -58,21 +59,39 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         f"{SEED_30CM_PANEL_NT} nT with the panel at 30 cm and {SEED_CURRENT_A:g} A.",
         "What to look for: points on their line (chi2/dof near 1), n within its "
         "uncertainty of 3, and the panel's factor at 30 cm against the seed's "
-        f"{SEED_30CM_PANEL_NT / SEED_30CM_NO_PANEL_NT:.2f}."]
+        f"{SEED_30CM_PANEL_NT / SEED_30CM_NO_PANEL_NT:.2f}.",
+        "Flags: chi2/dof above its 99 % quantile at the law's degrees of freedom (points "
+        "that scatter only by their 1-sigma exceed it once in a hundred laws: beyond it "
+        "the errors or the power law are off), and a law evaluated outside the distances "
+        "it was measured at (the 30 cm comparison with the seed is then extrapolated)."]
     ratios = _panel_ratios(study)
     if ratios:
         paragraphs.append("Panel factor at 30 cm (with / without): " + "; ".join(
-            f"{s} {c}: {r:.2f}" for (s, c), r in ratios.items()) + ".")
+            f"{s} {c}: {pm(r, sig) if sig else f'{r:.2f}'}"
+            for (s, c), (r, sig) in ratios.items()) + ".")
     paragraphs += [f"Note: {n}" for n in study.notes]
     return [Section(f"Coil study: interference against distance at {current_A:g} A", paragraphs,
-                    [Table(["sensor", "coil", "panel", "points", "exponent n",
+                    [Table(["sensor", "coil", "panel", "points", "measured cm", "exponent n",
                             f"at 30 cm, {current_A:g} A nT", "seed 000 nT", "ratio to seed",
-                            "chi2/dof"], law_rows, "Distance law per sensor and panel state"),
+                            "chi2/dof", "flags"], law_rows,
+                           "Distance law per sensor and panel state"),
                      Table(["sensor", "coil", "panel", "distance cm", "|K| nT/A",
                             f"at {current_A:g} A nT", "law nT", "samples"], point_rows,
                            "K per distance and panel state (the points)")],
                     [(png.name, "Coil interference against distance, log-log: points with "
                       "1-sigma, the fitted laws, the seed's 30 cm figures", [0, 1])])]
+
+
+def _fit(cs, analysis):
+    tels = [t for t in getattr(analysis, "tels", []) if is_coil_study(t)]
+    return fit_coil_study(cs.unit, tels) if tels else None
+
+
+def _ratio(c) -> str:
+    """The ratio to the seed's figure, to the precision of its 1-sigma where known."""
+    if c["sigma_nT"]:
+        return pm(c["ratio_to_seed"], c["sigma_nT"] / c["seed_nT"])
+    return f"{c['ratio_to_seed']:.2f}"
 
 
 def _panel_ratios(study) -> dict:
@@ -82,7 +101,12 @@ def _panel_ratios(study) -> dict:
             continue
         base = study.law(w.sensor, w.coil, 0)
         if base is not None and base.K_30cm_nT_per_A > 0:
-            out[(w.sensor, w.coil)] = w.K_30cm_nT_per_A / base.K_30cm_nT_per_A
+            r = w.K_30cm_nT_per_A / base.K_30cm_nT_per_A
+            sig = None   # first order, the two laws independent (separate points)
+            if w.K_30cm_sigma_nT_per_A and base.K_30cm_sigma_nT_per_A:
+                sig = r * np.hypot(w.K_30cm_sigma_nT_per_A / w.K_30cm_nT_per_A,
+                                   base.K_30cm_sigma_nT_per_A / base.K_30cm_nT_per_A)
+            out[(w.sensor, w.coil)] = (r, sig)
     return out
 
 
@@ -108,7 +132,9 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
         law = study.law(*key)
         if law is not None:
             ax.loglog(grid, law.at(grid, current_A), "-" if key[2] == 0 else "--", lw=0.8,
-                      color=color, label=f"law, {PANEL[key[2]]}: n = {law.exponent:.2f}")
+                      color=color, label=f"law, {PANEL[key[2]]}: n = "
+                      + (pm(law.exponent, law.exponent_sigma) if law.exponent_sigma
+                         else f"{law.exponent:.2f}"))
     seed = current_A / SEED_CURRENT_A
     ax.loglog([30.0], [SEED_30CM_NO_PANEL_NT * seed], "*", ms=10, color="k",
               label="seed 000, 30 cm, no panel")

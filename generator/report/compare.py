@@ -42,8 +42,9 @@ from pathlib import Path
 import numpy as np
 
 from generator.errors import InputError
+from generator.fit.reference import T_REF_C
 from generator.fit.thermal import FIT_METHODS, fit_unit
-from generator.report.document import Section, Table
+from generator.report.document import Section, Table, pm
 
 #: Seed 000, section 4: |B| after calibration of MMC5883 No.2, mean and standard deviation
 #: ("СКО") in nT.
@@ -95,13 +96,16 @@ def _eval_data(tel, unit):
         if s.name not in data:
             continue
         d = data[s.name]
-        use = (d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
+        # a sensor without temperature (ICD section 4) is scored at the constant model's
+        # stand-in temperature (SensorData.temp_or), as it was fitted, not dropped at NaN
+        T = np.asarray(d.temp_or(T_REF_C), float)
+        use = (d.usable & np.isfinite(T) & np.isfinite(d.field_frame_nT).all(axis=1)
                & ~coil & np.isfinite(norm) & (norm > 0))
         vec = None
         if ref is not None:   # a file with vector columns is scored on its vector rows
             use &= np.isfinite(ref).all(axis=1)
             vec = ref[use]
-        out[s.name] = {"x": d.field_frame_nT[use], "T": d.temp_C[use], "ref": vec,
+        out[s.name] = {"x": d.field_frame_nT[use], "T": T[use], "ref": vec,
                        "norm": norm[use], "n": int(use.sum())}
     return out
 
@@ -276,7 +280,8 @@ def compare_methods(unit, telemetries, truth=None, *, evaluate=(), methods=COMPA
                     "temp_C", "samples", "residual_rms_seed001_nT", "residual_rms_nT",
                     "R_angle_deg", "R_rotvec_deg", "R_rotvec_sigma_deg", "k", "k_sigma",
                     "e_deg", "e_sigma_deg", "b_nT", "b_sigma_nT")})
-        sensors[s.name] = {"part": s.part, "frame": s.frame, "rows": rows,
+        sensors[s.name] = {"part": s.part, "frame": s.frame, "temperature": s.temperature,
+                           "rows": rows,
                            "analytic_levels": levels}
     return {"files": fit_paths, "evaluate_files": [t.path for t in evaluate],
             "truth": (str(truth) if isinstance(truth, (str, Path)) else
@@ -291,6 +296,11 @@ def compare_methods(unit, telemetries, truth=None, *, evaluate=(), methods=COMPA
 # ---------------------------------------------------------------------------------------
 def _f(v, fmt=".2f"):
     return "-" if v is None else format(v, fmt)
+
+
+def _pms(values, sigmas, sign=False):
+    """Per-axis values with their 1-sigma, each to its sigma's precision (pm)."""
+    return "; ".join(pm(v, e, sign=sign) for v, e in zip(values, sigmas))
 
 
 def _name(path):
@@ -359,16 +369,14 @@ def sections(result) -> list:
             continue
         rows = []
         for L in srow["analytic_levels"]:
-            rows.append([f"{L['temp_C']:.1f}", L["samples"],
+            rows.append([f"{L['temp_C']:.1f}" if srow.get("temperature", True)
+                         else "all (no temperature)", L["samples"],
                          _f(L["residual_rms_seed001_nT"]), _f(L["residual_rms_nT"]),
                          _f(L["R_angle_deg"], ".3f"),
-                         " ".join(f"{v:+.3f}±{e:.3f}" for v, e in
-                                  zip(L["R_rotvec_deg"], L["R_rotvec_sigma_deg"])),
-                         " ".join(f"{v:.5f}±{e:.5f}" for v, e in zip(L["k"], L["k_sigma"])),
-                         " ".join(f"{v:+.3f}±{e:.3f}" for v, e in
-                                  zip(L["e_deg"], L["e_sigma_deg"])),
-                         " ".join(f"{v:.1f}±{e:.1f}" for v, e in
-                                  zip(L["b_nT"], L["b_sigma_nT"]))])
+                         _pms(L["R_rotvec_deg"], L["R_rotvec_sigma_deg"], sign=True),
+                         _pms(L["k"], L["k_sigma"]),
+                         _pms(L["e_deg"], L["e_sigma_deg"], sign=True),
+                         _pms(L["b_nT"], L["b_sigma_nT"])])
         lev.tables.append(Table(["level degC", "samples", "residual seed 001 nT",
                                  "residual with R nT", "R angle deg", "R rotation vector deg",
                                  "k", "e deg", "b nT"], rows, f"{name} ({srow['part']})"))

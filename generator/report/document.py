@@ -128,6 +128,8 @@ class Report:
                "color:#222}table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:90%}"
                "td,th{border:1px solid #bbb;padding:2px 7px;text-align:right}"
                "th{background:#eee}td:first-child,th:first-child,td.t{text-align:left}"
+               # a number and its sigma stay on one line ('9803 ± 48', not broken at ±)
+               "td:not(.t){white-space:nowrap}"
                "details{margin:0.4em 0 1.2em 0}.tw{overflow-x:auto;max-width:100%}caption{font-weight:bold;text-align:left;padding:2px 0}"
                "img{max-width:100%;border:1px solid #ddd}figure{margin:1em 0}"
                "figcaption{font-style:italic;font-size:90%}h2{border-bottom:1px solid #ccc;"
@@ -232,16 +234,27 @@ def resolved(value, resolution) -> str:
     return f"{v:.{max(0, -int(np.floor(np.log10(r))))}f}"
 
 
-def pm(value, sigma, digits=None) -> str:
-    """'value ± sigma' with the value rounded to the sigma's first significant digits."""
+def pm(value, sigma, digits=None, sign=False) -> str:
+    """'value ± sigma' to the sigma's precision: sigma to 2 significant digits, the value
+    rounded to the same decimal place (1234.5678 ± 45.6 -> '1235 ± 46', 2696 ± 107 ->
+    '2700 ± 110'). digits: a fixed number of decimals instead. Very large or small values
+    share one power of ten: '1.234e-06 ± 0.032e-06'. sign: always print the value's sign.
+    The one helper for every value with a 1-sigma in the report."""
     v = float(value)
     s = float(sigma) if sigma is not None else float("nan")
+    plus = "+" if sign else ""
     if not np.isfinite(v):
         return "-"
     if not np.isfinite(s) or s <= 0:
-        return f"{v:.6g}" + (" ± inf" if s == np.inf else "")
-    if digits is None:
-        digits = max(0, 1 - int(np.floor(np.log10(s))))
-    if digits > 12 or abs(v) >= 1e7 or (abs(v) < 1e-4 and v != 0):
-        return f"{v:.4g} ± {s:.2g}"
-    return f"{v:.{digits}f} ± {s:.{digits}f}"
+        return f"{v:{plus}.6g}" + (" ± inf" if s == np.inf else "")
+    big = max(abs(v), s)
+    if digits is None and (big >= 1e7 or big < 1e-4):
+        e = int(np.floor(np.log10(big)))
+        mv, ms = pm(v / 10.0 ** e, s / 10.0 ** e, sign=sign).split(" ± ")
+        return f"{mv}e{e:+03d} ± {ms}e{e:+03d}"
+    place = digits if digits is not None else 1 - int(np.floor(np.log10(s)))
+    if place >= 0:
+        v = round(v, place) + 0.0        # + 0.0: a value rounded to zero prints '0', not '-0'
+        return f"{v:{plus}.{place}f} ± {s:.{place}f}"
+    q = 10.0 ** (-place)            # sigma >= 100: round both to its second digit
+    return f"{round(v / q) * q + 0.0:{plus}.0f} ± {round(s / q) * q:.0f}"

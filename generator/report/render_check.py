@@ -8,6 +8,8 @@ problems(html_path) -> list of one-line problems (empty: fit to read):
 * a PNG whose text chunk EMPTY_AXES_KEY (written by generator.report.figures._save) names
   axes with nothing drawn in them;
 * a "not drawn" / "not computed" message in the page;
+* a numpy repr in the page ('np.float64(1.2)', 'array([...])'): a number formatted by its
+  repr, not printed to its precision;
 * a table without a data row.
 """
 
@@ -27,6 +29,7 @@ from generator.report.figures import EMPTY_AXES_KEY
 # frame at all; empty axes are caught by EMPTY_AXES_KEY.
 MIN_INK = 0.002
 FAILURE_TEXT = re.compile(r"not drawn|not computed", re.IGNORECASE)
+NUMPY_REPR = re.compile(r"\bnp\.[a-z_]+\d*\(|\barray\(|\bdtype=")
 
 
 class _Page(HTMLParser):
@@ -98,7 +101,9 @@ def problems(html_path) -> list:
     for t in page.tables:
         if t["rows"] == 0:
             out.append(f"{t['id'] or 'a table'}: no data row ({t['caption'].strip()[:60]})")
-    for m in FAILURE_TEXT.finditer(" ".join(page.text)):
-        text = " ".join(page.text)
+    text = " ".join(page.text)
+    for m in FAILURE_TEXT.finditer(text):
         out.append("page says: " + text[max(0, m.start() - 40):m.end() + 60].strip())
+    for m in NUMPY_REPR.finditer(text):
+        out.append("numpy repr in the page: " + text[max(0, m.start() - 40):m.end() + 40].strip())
     return out

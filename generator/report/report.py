@@ -186,6 +186,31 @@ class CampaignAnalysis:
         for s in cs.unit.sensors:
             self._levels(s.name)
 
+    def coil_study(self):
+        """The coil study of the input files that are one (fit_coil_study), fitted once
+        for every section that shows it; None when no file is a coil study."""
+        if not hasattr(self, "_coil_study"):
+            from generator.fit.coils import fit_coil_study, is_coil_study
+            tels = [t for t in self.tels if is_coil_study(t)]
+            self._coil_study = fit_coil_study(self.cs.unit, tels) if tels else None
+        return self._coil_study
+
+    def coil_interference(self, current_A=0.1):
+        """(coil campaign Telemetry, CoilFit, interference_table rows at current_A with the
+        coil study's laws) of the first file whose magnetorquer currents step, fitted once
+        for the summary and the interference section; None without such a file."""
+        key = ("_coil_interference", float(current_A))
+        if key not in self.__dict__:
+            from generator.fit.coils import fit_coils, has_coil_steps, interference_table
+            tel = next((t for t in self.tels if has_coil_steps(t)), None)
+            out = None
+            if tel is not None:
+                cf = fit_coils(self.cs.unit, [tel])
+                out = (tel, cf, interference_table(self.cs.unit, cf, current_A=current_A,
+                                                   study=self.coil_study()))
+            self.__dict__[key] = out
+        return self.__dict__[key]
+
     # ---- levels and per-level fits ------------------------------------------------------
     def _levels(self, name):
         from generator.campaign.check import level_tolerance_C
@@ -268,6 +293,21 @@ class CampaignAnalysis:
         def rms(m):
             return (int(m.sum()), float(np.sqrt(np.mean(before[m] ** 2))),
                     float(np.sqrt(np.mean(after[m] ** 2))))
+        if self.cs.unit.sensor(name).temperature:
+            temp = self._temperature_groups(name, S, rms)
+        else:    # no temperature (ICD section 4): S.T is the constant model's stand-in,
+            # not a reading; a temperature bin of it would be invented: all samples only
+            temp = [("all (no temperature)", *rms(np.ones(S.n, bool)))]
+        pos = []
+        for q in np.unique(S.position):
+            m = S.position == q
+            pos.append((f"{q}" if q > 0 else "moving", *rms(m)))
+        return {"temperature": temp, "position": pos if len(pos) > 1 or
+                (len(pos) == 1 and pos[0][0] != "moving") else []}
+
+    def _temperature_groups(self, name, S, rms):
+        """Constant-temperature levels (with 'ramps' between them), else 10 degC bins,
+        then all samples."""
         temp = []
         in_level = np.zeros(S.n, bool)
         # one level alone is no temperature axis: then 10 degC bins, as with none
@@ -286,12 +326,7 @@ class CampaignAnalysis:
         elif (~in_level).any():
             temp.append(("ramps", *rms(~in_level)))
         temp.append(("all", *rms(np.ones(S.n, bool))))
-        pos = []
-        for q in np.unique(S.position):
-            m = S.position == q
-            pos.append((f"{q}" if q > 0 else "moving", *rms(m)))
-        return {"temperature": temp, "position": pos if len(pos) > 1 or
-                (len(pos) == 1 and pos[0][0] != "moving") else []}
+        return temp
 
 
 # =======================================================================================
@@ -398,8 +433,9 @@ def rms_section(cs, analysis: CampaignAnalysis, out_dir) -> Section:
     for s in cs.unit.sensors:
         g = analysis.rms_groups(s.name)
         panels = []
-        for kind, title, xl in (("temperature", "per temperature", "level, °C"),
-                                ("position", "per position", "position")):
+        t_group = ("temperature", "per temperature", "level, °C") if s.temperature else \
+            ("temperature", "all samples (no temperature)", "")
+        for kind, title, xl in (t_group, ("position", "per position", "position")):
             if not g[kind]:
                 continue
             panels.append({"title": title, "xlabel": xl,
@@ -465,7 +501,7 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
         tables.append(Table(["row", "x", "y", "z"],
                             [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)]
                              for i, ax in enumerate("xyz")],
-                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.4f} deg"
+                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
                                                   if sigma_angle_deg is not None else "")))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
                    [(png.name, f"{pair}: angle between the vectors before and after H. Look "
@@ -558,17 +594,22 @@ def extras_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
         rows = []
         for s in cs.unit.sensors:
             K = np.asarray(cs.sensors[s.name].get("K_nT_per_A", np.zeros((3, 0))), float)
-            # printed to a tenth of the sensor's LSB per ampere: below that a coupling moves
-            # the reading by less than 0.1 LSB at 1 A (more than any coil draws), so it is
-            # 0 (the fit's numerical zeros, -4.5e-15, are not printed as values)
-            lsb = float(s.lsb_nT) if s.lsb_nT and np.isfinite(s.lsb_nT) and s.lsb_nT > 0 \
-                else float(s.noise_nT or 1.0)
+            sig = (coils.get("sensors", {}).get(s.name) or {}).get("K_sigma_nT_per_A")
+            sig = np.asarray(sig, float) if sig is not None else None
+            # without the fit's 1-sigma (K from a prior): printed to a tenth of the
+            # sensor's resolution per ampere -- its LSB (counts) or, for physical input,
+            # its noise: below that a coupling moves the reading by less than a tenth of
+            # it at 1 A (more than any coil draws), so it is 0 (the fit's numerical
+            # zeros, -4.5e-15, are not printed as values)
+            res = float(s.lsb_nT) if s.counts and s.lsb_nT and np.isfinite(s.lsb_nT) \
+                and s.lsb_nT > 0 else float(s.noise_nT or 1.0)
             for i, ax in enumerate("xyz"):
-                rows.append([s.name, ax] + [resolved(K[i, j], 0.1 * lsb)
-                                            for j in range(K.shape[1])])
+                rows.append([s.name, ax] + [
+                    pm(K[i, j], sig[i, j]) if sig is not None and sig.shape == K.shape
+                    else resolved(K[i, j], 0.1 * res) for j in range(K.shape[1])])
         out.append(Section("Magnetorquer coupling K", [
             f"dB = K i, nT per A, one column per coil ({', '.join(cs.spec.coils)}), fitted "
-            "from the coil-step campaign (seed 000 sec. 1)."],
+            "from the coil-step campaign (seed 000 sec. 1), with its 1-sigma."],
             [Table(["sensor", "axis"] + [f"{c} nT/A" for c in cs.spec.coils], rows, "K")]))
     al = info.get("alignment")
     if al and analysis is not None:
@@ -599,8 +640,8 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
                      float(seed.get("proj_diff_max_pct", 0.5)), "-",
                      float(seed.get("angle_max_deg", 0.07))])
         out.append(Section("Agreement of the two magnetometers: figures of merit", [
-            f"H (boom -> body) from {al.get('source')}: {al['angle_deg']:.4f} ± "
-            f"{al['sigma_angle_deg']:.4f} deg (1-sigma). Difference of the normalised "
+            f"H (boom -> body) from {al.get('source')}: "
+            f"{pm(al['angle_deg'], al['sigma_angle_deg'])} deg (1-sigma). Difference of the normalised "
             "projections per axis and angle between the reference and the boom vectors, before "
             "and after H (seed 000 eq. 2-3). Noise alone gives a mean angle of "
             f"{al.get('noise_floor_angle_mean_deg', float('nan')):.4f} deg."],
@@ -622,48 +663,75 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
 
 
 def _coil_sections(cs, analysis, out_dir) -> list:
-    from generator.fit.coils import (SEED_POINTS_CM, correction_table, fit_coils,
-                            interference_table)
-    from generator.fit.coils import fit_coil_study, has_coil_steps, is_coil_study
+    from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM, correction_table
 
-    k = next((i for i, t in enumerate(analysis.tels) if has_coil_steps(t)), None)
-    if k is None:
+    got = analysis.coil_interference(0.1)
+    if got is None:
         return []
-    tel = analysis.tels[k]
-    cf = fit_coils(cs.unit, [tel])
-    study_tels = [t for t in analysis.tels if is_coil_study(t)]
-    study = fit_coil_study(cs.unit, study_tels) if study_tels else None
-    rows = interference_table(cs.unit, cf, current_A=0.1, study=study)
-    if study is not None and rows:
-        how = (f"scaled by the distance law the coil study measured ({rows[0]['distance_source']}"
-               f"; see the coil study section) from the distance where that law gives the "
-               f"measured interference")
+    tel, cf, rows = got
+    study = analysis.coil_study()
+    pts = [float(r) for r in SEED_POINTS_CM]
+    if study is not None:
+        how = ("each row takes the distance law the coil study measured for its sensor and "
+               "coil, or that coil's law on another sensor carried to this one (said so in "
+               "the row); r is where that law gives the row's measured interference. A "
+               "law gives the same interference at 5, 15 and 30 cm for every row that uses "
+               "it, so those values are printed once, in the law's own row. A coil the "
+               "study did not measure has no distance ('not measured')")
     else:
         how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
                "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
                "given, so nothing about distance is measured")
-    pts = [float(r) for r in SEED_POINTS_CM]
-    table = [[r["sensor"], r["coil"], r["K_col_nT_per_A"], r["interference_nT"],
-              r["pct_of_lab_field"], r["distance_cm"]] + [r["at_cm"][p] for p in pts]
-             for r in rows]
+    table, laws = [], []
+    for r in rows:
+        law, r0 = r["law"], r["distance_cm"]
+        if law is not None and all(w is not law for w in laws):
+            laws.append(law)
+        at = (["-"] * len(pts) if r0 is None else ["law row"] * len(pts)
+              if law is not None else [r["at_cm"][p] for p in pts])
+        flags = list(r["flags"]) + (["assumed distance, dipole fall-off"]
+                                    if r["distance_source"] == "assumed" else [])
+        table.append([r["sensor"], r["coil"],
+                      pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]),
+                      pm(r["interference_nT"], r["interference_sigma_nT"]),
+                      r["pct_of_lab_field"], r["distance_source"],
+                      "-" if r0 is None else f"{r0:.3g}"] + at
+                     + ["; ".join(flags) or "-"])
+    for w in laws:
+        table.append(["law", f"{w.sensor} {w.coil}, {PANEL_STATE[w.panel]}", "-", "-", "-",
+                      "n = " + (pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
+                                else f"{w.exponent:.3f} (2 points)"),
+                      f"measured {w.r_min_cm:g}..{w.r_max_cm:g}"]
+                     + [float(w.at(p, 0.1)) for p in pts] + ["; ".join(w.flags(*pts)) or "-"])
     seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
-    table.append(["seed 000", "no panel", "-", seed_np[30.0], 100 * seed_np[30.0] / 51540.0,
-                  30.0] + [seed_np[p] for p in pts])
-    table.append(["seed 000", "with panel", "-", seed_p[30.0], 100 * seed_p[30.0] / 51540.0,
-                  30.0] + [seed_p[p] for p in pts])
+    for label, seed in (("no panel", seed_np), ("with panel", seed_p)):
+        table.append(["seed 000", label, "-", seed[30.0], 100 * seed[30.0] / 51540.0,
+                      "measured at 30 cm only; 5 and 15 cm scaled by the law above"
+                      if laws else "measured at 30 cm only; 5 and 15 cm scaled as 1/r^3",
+                      30.0] + [seed[p] for p in pts] + ["-"])
     sec = Section("Magnetorquer interference at 0.1 A", [
-        f"|K column| x 0.1 A per sensor and coil from {tel.path}; {how}, to the seed's "
-        "points 5, 15 and 30 cm. The seed measured 167.87 nT without and 307.57 nT with the "
-        "solar panel at 30 cm and 0.1 A."],
+        f"|K column| x 0.1 A per sensor and coil from {tel.path} (1-sigma after ±); {how}. "
+        "The seed's points are 5, 15 and 30 cm; it measured 167.87 nT without and 307.57 nT "
+        "with the solar panel at 30 cm and 0.1 A.",
+        "Flags: a law whose points scatter beyond their errors (chi2 above its 99 % "
+        "quantile at the law's degrees of freedom) and a law used outside the distances "
+        "it was measured at (extrapolated)."],
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
-                "r cm (measured law)" if study is not None else "assumed r cm"]
-               + [f"at {p:g} cm nT" for p in pts], table,
-               "Interference by sensor and coil")])
-    series = {f"{r['sensor']} {r['coil']}": [r["at_cm"][p] for p in pts] for r in rows
-              if r["frame"] == "boom"}
-    series["seed 000, no panel"] = [seed_np[p] for p in pts]
-    series["seed 000, with panel"] = [seed_p[p] for p in pts]
-    dist = coil_distance_section(out_dir, pts, series, current_A=0.1)
+                "distance law", "r cm"] + [f"at {p:g} cm nT" for p in pts] + ["flags"],
+               table, "Interference by sensor and coil")])
+    dist = None
+    if laws:     # the study's own figure shows its laws against the seed, measured points
+        sec.paragraphs.append("Against distance: the coil study's figure (section 'Coil "
+                              "study') shows the measured points, the laws and the seed's "
+                              "figures; the laws' values at the seed's points are their rows "
+                              "here.")
+    else:
+        shown = [r for r in rows if r["frame"] == "boom"] or rows   # no boom: the body's
+        series = {f"{r['sensor']} {r['coil']} (assumed {r['distance_cm']:g} cm)":
+                  [r["at_cm"][p] for p in pts] for r in shown if r["distance_cm"] is not None}
+        series["seed 000, no panel"] = [seed_np[p] for p in pts]
+        series["seed 000, with panel"] = [seed_p[p] for p in pts]
+        dist = coil_distance_section(out_dir, pts, series, current_A=0.1)
     cals = {s.name: cs.calibration(s.name) for s in cs.unit.sensors}
     corr = correction_table(cs.unit, tel, cals, cf)
     crow = [[n, r["rms_norm_nT"]["without"], r["rms_norm_nT"]["with"],
@@ -672,7 +740,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
     sec.tables.append(Table(["sensor", "|B| RMS without K nT", "with K nT",
                              "current on: without nT", "with nT"], crow,
                             "The coil term in the chain: |B| error before and after"))
-    return [sec, dist]
+    return [sec] if dist is None else [sec, dist]
 
 
 def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
@@ -711,7 +779,7 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     rep = Report(f"magcal fit: unit {cs.unit.id}")
     from generator.report.summary import summary_section
     rep.add(summary_section(cs, analysis))     # first: the verdict
-    rep.add(inputs_section(cs, analysis, data_paths))
+    inputs = rep.add(inputs_section(cs, analysis, data_paths))
     rep.extend(fit_sections(cs))
     m = method_section(cs)
     if m:
@@ -743,6 +811,10 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     if compare:
         from generator.report.seed_sections import comparison_sections
         rep.extend(comparison_sections(cs, analysis, progress))
+    gone = left_out(cs, analysis, [s.title for s in rep.sections], compare)
+    if gone:
+        inputs.paragraphs.append("Left out for this unit and these files: "
+                                 + "; ".join(gone) + ".")
     notes = [n for n in cs.fit_info.get("notes", [])]
     for s in cs.unit.sensors:
         st = cs.fit_info.get("sensors", {}).get(s.name, {}).get("stats", {}) or {}
@@ -750,6 +822,41 @@ def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Repor
     if notes:
         rep.add(Section("Notes", notes))
     return rep
+
+
+def left_out(cs, analysis, titles, compare=True) -> list:
+    """Why a seed 000 section of the fit report is not in it, one clause per section left
+    out (the report never shows an empty section instead)."""
+    if analysis is None:
+        return []
+    from generator.fit.coils import has_coil_steps, is_coil_study
+
+    def missing(prefix):
+        return not any(t.startswith(prefix) for t in titles)
+    out = []
+    if missing("Chamber profile"):
+        out.append("the chamber profile (seed 000 fig. 21, 23): " + (
+            "no sensor reports a temperature (temperature = false)"
+            if not any(s.temperature for s in cs.unit.sensors)
+            else "no file with static positions"))
+    if missing("Agreement of the two magnetometers"):
+        out.append("the agreement of the two magnetometers, H (seed 000 fig. 8-10): " + (
+            "the unit has no boom sensor" if not any(s.frame == "boom" for s in cs.unit.sensors)
+            else "H was not fitted (no rotation with the boom deployed among the files)"))
+    if missing("Magnetorquer"):
+        out.append("magnetorquer coupling and interference (seed 000 fig. 5-6): " + (
+            "no coil campaign (static positions, stepped magnetorquer currents) among the "
+            "files" if not any(has_coil_steps(t) for t in analysis.tels)
+            else "the unit's chain has no coil term"))
+    if missing("Coil study") and not any(is_coil_study(t) for t in analysis.tels):
+        out.append("the coil study: no coil-study file (a coil_distance_cm column, "
+                   "docs/coil_study.md)")
+    if missing("SET/RESET") and not any(s.set_reset for s in cs.unit.sensors):
+        out.append("SET/RESET offset error (seed 000 fig. 12-13): no SET/RESET part")
+    if compare and missing("Fit methods compared"):
+        out.append("the fit methods compared: they need a file with reference vectors in "
+                   "static positions and a rotation without them")
+    return out
 
 
 def write_fit_report(cs, out_dir, data_paths=(), progress=None, extra_sections=()) -> Path:

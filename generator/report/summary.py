@@ -212,6 +212,7 @@ def summary_section(cs, analysis) -> Section:
                     f"{pf['norm_before_nT']:.1f} nT RMS before, {pf['norm_after_nT']:.1f} "
                     "after (a campaign unlike the others: its reference, frame or "
                     "conditions?)")])
+    warn_rows += coil_study_warnings(analysis)
     if req:
         head = ("Requirements from " + src + ": "
                 + ", ".join(f"{k} = {v:g}" for k, v in req.items())
@@ -240,7 +241,37 @@ def summary_section(cs, analysis) -> Section:
                      "calibrated degC", "fitted / held at the prior", "verdict"], rows,
                     "Per sensor: errors before and after, validity, range, verdict")]
     if warn_rows:
-        tables.append(Table(["sensor", "warning"], warn_rows, "Warnings of the fit"))
+        tables.append(Table(["sensor", "warning"], warn_rows,
+                            "Warnings of the fit and of the coil study"))
     else:
         paras.append("Warnings: none (the fit's sanity checks passed for every sensor).")
     return Section("Summary and verdict", paras, tables)
+
+
+def coil_study_warnings(analysis) -> list:
+    """[sensor, warning] rows for the distance laws of a coil study (DistanceLaw.flags):
+    points that scatter beyond their errors, and a law the report evaluates outside its
+    measured distances -- at 30 cm (the seed's comparison, always), at the seed's 5 and
+    15 cm and at each sensor's distance r (the interference table, when a coil campaign
+    is given too)."""
+    study = analysis.coil_study() if analysis is not None else None
+    if study is None:
+        return []
+    from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM
+    inter = None
+    if hasattr(analysis, "coil_interference"):
+        from generator.errors import InputError
+        try:
+            inter = analysis.coil_interference(0.1)
+        except InputError:     # the interference section says why; the laws still warn
+            inter = None
+    at = SEED_POINTS_CM if inter is not None else (30.0,)
+    out = [[w.sensor, f"coil study, law of {w.coil} {PANEL_STATE[w.panel]}: {f}"]
+           for w in study.laws for f in w.flags(*at)]
+    for r in (inter[2] if inter is not None else []):
+        f = r["law"].extrapolated(r["distance_cm"]) if r["law"] is not None else None
+        if f:
+            w = r["law"]
+            out.append([r["sensor"], f"{r['coil']}: interference at 0.1 A from the law of "
+                                     f"{w.sensor} {w.coil} {PANEL_STATE[w.panel]}, {f}"])
+    return out
