@@ -354,7 +354,7 @@ def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
 
 def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
                   t_ref_C=T_REF_C, t_range_C=None, source=None, prior: Prior | None = None,
-                  group=None, noise_nT=None):
+                  group=None, noise_nT=None, uncertainty=True):
     """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
 
     field_frame_nT: (N, 3) uncalibrated readings in frame axes; ref_body_nT: (N, 3)
@@ -368,6 +368,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     coefficient: value, sigma, prior, source "data"/"prior", data_fraction), unobservable
     (the directions held at the prior), residual_sigma_nT (per frame axis, of the reading
     model x - b - M^-1 B), residual_rms_nT (per body axis, calibrated), cond, cost.
+    uncertainty=False (the held-out comparison's fits, which use only the coefficients):
+    the same coefficients, bit for bit, without the temperature reporting step's
+    covariance (item 5: a pass over the samples per reported value), so the 1-sigma is
+    the readings' noise alone, and without residual_sigma_nT and cond (None).
     """
     x = np.asarray(field_frame_nT, float)
     B = np.asarray(ref_body_nT, float)
@@ -488,7 +492,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
     sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
-    if degree > 0:
+    if degree > 0 and uncertainty:
         C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
                                                (t_lo, t_hi), A)
         C = C + C_T
@@ -518,16 +522,19 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
                       # component along it (0: held at the prior)
                       "vector": [float(a) for a in v], "offset_from_prior": float(v @ z)})
     # residuals: calibrated (body axes) and of the reading model (frame axes, W r)
-    T_c = np.clip(T, t_lo, t_hi) - t_ref_C
-    Pp = _powers(T_c, degree)
-    M_T = np.einsum("nk,kij->nij", Pp, M_poly)
-    read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
-    dof = max(3 * n - int(fitted.sum()), 1) / 3
-    col = np.sqrt(np.diag(JTJ))
-    col[col == 0] = 1.0
-    Gn = JTJ / np.outer(col, col)
-    evn = np.linalg.eigvalsh(Gn)
-    cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
+    res_sigma = cond = None
+    if uncertainty:
+        T_c = np.clip(T, t_lo, t_hi) - t_ref_C
+        Pp = _powers(T_c, degree)
+        M_T = np.einsum("nk,kij->nij", Pp, M_poly)
+        read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
+        dof = max(3 * n - int(fitted.sum()), 1) / 3
+        res_sigma = np.sqrt(np.sum(read_res ** 2, axis=0) / dof)
+        col = np.sqrt(np.diag(JTJ))
+        col[col == 0] = 1.0
+        Gn = JTJ / np.outer(col, col)
+        evn = np.linalg.eigvalsh(Gn)
+        cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
     info = {
         "n": int(n), "degree": int(degree), "cond": cond, "t_range_C": (t_lo, t_hi),
         "b_poly_sigma_nT": bsig, "M_poly_sigma": Msig,
@@ -535,7 +542,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # reporting error): what a design-only prediction (campaign.check) can compare with
         "b_poly_sigma_noise_nT": sig_noise[:3 * K].reshape(K, 3) / scale[:, None],
         "M_poly_sigma_noise": sig_noise[3 * K:].reshape(K, 3, 3) / scale[:, None, None],
-        "residual_sigma_nT": np.sqrt(np.sum(read_res ** 2, axis=0) / dof),
+        "residual_sigma_nT": res_sigma,
         "residual_rms_nT": np.sqrt(np.mean(r ** 2, axis=0)),
         "cost": float(np.sum(r ** 2)),
         "parameters": params, "unobservable": unobs,
