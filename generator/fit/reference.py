@@ -256,6 +256,74 @@ class ReadingStats:
         return {k: sum(wg[g] * parts[g][k] for g in range(self.n_grp)) for k in parts[0]}
 
 
+class ResidualStats:
+    """The weighted cost and gradient of the vector rows in a time independent of N, for
+    the iterates of one Gauss-Newton run (same samples, same weights).
+
+    Around a start (b0, M0) with per-sample residual r0_n, the residual at any (b, M) is
+    r_n = r0_n + L phi_n EXACTLY: phi_n = [d^k x_n (k < K), d^s (s <= 2K-2)] and
+    L = [M_k - M0_k | -(E_s - E0_s)], E_s = sum_{k+j=s} M_k b_j (M(T)b(T)'s coefficients).
+    So cost = sum w |r0|^2 + 2 tr(L sum w phi r0^T) + tr(L (sum w phi phi^T) L^T) and
+    J^T W r follows from dcost/dL by the chain rule; the sums are taken once (one pass
+    over the samples). Centred on the start, the sums hold residual-sized terms (not
+    |B|^2), so the cost keeps the precision of a per-sample sum to ~1e-13 relative; the
+    run's final evaluation (r per sample, what the fit reports) stays vector_normal's."""
+
+    def __init__(self, P, x, B, w, bp0, Mp0):
+        n, K = P.shape
+        self.K, self.bp0, self.Mp0 = K, bp0, Mp0
+        self.E0 = self._E(bp0, Mp0)
+        w = np.broadcast_to(np.asarray(w, float), (n,))
+        nphi = 3 * K + 2 * K - 1
+        self.a = 0.0
+        self.Gpr = np.zeros((nphi, 3))
+        self.Gpp = np.zeros((nphi, nphi))
+        for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
+            sl = slice(a, min(a + MOMENT_CHUNK, n))
+            Ps = P[sl]
+            y0 = x[sl] - Ps @ bp0
+            r0 = -B[sl]
+            for j in range(K):
+                r0 = r0 + Ps[:, j:j + 1] * (y0 @ Mp0[j].T)
+            phi = np.concatenate([(Ps[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K),
+                                  _temperature_powers(Ps, 2 * K - 2)], axis=1)
+            wphi = phi * w[sl, None]
+            self.a += float(np.einsum("ni,ni,n->", r0, r0, w[sl]))
+            self.Gpr += wphi.T @ r0
+            self.Gpp += wphi.T @ phi
+
+    def _E(self, bp, Mp):
+        K = self.K
+        E = np.zeros((2 * K - 1, 3))
+        for k in range(K):
+            E[k:k + K] += bp @ Mp[k].T           # E[k + j] += M_k b_j
+        return E
+
+    def cost_grad(self, bp, Mp, jac=True, eiv_var=0.0, W=None):
+        """(cost, J^T W r) at (bp, Mp): vector_normal's cost and gradient (eiv_var, W:
+        the errors-in-variables term and the moments' W, as there)."""
+        K = self.K
+        L = np.concatenate([(Mp - self.Mp0).transpose(1, 0, 2).reshape(3, 3 * K),
+                            -(self._E(bp, Mp) - self.E0).T], axis=1)      # (3, nphi)
+        LG = L @ self.Gpp
+        cost = self.a + 2.0 * float(np.sum(L * self.Gpr.T)) + float(np.sum(LG * L))
+        idx = np.add.outer(np.arange(K), np.arange(K)) if eiv_var else None
+        if eiv_var:
+            Mf = Mp.reshape(K, 9)
+            cost -= eiv_var * float(np.sum(W[idx] * (Mf @ Mf.T)))
+        if not jac:
+            return cost, None
+        Gr = self.Gpr.T + LG                                   # d(cost/2)/dL, (3, nphi)
+        GM = Gr[:, :3 * K].reshape(3, K, 3).transpose(1, 0, 2)   # [k, a, c]
+        Ge = Gr[:, 3 * K:]                                     # [a, s]
+        H = np.stack([Ge[:, k:k + K] for k in range(K)])       # H[k, a, j] = Ge[a, k + j]
+        gM = GM - H @ bp                                       # - sum_j Ge[a,k+j] b_j[c]
+        gb = -np.einsum("kaj,kal->jl", H, Mp)                  # - sum_{a,k} Ge[a,k+j] M_k[a,l]
+        if eiv_var:
+            gM = gM - eiv_var * (W[idx] @ Mp.reshape(K, 9)).reshape(K, 3, 3)
+        return cost, np.concatenate([gb.reshape(-1), gM.reshape(-1)])
+
+
 def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
     """Vector rows r_n = M(T_n)(x_n - b(T_n)) - B_n with weights w_n: weighted cost and, in
     closed form, J^T W J and J^T W r (params b[k,l], then M[k,a,c]); no (3N x p) Jacobian
@@ -754,11 +822,19 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         return th
 
     z = (theta[f] - th0_f) / S_f
-    # J^T W J's statistics: the same every iterate
+    # J^T W J's statistics and the cost's and gradient's (ResidualStats, centred on the
+    # start): the same every iterate, so an iterate costs no pass over the samples
     mom = stats.weighted(w) if stats else reading_moments(P, x, w)
+    rs = ResidualStats(P, x, B, w, *unpack(at(z)))
+
+    def vector_normal_(th, jac):
+        bp, Mp = unpack(th)
+        cost, g = rs.cost_grad(bp, Mp, jac, eiv_var, mom["W"])
+        return cost, (normal_matrix(mom, bp, Mp, eiv_var) if jac else None), g
+
     first = True
     for _ in range(GN_MAX_ITER):
-        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
+        cost, JTJ, g = vector_normal_(at(z), True)
         if split is not None and len(f) == len(S):
             ev, EV, fitted = split          # judged once, at the prior (reference_fit)
         else:
@@ -767,14 +843,14 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
-            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
+            cost, JTJ, g = vector_normal_(at(z), True)
             first = False
         Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
         dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
             z_new = z + step * dz
-            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var, mom)[0]
+            c_new = vector_normal_(at(z_new), False)[0]
             if c_new <= cost + 1e-12 * abs(cost):
                 break
             step *= 0.5
