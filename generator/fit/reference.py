@@ -269,15 +269,25 @@ class ResidualStats:
     |B|^2), so the cost keeps the precision of a per-sample sum to ~1e-13 relative; the
     run's final evaluation (r per sample, what the fit reports) stays vector_normal's."""
 
-    def __init__(self, P, x, B, w, bp0, Mp0):
+    def __init__(self, P, x, B, w, bp0, Mp0, mom):
+        """mom: reading_moments(P, x, w) (sum w phi phi^T is made of them)."""
         n, K = P.shape
         self.K, self.bp0, self.Mp0 = K, bp0, Mp0
         self.E0 = self._E(bp0, Mp0)
         w = np.broadcast_to(np.asarray(w, float), (n,))
         nphi = 3 * K + 2 * K - 1
+        W, X, XX = mom["W"], mom["X"], mom["XX"]
+        G = np.empty((nphi, nphi))                # sum w phi phi^T from the moments
+        kk = np.add.outer(np.arange(K), np.arange(K))
+        G[:3 * K, :3 * K] = XX[kk].transpose(0, 2, 1, 3).reshape(3 * K, 3 * K)
+        ks = np.add.outer(np.arange(K), np.arange(2 * K - 1))
+        G[:3 * K, 3 * K:] = X[ks].transpose(0, 2, 1).reshape(3 * K, 2 * K - 1)
+        G[3 * K:, :3 * K] = G[:3 * K, 3 * K:].T
+        G[3 * K:, 3 * K:] = W[np.add.outer(np.arange(2 * K - 1), np.arange(2 * K - 1))]
+        self.Gpp = G
         self.a = 0.0
-        self.Gpr = np.zeros((nphi, 3))
-        self.Gpp = np.zeros((nphi, nphi))
+        Gx = np.zeros((K, 3, 3))                  # sum w d^k x_c r0_a  [k, c, a]
+        Gd = np.zeros((2 * K - 1, 3))             # sum w d^s r0_a
         for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
             sl = slice(a, min(a + MOMENT_CHUNK, n))
             Ps = P[sl]
@@ -285,12 +295,11 @@ class ResidualStats:
             r0 = -B[sl]
             for j in range(K):
                 r0 = r0 + Ps[:, j:j + 1] * (y0 @ Mp0[j].T)
-            phi = np.concatenate([(Ps[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K),
-                                  _temperature_powers(Ps, 2 * K - 2)], axis=1)
-            wphi = phi * w[sl, None]
-            self.a += float(np.einsum("ni,ni,n->", r0, r0, w[sl]))
-            self.Gpr += wphi.T @ r0
-            self.Gpp += wphi.T @ phi
+            wr0 = r0 * w[sl, None]
+            self.a += float(np.sum(wr0 * r0))
+            Gd += _temperature_powers(Ps, 2 * K - 2).T @ wr0
+            Gx += (Ps.T @ (x[sl, :, None] * wr0[:, None, :]).reshape(-1, 9)).reshape(K, 3, 3)
+        self.Gpr = np.concatenate([Gx.reshape(3 * K, 3), Gd])    # sum w phi r0^T
 
     def _E(self, bp, Mp):
         K = self.K
@@ -368,6 +377,45 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
         idx = np.add.outer(np.arange(K), np.arange(K))
         gM = gM - eiv_var * (W[idx] @ Mp.reshape(K, 9)).reshape(K, 3, 3)
     return cost, JTJ, np.concatenate([gb.reshape(-1), gM.reshape(-1)]), r
+
+
+def _solve_M(P, Mp, v):
+    """M(T_n)^-1 v_n (N, 3), M(T) = sum_k P_k Mp[k]: one solve with many right-hand sides
+    where M has no temperature terms (the constant fits, a nominal prior), else per
+    sample."""
+    if len(Mp) == 1 or not np.any(Mp[1:]):
+        return np.linalg.solve(Mp[0], v.T).T
+    return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+
+
+def _linear_residual_var(P, x, B):
+    """Residual variance per axis of the unconstrained linear model B = M(T) x + c(T)
+    (least squares): the normal equations' sums per block of samples (columns scaled to
+    unit diagonal; the minimum-norm solution where they are singular, whose residual is
+    the least-squares one), then the residual sum per block: two passes, bounded memory,
+    no (N x 4K) decomposition."""
+    n, K = P.shape
+    G = np.zeros((4 * K, 4 * K))
+    AtB = np.zeros((4 * K, 3))
+
+    def design(sl):
+        return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
+                              axis=1)
+
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        A = design(sl)
+        G += A.T @ A
+        AtB += A.T @ B[sl]
+    col = np.sqrt(np.diag(G))
+    col[col == 0] = 1.0
+    sol = np.linalg.lstsq(G / np.outer(col, col), AtB / col[:, None], rcond=None)[0] \
+        / col[:, None]
+    ssr = 0.0
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        ssr += float(np.sum((B[sl] - design(sl) @ sol) ** 2))
+    return ssr / max(3 * (n - 4 * K), 1)
 
 
 def _cheb_nodes(lo, hi, degree):
@@ -496,8 +544,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     # (regression dilution), and at such an M the offset looks undetermined and M
     # determined -- the reverse of the truth.
     b0_obs, M0_obs = unpack(theta0.copy())
-    M_T0 = np.einsum("nk,kij->nij", P, M0_obs)
-    ref_read = np.linalg.solve(M_T0, B[:, :, None])[:, :, 0]          # M0(T)^-1 B
+    ref_read = _solve_M(P, M0_obs, B)                                   # M0(T)^-1 B
     b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - ref_read, axis=0)
     x_hat = P @ b0_obs + ref_read
     stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
@@ -511,11 +558,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     for _pass in range(2):
         if theta is None:
             # the common variance: residual of the unconstrained linear model
-            Phi1 = np.concatenate([x, np.ones((n, 1))], axis=1)
-            Phi1 = (P[:, :, None] * Phi1[:, None, :]).reshape(n, -1)
-            sol, *_ = np.linalg.lstsq(Phi1, B, rcond=None)
-            v0 = max(float(np.sum((B - Phi1 @ sol) ** 2)) / max(3 * (n - Phi1.shape[1]), 1),
-                     1e-6)
+            v0 = max(_linear_residual_var(P, x, B), 1e-6)
             w = np.full(n, 1.0 / v0)
             bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
             theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
@@ -536,8 +579,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         if _pass == 1:
             break
         if not noise_nT:
-            M_T = np.einsum("nk,kij->nij", P, unpack(theta)[1])
-            eiv_var = _reading_noise_var(np.linalg.solve(M_T, r[:, :, None])[:, :, 0], grp)
+            eiv_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
             noise_from = "estimated from first differences of the first pass's residuals"
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
@@ -547,14 +589,15 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
                 * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
-    # covariance of the posterior (module docstring), in scaled units; held: the prior's
-    ev, EV, fitted = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
-                                S, everything=mirrored)
+    # covariance of the posterior (module docstring), in scaled units; held: the prior's.
+    # The split is pass 2's (judged with the final weights w); where nothing is held,
+    # theta is pass 2's result and so are its cost, J^T W J and residuals.
     Vf, Vp = EV[:, fitted], EV[:, ~fitted]
-    zp = Vp.T @ ((theta - theta0) / S)
-    theta = theta - S * (Vp @ zp)      # exactly at the prior where held
-    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
-                                    stats.weighted(w))
+    if Vp.shape[1]:
+        zp = Vp.T @ ((theta - theta0) / S)
+        theta = theta - S * (Vp @ zp)      # exactly at the prior where held
+        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
+                                        stats.weighted(w))
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
@@ -825,7 +868,7 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
     # J^T W J's statistics and the cost's and gradient's (ResidualStats, centred on the
     # start): the same every iterate, so an iterate costs no pass over the samples
     mom = stats.weighted(w) if stats else reading_moments(P, x, w)
-    rs = ResidualStats(P, x, B, w, *unpack(at(z)))
+    rs = ResidualStats(P, x, B, w, *unpack(at(z)), mom)
 
     def vector_normal_(th, jac):
         bp, Mp = unpack(th)
