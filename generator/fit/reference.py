@@ -388,25 +388,34 @@ def _solve_M(P, Mp, v):
     return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
 
 
-def _linear_residual_var(P, x, B):
-    """Residual variance per axis of the unconstrained linear model B = M(T) x + c(T)
-    (least squares): the normal equations' sums per block of samples (columns scaled to
-    unit diagonal; the minimum-norm solution where they are singular, whose residual is
-    the least-squares one), then the residual sum per block: two passes, bounded memory,
-    no (N x 4K) decomposition."""
+def _linear_design(P, x, sl):
+    """Rows [P_k x, P_k] (N, 4K) of the linear model B = M(T) x + c(T), samples sl."""
+    K = P.shape[1]
+    return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
+                          axis=1)
+
+
+def _linear_sums(P, x, B):
+    """The linear model's normal-equation sums per block of samples (bounded memory
+    whatever N), unweighted: (A^T A, A^T B, P^T P)."""
     n, K = P.shape
     G = np.zeros((4 * K, 4 * K))
     AtB = np.zeros((4 * K, 3))
-
-    def design(sl):
-        return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
-                              axis=1)
-
     for a in range(0, n, MOMENT_CHUNK):
         sl = slice(a, min(a + MOMENT_CHUNK, n))
-        A = design(sl)
+        A = _linear_design(P, x, sl)
         G += A.T @ A
         AtB += A.T @ B[sl]
+    return G, AtB, G[3 * K:, 3 * K:].copy()
+
+
+def _linear_residual_var(P, x, B, sums):
+    """Residual variance per axis of the unconstrained linear model B = M(T) x + c(T)
+    (least squares) from _linear_sums (columns scaled to unit diagonal; the minimum-norm
+    solution where they are singular, whose residual is the least-squares one); the
+    residual itself summed per block of samples (no (N x 4K) decomposition)."""
+    n, K = P.shape
+    G, AtB, _ = sums
     col = np.sqrt(np.diag(G))
     col[col == 0] = 1.0
     sol = np.linalg.lstsq(G / np.outer(col, col), AtB / col[:, None], rcond=None)[0] \
@@ -414,7 +423,7 @@ def _linear_residual_var(P, x, B):
     ssr = 0.0
     for a in range(0, n, MOMENT_CHUNK):
         sl = slice(a, min(a + MOMENT_CHUNK, n))
-        ssr += float(np.sum((B[sl] - design(sl) @ sol) ** 2))
+        ssr += float(np.sum((B[sl] - _linear_design(P, x, sl) @ sol) ** 2))
     return ssr / max(3 * (n - 4 * K), 1)
 
 
@@ -426,28 +435,16 @@ def _cheb_nodes(lo, hi, degree):
     return 0.5 * (lo + hi) + 0.5 * (hi - lo) * c
 
 
-def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
+def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     """Step 1: B = M(T) x + c(T), least squares per output row with the prior as extra
     rows (the prior of c = -M b taken as -M0 b0 with b's sigma), the noise of x taken out
-    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
+    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c. sums:
+    _linear_sums of the samples; w: their common weight (the first pass's 1 / v0)."""
     K = degree + 1
-    n = len(x)
     b0, M0, bs, Ms = prior_s
     c0 = np.zeros((K, 3))
     c0[0] = -M0[0] @ b0[0]
-    sw = np.sqrt(w)
-    # the normal equations' sums per block of samples (bounded memory whatever N): rows
-    # Phi = [P_k x, P_k] weighted by sqrt(w)
-    G = np.zeros((4 * K, 4 * K))
-    AtB = np.zeros((4 * K, 3))
-    PtP = np.zeros((K, K))
-    for a in range(0, n, MOMENT_CHUNK):
-        sl = slice(a, min(a + MOMENT_CHUNK, n))
-        Pw = P[sl] * sw[sl, None]
-        A = np.concatenate([(Pw[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K), Pw], axis=1)
-        G += A.T @ A
-        AtB += A.T @ (B[sl] * sw[sl, None])
-        PtP += Pw.T @ Pw
+    G, AtB, PtP = (w * a for a in sums)
     if eiv_var:
         G[:3 * K, :3 * K] -= eiv_var * np.kron(PtP, np.eye(3))
     Mk = np.zeros((K, 3, 3))
@@ -558,9 +555,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     for _pass in range(2):
         if theta is None:
             # the common variance: residual of the unconstrained linear model
-            v0 = max(_linear_residual_var(P, x, B), 1e-6)
+            sums = _linear_sums(P, x, B)
+            v0 = max(_linear_residual_var(P, x, B, sums), 1e-6)
             w = np.full(n, 1.0 / v0)
-            bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
+            bs0, Ms0 = _linear_start(sums, 1.0 / v0, prior_s, degree, lo_s, hi_s, eiv_var)
             theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
             # a mirrored reference (swapped or negated columns) gives a cross-information
             # with strongly negative directions, which the split would hold at the prior
