@@ -635,8 +635,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     if uncertainty:
         T_c = np.clip(T, t_lo, t_hi) - t_ref_C
         Pp = _powers(T_c, degree)
-        M_T = np.einsum("nk,kij->nij", Pp, M_poly)
-        read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
+        read_res = _solve_M(Pp, M_poly, r)
         dof = max(3 * n - int(fitted.sum()), 1) / 3
         res_sigma = np.sqrt(np.sum(read_res ** 2, axis=0) / dof)
         col = np.sqrt(np.diag(JTJ))
