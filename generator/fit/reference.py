@@ -153,7 +153,7 @@ def _temperature_powers(P, top):
 MOMENT_CHUNK = 1 << 15     # samples per block of reading_moments' sums
 
 
-def reading_moments(P, x, w=None, x_cross=None, grp=None):
+def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
     """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
     with d the scaled temperature (P[:, 1]) and w the weights,
         W[p] = sum w d^p,  X[p] = sum w d^p x,  XX[p] = sum w d^p x x^T
@@ -165,25 +165,27 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None):
     x_cross: a second reading of the same true reading (reference_fit's x_hat): X is then
     that of m = (x + x_cross) / 2 and XX the symmetrised cross moment (x x_c^T + x_c x^T)/2
     (_split_information). grp: (N,) labels 0..G-1: a list of G dicts, one per group (each
-    group's sums; one pass over the samples, one matrix product)."""
+    group's sums; one pass over the samples, one matrix product). both: x_cross given,
+    the pair (plain, cross) from the same pass."""
     n, K = P.shape
     w = None if w is None else np.broadcast_to(np.asarray(w, float), (n,))
     grp_a = np.zeros(n, int) if grp is None else np.asarray(grp)
     n_grp = int(grp_a.max()) + 1 if n else 1
-    sums = np.zeros((n_grp, 4 * K - 3, 13))
+    ncol = 25 if both else 13
+    sums = np.zeros((n_grp, 4 * K - 3, ncol))
     for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
         sl = slice(a, min(a + MOMENT_CHUNK, n))
         D = _temperature_powers(P[sl], 4 * K - 4)
         if w is not None:
             D *= w[sl, None]
         xs = x[sl]
-        if x_cross is None:
-            xm, xx = xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)
-        else:
+        cols = [np.ones((len(xs), 1))]
+        if x_cross is None or both:
+            cols += [xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)]
+        if x_cross is not None:
             xc = x_cross[sl]
-            xm = 0.5 * (xs + xc)
-            xx = (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)
-        H = np.concatenate([np.ones((len(xs), 1)), xm, xx], axis=1)      # (n, 13)
+            cols += [0.5 * (xs + xc), (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)]
+        H = np.concatenate(cols, axis=1)      # (n, 13), or (n, 25) with both
         g = grp_a[sl]
         if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
             sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
@@ -191,12 +193,16 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None):
             for k in np.unique(g):
                 m = g == k
                 sums[k] += D[m].T @ H[m]
-    out = []
-    for S_ in sums[:n_grp]:
-        XX = S_[:2 * K - 1, 4:].reshape(2 * K - 1, 3, 3)
-        if x_cross is not None:
+    def unpack(S_, c0, cross):
+        XX = S_[:2 * K - 1, c0 + 3:c0 + 12].reshape(2 * K - 1, 3, 3)
+        if cross:
             XX = 0.5 * (XX + XX.transpose(0, 2, 1))
-        out.append({"W": S_[:, 0], "X": S_[:3 * K - 2, 1:4], "XX": XX})
+        return {"W": S_[:, 0], "X": S_[:3 * K - 2, c0:c0 + 3], "XX": XX}
+
+    if both:
+        out = ([unpack(S_, 1, False) for S_ in sums], [unpack(S_, 13, True) for S_ in sums])
+        return out if grp is not None else (out[0][0], out[1][0])
+    out = [unpack(S_, 1, x_cross is not None) for S_ in sums]
     return out if grp is not None else out[0]
 
 
@@ -246,8 +252,10 @@ class ReadingStats:
         grp = np.asarray(grp)
         self.n_grp = int(grp.max()) + 1 if len(grp) else 0
         self.first = np.array([np.flatnonzero(grp == g)[0] for g in range(self.n_grp)])
-        self.vec = reading_moments(P, x, grp=grp)
-        self.cross = [] if x_hat is None else reading_moments(P, x, x_cross=x_hat, grp=grp)
+        if x_hat is None:
+            self.vec, self.cross = reading_moments(P, x, grp=grp), []
+        else:           # one pass for both
+            self.vec, self.cross = reading_moments(P, x, x_cross=x_hat, grp=grp, both=True)
 
     def weighted(self, w, cross=False):
         """The moments with per-sample weights w (constant within each group)."""
