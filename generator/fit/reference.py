@@ -910,5 +910,7 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         if done:
             break
     theta = at(z)
-    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var, mom)
-    return theta, JTJ, cost, r
+    # the result's cost and residuals per sample (what the fit reports), and J^T W J; the
+    # gradient is not needed
+    cost, _, _, r = vector_normal(P, x, B, *unpack(theta), False, w, eiv_var, mom)
+    return theta, normal_matrix(mom, *unpack(theta), eiv_var), cost, r
