@@ -12,7 +12,10 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    (c = -M b), solved row by row by least squares with the prior as extra rows; then
    b(T) = -M(T)^-1 c(T) (exact at degree 0; a polynomial projection on Chebyshev nodes over
    the calibrated range otherwise).
-2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there.
+2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there. J^T W J comes
+   from the reading's moments (reading_moments, normal_matrix), and each iterate's cost
+   and gradient from sums centred on the run's start (ResidualStats): an iterate costs no
+   pass over the samples; the run's result is evaluated per sample (vector_normal).
 3. Errors in variables. The noise of the readings x (the sensor's stated noise_nT) adds
    noise_nT^2 |M(T)|_F^2 to every expected |r|^2; it is subtracted from the cost (adjusted
    least squares), so a reading axis that carries only noise does not look determined
@@ -48,6 +51,10 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    does not average down like the reading noise: its q^2/12 is propagated through the
    fit's response into the covariance (_temperature_error_cov), for degree > 0 (a
    constant model does not use the temperature).
+
+Passes over the samples per fit: a fixed number (moments, the linear start's sums, each
+Gauss-Newton run's start and result, the per-file variances), none per iterate; the
+held-out comparison's fits skip the temperature-error covariance (uncertainty=False).
 
 Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
