@@ -34,13 +34,20 @@ Prints the figures of both trees and their ratios (baseline / today): the result
 ratio, not the seconds. No thresholds (the issue's targets: fit under 1 s, figures under
 1 s more, memory per sample far below the ~2 kB it measured).
 
-One run (2026-11-24, 2 shared cores under load from other jobs, --repeat 2):
-  fit:    9.90 s (f6f3a45), 11.88 s (f639afc) -> 4.26 s   ratio 2.32x, 2.79x
-  report (figures drawn serially): 8.77 s (f639afc) -> 6.58 s   ratio 1.33x
-  fit memory per sample (peak RSS slope 36,000 -> 144,000 rows): 1962 B -> 1111 B, 1.77x
-Not yet at the issue's targets: the fit makes 145 reference fits (candidate degrees x
-held-out folds x per-level fits) of which each still passes over its samples ~10 times
-for the cost, residuals and gradient; the figures are ~2/3 of the report.
+One run (2026-11-24 ~12:05-12:17 UTC, 2 cores shared with other jobs, load average ~6,
+--repeat 2; absolute seconds are inflated by the load, the ratios are the result):
+  fit:    10.12 s (f6f3a45), 11.50 s (f639afc) -> 2.34 s   ratio 4.33x, 4.92x
+  fit against ceb8243: 4.20 s -> 2.34 s   ratio 1.79x
+  report (figures drawn serially): 8.89 s (f639afc) -> 7.17 s   ratio 1.24x
+  fit memory per sample (peak RSS slope 36,000 -> 144,000 rows): 1959 B -> 907 B, 2.16x
+What made the step from ceb8243: each Gauss-Newton iterate's cost and gradient from sums
+centred on the run's start (reference.ResidualStats; J^T W J already came from moments),
+the held-out fold fits without the temperature-error covariance, one pass for the
+linear start's sums and the plain and cross moments, single solves for a constant M.
+Not yet at the issue's targets: the fit is still ~2.3x the 1 s target (145 reference
+fits per campaign, each ~10 passes over its samples plus ~5 ms of fixed numpy/Python
+cost; the held-out comparison is ~6/7 of the work), and the figures (not changed in
+this step) are ~7x the 1 s target.
 """
 
 from __future__ import annotations
