@@ -847,13 +847,13 @@ def min_abs_det(part="default") -> float:
     return (1.0 - 3.0 * s) ** 3
 
 
-def _noise_margin(P, w, eiv_var):
-    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block."""
-    n, K = P.shape
+def _noise_margin(W, K, eiv_var):
+    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block;
+    W: the moments' sum w d^p (sum_n w P_k P_m = W[k + m])."""
     out = np.zeros((12 * K, 12 * K))
     if eiv_var:
-        Pw = P * np.sqrt(w)[:, None]
-        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(Pw.T @ Pw, np.eye(9))
+        PtP = W[np.add.outer(np.arange(K), np.arange(K))]
+        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(PtP, np.eye(9))
     return out
 
 
@@ -864,7 +864,6 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
     f = np.nonzero(free)[0]
     S_f, th0_f = S[f], theta0[f]
-    margin = _noise_margin(P, w, eiv_var)[np.ix_(f, f)]
     theta = theta.copy()
     theta[~free] = theta0[~free]
 
@@ -878,6 +877,10 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
     # start): the same every iterate, so an iterate costs no pass over the samples
     mom = stats.weighted(w) if stats else reading_moments(P, x, w)
     rs = ResidualStats(P, x, B, w, *unpack(at(z)), mom)
+    # the split is judged here only when not given (or not over all parameters)
+    margin = None
+    if split is None or len(f) != len(S):
+        margin = _noise_margin(mom["W"], P.shape[1], eiv_var)[np.ix_(f, f)]
 
     def vector_normal_(th, jac):
         bp, Mp = unpack(th)
