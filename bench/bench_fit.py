@@ -40,11 +40,15 @@ One run (2026-11-24 ~12:05-12:17 UTC, 2 cores shared with other jobs, load avera
   fit against ceb8243: 4.20 s -> 2.34 s   ratio 1.79x
   report (figures drawn serially): 8.89 s (f639afc) -> 7.17 s   ratio 1.24x
   fit memory per sample (peak RSS slope 36,000 -> 144,000 rows): 1959 B -> 907 B, 2.16x
+A second run after the last commits (12:23-12:25 UTC, load average ~3.5, --repeat 2
+--no-memory --no-report; 4deb5c3):
+  fit:    9.30 s (f6f3a45), 10.97 s (f639afc) -> 2.03 s   ratio 4.59x, 5.41x
+  fit against ceb8243: 3.87 s -> 2.03 s   ratio 1.91x
 What made the step from ceb8243: each Gauss-Newton iterate's cost and gradient from sums
 centred on the run's start (reference.ResidualStats; J^T W J already came from moments),
 the held-out fold fits without the temperature-error covariance, one pass for the
 linear start's sums and the plain and cross moments, single solves for a constant M.
-Not yet at the issue's targets: the fit is still ~2.3x the 1 s target (145 reference
+Not yet at the issue's targets: the fit is still ~2x the 1 s target (145 reference
 fits per campaign, each ~10 passes over its samples plus ~5 ms of fixed numpy/Python
 cost; the held-out comparison is ~6/7 of the work), and the figures (not changed in
 this step) are ~7x the 1 s target.
