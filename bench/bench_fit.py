@@ -50,7 +50,7 @@ the held-out fold fits without the temperature-error covariance, one pass for th
 linear start's sums and the plain and cross moments, single solves for a constant M.
 Not yet at the issue's targets: the fit is still ~2x the 1 s target (145 reference
 fits per campaign, each ~10 passes over its samples plus ~5 ms of fixed numpy/Python
-cost; the held-out comparison is ~6/7 of the work), and the figures (not changed in
+cost; the held-out comparison is ~70 % of it, cProfile), and the figures (not changed in
 this step) are ~7x the 1 s target.
 """
 
