@@ -42,8 +42,10 @@ def _degree_for_span(span_C, max_degree=POLY_DEGREE):
     return int(min(max_degree, np.floor(span_C / DEGREE_STEP_C)))
 
 
-def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source):
-    """Levenberg-Marquardt on the flight parameterisation over vector and magnitude rows."""
+def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source,
+                     uncertainty=True):
+    """Levenberg-Marquardt on the flight parameterisation over vector and magnitude rows.
+    uncertainty=False: without the temperature reporting step's covariance (_fit_joint)."""
     tau = max(abs(t_lo - T_REF_C), abs(t_hi - T_REF_C), 1.0)
     P = _powers((np.clip(S.T, t_lo, t_hi) - T_REF_C) / tau, degree)
     scale = tau ** np.arange(degree + 1)
@@ -138,7 +140,7 @@ def _joint_nonlinear(S: _Samples, degree, t_lo, t_hi, body_frame, init, source):
 
     q, cost, JTJ, lm = lm_solve(model, q0, max_iter=60)
     cov, cond, s2 = covariance(JTJ, cost, 3 * nv + nm)
-    if degree > 0 and np.all(np.isfinite(cov)):
+    if degree > 0 and uncertainty and np.all(np.isfinite(cov)):
         cov = cov + _temperature_cov(S, P, unpack(q), tau, (t_lo, t_hi), JTJ, body_frame,
                                      magnitude_rows)
     if not cond < MAX_REF_COND:
@@ -183,11 +185,15 @@ def _temperature_cov(S, P, bM, tau, t_range, JTJ, body_frame, magnitude_rows):
     return 0.5 * (C + C.T)
 
 
-def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
-    """Polynomial model fitted to all samples at once. Returns SensorCalibration."""
+def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source, uncertainty=True):
+    """Polynomial model fitted to all samples at once. Returns SensorCalibration.
+    uncertainty=False (the held-out comparison, which uses only the coefficients): the
+    same coefficients without the temperature reporting step's share of the 1-sigma
+    (reference_fit's uncertainty)."""
     if body_frame and S.is_vec.all():
         b, M, info = reference_fit(S.x, S.ref, S.T, degree, t_range_C=(t_lo, t_hi),
-                                   source=source, **reference_options(S))
+                                   source=source, uncertainty=uncertainty,
+                                   **reference_options(S))
         cal = _make_cal(name, b, M, t_lo, t_hi, True, f"reference-vector joint, degree "
                         f"{degree}", info["b_poly_sigma_nT"], info["M_poly_sigma"])
         cal.observability = observability_of(info)
@@ -208,7 +214,8 @@ def _fit_joint(name, S: _Samples, body_frame, degree, t_lo, t_hi, source):
                             info["b_sigma_nT"][None], info["M_sigma"][None])
             cal.observability = info["observability"]
             return cal
-    b, M, bs, Ms, lm = _joint_nonlinear(S, degree, t_lo, t_hi, body_frame, (b0, M0), source)
+    b, M, bs, Ms, lm = _joint_nonlinear(S, degree, t_lo, t_hi, body_frame, (b0, M0), source,
+                                        uncertainty)
     kind = "reference-vector + magnitude" if body_frame else "ellipsoid"
     return _make_cal(name, b, M, t_lo, t_hi, body_frame, f"{kind} joint, degree {degree}",
                      bs, Ms)

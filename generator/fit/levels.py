@@ -17,8 +17,10 @@ from generator.fit.samples import _Samples
 from generator.fit.segments import Segment, group_levels, temperature_quantum
 
 
-def _level_fits(S: _Samples, levels, body_frame, source, mask=None):
-    """Constant calibration per temperature level -> list of (temp, b, M, b_sig, M_sig)."""
+def _level_fits(S: _Samples, levels, body_frame, source, mask=None, uncertainty=True):
+    """Constant calibration per temperature level -> list of (temp, b, M, b_sig, M_sig).
+    uncertainty=False (the held-out comparison): reference_fit's coefficients and 1-sigma
+    without its diagnostics (residual_sigma_nT, cond)."""
     out, dropped = [], []
     for lev in levels:
         idx = np.concatenate([s.index for s in lev])
@@ -33,6 +35,7 @@ def _level_fits(S: _Samples, levels, body_frame, source, mask=None):
                 if len(iv) == 0:
                     raise InputError(source, "no reference vectors at this level")
                 b, M, info = reference_fit(S.x[iv], S.ref[iv], None, source=source,
+                                           uncertainty=uncertainty,
                                            **reference_options(S, iv, with_prior=False))
                 out.append((temp, b[0], M[0], info["b_poly_sigma_nT"][0],
                             info["M_poly_sigma"][0], len(iv)))
@@ -75,7 +78,8 @@ def _poly_over_levels(fits, degree, t_lo, t_hi):
 
 def _fit_segments(name, S: _Samples, levels, body_frame, degree, t_lo, t_hi, source,
                   mask=None):
-    fits, dropped = _level_fits(S, levels, body_frame, source, mask)
+    fits, dropped = _level_fits(S, levels, body_frame, source, mask,
+                                uncertainty=mask is None)    # a fold: the coefficients only
     if len(fits) < 2:
         raise InputError(source, f"segments method: {len(fits)} calibratable temperature "
                                  "level(s); at least 2 are needed"

@@ -12,7 +12,10 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    (c = -M b), solved row by row by least squares with the prior as extra rows; then
    b(T) = -M(T)^-1 c(T) (exact at degree 0; a polynomial projection on Chebyshev nodes over
    the calibrated range otherwise).
-2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there.
+2. Gauss-Newton in the flight parametrisation (b_poly, M_poly) from there. J^T W J comes
+   from the reading's moments (reading_moments, normal_matrix), and each iterate's cost
+   and gradient from sums centred on the run's start (ResidualStats): an iterate costs no
+   pass over the samples; the run's result is evaluated per sample (vector_normal).
 3. Errors in variables. The noise of the readings x (the sensor's stated noise_nT) adds
    noise_nT^2 |M(T)|_F^2 to every expected |r|^2; it is subtracted from the cost (adjusted
    least squares), so a reading axis that carries only noise does not look determined
@@ -48,6 +51,10 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    does not average down like the reading noise: its q^2/12 is propagated through the
    fit's response into the covariance (_temperature_error_cov), for degree > 0 (a
    constant model does not use the temperature).
+
+Passes over the samples per fit: a fixed number (moments, the linear start's sums, each
+Gauss-Newton run's start and result, the per-file variances), none per iterate; the
+held-out comparison's fits skip the temperature-error covariance (uncertainty=False).
 
 Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
@@ -153,7 +160,7 @@ def _temperature_powers(P, top):
 MOMENT_CHUNK = 1 << 15     # samples per block of reading_moments' sums
 
 
-def reading_moments(P, x, w=None, x_cross=None, grp=None):
+def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
     """Sufficient statistics of the regressor for J^T W J of the vector rows (vector_normal):
     with d the scaled temperature (P[:, 1]) and w the weights,
         W[p] = sum w d^p,  X[p] = sum w d^p x,  XX[p] = sum w d^p x x^T
@@ -165,25 +172,27 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None):
     x_cross: a second reading of the same true reading (reference_fit's x_hat): X is then
     that of m = (x + x_cross) / 2 and XX the symmetrised cross moment (x x_c^T + x_c x^T)/2
     (_split_information). grp: (N,) labels 0..G-1: a list of G dicts, one per group (each
-    group's sums; one pass over the samples, one matrix product)."""
+    group's sums; one pass over the samples, one matrix product). both: x_cross given,
+    the pair (plain, cross) from the same pass."""
     n, K = P.shape
     w = None if w is None else np.broadcast_to(np.asarray(w, float), (n,))
     grp_a = np.zeros(n, int) if grp is None else np.asarray(grp)
     n_grp = int(grp_a.max()) + 1 if n else 1
-    sums = np.zeros((n_grp, 4 * K - 3, 13))
+    ncol = 25 if both else 13
+    sums = np.zeros((n_grp, 4 * K - 3, ncol))
     for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
         sl = slice(a, min(a + MOMENT_CHUNK, n))
         D = _temperature_powers(P[sl], 4 * K - 4)
         if w is not None:
             D *= w[sl, None]
         xs = x[sl]
-        if x_cross is None:
-            xm, xx = xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)
-        else:
+        cols = [np.ones((len(xs), 1))]
+        if x_cross is None or both:
+            cols += [xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)]
+        if x_cross is not None:
             xc = x_cross[sl]
-            xm = 0.5 * (xs + xc)
-            xx = (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)
-        H = np.concatenate([np.ones((len(xs), 1)), xm, xx], axis=1)      # (n, 13)
+            cols += [0.5 * (xs + xc), (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)]
+        H = np.concatenate(cols, axis=1)      # (n, 13), or (n, 25) with both
         g = grp_a[sl]
         if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
             sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
@@ -191,12 +200,16 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None):
             for k in np.unique(g):
                 m = g == k
                 sums[k] += D[m].T @ H[m]
-    out = []
-    for S_ in sums[:n_grp]:
-        XX = S_[:2 * K - 1, 4:].reshape(2 * K - 1, 3, 3)
-        if x_cross is not None:
+    def unpack(S_, c0, cross):
+        XX = S_[:2 * K - 1, c0 + 3:c0 + 12].reshape(2 * K - 1, 3, 3)
+        if cross:
             XX = 0.5 * (XX + XX.transpose(0, 2, 1))
-        out.append({"W": S_[:, 0], "X": S_[:3 * K - 2, 1:4], "XX": XX})
+        return {"W": S_[:, 0], "X": S_[:3 * K - 2, c0:c0 + 3], "XX": XX}
+
+    if both:
+        out = ([unpack(S_, 1, False) for S_ in sums], [unpack(S_, 13, True) for S_ in sums])
+        return out if grp is not None else (out[0][0], out[1][0])
+    out = [unpack(S_, 1, x_cross is not None) for S_ in sums]
     return out if grp is not None else out[0]
 
 
@@ -212,20 +225,17 @@ def normal_matrix(mom, bp, Mp, eiv_var=0.0):
     K = len(bp)
     W, X, XX = mom["W"], mom["X"], mom["XX"]
     ns = 2 * K - 1
-    A = np.empty((ns, 3, 3))
-    Q = np.empty((ns, 3, 3))
-    R = np.empty((ns, 3, 3, 3))
     MtM = np.einsum("jil,kip->jklp", Mp, Mp)                  # M_j^T M_j'
     bb_ = bp[:, None, :, None] * bp[None, :, None, :]          # b_j b_j'^T
-    for s in range(ns):
-        Wjj = np.array([[W[s + j + i] for i in range(K)] for j in range(K)])
-        Xs = X[s:s + K]                                       # X[s + j], (K, 3)
-        Xb = Xs.T @ bp                                        # sum_j X[s+j] b_j^T
-        A[s] = XX[s] - Xb - Xb.T + np.einsum("ji,jicd->cd", Wjj, bb_)
-        Q[s] = np.einsum("ji,jilp->lp", Wjj, MtM)
-        # R_s[c,a,l] = sum_j X[s+j]_c M_j[a,l] - sum_{j,j'} W[s+j+j'] b_j'[c] M_j[a,l]
-        Yj = Xs - Wjj @ bp                                    # (K, 3): per j
-        R[s] = np.einsum("jc,jal->cal", Yj, Mp)
+    sj = np.add.outer(np.arange(ns), np.arange(K))            # s + j
+    Wjj = W[sj[:, :, None] + np.arange(K)]                    # W[s + j + i], (ns, K, K)
+    Xs = X[sj]                                                # X[s + j], (ns, K, 3)
+    Xb = np.einsum("sjc,jd->scd", Xs, bp)                     # sum_j X[s+j] b_j^T
+    A = XX[:ns] - Xb - Xb.transpose(0, 2, 1) + np.einsum("sji,jicd->scd", Wjj, bb_)
+    Q = np.einsum("sji,jilp->slp", Wjj, MtM)
+    # R_s[c,a,l] = sum_j X[s+j]_c M_j[a,l] - sum_{j,j'} W[s+j+j'] b_j'[c] M_j[a,l]
+    Yj = Xs - Wjj @ bp                                        # (ns, K, 3): per s, j
+    R = np.einsum("sjc,jal->scal", Yj, Mp)
     idx = np.add.outer(np.arange(K), np.arange(K))            # s = k + m
     G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
     MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
@@ -246,14 +256,93 @@ class ReadingStats:
         grp = np.asarray(grp)
         self.n_grp = int(grp.max()) + 1 if len(grp) else 0
         self.first = np.array([np.flatnonzero(grp == g)[0] for g in range(self.n_grp)])
-        self.vec = reading_moments(P, x, grp=grp)
-        self.cross = [] if x_hat is None else reading_moments(P, x, x_cross=x_hat, grp=grp)
+        if x_hat is None:
+            self.vec, self.cross = reading_moments(P, x, grp=grp), []
+        else:           # one pass for both
+            self.vec, self.cross = reading_moments(P, x, x_cross=x_hat, grp=grp, both=True)
 
     def weighted(self, w, cross=False):
         """The moments with per-sample weights w (constant within each group)."""
         parts = self.cross if cross else self.vec
         wg = np.asarray(w, float)[self.first]
         return {k: sum(wg[g] * parts[g][k] for g in range(self.n_grp)) for k in parts[0]}
+
+
+class ResidualStats:
+    """The weighted cost and gradient of the vector rows in a time independent of N, for
+    the iterates of one Gauss-Newton run (same samples, same weights).
+
+    Around a start (b0, M0) with per-sample residual r0_n, the residual at any (b, M) is
+    r_n = r0_n + L phi_n EXACTLY: phi_n = [d^k x_n (k < K), d^s (s <= 2K-2)] and
+    L = [M_k - M0_k | -(E_s - E0_s)], E_s = sum_{k+j=s} M_k b_j (M(T)b(T)'s coefficients).
+    So cost = sum w |r0|^2 + 2 tr(L sum w phi r0^T) + tr(L (sum w phi phi^T) L^T) and
+    J^T W r follows from dcost/dL by the chain rule; the sums are taken once (one pass
+    over the samples). Centred on the start, the sums hold residual-sized terms (not
+    |B|^2), so the cost keeps the precision of a per-sample sum to ~1e-13 relative; the
+    run's final evaluation (r per sample, what the fit reports) stays vector_normal's."""
+
+    def __init__(self, P, x, B, w, bp0, Mp0, mom):
+        """mom: reading_moments(P, x, w) (sum w phi phi^T is made of them)."""
+        n, K = P.shape
+        self.K, self.bp0, self.Mp0 = K, bp0, Mp0
+        self.E0 = self._E(bp0, Mp0)
+        w = np.broadcast_to(np.asarray(w, float), (n,))
+        nphi = 3 * K + 2 * K - 1
+        W, X, XX = mom["W"], mom["X"], mom["XX"]
+        G = np.empty((nphi, nphi))                # sum w phi phi^T from the moments
+        kk = np.add.outer(np.arange(K), np.arange(K))
+        G[:3 * K, :3 * K] = XX[kk].transpose(0, 2, 1, 3).reshape(3 * K, 3 * K)
+        ks = np.add.outer(np.arange(K), np.arange(2 * K - 1))
+        G[:3 * K, 3 * K:] = X[ks].transpose(0, 2, 1).reshape(3 * K, 2 * K - 1)
+        G[3 * K:, :3 * K] = G[:3 * K, 3 * K:].T
+        G[3 * K:, 3 * K:] = W[np.add.outer(np.arange(2 * K - 1), np.arange(2 * K - 1))]
+        self.Gpp = G
+        self.a = 0.0
+        Gx = np.zeros((K, 3, 3))                  # sum w d^k x_c r0_a  [k, c, a]
+        Gd = np.zeros((2 * K - 1, 3))             # sum w d^s r0_a
+        for a in range(0, n, MOMENT_CHUNK):      # bounded temporaries whatever N
+            sl = slice(a, min(a + MOMENT_CHUNK, n))
+            Ps = P[sl]
+            y0 = x[sl] - Ps @ bp0
+            r0 = -B[sl]
+            for j in range(K):
+                r0 = r0 + Ps[:, j:j + 1] * (y0 @ Mp0[j].T)
+            wr0 = r0 * w[sl, None]
+            self.a += float(np.sum(wr0 * r0))
+            Gd += _temperature_powers(Ps, 2 * K - 2).T @ wr0
+            Gx += (Ps.T @ (x[sl, :, None] * wr0[:, None, :]).reshape(-1, 9)).reshape(K, 3, 3)
+        self.Gpr = np.concatenate([Gx.reshape(3 * K, 3), Gd])    # sum w phi r0^T
+
+    def _E(self, bp, Mp):
+        K = self.K
+        E = np.zeros((2 * K - 1, 3))
+        for k in range(K):
+            E[k:k + K] += bp @ Mp[k].T           # E[k + j] += M_k b_j
+        return E
+
+    def cost_grad(self, bp, Mp, jac=True, eiv_var=0.0, W=None):
+        """(cost, J^T W r) at (bp, Mp): vector_normal's cost and gradient (eiv_var, W:
+        the errors-in-variables term and the moments' W, as there)."""
+        K = self.K
+        L = np.concatenate([(Mp - self.Mp0).transpose(1, 0, 2).reshape(3, 3 * K),
+                            -(self._E(bp, Mp) - self.E0).T], axis=1)      # (3, nphi)
+        LG = L @ self.Gpp
+        cost = self.a + 2.0 * float(np.sum(L * self.Gpr.T)) + float(np.sum(LG * L))
+        idx = np.add.outer(np.arange(K), np.arange(K)) if eiv_var else None
+        if eiv_var:
+            Mf = Mp.reshape(K, 9)
+            cost -= eiv_var * float(np.sum(W[idx] * (Mf @ Mf.T)))
+        if not jac:
+            return cost, None
+        Gr = self.Gpr.T + LG                                   # d(cost/2)/dL, (3, nphi)
+        GM = Gr[:, :3 * K].reshape(3, K, 3).transpose(1, 0, 2)   # [k, a, c]
+        Ge = Gr[:, 3 * K:]                                     # [a, s]
+        H = np.stack([Ge[:, k:k + K] for k in range(K)])       # H[k, a, j] = Ge[a, k + j]
+        gM = GM - H @ bp                                       # - sum_j Ge[a,k+j] b_j[c]
+        gb = -np.einsum("kaj,kal->jl", H, Mp)                  # - sum_{a,k} Ge[a,k+j] M_k[a,l]
+        if eiv_var:
+            gM = gM - eiv_var * (W[idx] @ Mp.reshape(K, 9)).reshape(K, 3, 3)
+        return cost, np.concatenate([gb.reshape(-1), gM.reshape(-1)])
 
 
 def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
@@ -302,6 +391,54 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
     return cost, JTJ, np.concatenate([gb.reshape(-1), gM.reshape(-1)]), r
 
 
+def _solve_M(P, Mp, v):
+    """M(T_n)^-1 v_n (N, 3), M(T) = sum_k P_k Mp[k]: one solve with many right-hand sides
+    where M has no temperature terms (the constant fits, a nominal prior), else per
+    sample."""
+    if len(Mp) == 1 or not np.any(Mp[1:]):
+        return np.linalg.solve(Mp[0], v.T).T
+    return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+
+
+def _linear_design(P, x, sl):
+    """Rows [P_k x, P_k] (N, 4K) of the linear model B = M(T) x + c(T), samples sl."""
+    K = P.shape[1]
+    return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
+                          axis=1)
+
+
+def _linear_sums(P, x, B):
+    """The linear model's normal-equation sums per block of samples (bounded memory
+    whatever N), unweighted: (A^T A, A^T B, P^T P)."""
+    n, K = P.shape
+    G = np.zeros((4 * K, 4 * K))
+    AtB = np.zeros((4 * K, 3))
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        A = _linear_design(P, x, sl)
+        G += A.T @ A
+        AtB += A.T @ B[sl]
+    return G, AtB, G[3 * K:, 3 * K:].copy()
+
+
+def _linear_residual_var(P, x, B, sums):
+    """Residual variance per axis of the unconstrained linear model B = M(T) x + c(T)
+    (least squares) from _linear_sums (columns scaled to unit diagonal; the minimum-norm
+    solution where they are singular, whose residual is the least-squares one); the
+    residual itself summed per block of samples (no (N x 4K) decomposition)."""
+    n, K = P.shape
+    G, AtB, _ = sums
+    col = np.sqrt(np.diag(G))
+    col[col == 0] = 1.0
+    sol = np.linalg.lstsq(G / np.outer(col, col), AtB / col[:, None], rcond=None)[0] \
+        / col[:, None]
+    ssr = 0.0
+    for a in range(0, n, MOMENT_CHUNK):
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        ssr += float(np.sum((B[sl] - _linear_design(P, x, sl) @ sol) ** 2))
+    return ssr / max(3 * (n - 4 * K), 1)
+
+
 def _cheb_nodes(lo, hi, degree):
     if hi - lo < 1e-12:
         return np.array([lo])
@@ -310,28 +447,16 @@ def _cheb_nodes(lo, hi, degree):
     return 0.5 * (lo + hi) + 0.5 * (hi - lo) * c
 
 
-def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
+def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     """Step 1: B = M(T) x + c(T), least squares per output row with the prior as extra
     rows (the prior of c = -M b taken as -M0 b0 with b's sigma), the noise of x taken out
-    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c."""
+    of the normal matrix (eiv_var, see vector_normal); then b = -M^-1 c. sums:
+    _linear_sums of the samples; w: their common weight (the first pass's 1 / v0)."""
     K = degree + 1
-    n = len(x)
     b0, M0, bs, Ms = prior_s
     c0 = np.zeros((K, 3))
     c0[0] = -M0[0] @ b0[0]
-    sw = np.sqrt(w)
-    # the normal equations' sums per block of samples (bounded memory whatever N): rows
-    # Phi = [P_k x, P_k] weighted by sqrt(w)
-    G = np.zeros((4 * K, 4 * K))
-    AtB = np.zeros((4 * K, 3))
-    PtP = np.zeros((K, K))
-    for a in range(0, n, MOMENT_CHUNK):
-        sl = slice(a, min(a + MOMENT_CHUNK, n))
-        Pw = P[sl] * sw[sl, None]
-        A = np.concatenate([(Pw[:, :, None] * x[sl, None, :]).reshape(-1, 3 * K), Pw], axis=1)
-        G += A.T @ A
-        AtB += A.T @ (B[sl] * sw[sl, None])
-        PtP += Pw.T @ Pw
+    G, AtB, PtP = (w * a for a in sums)
     if eiv_var:
         G[:3 * K, :3 * K] -= eiv_var * np.kron(PtP, np.eye(3))
     Mk = np.zeros((K, 3, 3))
@@ -354,7 +479,7 @@ def _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
 
 def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
                   t_ref_C=T_REF_C, t_range_C=None, source=None, prior: Prior | None = None,
-                  group=None, noise_nT=None):
+                  group=None, noise_nT=None, uncertainty=True):
     """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
 
     field_frame_nT: (N, 3) uncalibrated readings in frame axes; ref_body_nT: (N, 3)
@@ -368,6 +493,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     coefficient: value, sigma, prior, source "data"/"prior", data_fraction), unobservable
     (the directions held at the prior), residual_sigma_nT (per frame axis, of the reading
     model x - b - M^-1 B), residual_rms_nT (per body axis, calibrated), cond, cost.
+    uncertainty=False (the held-out comparison's fits, which use only the coefficients):
+    the same coefficients, bit for bit, without the temperature reporting step's
+    covariance (item 5: a pass over the samples per reported value), so the 1-sigma is
+    the readings' noise alone, and without residual_sigma_nT and cond (None).
     """
     x = np.asarray(field_frame_nT, float)
     B = np.asarray(ref_body_nT, float)
@@ -424,8 +553,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     # (regression dilution), and at such an M the offset looks undetermined and M
     # determined -- the reverse of the truth.
     b0_obs, M0_obs = unpack(theta0.copy())
-    M_T0 = np.einsum("nk,kij->nij", P, M0_obs)
-    ref_read = np.linalg.solve(M_T0, B[:, :, None])[:, :, 0]          # M0(T)^-1 B
+    ref_read = _solve_M(P, M0_obs, B)                                   # M0(T)^-1 B
     b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - ref_read, axis=0)
     x_hat = P @ b0_obs + ref_read
     stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
@@ -439,13 +567,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     for _pass in range(2):
         if theta is None:
             # the common variance: residual of the unconstrained linear model
-            Phi1 = np.concatenate([x, np.ones((n, 1))], axis=1)
-            Phi1 = (P[:, :, None] * Phi1[:, None, :]).reshape(n, -1)
-            sol, *_ = np.linalg.lstsq(Phi1, B, rcond=None)
-            v0 = max(float(np.sum((B - Phi1 @ sol) ** 2)) / max(3 * (n - Phi1.shape[1]), 1),
-                     1e-6)
+            sums = _linear_sums(P, x, B)
+            v0 = max(_linear_residual_var(P, x, B, sums), 1e-6)
             w = np.full(n, 1.0 / v0)
-            bs0, Ms0 = _linear_start(P, x, B, w, prior_s, degree, lo_s, hi_s, eiv_var)
+            bs0, Ms0 = _linear_start(sums, 1.0 / v0, prior_s, degree, lo_s, hi_s, eiv_var)
             theta = np.concatenate([bs0.ravel(), Ms0.ravel()])
             # a mirrored reference (swapped or negated columns) gives a cross-information
             # with strongly negative directions, which the split would hold at the prior
@@ -464,8 +589,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         if _pass == 1:
             break
         if not noise_nT:
-            M_T = np.einsum("nk,kij->nij", P, unpack(theta)[1])
-            eiv_var = _reading_noise_var(np.linalg.solve(M_T, r[:, :, None])[:, :, 0], grp)
+            eiv_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
             noise_from = "estimated from first differences of the first pass's residuals"
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
@@ -475,20 +599,21 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
                 * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
-    # covariance of the posterior (module docstring), in scaled units; held: the prior's
-    ev, EV, fitted = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
-                                S, everything=mirrored)
+    # covariance of the posterior (module docstring), in scaled units; held: the prior's.
+    # The split is pass 2's (judged with the final weights w); where nothing is held,
+    # theta is pass 2's result and so are its cost, J^T W J and residuals.
     Vf, Vp = EV[:, fitted], EV[:, ~fitted]
-    zp = Vp.T @ ((theta - theta0) / S)
-    theta = theta - S * (Vp @ zp)      # exactly at the prior where held
-    cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
-                                    stats.weighted(w))
+    if Vp.shape[1]:
+        zp = Vp.T @ ((theta - theta0) / S)
+        theta = theta - S * (Vp @ zp)      # exactly at the prior where held
+        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
+                                        stats.weighted(w))
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
     sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
-    if degree > 0:
+    if degree > 0 and uncertainty:
         C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
                                                (t_lo, t_hi), A)
         C = C + C_T
@@ -518,16 +643,18 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
                       # component along it (0: held at the prior)
                       "vector": [float(a) for a in v], "offset_from_prior": float(v @ z)})
     # residuals: calibrated (body axes) and of the reading model (frame axes, W r)
-    T_c = np.clip(T, t_lo, t_hi) - t_ref_C
-    Pp = _powers(T_c, degree)
-    M_T = np.einsum("nk,kij->nij", Pp, M_poly)
-    read_res = np.linalg.solve(M_T, r[:, :, None])[:, :, 0]
-    dof = max(3 * n - int(fitted.sum()), 1) / 3
-    col = np.sqrt(np.diag(JTJ))
-    col[col == 0] = 1.0
-    Gn = JTJ / np.outer(col, col)
-    evn = np.linalg.eigvalsh(Gn)
-    cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
+    res_sigma = cond = None
+    if uncertainty:
+        T_c = np.clip(T, t_lo, t_hi) - t_ref_C
+        Pp = _powers(T_c, degree)
+        read_res = _solve_M(Pp, M_poly, r)
+        dof = max(3 * n - int(fitted.sum()), 1) / 3
+        res_sigma = np.sqrt(np.sum(read_res ** 2, axis=0) / dof)
+        col = np.sqrt(np.diag(JTJ))
+        col[col == 0] = 1.0
+        Gn = JTJ / np.outer(col, col)
+        evn = np.linalg.eigvalsh(Gn)
+        cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
     info = {
         "n": int(n), "degree": int(degree), "cond": cond, "t_range_C": (t_lo, t_hi),
         "b_poly_sigma_nT": bsig, "M_poly_sigma": Msig,
@@ -535,7 +662,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # reporting error): what a design-only prediction (campaign.check) can compare with
         "b_poly_sigma_noise_nT": sig_noise[:3 * K].reshape(K, 3) / scale[:, None],
         "M_poly_sigma_noise": sig_noise[3 * K:].reshape(K, 3, 3) / scale[:, None, None],
-        "residual_sigma_nT": np.sqrt(np.sum(read_res ** 2, axis=0) / dof),
+        "residual_sigma_nT": res_sigma,
         "residual_rms_nT": np.sqrt(np.mean(r ** 2, axis=0)),
         "cost": float(np.sum(r ** 2)),
         "parameters": params, "unobservable": unobs,
@@ -720,13 +847,13 @@ def min_abs_det(part="default") -> float:
     return (1.0 - 3.0 * s) ** 3
 
 
-def _noise_margin(P, w, eiv_var):
-    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block."""
-    n, K = P.shape
+def _noise_margin(W, K, eiv_var):
+    """NOISE_VAR_UNCERTAINTY x the information the noise of x would fake, on the M block;
+    W: the moments' sum w d^p (sum_n w P_k P_m = W[k + m])."""
     out = np.zeros((12 * K, 12 * K))
     if eiv_var:
-        Pw = P * np.sqrt(w)[:, None]
-        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(Pw.T @ Pw, np.eye(9))
+        PtP = W[np.add.outer(np.arange(K), np.arange(K))]
+        out[3 * K:, 3 * K:] = NOISE_VAR_UNCERTAINTY * eiv_var * np.kron(PtP, np.eye(9))
     return out
 
 
@@ -737,7 +864,6 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
     data determine (module docstring). Returns (theta, JTJ of all parameters, cost, r)."""
     f = np.nonzero(free)[0]
     S_f, th0_f = S[f], theta0[f]
-    margin = _noise_margin(P, w, eiv_var)[np.ix_(f, f)]
     theta = theta.copy()
     theta[~free] = theta0[~free]
 
@@ -747,11 +873,23 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         return th
 
     z = (theta[f] - th0_f) / S_f
-    # J^T W J's statistics: the same every iterate
+    # J^T W J's statistics and the cost's and gradient's (ResidualStats, centred on the
+    # start): the same every iterate, so an iterate costs no pass over the samples
     mom = stats.weighted(w) if stats else reading_moments(P, x, w)
+    rs = ResidualStats(P, x, B, w, *unpack(at(z)), mom)
+    # the split is judged here only when not given (or not over all parameters)
+    margin = None
+    if split is None or len(f) != len(S):
+        margin = _noise_margin(mom["W"], P.shape[1], eiv_var)[np.ix_(f, f)]
+
+    def vector_normal_(th, jac):
+        bp, Mp = unpack(th)
+        cost, g = rs.cost_grad(bp, Mp, jac, eiv_var, mom["W"])
+        return cost, (normal_matrix(mom, bp, Mp, eiv_var) if jac else None), g
+
     first = True
     for _ in range(GN_MAX_ITER):
-        cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
+        cost, JTJ, g = vector_normal_(at(z), True)
         if split is not None and len(f) == len(S):
             ev, EV, fitted = split          # judged once, at the prior (reference_fit)
         else:
@@ -760,14 +898,14 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
-            cost, JTJ, g, r = vector_normal(P, x, B, *unpack(at(z)), True, w, eiv_var, mom)
+            cost, JTJ, g = vector_normal_(at(z), True)
             first = False
         Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
         dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
             z_new = z + step * dz
-            c_new = vector_normal(P, x, B, *unpack(at(z_new)), False, w, eiv_var, mom)[0]
+            c_new = vector_normal_(at(z_new), False)[0]
             if c_new <= cost + 1e-12 * abs(cost):
                 break
             step *= 0.5
@@ -779,5 +917,7 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         if done:
             break
     theta = at(z)
-    cost, JTJ, g, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var, mom)
-    return theta, JTJ, cost, r
+    # the result's cost and residuals per sample (what the fit reports), and J^T W J; the
+    # gradient is not needed
+    cost, _, _, r = vector_normal(P, x, B, *unpack(theta), False, w, eiv_var, mom)
+    return theta, normal_matrix(mom, *unpack(theta), eiv_var), cost, r

@@ -391,7 +391,8 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
             for m in methods:
                 try:
                     if m == "joint":
-                        c = _fit_joint(name, Str, body_frame, dgf, lo, hi, source)
+                        c = _fit_joint(name, Str, body_frame, dgf, lo, hi, source,
+                                       uncertainty=False)     # only its coefficients
                     else:
                         c, _, _ = _fit_segments(name, S, levels, body_frame, dgf, lo, hi,
                                                 source, mask=train)
