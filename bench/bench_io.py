@@ -60,6 +60,39 @@ def write_long_file(src: Path, path: Path, rows: int) -> int:
     return path.stat().st_size
 
 
+
+def write_long_parquet(src: Path, path: Path, rows: int, row_group_rows: int = 65536) -> int:
+    """src's columns (as pyarrow.csv reads them: counts int64, the others float64, empty
+    cells null) repeated until `rows`, time shifted after the last as in write_long_file,
+    in a Parquet file of row groups of row_group_rows; src's '# key: value' lines are the
+    file's metadata. Returns the file size in bytes."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    skip = _comment_lines(src)
+    meta = {}
+    with open(src) as f:
+        for line in (next(f) for _ in range(skip)):
+            key, sep, value = line[1:].partition(":")
+            if sep and key.strip().isidentifier():
+                meta[key.strip()] = value.strip()
+    table = pcsv.read_csv(src, read_options=pcsv.ReadOptions(skip_rows=skip))
+    table = table.replace_schema_metadata(meta)
+    t = table.column("time_s").cast(pa.float64())
+    t_end = pa.compute.max(t).as_py() + 1.0
+    with pq.ParquetWriter(path, table.schema.set(0, pa.field("time_s", pa.float64()))
+                          .with_metadata(meta)) as w:
+        k = 0
+        while k * table.num_rows < rows:
+            part = table.slice(0, rows - k * table.num_rows)
+            shifted = pa.compute.add(t.slice(0, part.num_rows), k * t_end)
+            w.write_table(part.set_column(0, "time_s", shifted).replace_schema_metadata(meta),
+                          row_group_size=row_group_rows)
+            k += 1
+    return path.stat().st_size
+
+
 def run(cmd) -> tuple[float, float]:
     """(wall seconds, peak RSS MiB) of one subprocess."""
     t0 = time.perf_counter()
