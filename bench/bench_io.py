@@ -5,7 +5,8 @@ long telemetry, each against baselines measured in the same run.
     python3 bench/bench_io.py [--rows 1000000] [--fit-rows 1000000] [--read-rows 360000]
 
 The input is the shared thermal campaign repeated (time shifted) to the wanted length.
-Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4, so
+Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4 (through
+a small launcher, so the peak is the command's own: see measured()), so
 imports and I/O count as a user sees them. Ratios, not seconds, are the result:
 
 * apply vs pyarrow: `magcal apply` end to end (read, flight C, write) against
@@ -31,7 +32,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -93,18 +93,37 @@ def write_long_parquet(src: Path, path: Path, rows: int, row_group_rows: int = 6
     return path.stat().st_size
 
 
+# wait4's ru_maxrss counts the child's memory before exec too: a fork of this process
+# (tens to hundreds of MiB after writing the inputs) would set the floor of every figure.
+# A small launcher (a bare interpreter, about 10 MiB) starts the command and reports its
+# peak and wall time; the max with the launcher's size is then the command's own peak.
+_LAUNCHER = """
+import os, subprocess, sys, time
+t0 = time.perf_counter()
+p = subprocess.Popen(sys.argv[1:])
+_, status, ru = os.wait4(p.pid, 0)
+sys.stderr.write(f"\\n@@measured {time.perf_counter() - t0!r} {ru.ru_maxrss} "
+                 f"{os.waitstatus_to_exitcode(status)}\\n")
+"""
+
+
+def measured(cmd, env=None) -> tuple[float, float, int, str, str]:
+    """(wall seconds, peak RSS MiB, exit code, stdout, stderr) of one command run in a
+    fresh process (through _LAUNCHER: the peak is the command's own)."""
+    p = subprocess.run([PY, "-c", _LAUNCHER, *map(str, cmd)], capture_output=True,
+                       env=env or ENV)
+    err = p.stderr.decode()
+    head, _, last = err.rstrip("\n").rpartition("\n@@measured ")
+    wall, kib, code = last.split()
+    return float(wall), int(kib) / 1024.0, int(code), p.stdout.decode(), head
+
+
 def run(cmd) -> tuple[float, float]:
     """(wall seconds, peak RSS MiB) of one subprocess."""
-    t0 = time.perf_counter()
-    p = subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, env=ENV)
-    _, status, rusage = os.wait4(p.pid, 0)
-    wall = time.perf_counter() - t0
-    err = p.stderr.read().decode()
-    p.stderr.close()
-    if os.waitstatus_to_exitcode(status) != 0:
+    wall, peak, code, _, err = measured(cmd)
+    if code != 0:
         raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{err}")
-    return wall, rusage.ru_maxrss / 1024.0
+    return wall, peak
 
 
 def best(cmd, repeat) -> tuple[float, float]:
