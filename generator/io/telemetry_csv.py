@@ -82,21 +82,25 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     The file is read in chunks (iter_telemetry) and the columns joined at the end: the
     peak memory is the columns themselves plus one chunk, not copies of the whole text.
     """
-    tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors))
+    tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors),
+                        rows=_rows_at_most(path))
     # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
     from generator.io.orbit import attach_field_reference
     return attach_field_reference(tel, unit)
 
 
-def concat_chunks(chunks) -> Telemetry:
-    """One Telemetry from consecutive chunks of one file. The columns grow in place
-    (ndarray.resize: realloc, which moves no data for large blocks), so the peak is about
-    the columns themselves plus one chunk, as for numpy.loadtxt."""
+def concat_chunks(chunks, rows: int | None = None) -> Telemetry:
+    """One Telemetry from consecutive chunks of one file. rows (an upper bound on the
+    file's data rows, e.g. _rows_at_most): the columns are allocated once at that length
+    and filled in place, then cut to the rows read (a shrinking realloc moves nothing), so
+    the peak is the columns themselves plus one chunk, as for numpy.loadtxt; pages never
+    written are never resident. Without it (or beyond it) the columns grow by half
+    (ndarray.resize)."""
     cols, lines, n, first = None, None, 0, None
     for c in chunks:
         if cols is None:
             first = c
-            cap = max(c.n, 1)
+            cap = max(c.n, rows or 0, 1)
             cols = {name: np.empty(cap) for name in c.columns}
             lines = np.empty(cap, dtype=np.int64)
         if n + c.n > lines.shape[0]:
@@ -111,6 +115,24 @@ def concat_chunks(chunks) -> Telemetry:
         a.resize(n, refcheck=False)
     return Telemetry(path=first.path, columns=cols, line_numbers=lines, meta=first.meta,
                      comments=first.comments)
+
+
+def _rows_at_most(path) -> int | None:
+    """An upper bound on the data rows of a telemetry file, or None when it cannot be
+    told cheaply: Parquet's row count from its footer; a CSV's line breaks + 1 (every
+    data row is a line; comments and the header only make the bound looser), counted in
+    blocks of CHUNK_BYTES (the file is read twice; the second time from the page cache)."""
+    if is_parquet(path):
+        try:
+            return ParquetTelemetry(path).num_rows
+        except InputError:
+            return None                  # the reader names the fault
+    try:
+        with open(path, "rb") as f:
+            blocks = iter(lambda: f.read(CHUNK_BYTES), b"")
+            return sum(block.count(b"\n") for block in blocks) + 1
+    except OSError:
+        return None
 
 
 def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int = CHUNK_BYTES):

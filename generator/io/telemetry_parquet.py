@@ -55,6 +55,7 @@ class ParquetTelemetry:
         except (OSError, pa.ArrowException, ValueError) as e:
             raise InputError(path, f"not a readable Parquet file: {e}") from None
         schema = self._file.schema_arrow
+        self.num_rows = self._file.metadata.num_rows
         self.names = list(schema.names)
         for field in schema:
             t = field.type
