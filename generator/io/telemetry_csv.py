@@ -601,36 +601,56 @@ def preprocess(tel: Telemetry, unit) -> dict:
 
 
 def _sensor_data(tel: Telemetry, spec) -> SensorData:
-    absent_cells = np.full(tel.n, np.nan)
+    """One sensor's SensorData, column by column: no (N, 6) stack of the counts and no
+    (N, 3) intermediate per step; the temperature is the file's column itself (a view:
+    nothing writes into either). The same operations per element as on stacked arrays,
+    so the same bits."""
+    n = tel.n
     counts = {c: tel.columns[c] for c in spec.count_columns if c in tel.columns}
     missing_columns = tuple(c for c in spec.required_columns if c not in tel.columns)
-    raw = np.column_stack([np.asarray(tel.columns.get(c, absent_cells), dtype=np.float64)
-                           for c in spec.count_columns])          # (N, 3) or (N, 6) counts
+    absent_cells = None
+    raw = []                          # the count (or physical input) columns, float64 views
+    for c in spec.count_columns:
+        v = tel.columns.get(c)
+        if v is None:
+            if absent_cells is None:
+                absent_cells = np.full(n, np.nan)
+            v = absent_cells
+        raw.append(np.asarray(v, dtype=np.float64))
+    missing = np.zeros(n, dtype=bool)
+    at_rail = np.zeros(n, dtype=bool)
+    for v in raw:
+        missing |= ~np.isfinite(v)
+        if spec.counts:
+            at_rail |= (v <= spec.count_min) | (v >= spec.count_max)
+        else:
+            with np.errstate(invalid="ignore"):
+                at_rail |= np.abs(v) * spec.nT_per_input >= spec.full_scale_nT
     if spec.temperature:
-        temp_C = np.array(tel.columns.get(spec.temp_column, absent_cells), dtype=np.float64)
-        missing = ~np.isfinite(raw).all(axis=1) | ~np.isfinite(temp_C)
+        col = tel.columns.get(spec.temp_column)
+        temp_C = np.full(n, np.nan) if col is None else np.asarray(col, dtype=np.float64)
+        missing |= ~np.isfinite(temp_C)
     else:
-        temp_C = np.full(tel.n, np.nan)          # documented: no temperature, not missing
-        missing = ~np.isfinite(raw).all(axis=1)
-    if spec.counts:
-        at_rail = ((raw <= spec.count_min) | (raw >= spec.count_max)).any(axis=1)
-    else:
-        with np.errstate(invalid="ignore"):
-            at_rail = (np.abs(raw) * spec.nT_per_input >= spec.full_scale_nT).any(axis=1)
+        temp_C = np.full(n, np.nan)          # documented: no temperature, not missing
     saturated = at_rail & ~missing              # missing and saturated counts once, as missing
     usable = ~missing & ~saturated
 
+    idx, sign = spec.axis_map()
+    field_frame_nT = np.empty((n, 3))
     chip_offset_sensor_nT = None
     if spec.set_reset:
-        set_counts, reset_counts = raw[:, :3], raw[:, 3:]
-        field_sensor_nT = (set_counts - reset_counts) / 2.0 * spec.lsb_nT
-        chip_offset_sensor_nT = ((set_counts + reset_counts) / 2.0 - spec.zero_count) * spec.lsb_nT
+        chip_offset_sensor_nT = np.empty((n, 3))
+        for k in range(3):
+            set_counts, reset_counts = raw[k], raw[3 + k]
+            chip_offset_sensor_nT[:, k] = ((set_counts + reset_counts) / 2.0
+                                           - spec.zero_count) * spec.lsb_nT
         chip_offset_sensor_nT[~usable] = np.nan
+        for k in range(3):           # frame[k] = sign[k] * sensor[idx[k]]
+            j = idx[k]
+            field_frame_nT[:, k] = (raw[j] - raw[3 + j]) / 2.0 * spec.lsb_nT * float(sign[k])
     else:
-        field_sensor_nT = (raw - spec.zero_count) * spec.lsb_nT
-
-    idx, sign = spec.axis_map()
-    field_frame_nT = field_sensor_nT[:, list(idx)] * np.asarray(sign, dtype=np.float64)
+        for k in range(3):
+            field_frame_nT[:, k] = (raw[idx[k]] - spec.zero_count) * spec.lsb_nT * float(sign[k])
     field_frame_nT[~usable] = np.nan
 
     return SensorData(
