@@ -118,16 +118,16 @@ def measured(cmd, env=None) -> tuple[float, float, int, str, str]:
     return float(wall), int(kib) / 1024.0, int(code), p.stdout.decode(), head
 
 
-def run(cmd) -> tuple[float, float]:
+def run(cmd, env=None) -> tuple[float, float]:
     """(wall seconds, peak RSS MiB) of one subprocess."""
-    wall, peak, code, _, err = measured(cmd)
+    wall, peak, code, _, err = measured(cmd, env)
     if code != 0:
         raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{err}")
     return wall, peak
 
 
-def best(cmd, repeat) -> tuple[float, float]:
-    runs = [run(cmd) for _ in range(repeat)]
+def best(cmd, repeat, env=None) -> tuple[float, float]:
+    runs = [run(cmd, env) for _ in range(repeat)]
     return min(r[0] for r in runs), max(r[1] for r in runs)
 
 
@@ -192,6 +192,9 @@ def main(argv=None) -> int:
     ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
     ap.add_argument("--no-thermal", dest="thermal", action="store_false",
                     help="skip the fit of the shared thermal campaign with and without report")
+    ap.add_argument("--before", type=Path, default=None,
+                    help="a checkout of an earlier magcal: its apply, read and fit are "
+                         "measured in the same run (before/after ratios)")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -204,6 +207,18 @@ def main(argv=None) -> int:
     cs = CoefficientSet.load(COEFFS)
     n_out_cols = 1 + 5 * len(cs.unit.sensors) + 5
     res = {}
+    env_before = dict(os.environ, PYTHONPATH=str(a.before)) if a.before else None
+
+    def before_after(name, cmd, t, m):
+        """The same command on the --before checkout: print and record the ratios."""
+        if env_before is None:
+            return
+        t0, m0 = best(cmd, a.repeat, env_before)
+        res[f"{name}_time_after_vs_before"] = t / t0
+        res[f"{name}_memory_after_vs_before"] = m / m0
+        print(f"  before ({a.before}): {t0:.2f} s, {m0:.0f} MiB | after/before: time "
+              f"{t / t0:.2f}x, memory {m / m0:.2f}x")
+
     with tempfile.TemporaryDirectory(prefix="bench_io-") as tmp:
         tmp = Path(tmp)
         src = FM1 / "thermal_12pos.csv"
@@ -213,6 +228,8 @@ def main(argv=None) -> int:
         write_long_file(src, tiny, 10)
         print(f"input: {a.rows} rows, {size / 2**20:.0f} MiB; output {n_out_cols} columns")
         run(_apply_cmd(tiny, tmp / "warm.csv"))        # the host build in the cache
+        if env_before:
+            run(_apply_cmd(tiny, tmp / "warm0.csv"), env_before)
 
         t_apply, m_apply = best(_apply_cmd(big, tmp / "out.csv"), a.repeat)
         t_arrow, m_arrow = best(_worker_cmd("arrow", big, tmp / "arrow.csv", n_out_cols),
@@ -221,6 +238,7 @@ def main(argv=None) -> int:
         print(f"apply {a.rows} rows: {t_apply:.2f} s, {m_apply:.0f} MiB peak | pyarrow "
               f"read+write same shape: {t_arrow:.2f} s, {m_arrow:.0f} MiB | ratio "
               f"{t_apply / t_arrow:.2f}x (goal <= 2x)")
+        before_after("apply_csv", _apply_cmd(big, tmp / "out0.csv"), t_apply, m_apply)
 
         t_start, _ = best(_apply_cmd(tiny, tmp / "o_tiny.csv"), max(a.repeat, 3))
         t_imp, _ = best(_worker_cmd("imports"), max(a.repeat, 3))
@@ -233,21 +251,43 @@ def main(argv=None) -> int:
         print(f"apply peak RSS: {m_apply:.0f} MiB on {a.rows} rows, {m_tenth:.0f} MiB on "
               f"{a.rows // 10}: ratio {m_apply / m_tenth:.2f}x (streaming: ~1x)")
 
-        rd = tmp / "read.csv"
+        # Parquet: the same rows, row groups of 64 Ki rows (as a writer makes them)
+        pbig, ptenth = tmp / "big.parquet", tmp / "tenth.parquet"
+        psize = write_long_parquet(src, pbig, a.rows)
+        write_long_parquet(src, ptenth, a.rows // 10)
+        t_pq, m_pq = best(_apply_cmd(pbig, tmp / "out_pq.csv"), a.repeat)
+        _, m_pq10 = best(_apply_cmd(ptenth, tmp / "out_pq10.csv"), a.repeat)
+        res["apply_parquet_memory_full_vs_tenth"] = m_pq / m_pq10
+        res["apply_parquet_vs_csv_time"] = t_pq / t_apply
+        print(f"apply Parquet {a.rows} rows ({psize / 2**20:.0f} MiB): {t_pq:.2f} s "
+              f"({t_pq / t_apply:.2f}x the CSV's), {m_pq:.0f} MiB peak, {m_pq10:.0f} MiB on "
+              f"{a.rows // 10}: ratio {m_pq / m_pq10:.2f}x (streaming: ~1x)")
+        before_after("apply_parquet", _apply_cmd(pbig, tmp / "out_pq0.csv"), t_pq, m_pq)
+
+        rd, rd_tiny = tmp / "read.csv", tmp / "read_tiny.csv"
         write_long_file(src, rd, a.read_rows)
-        t_read, m_read = best(_worker_cmd("read", rd, FM1 / "unit.toml"), a.repeat)
+        write_long_file(src, rd_tiny, 10)
+        unit = FM1 / "unit.toml"
+        t_read, m_read = best(_worker_cmd("read", rd, unit), a.repeat)
         t_ltx, m_ltx = best(_worker_cmd("loadtxt", rd), a.repeat)
+        _, m_read0 = best(_worker_cmd("read", rd_tiny, unit), a.repeat)
+        _, m_ltx0 = best(_worker_cmd("loadtxt", rd_tiny), a.repeat)
         res["read_vs_loadtxt_memory"] = m_read / m_ltx
+        res["read_vs_loadtxt_memory_above_10_rows"] = (m_read - m_read0) / (m_ltx - m_ltx0)
         res["read_vs_loadtxt_time"] = t_read / t_ltx
         print(f"read {a.read_rows} rows: {t_read:.2f} s, {m_read:.0f} MiB peak | "
               f"numpy.loadtxt: {t_ltx:.2f} s, {m_ltx:.0f} MiB | memory ratio "
-              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x")
+              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x; above a 10-row "
+              f"read (imports, code pages): {m_read - m_read0:.0f} vs {m_ltx - m_ltx0:.0f} "
+              f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
+        before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
 
         if a.fit_rows:
             fd = tmp / "fit.csv"
             write_long_file(src, fd, a.fit_rows)
-            t_fit, m_fit = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", fd,
-                                 "-o", tmp / "fit_out", "--no-report", "--quiet"], 1)
+            fit_cmd = [PY, "-m", "generator.cli", "fit", unit, fd, "-o", tmp / "fit_out",
+                       "--no-report", "--quiet"]
+            t_fit, m_fit = best(fit_cmd, 1)
             t_fl, m_fl = best(_worker_cmd("loadtxt", fd), 1)
             _, m_imp = best(_worker_cmd("imports"), 1)
             res["fit_vs_loadtxt_time"] = t_fit / t_fl
@@ -256,6 +296,8 @@ def main(argv=None) -> int:
                   f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
                   f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
+            fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
+            before_after("fit", fit_cmd, t_fit, m_fit)
         if a.thermal:          # the report's share of a fit on the shared campaign
             th = FM1 / "thermal_12pos.csv"
             t_nr, m_nr = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
