@@ -22,6 +22,30 @@ imports and I/O count as a user sees them. Ratios, not seconds, are the result:
   numpy.loadtxt of the same file (reading the numbers at all); peak RSS per sample.
 * the report's share: `magcal fit` of the shared thermal campaign with the report against
   --no-report (and the imports alone).
+* --before CHECKOUT: apply (CSV and Parquet), read and fit of an earlier magcal measured in
+  the same run; after/before ratios.
+
+Recorded (stream4, 2026-11-24, 2 shared cores at load ~3.8 from other jobs: the times are
+noisy, every "after" ran before its "before"; the memory figures are not):
+    python3 bench/bench_io.py --rows 1000000 --fit-rows 1000000 --read-rows 360000 \
+        --no-thermal --before <export of ceb8243>
+  apply CSV 10^6 rows: 152 MiB peak (before 154), 0.98x the peak on 10^5 rows;
+    1.70x pyarrow read+write time
+  apply Parquet 10^6 rows (row groups of 64 Ki rows): 175 MiB peak (before 177), 1.03x the
+    peak on 10^5 rows. On longer files the old reader grew: pyarrow's pre-buffering and
+    reader threads kept what they read ahead (+33 MiB from 4x10^5 to 1.6x10^6 rows,
+    host_tests/test_stream_memory.py; 184 -> 294 MiB from 3x10^5 to 4.8x10^6 rows in
+    row groups of 3x10^5); now flat (174 MiB at 4.8x10^6 rows, one row group or 16).
+    Time after/before 1.27x in this run, but interleaved runs on 4x10^5 rows (best of 3)
+    gave 2.61 s after, 3.07 s before: load noise, not the reader.
+  read 360,000 rows: 190 MiB peak, before 218 (0.87x); numpy.loadtxt 129 MiB: 1.47x, and
+    1.08x counting only the memory above a 10-row read of each (the rest is pyarrow's
+    import and code pages, fixed); time 0.52x loadtxt's.
+  fit --no-report 10^6 rows: 1444 MiB peak, before 1451 (0.99x), 1.39 KiB per sample
+    above the imports; 385 s (before 294 s in this run: load noise; no fit code changed).
+    The input layer holds 8 bytes a cell of the file (32 columns: 256 B a sample) and,
+    per sensor, the (N, 3) field and chip offset (48 B); the rest of the peak is made in
+    the fit's own design matrices (generator/fit/reference.py: lstsq, Gauss-Newton).
 """
 
 from __future__ import annotations
