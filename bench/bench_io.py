@@ -35,7 +35,7 @@ noisy, every "after" ran before its "before"; the memory figures are not):
     peak on 10^5 rows. On longer files the old reader grew: pyarrow's pre-buffering and
     reader threads kept what they read ahead (+33 MiB from 4x10^5 to 1.6x10^6 rows,
     host_tests/test_stream_memory.py; 184 -> 294 MiB from 3x10^5 to 4.8x10^6 rows in
-    row groups of 3x10^5); now flat (174 MiB at 4.8x10^6 rows, one row group or 16).
+    row groups of 3x10^5); now flat (174 MiB at 4.8x10^6 rows in 16 row groups, 179 in one).
     Time after/before 1.27x in this run, but interleaved runs on 4x10^5 rows (best of 3)
     gave 2.61 s after, 3.07 s before: load noise, not the reader.
   read 360,000 rows: 190 MiB peak, before 218 (0.87x); numpy.loadtxt 129 MiB: 1.47x, and
