@@ -46,6 +46,10 @@ noisy, every "after" ran before its "before"; the memory figures are not):
     The input layer holds 8 bytes a cell of the file (32 columns: 256 B a sample) and,
     per sensor, the (N, 3) field and chip offset (48 B); the rest of the peak is made in
     the fit's own design matrices (generator/fit/reference.py: lstsq, Gauss-Newton).
+  trace 10^5 rows (measured alone, `magcal trace unit.toml <10^5 rows> -o ...` through
+    measured()): 129 s, 1389 MiB peak, about 13 KiB a sample: 10^6 rows would need
+    ~13 GiB. The trace keeps per-sample design columns (generator/trace/*); its input is
+    the reader above.
 """
 
 from __future__ import annotations
@@ -214,6 +218,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows")
     ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
     ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
+    ap.add_argument("--trace-rows", type=int, default=0,
+                    help="`magcal trace` input rows (0: skip; about 13 KiB a sample)")
     ap.add_argument("--no-thermal", dest="thermal", action="store_false",
                     help="skip the fit of the shared thermal campaign with and without report")
     ap.add_argument("--before", type=Path, default=None,
@@ -322,6 +328,17 @@ def main(argv=None) -> int:
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
             fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
             before_after("fit", fit_cmd, t_fit, m_fit)
+        if a.trace_rows:
+            td = tmp / "trace.csv"
+            write_long_file(src, td, a.trace_rows)
+            t_tr, m_tr = best([PY, "-m", "generator.cli", "trace", unit, td, "-o",
+                               tmp / "trace_out", "--quiet"], 1)
+            t_tl, m_tl = best(_worker_cmd("loadtxt", td), 1)
+            _, m_imp = best(_worker_cmd("imports"), 1)
+            res["trace_vs_loadtxt_memory"] = m_tr / m_tl
+            print(f"trace {a.trace_rows} rows: {t_tr:.2f} s, {m_tr:.0f} MiB peak "
+                  f"({(m_tr - m_imp) * 2**20 / a.trace_rows / 1024:.2f} KiB per sample above "
+                  f"the imports) | numpy.loadtxt: {t_tl:.2f} s, {m_tl:.0f} MiB")
         if a.thermal:          # the report's share of a fit on the shared campaign
             th = FM1 / "thermal_12pos.csv"
             t_nr, m_nr = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",
