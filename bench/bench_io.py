@@ -5,7 +5,8 @@ long telemetry, each against baselines measured in the same run.
     python3 bench/bench_io.py [--rows 1000000] [--fit-rows 1000000] [--read-rows 360000]
 
 The input is the shared thermal campaign repeated (time shifted) to the wanted length.
-Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4, so
+Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4 (through
+a small launcher, so the peak is the command's own: see measured()), so
 imports and I/O count as a user sees them. Ratios, not seconds, are the result:
 
 * apply vs pyarrow: `magcal apply` end to end (read, flight C, write) against
@@ -21,6 +22,34 @@ imports and I/O count as a user sees them. Ratios, not seconds, are the result:
   numpy.loadtxt of the same file (reading the numbers at all); peak RSS per sample.
 * the report's share: `magcal fit` of the shared thermal campaign with the report against
   --no-report (and the imports alone).
+* --before CHECKOUT: apply (CSV and Parquet), read and fit of an earlier magcal measured in
+  the same run; after/before ratios.
+
+Recorded (stream4, 2026-11-24, 2 shared cores at load ~3.8 from other jobs: the times are
+noisy, every "after" ran before its "before"; the memory figures are not):
+    python3 bench/bench_io.py --rows 1000000 --fit-rows 1000000 --read-rows 360000 \
+        --no-thermal --before <export of ceb8243>
+  apply CSV 10^6 rows: 152 MiB peak (before 154), 0.98x the peak on 10^5 rows;
+    1.70x pyarrow read+write time
+  apply Parquet 10^6 rows (row groups of 64 Ki rows): 175 MiB peak (before 177), 1.03x the
+    peak on 10^5 rows. On longer files the old reader grew: pyarrow's pre-buffering and
+    reader threads kept what they read ahead (+33 MiB from 4x10^5 to 1.6x10^6 rows,
+    host_tests/test_stream_memory.py; 184 -> 294 MiB from 3x10^5 to 4.8x10^6 rows in
+    row groups of 3x10^5); now flat (174 MiB at 4.8x10^6 rows in 16 row groups, 179 in one).
+    Time after/before 1.27x in this run, but interleaved runs on 4x10^5 rows (best of 3)
+    gave 2.61 s after, 3.07 s before: load noise, not the reader.
+  read 360,000 rows: 190 MiB peak, before 218 (0.87x); numpy.loadtxt 129 MiB: 1.47x, and
+    1.08x counting only the memory above a 10-row read of each (the rest is pyarrow's
+    import and code pages, fixed); time 0.52x loadtxt's.
+  fit --no-report 10^6 rows: 1444 MiB peak, before 1451 (0.99x), 1.39 KiB per sample
+    above the imports; 385 s (before 294 s in this run: load noise; no fit code changed).
+    The input layer holds 8 bytes a cell of the file (32 columns: 256 B a sample) and,
+    per sensor, the (N, 3) field and chip offset (48 B); the rest of the peak is made in
+    the fit's own design matrices (generator/fit/reference.py: lstsq, Gauss-Newton).
+  trace 10^5 rows (measured alone, `magcal trace unit.toml <10^5 rows> -o ...` through
+    measured()): 129 s, 1389 MiB peak, about 13 KiB a sample: 10^6 rows would need
+    ~13 GiB. The trace keeps per-sample design columns (generator/trace/*); its input is
+    the reader above.
 """
 
 from __future__ import annotations
@@ -31,7 +60,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -60,22 +88,74 @@ def write_long_file(src: Path, path: Path, rows: int) -> int:
     return path.stat().st_size
 
 
-def run(cmd) -> tuple[float, float]:
+
+def write_long_parquet(src: Path, path: Path, rows: int, row_group_rows: int = 65536) -> int:
+    """src's columns (as pyarrow.csv reads them: counts int64, the others float64, empty
+    cells null) repeated until `rows`, time shifted after the last as in write_long_file,
+    in a Parquet file of row groups of row_group_rows; src's '# key: value' lines are the
+    file's metadata. Returns the file size in bytes."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    skip = _comment_lines(src)
+    meta = {}
+    with open(src) as f:
+        for line in (next(f) for _ in range(skip)):
+            key, sep, value = line[1:].partition(":")
+            if sep and key.strip().isidentifier():
+                meta[key.strip()] = value.strip()
+    table = pcsv.read_csv(src, read_options=pcsv.ReadOptions(skip_rows=skip))
+    table = table.replace_schema_metadata(meta)
+    t = table.column("time_s").cast(pa.float64())
+    t_end = pa.compute.max(t).as_py() + 1.0
+    with pq.ParquetWriter(path, table.schema.set(0, pa.field("time_s", pa.float64()))
+                          .with_metadata(meta)) as w:
+        k = 0
+        while k * table.num_rows < rows:
+            part = table.slice(0, rows - k * table.num_rows)
+            shifted = pa.compute.add(t.slice(0, part.num_rows), k * t_end)
+            w.write_table(part.set_column(0, "time_s", shifted).replace_schema_metadata(meta),
+                          row_group_size=row_group_rows)
+            k += 1
+    return path.stat().st_size
+
+
+# wait4's ru_maxrss counts the child's memory before exec too: a fork of this process
+# (tens to hundreds of MiB after writing the inputs) would set the floor of every figure.
+# A small launcher (a bare interpreter, about 10 MiB) starts the command and reports its
+# peak and wall time; the max with the launcher's size is then the command's own peak.
+_LAUNCHER = """
+import os, subprocess, sys, time
+t0 = time.perf_counter()
+p = subprocess.Popen(sys.argv[1:])
+_, status, ru = os.wait4(p.pid, 0)
+sys.stderr.write(f"\\n@@measured {time.perf_counter() - t0!r} {ru.ru_maxrss} "
+                 f"{os.waitstatus_to_exitcode(status)}\\n")
+"""
+
+
+def measured(cmd, env=None) -> tuple[float, float, int, str, str]:
+    """(wall seconds, peak RSS MiB, exit code, stdout, stderr) of one command run in a
+    fresh process (through _LAUNCHER: the peak is the command's own)."""
+    p = subprocess.run([PY, "-c", _LAUNCHER, *map(str, cmd)], capture_output=True,
+                       env=env or ENV)
+    err = p.stderr.decode()
+    head, _, last = err.rstrip("\n").rpartition("\n@@measured ")
+    wall, kib, code = last.split()
+    return float(wall), int(kib) / 1024.0, int(code), p.stdout.decode(), head
+
+
+def run(cmd, env=None) -> tuple[float, float]:
     """(wall seconds, peak RSS MiB) of one subprocess."""
-    t0 = time.perf_counter()
-    p = subprocess.Popen([str(c) for c in cmd], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, env=ENV)
-    _, status, rusage = os.wait4(p.pid, 0)
-    wall = time.perf_counter() - t0
-    err = p.stderr.read().decode()
-    p.stderr.close()
-    if os.waitstatus_to_exitcode(status) != 0:
+    wall, peak, code, _, err = measured(cmd, env)
+    if code != 0:
         raise SystemExit(f"failed: {' '.join(map(str, cmd))}\n{err}")
-    return wall, rusage.ru_maxrss / 1024.0
+    return wall, peak
 
 
-def best(cmd, repeat) -> tuple[float, float]:
-    runs = [run(cmd) for _ in range(repeat)]
+def best(cmd, repeat, env=None) -> tuple[float, float]:
+    runs = [run(cmd, env) for _ in range(repeat)]
     return min(r[0] for r in runs), max(r[1] for r in runs)
 
 
@@ -138,8 +218,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows")
     ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
     ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
+    ap.add_argument("--trace-rows", type=int, default=0,
+                    help="`magcal trace` input rows (0: skip; about 13 KiB a sample)")
     ap.add_argument("--no-thermal", dest="thermal", action="store_false",
                     help="skip the fit of the shared thermal campaign with and without report")
+    ap.add_argument("--before", type=Path, default=None,
+                    help="a checkout of an earlier magcal: its apply, read and fit are "
+                         "measured in the same run (before/after ratios)")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -152,6 +237,18 @@ def main(argv=None) -> int:
     cs = CoefficientSet.load(COEFFS)
     n_out_cols = 1 + 5 * len(cs.unit.sensors) + 5
     res = {}
+    env_before = dict(os.environ, PYTHONPATH=str(a.before)) if a.before else None
+
+    def before_after(name, cmd, t, m):
+        """The same command on the --before checkout: print and record the ratios."""
+        if env_before is None:
+            return
+        t0, m0 = best(cmd, a.repeat, env_before)
+        res[f"{name}_time_after_vs_before"] = t / t0
+        res[f"{name}_memory_after_vs_before"] = m / m0
+        print(f"  before ({a.before}): {t0:.2f} s, {m0:.0f} MiB | after/before: time "
+              f"{t / t0:.2f}x, memory {m / m0:.2f}x")
+
     with tempfile.TemporaryDirectory(prefix="bench_io-") as tmp:
         tmp = Path(tmp)
         src = FM1 / "thermal_12pos.csv"
@@ -161,6 +258,8 @@ def main(argv=None) -> int:
         write_long_file(src, tiny, 10)
         print(f"input: {a.rows} rows, {size / 2**20:.0f} MiB; output {n_out_cols} columns")
         run(_apply_cmd(tiny, tmp / "warm.csv"))        # the host build in the cache
+        if env_before:
+            run(_apply_cmd(tiny, tmp / "warm0.csv"), env_before)
 
         t_apply, m_apply = best(_apply_cmd(big, tmp / "out.csv"), a.repeat)
         t_arrow, m_arrow = best(_worker_cmd("arrow", big, tmp / "arrow.csv", n_out_cols),
@@ -169,6 +268,7 @@ def main(argv=None) -> int:
         print(f"apply {a.rows} rows: {t_apply:.2f} s, {m_apply:.0f} MiB peak | pyarrow "
               f"read+write same shape: {t_arrow:.2f} s, {m_arrow:.0f} MiB | ratio "
               f"{t_apply / t_arrow:.2f}x (goal <= 2x)")
+        before_after("apply_csv", _apply_cmd(big, tmp / "out0.csv"), t_apply, m_apply)
 
         t_start, _ = best(_apply_cmd(tiny, tmp / "o_tiny.csv"), max(a.repeat, 3))
         t_imp, _ = best(_worker_cmd("imports"), max(a.repeat, 3))
@@ -181,21 +281,43 @@ def main(argv=None) -> int:
         print(f"apply peak RSS: {m_apply:.0f} MiB on {a.rows} rows, {m_tenth:.0f} MiB on "
               f"{a.rows // 10}: ratio {m_apply / m_tenth:.2f}x (streaming: ~1x)")
 
-        rd = tmp / "read.csv"
+        # Parquet: the same rows, row groups of 64 Ki rows (as a writer makes them)
+        pbig, ptenth = tmp / "big.parquet", tmp / "tenth.parquet"
+        psize = write_long_parquet(src, pbig, a.rows)
+        write_long_parquet(src, ptenth, a.rows // 10)
+        t_pq, m_pq = best(_apply_cmd(pbig, tmp / "out_pq.csv"), a.repeat)
+        _, m_pq10 = best(_apply_cmd(ptenth, tmp / "out_pq10.csv"), a.repeat)
+        res["apply_parquet_memory_full_vs_tenth"] = m_pq / m_pq10
+        res["apply_parquet_vs_csv_time"] = t_pq / t_apply
+        print(f"apply Parquet {a.rows} rows ({psize / 2**20:.0f} MiB): {t_pq:.2f} s "
+              f"({t_pq / t_apply:.2f}x the CSV's), {m_pq:.0f} MiB peak, {m_pq10:.0f} MiB on "
+              f"{a.rows // 10}: ratio {m_pq / m_pq10:.2f}x (streaming: ~1x)")
+        before_after("apply_parquet", _apply_cmd(pbig, tmp / "out_pq0.csv"), t_pq, m_pq)
+
+        rd, rd_tiny = tmp / "read.csv", tmp / "read_tiny.csv"
         write_long_file(src, rd, a.read_rows)
-        t_read, m_read = best(_worker_cmd("read", rd, FM1 / "unit.toml"), a.repeat)
+        write_long_file(src, rd_tiny, 10)
+        unit = FM1 / "unit.toml"
+        t_read, m_read = best(_worker_cmd("read", rd, unit), a.repeat)
         t_ltx, m_ltx = best(_worker_cmd("loadtxt", rd), a.repeat)
+        _, m_read0 = best(_worker_cmd("read", rd_tiny, unit), a.repeat)
+        _, m_ltx0 = best(_worker_cmd("loadtxt", rd_tiny), a.repeat)
         res["read_vs_loadtxt_memory"] = m_read / m_ltx
+        res["read_vs_loadtxt_memory_above_10_rows"] = (m_read - m_read0) / (m_ltx - m_ltx0)
         res["read_vs_loadtxt_time"] = t_read / t_ltx
         print(f"read {a.read_rows} rows: {t_read:.2f} s, {m_read:.0f} MiB peak | "
               f"numpy.loadtxt: {t_ltx:.2f} s, {m_ltx:.0f} MiB | memory ratio "
-              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x")
+              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x; above a 10-row "
+              f"read (imports, code pages): {m_read - m_read0:.0f} vs {m_ltx - m_ltx0:.0f} "
+              f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
+        before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
 
         if a.fit_rows:
             fd = tmp / "fit.csv"
             write_long_file(src, fd, a.fit_rows)
-            t_fit, m_fit = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", fd,
-                                 "-o", tmp / "fit_out", "--no-report", "--quiet"], 1)
+            fit_cmd = [PY, "-m", "generator.cli", "fit", unit, fd, "-o", tmp / "fit_out",
+                       "--no-report", "--quiet"]
+            t_fit, m_fit = best(fit_cmd, 1)
             t_fl, m_fl = best(_worker_cmd("loadtxt", fd), 1)
             _, m_imp = best(_worker_cmd("imports"), 1)
             res["fit_vs_loadtxt_time"] = t_fit / t_fl
@@ -204,6 +326,19 @@ def main(argv=None) -> int:
                   f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
                   f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
+            fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
+            before_after("fit", fit_cmd, t_fit, m_fit)
+        if a.trace_rows:
+            td = tmp / "trace.csv"
+            write_long_file(src, td, a.trace_rows)
+            t_tr, m_tr = best([PY, "-m", "generator.cli", "trace", unit, td, "-o",
+                               tmp / "trace_out", "--quiet"], 1)
+            t_tl, m_tl = best(_worker_cmd("loadtxt", td), 1)
+            _, m_imp = best(_worker_cmd("imports"), 1)
+            res["trace_vs_loadtxt_memory"] = m_tr / m_tl
+            print(f"trace {a.trace_rows} rows: {t_tr:.2f} s, {m_tr:.0f} MiB peak "
+                  f"({(m_tr - m_imp) * 2**20 / a.trace_rows / 1024:.2f} KiB per sample above "
+                  f"the imports) | numpy.loadtxt: {t_tl:.2f} s, {m_tl:.0f} MiB")
         if a.thermal:          # the report's share of a fit on the shared campaign
             th = FM1 / "thermal_12pos.csv"
             t_nr, m_nr = best([PY, "-m", "generator.cli", "fit", FM1 / "unit.toml", th, "-o",

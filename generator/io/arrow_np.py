@@ -100,6 +100,16 @@ def to_float64(arr, copy=True) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def integers(arr) -> np.ndarray:
+    """numpy integers (the arrow type's width and sign) of a pyarrow integer Array: a
+    read-only view of its buffer; the values under nulls are undefined (see nulls)."""
+    pa = _pa()
+    t = arr.type
+    kind = "i" if pa.types.is_signed_integer(t) else "u"
+    dtype = np.dtype(f"{kind}{t.bit_width // 8}")
+    return np.frombuffer(arr.buffers()[1], dtype=dtype)[arr.offset:arr.offset + len(arr)]
+
+
 def nulls(arr) -> np.ndarray:
     """numpy bool: True where the Array or ChunkedArray holds a null."""
     parts = []

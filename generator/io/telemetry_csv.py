@@ -87,22 +87,26 @@ def read_telemetry(path, unit, *, require_sensors: bool = True) -> Telemetry:
     The file is read in chunks (iter_telemetry) and the columns joined at the end: the
     peak memory is the columns themselves plus one chunk, not copies of the whole text.
     """
-    tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors))
+    tel = concat_chunks(iter_telemetry(path, unit, require_sensors=require_sensors),
+                        rows=_rows_at_most(path))
     coil_study.check_file(tel)           # a coil study's whole-file rules (io/coil_study.py)
     # ICD section 4: a position and no ref_* column -> ref_norm_nT from the field model
     from generator.io.orbit import attach_field_reference
     return attach_field_reference(tel, unit)
 
 
-def concat_chunks(chunks) -> Telemetry:
-    """One Telemetry from consecutive chunks of one file. The columns grow in place
-    (ndarray.resize: realloc, which moves no data for large blocks), so the peak is about
-    the columns themselves plus one chunk, as for numpy.loadtxt."""
+def concat_chunks(chunks, rows: int | None = None) -> Telemetry:
+    """One Telemetry from consecutive chunks of one file. rows (an upper bound on the
+    file's data rows, e.g. _rows_at_most): the columns are allocated once at that length
+    and filled in place, then cut to the rows read (a shrinking realloc moves nothing), so
+    the peak is the columns themselves plus one chunk, as for numpy.loadtxt; pages never
+    written are never resident. Without it (or beyond it) the columns grow by half
+    (ndarray.resize)."""
     cols, lines, n, first = None, None, 0, None
     for c in chunks:
         if cols is None:
             first = c
-            cap = max(c.n, 1)
+            cap = max(c.n, rows or 0, 1)
             cols = {name: np.empty(cap) for name in c.columns}
             lines = np.empty(cap, dtype=np.int64)
         if n + c.n > lines.shape[0]:
@@ -117,6 +121,24 @@ def concat_chunks(chunks) -> Telemetry:
         a.resize(n, refcheck=False)
     return Telemetry(path=first.path, columns=cols, line_numbers=lines, meta=first.meta,
                      comments=first.comments)
+
+
+def _rows_at_most(path) -> int | None:
+    """An upper bound on the data rows of a telemetry file, or None when it cannot be
+    told cheaply: Parquet's row count from its footer; a CSV's line breaks + 1 (every
+    data row is a line; comments and the header only make the bound looser), counted in
+    blocks of CHUNK_BYTES (the file is read twice; the second time from the page cache)."""
+    if is_parquet(path):
+        try:
+            return ParquetTelemetry(path).num_rows
+        except InputError:
+            return None                  # the reader names the fault
+    try:
+        with open(path, "rb") as f:
+            blocks = iter(lambda: f.read(CHUNK_BYTES), b"")
+            return sum(block.count(b"\n") for block in blocks) + 1
+    except OSError:
+        return None
 
 
 def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int = CHUNK_BYTES):
@@ -588,36 +610,56 @@ def preprocess(tel: Telemetry, unit) -> dict:
 
 
 def _sensor_data(tel: Telemetry, spec) -> SensorData:
-    absent_cells = np.full(tel.n, np.nan)
+    """One sensor's SensorData, column by column: no (N, 6) stack of the counts and no
+    (N, 3) intermediate per step; the temperature is the file's column itself (a view:
+    nothing writes into either). The same operations per element as on stacked arrays,
+    so the same bits."""
+    n = tel.n
     counts = {c: tel.columns[c] for c in spec.count_columns if c in tel.columns}
     missing_columns = tuple(c for c in spec.required_columns if c not in tel.columns)
-    raw = np.column_stack([np.asarray(tel.columns.get(c, absent_cells), dtype=np.float64)
-                           for c in spec.count_columns])          # (N, 3) or (N, 6) counts
+    absent_cells = None
+    raw = []                          # the count (or physical input) columns, float64 views
+    for c in spec.count_columns:
+        v = tel.columns.get(c)
+        if v is None:
+            if absent_cells is None:
+                absent_cells = np.full(n, np.nan)
+            v = absent_cells
+        raw.append(np.asarray(v, dtype=np.float64))
+    missing = np.zeros(n, dtype=bool)
+    at_rail = np.zeros(n, dtype=bool)
+    for v in raw:
+        missing |= ~np.isfinite(v)
+        if spec.counts:
+            at_rail |= (v <= spec.count_min) | (v >= spec.count_max)
+        else:
+            with np.errstate(invalid="ignore"):
+                at_rail |= np.abs(v) * spec.nT_per_input >= spec.full_scale_nT
     if spec.temperature:
-        temp_C = np.array(tel.columns.get(spec.temp_column, absent_cells), dtype=np.float64)
-        missing = ~np.isfinite(raw).all(axis=1) | ~np.isfinite(temp_C)
+        col = tel.columns.get(spec.temp_column)
+        temp_C = np.full(n, np.nan) if col is None else np.asarray(col, dtype=np.float64)
+        missing |= ~np.isfinite(temp_C)
     else:
-        temp_C = np.full(tel.n, np.nan)          # documented: no temperature, not missing
-        missing = ~np.isfinite(raw).all(axis=1)
-    if spec.counts:
-        at_rail = ((raw <= spec.count_min) | (raw >= spec.count_max)).any(axis=1)
-    else:
-        with np.errstate(invalid="ignore"):
-            at_rail = (np.abs(raw) * spec.nT_per_input >= spec.full_scale_nT).any(axis=1)
+        temp_C = np.full(n, np.nan)          # documented: no temperature, not missing
     saturated = at_rail & ~missing              # missing and saturated counts once, as missing
     usable = ~missing & ~saturated
 
+    idx, sign = spec.axis_map()
+    field_frame_nT = np.empty((n, 3))
     chip_offset_sensor_nT = None
     if spec.set_reset:
-        set_counts, reset_counts = raw[:, :3], raw[:, 3:]
-        field_sensor_nT = (set_counts - reset_counts) / 2.0 * spec.lsb_nT
-        chip_offset_sensor_nT = ((set_counts + reset_counts) / 2.0 - spec.zero_count) * spec.lsb_nT
+        chip_offset_sensor_nT = np.empty((n, 3))
+        for k in range(3):
+            set_counts, reset_counts = raw[k], raw[3 + k]
+            chip_offset_sensor_nT[:, k] = ((set_counts + reset_counts) / 2.0
+                                           - spec.zero_count) * spec.lsb_nT
         chip_offset_sensor_nT[~usable] = np.nan
+        for k in range(3):           # frame[k] = sign[k] * sensor[idx[k]]
+            j = idx[k]
+            field_frame_nT[:, k] = (raw[j] - raw[3 + j]) / 2.0 * spec.lsb_nT * float(sign[k])
     else:
-        field_sensor_nT = (raw - spec.zero_count) * spec.lsb_nT
-
-    idx, sign = spec.axis_map()
-    field_frame_nT = field_sensor_nT[:, list(idx)] * np.asarray(sign, dtype=np.float64)
+        for k in range(3):
+            field_frame_nT[:, k] = (raw[idx[k]] - spec.zero_count) * spec.lsb_nT * float(sign[k])
     field_frame_nT[~usable] = np.nan
 
     return SensorData(
