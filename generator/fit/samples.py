@@ -34,11 +34,27 @@ SPIKE_SIGMAS = 6.0
 SPIKE_QUANTA = 3.0
 SPIKE_MIN_C = 1.0
 SPIKE_STEPS = 3.0
+# How far a reported board temperature can move in a time dt: a board follows its
+# surroundings as a first-order lag, so it moves at most SPAN (1 - exp(-dt / tau)) for a
+# change SPAN of the surroundings. SPAN: 180 degC, the widest test there is (a thermal
+# shock between -55 and +125 degC chambers); tau: 5 min, a small populated board in a
+# chamber's moving air (these units' boards take 10-20 min; the planner's default board
+# time constant is of that order). A change from one sample to the next beyond that (and
+# beyond the spike limit) cannot be the board's. An EXCURSION -- a stretch entered and
+# left by such jumps, that comes back to where the series left (within what is possible
+# over the stretch), shorter than the stretches on either side -- is a corrupt block of
+# readings, rejected as outlying. Where logging stopped for long enough (a gap of a few
+# tau) any change is possible: a chamber recorded only at its holds keeps every level.
+TEMP_SPAN_C = 180.0
+BOARD_TAU_MIN_S = 300.0
 
 
-def screen_temperatures(temp_C, usable=None) -> tuple[np.ndarray, dict]:
+def screen_temperatures(temp_C, usable=None, time_s=None,
+                        temp_lsb_C=None) -> tuple[np.ndarray, dict]:
     """Which reported temperatures to trust: (ok (N,) bool, counts {"impossible",
-    "outlying"}). Non-finite values are left to the usable mask (not counted here)."""
+    "outlying"}). Non-finite values are left to the usable mask (not counted here).
+    time_s (the samples' times): also rejects excursions (TEMP_SPAN_C, BOARD_TAU_MIN_S);
+    temp_lsb_C: the part's temperature step (parts.toml), where known."""
     from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
 
     from generator.fit.segments import temperature_quantum
@@ -56,12 +72,52 @@ def screen_temperatures(temp_C, usable=None) -> tuple[np.ndarray, dict]:
         s = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
         # the reporting step from the filtered series (a spike would pass for a step)
         step = float(np.percentile(np.abs(np.diff(med)), 99)) if len(med) > 1 else 0.0
-        lim = max(SPIKE_SIGMAS * s, SPIKE_QUANTA * temperature_quantum(med), SPIKE_MIN_C,
-                  SPIKE_STEPS * step)
+        # the reporting step: the spacing of the values reported, or the smallest change
+        # from one sample to the next, or the part's stated step, whichever is smallest (an
+        # outlying level among few distinct values would pass for a step by itself)
+        moves = np.abs(np.diff(t))
+        moves = moves[moves > 0]
+        quantum = min([temperature_quantum(med)] + ([float(moves.min())] if len(moves) else [])
+                      + ([float(temp_lsb_C)] if temp_lsb_C else []))
+        lim = max(SPIKE_SIGMAS * s, SPIKE_QUANTA * quantum, SPIKE_MIN_C, SPIKE_STEPS * step)
         out = np.abs(dev) > lim
+        if time_s is not None:
+            out |= _excursions(t, np.asarray(time_s, float)[idx], lim)
         ok[idx[out]] = False
         n_out = int(out.sum())
     return ok, {"impossible": int((fin & ~possible).sum()), "outlying": n_out}
+
+
+def _excursions(t, time_s, lim) -> np.ndarray:
+    """(n,) bool: samples of t in an excursion (TEMP_SPAN_C, BOARD_TAU_MIN_S): stretches
+    between two jumps the board cannot make (beyond lim and what a board moves in their
+    time step), that come back to within what is possible of the level before, and are
+    shorter than the stretches on either side."""
+    out = np.zeros(len(t), bool)
+    possible = np.maximum(lim, _possible_change_C(np.diff(time_s)))
+    jumps = np.nonzero(np.abs(np.diff(t)) > possible)[0]    # jump k: between k and k + 1
+    if len(jumps) < 2:
+        return out
+    edges = np.concatenate([[-1], jumps, [len(t) - 1]])     # stretch i: edges[i]+1..edges[i+1]
+    length = np.diff(edges)
+    for i in range(1, len(edges) - 2):
+        a, b = edges[i], edges[i + 1]                       # jumps in (a -> a+1), out (b -> b+1)
+        before, after = t[a], t[b + 1]
+        back = abs(after - before) <= max(lim, float(_possible_change_C(
+            time_s[b + 1] - time_s[a])))
+        away = np.sign(t[a + 1] - before) == np.sign(t[b] - after)
+        if back and away and length[i] < length[i - 1] and length[i] < length[i + 1]:
+            out[a + 1:b + 1] = True
+    return out
+
+
+def _possible_change_C(dt_s):
+    """The most a board's temperature can move in dt_s (TEMP_SPAN_C, BOARD_TAU_MIN_S);
+    a non-finite or negative time step (times out of order, missing) allows anything."""
+    dt = np.asarray(dt_s, float)
+    ok = np.isfinite(dt) & (dt >= 0)
+    return np.where(ok, TEMP_SPAN_C * -np.expm1(-np.where(ok, dt, 0.0) / BOARD_TAU_MIN_S),
+                    np.inf)
 
 
 @dataclass
@@ -177,7 +233,7 @@ def _gather(name, datas, notes, per_file):
                          "temperature-independent calibration")
         use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
         n_unusable = int((~use).sum())
-        t_ok, t_rej = screen_temperatures(d.temp_C, use)
+        t_ok, t_rej = screen_temperatures(d.temp_C, use, d.time_s, d.temp_lsb_C)
         use &= t_ok
         coil_on = np.zeros(n, bool)
         if d.coil_A is not None:
