@@ -129,12 +129,20 @@ def _rotation_check(cal, spec, unit, prior) -> tuple:
         return fig, None
     ax = ", ".join(f"{a:+.2f}" for a in rot["axis"])
     return fig, (f"sensor '{cal.name}': the fitted M rotates the sensor's axes by "
-                 f"{rot['angle_deg']:.1f} deg (1-sigma {sig:.2f}) about ({ax}) relative to "
+                 f"{rot['angle_deg']:.1f} deg (1-sigma {sig:.2g}) about ({ax}) relative to "
                  f"{fig['relative_to']}, beyond the mounting tolerance {tol:g} deg "
                  f"({where}; key {MOUNTING_KEY}): a real mounting rotation, or a reference "
                  "in a rotated frame (one campaign cannot tell them apart); the rotation is "
                  "kept in M. Check the reference's frame; if the mounting is known to be "
                  f"rotated, set {MOUNTING_KEY}")
+
+
+def _beside(value, other) -> str:
+    """value with the digits that tell it from other (3 significant, more when close)."""
+    for digits in range(3, 9):
+        if f"{value:#.{digits}g}" != f"{other:#.{digits}g}":
+            return f"{value:.3g}" if digits == 3 else f"{value:#.{digits}g}"
+    return f"{value:.9g}"
 
 
 def check_calibration(cal, spec, source=None, unit=None, prior=None) -> dict:
@@ -170,8 +178,9 @@ def check_calibration(cal, spec, source=None, unit=None, prior=None) -> dict:
     warnings = []
     if np.max(cond) > cmax:
         warnings.append(f"sensor '{name}': the fitted matrix M has condition number "
-                        f"{np.max(cond):.3g}, implausible for a {spec.part} (at most "
-                        f"{cmax:.2f}: scale and cross-axis terms within 3 sigma of the "
+                        f"{_beside(np.max(cond), cmax)}, implausible for a {spec.part} "
+                        f"(at most {_beside(cmax, np.max(cond))}: scale and cross-axis "
+                        "terms within 3 sigma of the "
                         "part's); check the reference's scale, and for a magnetised object "
                         "next to the sensor")
     lim = offset_range_nT(spec)
