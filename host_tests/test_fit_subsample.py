@@ -221,3 +221,32 @@ def test_subsample_draws_are_uniform_within_blocks():
     # another sensor or file draws differently (the seed includes the name and index)
     assert not np.array_equal(pos, systematic_sample(160000, 8, subsample_rng("mmc2", 0)))
     assert not np.array_equal(pos, systematic_sample(160000, 8, subsample_rng("mmc1", 1)))
+
+
+def test_subsampled_fit_sigmas_are_honest_over_seeds(tmp_path_factory):
+    """The subsample's stated 1-sigma against the truth, over 20 simulated draws (the
+    chamber campaign of test_truth_chi2, 4,320 samples a sensor, capped at 2,000: one
+    sample in each block of 3): sum z^2 per coefficient inside the chi-square interval of
+    test_truth_chi2 (its statistics and false-alarm probability). A sigma that did not
+    grow with the subsample would make the sums too large; one that grew beyond it, too
+    small."""
+    from generator.campaign import simulate as sim
+    from test_truth_chi2 import CAMPAIGNS, SEEDS, _b, _M, z_scores
+
+    base = tmp_path_factory.mktemp("chi2sub")
+    draws = []
+    for seed in SEEDS:
+        out = base / str(seed)
+        out.mkdir()
+        unit = sim.make_example_unit(f"sub{seed}")
+        truth = sim.random_truth(unit, np.random.default_rng(seed))
+        sim.write_unit_toml(unit, out / "unit.toml")
+        (kind, opt), = [c for c in CAMPAIGNS if c[0] == "thermal_12pos"]
+        path, _ = sim.simulate_campaign(kind, unit, truth, np.random.default_rng(1000 * seed),
+                                        out, **opt)
+        cs = fit(out / "unit.toml", [path], max_samples=2000)
+        files = cs.fit_info["sensors"]["mmc1"]["stats"]["files"]
+        assert files[0]["used"] == 4320 and files[0]["fit_samples"] == 1440
+        draws.append(z_scores(cs, truth.to_json()))
+    _b(draws)
+    _M(draws)
