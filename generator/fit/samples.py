@@ -1,13 +1,15 @@
 """What the fits see of one sensor: per-file FitData, gathered into _Samples (usable
 samples of all files, cross-validation groups, constant-temperature segments), with the
-temperature screen (impossible and outlying temperatures rejected and counted).
+temperature screen (impossible and outlying temperatures rejected and counted). Above
+MAX_FIT_SAMPLES usable samples a sensor's fit takes a systematic random subsample, said
+in its notes, with the residual over every usable sample (all_samples_residual;
+docs/fit_samples.md).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import zlib
+from dataclasses import dataclass, field
 
 import numpy as np
 
