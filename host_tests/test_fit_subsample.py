@@ -257,3 +257,20 @@ def test_subsampled_fit_sigmas_are_honest_over_seeds(tmp_path_factory):
         draws.append(z_scores(cs, truth.to_json()))
     _b(draws)
     _M(draws)
+
+
+def test_magnitude_only_all_samples_residual(fm1_datas):
+    """A file without reference vectors in the fit (the rotation campaign's magnitudes,
+    through the ellipsoid method): the all-samples figure is the |B| RMS, over every
+    usable sample, beside the fit's own."""
+    rot = fm1_datas[1]
+    cal = fit_sensor("mmc1", [rot], method="ellipsoid", max_samples=1000)
+    alls, own = cal.stats["all_samples_residual_nT"], cal.stats["fit"]
+    used = cal.stats["files"][0]["used"]
+    assert alls["n"] == used and alls["n_not_in_fit"] == used - own["n"] > 0
+    assert alls["rms_vector_nT"] is None and alls["rms_norm_nT"] > 0
+    # the same bound as for the vectors, on n magnitude equations and the 9 parameters of
+    # a constant ellipsoid (the rotation campaign is at one temperature)
+    tol = 4.0 / math.sqrt(2 * own["n"]) + 9 / own["n"]
+    assert abs(alls["rms_norm_nT"] / own["rms_norm_nT"] - 1) < tol
+    assert any("|B| RMS over all" in n for n in cal.stats["notes"])
