@@ -3,6 +3,7 @@
 long telemetry, each against baselines measured in the same run.
 
     python3 bench/bench_io.py [--rows 1000000] [--fit-rows 1000000] [--read-rows 360000]
+                              [--fit-cap-rows 200000 --fit-cap 50000]   (0 rows: skip)
 
 The input is the shared thermal campaign repeated (time shifted) to the wanted length.
 Every measurement runs in a fresh subprocess: wall time and peak RSS from wait4 (through
@@ -20,6 +21,11 @@ imports and I/O count as a user sees them. Ratios, not seconds, are the result:
   (--read-rows rows; the issue measured 606 MB against 129 MB at 360,000 rows).
 * fit: `magcal fit --no-report` time and peak RSS on --fit-rows rows, against
   numpy.loadtxt of the same file (reading the numbers at all); peak RSS per sample.
+* fit cap (--fit-cap-rows R --fit-cap C): `magcal fit --no-report --max-samples C` on R
+  rows against --max-samples 0 (every sample): time and peak ratios, and per sensor the
+  capped fit's residual over all samples against the full fit's own (the accuracy the
+  subsample gives up; generator/fit/samples.py MAX_FIT_SAMPLES). The fit on --fit-rows
+  above runs with the default cap.
 * the report's share: `magcal fit` of the shared thermal campaign with the report against
   --no-report (and the imports alone).
 * --before CHECKOUT: apply (CSV and Parquet), read and fit of an earlier magcal measured in
@@ -50,6 +56,23 @@ noisy, every "after" ran before its "before"; the memory figures are not):
     measured()): 129 s, 1389 MiB peak, about 13 KiB a sample: 10^6 rows would need
     ~13 GiB. The trace keeps per-sample design columns (generator/trace/*); its input is
     the reader above.
+
+Recorded (sub6, 2026-11-24, 2 shared cores at load ~4; times noisy, memory not):
+    python3 bench/bench_io.py --rows 0 --read-rows 0 --fit-rows 0 --no-thermal \
+        --fit-cap-rows 200000 --fit-cap 50000
+  fit --no-report 2x10^5 rows: --max-samples 50000 14.96 s, 321 MiB peak; --max-samples 0
+    (every sample) 21.95 s, 380 MiB: 0.68x the time, 0.84x the peak. What is left is not
+    the fit: reading every row, the screens and segments on every sample (on purpose) and
+    the imports. The capped fit's residual over all 2x10^5 samples was 1.0001 to 1.0002
+    times the full fit's (per sensor), as the cap's argument predicts: 1 + p / (2 n_eq) =
+    1.00016 for p = 48 and n_eq = 3 x 50,000 equations.
+    python3 bench/bench_io.py --rows 0 --read-rows 0 --fit-rows 0 --no-thermal \
+        --fit-cap-rows 1000000 --fit-cap 200000          (the default cap)
+  fit --no-report 10^6 rows: default cap (200,000 per sensor, one sample in 5) 45.93 s,
+    775 MiB peak; every sample 113.47 s, 1182 MiB: 0.40x the time, 0.66x the peak. The
+    residual over all 10^6 samples: 1.0000 to 1.0001 times the full fit's. (A separate run,
+    --fit-rows 1000000 with the default cap: 40.74 s, 774 MiB, 0.70 KiB per sample above
+    the imports.)
 """
 
 from __future__ import annotations
@@ -215,9 +238,15 @@ def _apply_cmd(data, out):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows")
+    ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows (0: skip)")
     ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
-    ap.add_argument("--read-rows", type=int, default=360_000, help="read-memory rows")
+    ap.add_argument("--read-rows", type=int, default=360_000,
+                    help="read-memory rows (0: skip)")
+    ap.add_argument("--fit-cap-rows", type=int, default=0,
+                    help="rows of the capped-against-uncapped fit comparison (0: skip; "
+                         "e.g. 200000)")
+    ap.add_argument("--fit-cap", type=int, default=50_000,
+                    help="--max-samples of that comparison's capped fit")
     ap.add_argument("--trace-rows", type=int, default=0,
                     help="`magcal trace` input rows (0: skip; about 13 KiB a sample)")
     ap.add_argument("--no-thermal", dest="thermal", action="store_false",
@@ -252,65 +281,67 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_io-") as tmp:
         tmp = Path(tmp)
         src = FM1 / "thermal_12pos.csv"
-        big, tenth, tiny = tmp / "big.csv", tmp / "tenth.csv", tmp / "tiny.csv"
-        size = write_long_file(src, big, a.rows)
-        write_long_file(src, tenth, a.rows // 10)
-        write_long_file(src, tiny, 10)
-        print(f"input: {a.rows} rows, {size / 2**20:.0f} MiB; output {n_out_cols} columns")
-        run(_apply_cmd(tiny, tmp / "warm.csv"))        # the host build in the cache
-        if env_before:
-            run(_apply_cmd(tiny, tmp / "warm0.csv"), env_before)
-
-        t_apply, m_apply = best(_apply_cmd(big, tmp / "out.csv"), a.repeat)
-        t_arrow, m_arrow = best(_worker_cmd("arrow", big, tmp / "arrow.csv", n_out_cols),
-                                a.repeat)
-        res["apply_vs_pyarrow_time"] = t_apply / t_arrow
-        print(f"apply {a.rows} rows: {t_apply:.2f} s, {m_apply:.0f} MiB peak | pyarrow "
-              f"read+write same shape: {t_arrow:.2f} s, {m_arrow:.0f} MiB | ratio "
-              f"{t_apply / t_arrow:.2f}x (goal <= 2x)")
-        before_after("apply_csv", _apply_cmd(big, tmp / "out0.csv"), t_apply, m_apply)
-
-        t_start, _ = best(_apply_cmd(tiny, tmp / "o_tiny.csv"), max(a.repeat, 3))
-        t_imp, _ = best(_worker_cmd("imports"), max(a.repeat, 3))
-        res["apply_startup_vs_imports"] = t_start / t_imp
-        print(f"apply start-up (10 rows): {t_start:.2f} s | imports alone: {t_imp:.2f} s | "
-              f"ratio {t_start / t_imp:.2f}x")
-
-        _, m_tenth = best(_apply_cmd(tenth, tmp / "o_tenth.csv"), a.repeat)
-        res["apply_memory_full_vs_tenth"] = m_apply / m_tenth
-        print(f"apply peak RSS: {m_apply:.0f} MiB on {a.rows} rows, {m_tenth:.0f} MiB on "
-              f"{a.rows // 10}: ratio {m_apply / m_tenth:.2f}x (streaming: ~1x)")
-
-        # Parquet: the same rows, row groups of 64 Ki rows (as a writer makes them)
-        pbig, ptenth = tmp / "big.parquet", tmp / "tenth.parquet"
-        psize = write_long_parquet(src, pbig, a.rows)
-        write_long_parquet(src, ptenth, a.rows // 10)
-        t_pq, m_pq = best(_apply_cmd(pbig, tmp / "out_pq.csv"), a.repeat)
-        _, m_pq10 = best(_apply_cmd(ptenth, tmp / "out_pq10.csv"), a.repeat)
-        res["apply_parquet_memory_full_vs_tenth"] = m_pq / m_pq10
-        res["apply_parquet_vs_csv_time"] = t_pq / t_apply
-        print(f"apply Parquet {a.rows} rows ({psize / 2**20:.0f} MiB): {t_pq:.2f} s "
-              f"({t_pq / t_apply:.2f}x the CSV's), {m_pq:.0f} MiB peak, {m_pq10:.0f} MiB on "
-              f"{a.rows // 10}: ratio {m_pq / m_pq10:.2f}x (streaming: ~1x)")
-        before_after("apply_parquet", _apply_cmd(pbig, tmp / "out_pq0.csv"), t_pq, m_pq)
-
-        rd, rd_tiny = tmp / "read.csv", tmp / "read_tiny.csv"
-        write_long_file(src, rd, a.read_rows)
-        write_long_file(src, rd_tiny, 10)
         unit = FM1 / "unit.toml"
-        t_read, m_read = best(_worker_cmd("read", rd, unit), a.repeat)
-        t_ltx, m_ltx = best(_worker_cmd("loadtxt", rd), a.repeat)
-        _, m_read0 = best(_worker_cmd("read", rd_tiny, unit), a.repeat)
-        _, m_ltx0 = best(_worker_cmd("loadtxt", rd_tiny), a.repeat)
-        res["read_vs_loadtxt_memory"] = m_read / m_ltx
-        res["read_vs_loadtxt_memory_above_10_rows"] = (m_read - m_read0) / (m_ltx - m_ltx0)
-        res["read_vs_loadtxt_time"] = t_read / t_ltx
-        print(f"read {a.read_rows} rows: {t_read:.2f} s, {m_read:.0f} MiB peak | "
-              f"numpy.loadtxt: {t_ltx:.2f} s, {m_ltx:.0f} MiB | memory ratio "
-              f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x; above a 10-row "
-              f"read (imports, code pages): {m_read - m_read0:.0f} vs {m_ltx - m_ltx0:.0f} "
-              f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
-        before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
+        if a.rows:
+            big, tenth, tiny = tmp / "big.csv", tmp / "tenth.csv", tmp / "tiny.csv"
+            size = write_long_file(src, big, a.rows)
+            write_long_file(src, tenth, a.rows // 10)
+            write_long_file(src, tiny, 10)
+            print(f"input: {a.rows} rows, {size / 2**20:.0f} MiB; output {n_out_cols} columns")
+            run(_apply_cmd(tiny, tmp / "warm.csv"))        # the host build in the cache
+            if env_before:
+                run(_apply_cmd(tiny, tmp / "warm0.csv"), env_before)
+
+            t_apply, m_apply = best(_apply_cmd(big, tmp / "out.csv"), a.repeat)
+            t_arrow, m_arrow = best(_worker_cmd("arrow", big, tmp / "arrow.csv", n_out_cols),
+                                    a.repeat)
+            res["apply_vs_pyarrow_time"] = t_apply / t_arrow
+            print(f"apply {a.rows} rows: {t_apply:.2f} s, {m_apply:.0f} MiB peak | pyarrow "
+                  f"read+write same shape: {t_arrow:.2f} s, {m_arrow:.0f} MiB | ratio "
+                  f"{t_apply / t_arrow:.2f}x (goal <= 2x)")
+            before_after("apply_csv", _apply_cmd(big, tmp / "out0.csv"), t_apply, m_apply)
+
+            t_start, _ = best(_apply_cmd(tiny, tmp / "o_tiny.csv"), max(a.repeat, 3))
+            t_imp, _ = best(_worker_cmd("imports"), max(a.repeat, 3))
+            res["apply_startup_vs_imports"] = t_start / t_imp
+            print(f"apply start-up (10 rows): {t_start:.2f} s | imports alone: {t_imp:.2f} s | "
+                  f"ratio {t_start / t_imp:.2f}x")
+
+            _, m_tenth = best(_apply_cmd(tenth, tmp / "o_tenth.csv"), a.repeat)
+            res["apply_memory_full_vs_tenth"] = m_apply / m_tenth
+            print(f"apply peak RSS: {m_apply:.0f} MiB on {a.rows} rows, {m_tenth:.0f} MiB on "
+                  f"{a.rows // 10}: ratio {m_apply / m_tenth:.2f}x (streaming: ~1x)")
+
+            # Parquet: the same rows, row groups of 64 Ki rows (as a writer makes them)
+            pbig, ptenth = tmp / "big.parquet", tmp / "tenth.parquet"
+            psize = write_long_parquet(src, pbig, a.rows)
+            write_long_parquet(src, ptenth, a.rows // 10)
+            t_pq, m_pq = best(_apply_cmd(pbig, tmp / "out_pq.csv"), a.repeat)
+            _, m_pq10 = best(_apply_cmd(ptenth, tmp / "out_pq10.csv"), a.repeat)
+            res["apply_parquet_memory_full_vs_tenth"] = m_pq / m_pq10
+            res["apply_parquet_vs_csv_time"] = t_pq / t_apply
+            print(f"apply Parquet {a.rows} rows ({psize / 2**20:.0f} MiB): {t_pq:.2f} s "
+                  f"({t_pq / t_apply:.2f}x the CSV's), {m_pq:.0f} MiB peak, {m_pq10:.0f} MiB on "
+                  f"{a.rows // 10}: ratio {m_pq / m_pq10:.2f}x (streaming: ~1x)")
+            before_after("apply_parquet", _apply_cmd(pbig, tmp / "out_pq0.csv"), t_pq, m_pq)
+
+        if a.read_rows:
+            rd, rd_tiny = tmp / "read.csv", tmp / "read_tiny.csv"
+            write_long_file(src, rd, a.read_rows)
+            write_long_file(src, rd_tiny, 10)
+            t_read, m_read = best(_worker_cmd("read", rd, unit), a.repeat)
+            t_ltx, m_ltx = best(_worker_cmd("loadtxt", rd), a.repeat)
+            _, m_read0 = best(_worker_cmd("read", rd_tiny, unit), a.repeat)
+            _, m_ltx0 = best(_worker_cmd("loadtxt", rd_tiny), a.repeat)
+            res["read_vs_loadtxt_memory"] = m_read / m_ltx
+            res["read_vs_loadtxt_memory_above_10_rows"] = (m_read - m_read0) / (m_ltx - m_ltx0)
+            res["read_vs_loadtxt_time"] = t_read / t_ltx
+            print(f"read {a.read_rows} rows: {t_read:.2f} s, {m_read:.0f} MiB peak | "
+                  f"numpy.loadtxt: {t_ltx:.2f} s, {m_ltx:.0f} MiB | memory ratio "
+                  f"{m_read / m_ltx:.2f}x, time ratio {t_read / t_ltx:.2f}x; above a 10-row "
+                  f"read (imports, code pages): {m_read - m_read0:.0f} vs {m_ltx - m_ltx0:.0f} "
+                  f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
+            before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
 
         if a.fit_rows:
             fd = tmp / "fit.csv"
@@ -328,6 +359,32 @@ def main(argv=None) -> int:
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
             fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
             before_after("fit", fit_cmd, t_fit, m_fit)
+        if a.fit_cap_rows:     # the subsample's cost and gain, both in this run
+            fc = tmp / "fit_cap.csv"
+            write_long_file(src, fc, a.fit_cap_rows)
+
+            def cap_cmd(n):
+                return [PY, "-m", "generator.cli", "fit", unit, fc, "-o", tmp / f"cap_{n}",
+                        "--no-report", "--quiet", "--max-samples", str(n)]
+            t_c, m_c = best(cap_cmd(a.fit_cap), a.repeat)
+            t_0, m_0 = best(cap_cmd(0), a.repeat)
+            res["fit_cap_vs_all_time"] = t_c / t_0
+            res["fit_cap_vs_all_memory"] = m_c / m_0
+            print(f"fit --no-report {a.fit_cap_rows} rows: --max-samples {a.fit_cap} "
+                  f"{t_c:.2f} s, {m_c:.0f} MiB peak | --max-samples 0 (all) {t_0:.2f} s, "
+                  f"{m_0:.0f} MiB | ratios {t_c / t_0:.2f}x time, {m_c / m_0:.2f}x memory")
+            # what the subsample costs in accuracy: its residual over every usable sample
+            # against the residual of the fit of all of them
+            capped = json.loads((tmp / f"cap_{a.fit_cap}" / "coefficients.json").read_text())
+            full = json.loads((tmp / "cap_0" / "coefficients.json").read_text())
+            for name, v in capped["fit"]["sensors"].items():
+                alls = v["stats"]["all_samples_residual_nT"]
+                own = full["fit"]["sensors"][name]["stats"]["fit"]
+                key = "rms_vector_nT" if alls["rms_vector_nT"] is not None else "rms_norm_nT"
+                res[f"fit_cap_residual_{name}_vs_all"] = alls[key] / own[key]
+                print(f"  {name}: {key} over all {alls['n']} samples {alls[key]:.3f} nT "
+                      f"(capped fit) vs {own[key]:.3f} nT (fit of all): "
+                      f"{alls[key] / own[key]:.4f}x")
         if a.trace_rows:
             td = tmp / "trace.csv"
             write_long_file(src, td, a.trace_rows)

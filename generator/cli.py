@@ -87,7 +87,7 @@ def cmd_fit(args):
     progress = _progress(args)
     check_output_folder(args.output)
     cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior,
-             accept_misfit=args.accept_misfit)
+             accept_misfit=args.accept_misfit, max_samples=args.max_samples)
     cs.check_plausible(args.data[0] if len(args.data) == 1 else
                        f"{args.data[0]} (and {len(args.data) - 1} more)")
     extra = []
@@ -140,6 +140,11 @@ def _args_fit(p):
                         "the noise and the reference's stated error (otherwise exit 2: most "
                         "often reference vectors in another frame); the report and "
                         "coefficients.json then carry a warning")
+    p.add_argument("--max-samples", type=_max_samples, default=None, metavar="N",
+                   help="the most usable samples of one sensor its fit takes (default "
+                        "200000, fit.samples.MAX_FIT_SAMPLES; 0: all): above it one sample "
+                        "drawn at random in each block of consecutive samples (seed fixed), "
+                        "said in the notes, with the residual over all samples")
     p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
                    help="auto: reference vectors where the data carry them (joint or "
                         "per-level cubic, chosen on held-out data), else the ellipsoid fit; "
@@ -220,6 +225,17 @@ def cmd_demo(args):
         return rc, {"output": str(Path(args.output)),
                     "report": str(Path(args.output) / "report.html"), "exit": rc}
     return run_demo_atomic(Path(args.output), seed=args.seed, progress=_progress(args))
+
+
+def _max_samples(text):
+    """--max-samples: a whole number >= 0 (0: every usable sample)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{v} is negative (0: all samples)")
+    return v
 
 
 def _seed(text):

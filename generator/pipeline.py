@@ -90,7 +90,7 @@ def _has_ref_vectors(tel: Telemetry) -> bool:
 
 
 def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
-        accept_misfit=False) -> CoefficientSet:
+        accept_misfit=False, max_samples=None) -> CoefficientSet:
     """Fit a unit from all the given files jointly.
 
     * b(T), M(T) per sensor: fit.thermal.fit_unit over every file (reference vectors where
@@ -113,6 +113,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     `prior` must be a calibration of these sensors (fit.prior_unit: same part, frame, axes,
     input; another unit id only when every sensor is so): else InputError naming the key.
     uncertainty_1sigma also carries sr_comp_s_per_deg and, per boom sensor, H_boom_to_body.
+    max_samples: the most usable samples a sensor's fit takes (None: the default cap
+    fit.samples.MAX_FIT_SAMPLES; 0: all): above it a systematic random subsample, said in
+    the sensor's notes and per-file "fit_samples" (fit.thermal.fit_sensor).
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
@@ -155,6 +158,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             out[s.name] = Prior(b, M, bs, Ms, f"{path} (sensor {s.name})", rng)
         return out
 
+    from generator.fit.samples import MAX_FIT_SAMPLES, check_max_samples
+    max_samples = check_max_samples(MAX_FIT_SAMPLES if max_samples is None else max_samples,
+                                    "--max-samples")
     progress = progress or Progress(quiet=True)
     unit = load_unit(unit_path)
     progress(f"unit {unit.id}: {len(unit.sensors)} sensors")
@@ -176,7 +182,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                 raise InputError(t.path, f"header: coil column {fault}")
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
     cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
-                    accept_misfit=accept_misfit)
+                    accept_misfit=accept_misfit, max_samples=max_samples)
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "

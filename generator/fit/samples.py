@@ -1,10 +1,14 @@
 """What the fits see of one sensor: per-file FitData, gathered into _Samples (usable
 samples of all files, cross-validation groups, constant-temperature segments), with the
-temperature screen (impossible and outlying temperatures rejected and counted).
+temperature screen (impossible and outlying temperatures rejected and counted). Above
+MAX_FIT_SAMPLES usable samples a sensor's fit takes a systematic random subsample, said
+in its notes, with the residual over every usable sample (all_samples_residual;
+docs/fit_samples.md).
 """
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,6 +19,24 @@ from generator.fit.segments import find_segments
 from generator.io import parts as _parts
 
 CV_FOLDS = 4
+
+# The most usable samples of one sensor its fit takes (fit_sensor's max_samples, the CLI's
+# `magcal fit --max-samples`; 0: all). The models are nonlinear (M(T) (x - b(T)) is
+# bilinear, magnitude fits are nonlinear), so there are no exact sufficient statistics:
+# above the cap the fit takes a systematic random subsample (_gather). What that costs:
+# with p parameters fitted from n samples of noise sigma, the estimation error adds
+# sigma sqrt(p / n) rms to the prediction at the data (the mean of the hat matrix's
+# diagonal is p / n). A sensor has p <= ~60 (12 coefficients of b and M per degree, cubic:
+# 48, plus coil and SET/RESET terms): at n = 200,000, sqrt(60 / 200,000) = 1.7 % of sigma
+# rms, and in quadrature with the noise sqrt(1 + p/n) - 1 = 0.015 % of it -- below any
+# figure the fit reports to its stated precision (a vector sample gives 3 equations, so
+# the bound is loose by up to 3x more). The cap follows from that, not from a timing.
+MAX_FIT_SAMPLES = 200_000
+# fixed seed of the subsample (with the sensor name and the file's index): the same input
+# gives the same calibration
+SUBSAMPLE_SEED = 20
+# samples per chunk of the all-samples residual (its (chunk, 3, 3) matrices: 4.7 MB)
+RESIDUAL_CHUNK = 65536
 
 # Temperatures no part of these units can report while working (MMC5883MA and MPU-9255
 # operate at -40..85 degC and are rated for storage to -40..125 degC; the limits leave a wide
@@ -209,6 +231,10 @@ class _Samples:
     file_id: np.ndarray | None = None                # (N,) file number (EIV weights)
     noise_nT: float | None = None                    # stated noise of one axis of x
     prior: object = None                             # reference.Prior, or None (nominal)
+    # where the fit took a subsample (_gather, max_samples): every usable sample, per file
+    # (FitData, indices of its usable samples, reference (n, 3), magnitude (n,)) for the
+    # residual over all of them (all_samples_residual); None when the fit has them all
+    all_usable: list | None = None
 
     def subset(self, mask):
         return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
@@ -222,10 +248,49 @@ class _Samples:
         return len(self.T)
 
 
-def _gather(name, datas, notes, per_file):
-    xs, Ts, refs, norms, vecs, groups, segs, times, files = [], [], [], [], [], [], [], [], []
-    offset = 0
-    gbase = 0
+def check_max_samples(max_samples, source=None) -> int:
+    """max_samples as a whole number >= 0 (0: every usable sample), else InputError."""
+    if isinstance(max_samples, bool) or not isinstance(max_samples, (int, np.integer)) \
+            or max_samples < 0:
+        raise InputError(source, f"fit: max_samples must be a whole number >= 0 (0: all "
+                                 f"samples), got {max_samples!r}")
+    return int(max_samples)
+
+
+def subsample_step(n_usable: int, max_samples: int) -> int:
+    """k, the block length of the systematic subsample: ceil(n_usable / max_samples) above
+    the cap, else 1 (every sample kept). max_samples 0: no cap."""
+    if not max_samples or n_usable <= max_samples:
+        return 1
+    return -(-int(n_usable) // int(max_samples))
+
+
+def systematic_sample(n: int, k: int, rng) -> np.ndarray:
+    """Systematic random sampling of positions 0..n-1: split into consecutive blocks of k
+    (the last one may be shorter) and draw one position uniformly at random in each.
+    Uniform coverage in time; no aliasing with a periodic motion (the draws are
+    independent); returns ceil(n / k) sorted positions."""
+    starts = np.arange(0, n, k)
+    return starts + rng.integers(0, np.minimum(k, n - starts))
+
+
+def subsample_rng(name: str, file_index: int):
+    """numpy Generator(PCG64) of sensor `name`'s subsample in file number file_index: seeded
+    from SUBSAMPLE_SEED, the name (crc32, not Python's salted hash) and the index."""
+    return np.random.Generator(np.random.PCG64(
+        [SUBSAMPLE_SEED, zlib.crc32(name.encode("utf-8")), int(file_index)]))
+
+
+def _gather(name, datas, notes, per_file, max_samples=MAX_FIT_SAMPLES, say=None):
+    """The usable samples of sensor `name` over all its files (_Samples). The screens, the
+    cross-validation groups and the constant-temperature segments are found on the full
+    files; then, where the usable samples exceed max_samples (0: no cap), the fit keeps a
+    systematic random subsample (systematic_sample, blocks of k = ceil(usable /
+    max_samples) in each file's time order): per_file entries get "fit_samples", a note
+    and a progress line say it, segments keep the samples drawn in them, and
+    S.all_usable keeps what all_samples_residual needs."""
+    max_samples = check_max_samples(max_samples, datas[0].source if datas else None)
+    files = []
     for d in datas:
         n = len(d.time_s)
         if not d.has_temperature and not any("no temperature sensor" in m for m in notes):
@@ -260,7 +325,6 @@ def _gather(name, datas, notes, per_file):
                          "from the temperature fit (the coil coupling K is fitted from them separately)")
         if n_noref:
             notes.append(f"{d.source}: {n_noref} samples without any field reference unused")
-        keep = np.nonzero(use)[0]
         # cross-validation groups: static positions, else four contiguous time blocks
         pos = d.position
         g = np.zeros(n, int)
@@ -279,10 +343,25 @@ def _gather(name, datas, notes, per_file):
             g = np.minimum(rank * CV_FOLDS // max(int(use.sum()), 1), CV_FOLDS - 1)
         # segments in this file's reported temperature
         fsegs = find_segments(d.time_s, d.temp_C, d.position, use, temp_lsb_C=d.temp_lsb_C)
+        files.append((d, n, np.nonzero(use)[0], ref, norm, has_vec, g, fsegs))
+
+    n_usable = sum(len(f[2]) for f in files)
+    k = subsample_step(n_usable, max_samples)
+    xs, Ts, refs, norms, vecs, groups, segs, times, fids = [], [], [], [], [], [], [], [], []
+    offset = 0
+    gbase = 0
+    for i, (d, n, keep, ref, norm, has_vec, g, fsegs) in enumerate(files):
+        if k > 1:
+            keep = keep[systematic_sample(len(keep), k, subsample_rng(name, i))]
+            per_file[i]["fit_samples"] = int(len(keep))
         remap = -np.ones(n, int)
         remap[keep] = offset + np.arange(len(keep))
         for s in fsegs:
             s.index = remap[s.index]
+            if k > 1:       # the samples drawn in it (found on the full file)
+                s.index = s.index[s.index >= 0]
+                if not len(s.index):
+                    continue
             segs.append(s)
         xs.append(d.field_frame_nT[keep])
         Ts.append(d.temp_C[keep])
@@ -291,15 +370,70 @@ def _gather(name, datas, notes, per_file):
         norms.append(norm[keep])
         vecs.append(has_vec[keep])
         groups.append(gbase + g[keep])
-        files.append(np.full(len(keep), len(files)))
+        fids.append(np.full(len(keep), len(fids)))
         gbase += int(g.max()) + 1 if n else 0
         offset += len(keep)
     if offset == 0:
         raise InputError(datas[0].source if datas else None,
                          f"sensor '{name}': no usable sample with a field reference "
                          "(reference vectors, ref_norm_nT or the unit's lab_field_nT)")
-    return _Samples(np.concatenate(xs), np.concatenate(Ts), np.concatenate(refs),
-                    np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs,
-                    time_s=np.concatenate(times), file_id=np.concatenate(files),
-                    noise_nT=next((d.noise_nT for d in datas if d.noise_nT), None))
+    S = _Samples(np.concatenate(xs), np.concatenate(Ts), np.concatenate(refs),
+                 np.concatenate(norms), np.concatenate(vecs), np.concatenate(groups), segs,
+                 time_s=np.concatenate(times), file_id=np.concatenate(fids),
+                 noise_nT=next((d.noise_nT for d in datas if d.noise_nT), None))
+    if k > 1:
+        S.all_usable = [(f[0], f[2], f[3], f[4]) for f in files]
+        note = (f"sensor '{name}': {n_usable:,} usable samples; the fit used {offset:,} (one "
+                f"drawn at random in each block of {k} consecutive samples of a file, seed "
+                f"fixed; cap {max_samples:,}, --max-samples 0 for all): its sigmas are those "
+                f"of {offset:,} samples; the screens, hold-out groups and temperature "
+                "segments were found on all samples")
+        notes.append(note)
+        if say:
+            say(note)
+    return S
 
+
+def all_samples_residual(cal, S: _Samples):
+    """Where the fit took a subsample (S.all_usable): the RMS residual of cal over EVERY
+    usable sample, those left out of the fit included -- a held-out check that the
+    subsample's calibration holds on the rest. Vector samples: calibrated minus
+    reference (per axis, as the fit's own stats["fit"]["rms_vector_nT"]); every sample:
+    |calibrated| minus the reference magnitude (rms_norm_nT). Accumulated as sums in
+    chunks of RESIDUAL_CHUNK samples. None when the fit had every sample."""
+    if S.all_usable is None:
+        return None
+    sv, nv, sn, nn = 0.0, 0, 0.0, 0
+    for d, idx, ref, norm in S.all_usable:
+        for a in range(0, len(idx), RESIDUAL_CHUNK):
+            i = idx[a:a + RESIDUAL_CHUNK]
+            z = cal.apply64(d.field_frame_nT[i], d.temp_C[i])
+            r = ref[i]
+            vec = np.isfinite(r).all(axis=1)
+            sv += float(np.sum((z[vec] - r[vec]) ** 2))
+            nv += 3 * int(vec.sum())
+            sn += float(np.sum((np.linalg.norm(z, axis=1) - norm[i]) ** 2))
+            nn += len(i)
+    return {"rms_vector_nT": float(np.sqrt(sv / nv)) if nv else None,
+            "rms_norm_nT": float(np.sqrt(sn / nn)) if nn else None,
+            "n": int(nn), "n_not_in_fit": int(nn - S.n)}
+
+
+def record_all_samples_residual(cal, S: _Samples, say=None) -> None:
+    """all_samples_residual into cal.stats["all_samples_residual_nT"] (beside the fit's
+    own residual stats["fit"]) and a note; nothing when the fit had every sample."""
+    res = all_samples_residual(cal, S)
+    if res is None:
+        return
+    cal.stats["all_samples_residual_nT"] = res
+    fit = cal.stats.get("fit") or {}
+    key = "rms_vector_nT" if res["rms_vector_nT"] is not None else "rms_norm_nT"
+    what = "vector RMS per axis" if key == "rms_vector_nT" else "|B| RMS"
+    own = fit.get(key)
+    note = (f"{cal.name}: {what} over all {res['n']:,} usable samples "
+            f"({res['n_not_in_fit']:,} not in the fit): {res[key]:.2f} nT"
+            + (f", on the fit's own {fit.get('n', S.n):,}: {own:.2f} nT" if own is not None
+               else "") + " (stats all_samples_residual_nT)")
+    cal.stats.setdefault("notes", []).append(note)
+    if say:
+        say(note)

@@ -80,7 +80,8 @@ from generator.fit.levels import (_fit_segments, _fit_sensor_analytic, _fit_sens
                                   _level_fits, _poly_over_levels, _temperature_levels,
                                   rotated_fit_M)
 from generator.fit.reference import MAX_REF_COND, T_REF_C, _powers, reference_fit
-from generator.fit.samples import CV_FOLDS, FitData, _gather, _Samples, fit_data_from
+from generator.fit.samples import (CV_FOLDS, MAX_FIT_SAMPLES, FitData, _gather, _Samples,
+                                   fit_data_from, record_all_samples_residual)
 from generator.fit.segments import (Segment, find_segments, group_levels, temperature_noise,
                                     temperature_quantum)
 
@@ -94,7 +95,8 @@ OPERATING_C = (-40.0, 85.0)
 # Entry points
 # =======================================================================================
 def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
-               method="auto", prior=None, ref_floor_nT=None) -> SensorCalibration:
+               method="auto", prior=None, ref_floor_nT=None,
+               max_samples=MAX_FIT_SAMPLES) -> SensorCalibration:
     """Temperature calibration of one sensor from all its files (list of FitData).
 
     degree: highest polynomial degree in temperature; the degree used is also limited to
@@ -130,6 +132,11 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
     raised to the residual the noise does not explain where fit.goodness.noise_misfit
     flags it (stats["noise_goodness"]; ref_floor_nT: per data the reference's stated |B|
     error, e.g. the field model's floor).
+
+    max_samples: the most usable samples the fit takes (0: all; samples.MAX_FIT_SAMPLES,
+    and why); above it a systematic random subsample, stats["files"][i]["fit_samples"] and
+    a note say so, and stats["all_samples_residual_nT"] is the residual over every usable
+    sample (samples._gather, samples.all_samples_residual).
     """
     if method not in FIT_METHODS:
         raise InputError(datas[0].source if datas else None,
@@ -138,7 +145,7 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
     say = progress or (lambda msg: None)
     notes, per_file = [], []
     source = datas[0].source if datas else None
-    S = _gather(name, datas, notes, per_file)
+    S = _gather(name, datas, notes, per_file, max_samples, say)
     S.prior = prior
     fallback = None
     if method == "analytic":
@@ -165,6 +172,7 @@ def _with_method(cal, requested, used, S, ref_floor_nT=None):
     cal.stats["method_requested"] = requested
     cal.stats["method"] = used
     _finish(cal, S, ref_floor_nT)
+    record_all_samples_residual(cal, S)
     return cal
 
 
@@ -512,7 +520,7 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
 
 
 def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
-             accept_misfit=False) -> dict:
+             accept_misfit=False, max_samples=MAX_FIT_SAMPLES) -> dict:
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
@@ -523,7 +531,8 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
     residual the noise and the reference's stated error cannot explain (fit.goodness) is
     refused, unless accept_misfit (then stats["goodness_of_fit"] says so). stats["set_reset_compensation"]:
     whether the chain should compensate the SET/RESET rotation error with the gyro
-    (fit.setreset.compensation_decision). Returns {sensor name: SensorCalibration}.
+    (fit.setreset.compensation_decision). max_samples: per sensor, see fit_sensor.
+    Returns {sensor name: SensorCalibration}.
     Raises InputError when a sensor cannot be fitted, a calibration is not physical, or
     the method is unknown.
     """
@@ -562,7 +571,8 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         floors = [(tel.meta.get("field_reference") or {}).get("model_floor_nT")
                   for tel, _ in used]
         cal = fit_sensor(s.name, datas, progress=progress, method=method,
-                         prior=(prior or {}).get(s.name), ref_floor_nT=floors)
+                         prior=(prior or {}).get(s.name), ref_floor_nT=floors,
+                         max_samples=max_samples)
         vec_files = [d.source for d in datas if d.ref_body_nT is not None]
         cal.stats["sanity"] = check_calibration(cal, s, vec_files[0] if vec_files
                                                 else datas[0].source, unit=unit,
