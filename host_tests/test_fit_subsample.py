@@ -274,3 +274,14 @@ def test_magnitude_only_all_samples_residual(fm1_datas):
     tol = 4.0 / math.sqrt(2 * own["n"]) + 9 / own["n"]
     assert abs(alls["rms_norm_nT"] / own["rms_norm_nT"] - 1) < tol
     assert any("|B| RMS over all" in n for n in cal.stats["notes"])
+
+
+def test_level_windows_name_their_file_when_subsampled(fm1_datas):
+    """Two files, above the cap: each level's windows are attributed to the file they come
+    from (the file offsets count the subsample's samples, not the usable ones)."""
+    two = [fm1_datas[0], fm1_datas[0]]
+    full = fit_sensor("mmc1", two, method="ellipsoid", max_samples=0)
+    capped = fit_sensor("mmc1", two, method="ellipsoid", max_samples=6000)
+    for cal in (full, capped):
+        files = {w[0] for lev in cal.stats["segments"]["level_fits"] for w in lev["windows_s"]}
+        assert files == {0, 1}, files

@@ -181,7 +181,9 @@ def _analytic_level_stats(rot, plain):
 
 
 def _file_offsets(per_file):
-    return np.cumsum([f["used"] for f in per_file])
+    """Where each file's samples end in the gathered arrays (the subsample's counts where
+    the fit subsampled: fit/samples.py MAX_FIT_SAMPLES)."""
+    return np.cumsum([f.get("fit_samples", f["used"]) for f in per_file])
 
 
 def _fit_sensor_analytic(name, S_all, datas, degree, say, notes, per_file, source):
