@@ -93,6 +93,13 @@ DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in 
 # only with that margin taken off the information, so that a reading axis whose signal
 # is below half its noise (rms) is not "determined" by a misstated noise level.
 NOISE_VAR_UNCERTAINTY = 0.25
+# Where a reading-noise figure came from (fit.samples.field_noise_nT, NoiseFigure.source).
+NOISE_STATED = "stated"
+NOISE_CATALOGUE = "part catalogue (typical)"
+# The catalogue's figure is the datasheet's TYPICAL noise (parts.toml: never a guaranteed
+# or a measured one, some read off a resolution): a given unit's noise scatters around
+# it, taken as +-25 % in sigma, i.e. +-50 % in variance (1.22^2 = 1.5).
+CATALOGUE_NOISE_VAR_UNCERTAINTY = 0.5
 GN_MAX_ITER = 30
 # Serial correlation of residuals at most this (n_eff >= n / 199): beyond it the residual is
 # a constant offset, which b takes, not a sample-to-sample statistic.
@@ -559,7 +566,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
     # the reading noise: stated, else estimated after the first pass (_reading_noise_var)
     eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
-    noise_from = "stated" if noise_nT else "none"
+    noise_from = noise_source(noise_nT) or "none"
     theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
     v_grp = np.ones(n_grp)
@@ -837,6 +844,20 @@ def _eig_split(JTJ, S, margin=None, everything=False):
     F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
     ev, EV = np.linalg.eigh(F)
     return ev, EV, (ev >= FISHER_THRESHOLD) | everything
+
+
+def noise_source(noise_nT) -> str | None:
+    """Where a noise figure came from: NOISE_STATED, NOISE_CATALOGUE (a
+    fit.samples.NoiseFigure's source), None (no figure). A plain number counts as stated."""
+    if not noise_nT:
+        return None
+    return getattr(noise_nT, "source", NOISE_STATED)
+
+
+def noise_var_uncertainty(noise_nT) -> float:
+    """Relative 1-sigma of the noise VARIANCE of a figure from noise_source's sources."""
+    return (CATALOGUE_NOISE_VAR_UNCERTAINTY if noise_source(noise_nT) == NOISE_CATALOGUE
+            else NOISE_VAR_UNCERTAINTY)
 
 
 def min_abs_det(part="default") -> float:
