@@ -588,8 +588,12 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # the data miss is rarely one coefficient, and holding a whole coefficient would
         # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
+        # the noise figure's own uncertainty: a systematic error of the errors-in-variables
+        # correction, which does not average down with N (_noise_var_systematic)
+        D_sys = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta_obs)[1], eiv_var,
+                                      noise_var_uncertainty(noise_nT))
         split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
-                           S, everything=mirrored)
+                           S, everything=mirrored, systematic=D_sys)
         theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
                                             eiv_var, split, stats)
         ev, EV, fitted = split
@@ -620,6 +624,13 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
     sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
+    # the fitted coefficients' response to the noise variance being off by its own 1-sigma
+    # (per reading axis, independent): dtheta = -A dg/dsigma^2 (implicit function theorem
+    # on the gradient of the adjusted cost)
+    D_fit = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta)[1], eiv_var,
+                                  noise_var_uncertainty(noise_nT))
+    G_sys = A @ D_fit
+    C = C + G_sys @ G_sys.T
     if degree > 0 and uncertainty:
         C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
                                                (t_lo, t_hi), A)
@@ -675,6 +686,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         "parameters": params, "unobservable": unobs,
         "prior_source": pr.source,
         "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
+                  "variance_uncertainty": noise_var_uncertainty(noise_nT),
                   "reading_nT": float(np.sqrt(eiv_var)), "reading_from": noise_from,
                   "effective_per_file_nT": np.sqrt(v_grp).tolist()},
         "temperature_error": temp_err,
@@ -837,13 +849,53 @@ def _correlation_inflation(r):
     return (1.0 + rho) / (1.0 - rho)
 
 
-def _eig_split(JTJ, S, margin=None, everything=False):
+def _eig_split(JTJ, S, margin=None, everything=False, systematic=None):
     """Eigen-split of the whitened information; margin: information to take off first
     (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables); everything: fit all
-    directions (a mirrored reference, reference_fit)."""
+    directions (a mirrored reference, reference_fit); systematic: (p, m) columns d_j, the
+    gradient's change for a 1-sigma error of each source of a systematic error common to
+    all samples (_noise_var_systematic).
+
+    With a systematic error the data's estimate has the covariance F^-1 + F^-1 D D^T F^-1
+    (F the information, D the columns whitened), and so the information
+    F_eff = F - D (I + D^T F^-1 D)^-1 D^T (Woodbury): a direction whose estimate the
+    systematic moves by more than the prior's 1-sigma carries less information than the
+    prior and is held. Computed on F's positive eigen-subspace (the rest is below
+    FISHER_THRESHOLD already)."""
     F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
     ev, EV = np.linalg.eigh(F)
+    if systematic is not None and np.any(systematic) and not everything:
+        pos = ev > 1e-12 * max(float(ev[-1]), 1e-300)
+        Ep, lp = EV[:, pos], ev[pos]
+        Dp = Ep.T @ (systematic * S[:, None])              # whitened, in the eigenbasis
+        K_ = np.eye(Dp.shape[1]) + Dp.T @ (Dp / lp[:, None])
+        Fp = np.diag(lp) - Dp @ np.linalg.solve(K_, Dp.T)
+        lq, U = np.linalg.eigh(0.5 * (Fp + Fp.T))
+        ev = np.concatenate([ev[~pos], lq])
+        EV = np.concatenate([EV[:, ~pos], Ep @ U], axis=1)
+        order = np.argsort(ev)
+        ev, EV = ev[order], EV[:, order]
     return ev, EV, (ev >= FISHER_THRESHOLD) | everything
+
+
+def _noise_var_systematic(W, Mp, eiv_var, rel_uncertainty):
+    """(p, 3): per reading axis c, the change of the adjusted cost's gradient g (J^T W r
+    with the errors-in-variables term, vector_normal) when that axis's noise variance is
+    off by its own 1-sigma, rel_uncertainty x eiv_var. The term is
+    -eiv_var sum_n w_n |M(T_n)|_F^2 = -sum_c sigma_c^2 sum_{k,m} W[k+m] sum_a M_k[a,c] M_m[a,c],
+    so dg/dsigma_c^2 is -sum_m W[k+m] M_m[a,c] on M[k, a, c] and 0 elsewhere. Each axis
+    independently (a part's axes need not share one noise). Zeros without a noise."""
+    K = len(Mp)
+    out = np.zeros((12 * K, 3))
+    if not eiv_var or not rel_uncertainty:
+        return out
+    idx = np.add.outer(np.arange(K), np.arange(K))
+    WM = np.einsum("km,mac->kac", W[idx], Mp)
+    for c in range(3):
+        g = np.zeros((K, 3, 3))
+        g[:, :, c] = -WM[:, :, c]
+        out[3 * K:, c] = g.ravel() * rel_uncertainty * eiv_var
+    return out
 
 
 def noise_source(noise_nT) -> str | None:
