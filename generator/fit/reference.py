@@ -44,8 +44,15 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    squared length of its whitened unit vector in the fitted subspace; >= 0.5 reads
    "data", else "prior" (that parameter is then mostly the prior's value). The
    covariance is S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's
-   where held. With no stated reading noise, it is estimated from the first differences
-   of the first pass's residuals (_reading_noise_var) for the errors-in-variables term.
+   where held. The reading noise is the unit file's figure, else the part catalogue's
+   typical one (fit.samples.field_noise_nT); only a part with neither (generic) has it
+   estimated from the second differences of the first pass's residuals
+   (_reading_noise_var) for the errors-in-variables term. The figure's own uncertainty
+   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY) is a systematic error of that
+   correction, which does not average down with N: where the reading barely moves along
+   an axis (a yaw-only flight's vertical) the correction is large and so is its error;
+   it enters the split (a direction the systematic moves by more than the prior's
+   1-sigma is held) and the covariance (_noise_var_systematic).
 5. The reported temperature's reporting step (0.7 degC for the MMC5883's on-chip sensor)
    is an error common to every sample reported with one value (a chamber hold), which
    does not average down like the reading noise: its q^2/12 is propagated through the
@@ -601,7 +608,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             break
         if not noise_nT:
             eiv_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
-            noise_from = "estimated from first differences of the first pass's residuals"
+            noise_from = "estimated from second differences of the first pass's residuals"
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
@@ -815,21 +822,56 @@ def _split_information(P, x, x_hat, B, bM, w, stats: ReadingStats | None = None)
 
 
 def _reading_noise_var(d, grp):
-    """Variance of the reading noise per axis when none is stated: from the first
-    differences of d, the first pass's residuals mapped back to the reading (M^-1 r),
-    within each file, robustly (MAD, 1.4826 for a normal), and /2 for a difference of two
-    samples. Only what changes from sample to sample counts: a slow drift (of the
-    reading, or of a fit that is still diluted) is not noise of the reading (it goes to
-    the residual's correlation, _correlation_inflation). The reference's own noise is
-    counted in too: an overestimate, whose adjusted-least-squares bias is that variance
-    over the reading's spread -- negligible where M is determined, and where it is not,
-    observability holds M at the prior."""
-    dd = [np.diff(d[grp == g], axis=0) for g in np.unique(grp)]
-    dd = np.concatenate([a for a in dd if len(a)]) if any(len(a) for a in dd) else None
-    if dd is None or len(dd) < 3:
-        return 0.0
-    mad = np.median(np.abs(dd - np.median(dd, axis=0)), axis=0) * 1.4826
-    return float(np.mean(mad ** 2) / 2.0)
+    """Variance of the reading noise per axis when none is stated (a part with no
+    catalogue figure): difference_noise_var of d, the first pass's residuals mapped back
+    to the reading (M^-1 r), within each file, averaged over the axes. Only what changes
+    from sample to sample counts: a slow drift (of the reading, or of a fit that is still
+    diluted) is not noise of the reading (it goes to the residual's correlation,
+    _correlation_inflation). The reference's own noise is counted in too: an
+    overestimate, whose adjusted-least-squares bias is that variance over the reading's
+    spread -- negligible where M is determined, and where it is not, observability holds M
+    at the prior (its systematic, NOISE_VAR_UNCERTAINTY, is in the split)."""
+    v = difference_noise_var([d[grp == g] for g in np.unique(grp)])
+    return 0.0 if v is None else float(np.mean(v))
+
+
+# Second differences beyond this many of their own standard deviations are outliers
+# (a glitch, a reference jump), left out of difference_noise_var; for normal noise the
+# cut loses 6e-7 of the variance.
+DIFF_CLIP_SIGMAS = 5.0
+
+
+def difference_noise_var(series) -> np.ndarray | None:
+    """Per-axis variance of the white (sample-to-sample) noise of series: a list of
+    (n_i, k) arrays in time order (one per file; or (n_i,) for one axis). From the second
+    differences e_{n+1} - 2 e_n + e_{n-1}, whose variance is 6 sigma^2 for white noise
+    and which cancel an offset and a ramp (a field or residual that changes steadily
+    between samples is not noise), as the mean square about their mean after an
+    iterative DIFF_CLIP_SIGMAS clip. The mean square, not a median of absolute values:
+    quantised readings make the differences whole multiples of the step, and where the
+    noise is below one step most of them are 0, so a median (MAD) sees less than the
+    noise, or nothing; the mean square of quantised readings is the noise's plus the
+    step's q^2/12 when the signal moves by more than a step between samples (the
+    quantisation error is then uniform and independent; that is the figure
+    fit.samples.field_noise_nT states for counts). None with fewer than 3 differences."""
+    dd = []
+    for a in series:
+        a = np.asarray(a, float)
+        a = a.reshape(len(a), -1)
+        if len(a) >= 3:
+            dd.append(a[2:] - 2.0 * a[1:-1] + a[:-2])
+    if not dd or sum(len(a) for a in dd) < 3:
+        return None
+    d = np.concatenate(dd)
+    keep = np.ones(d.shape, bool)
+    for _ in range(5):
+        mu = np.array([np.mean(d[keep[:, j], j]) for j in range(d.shape[1])])
+        var = np.array([np.mean((d[keep[:, j], j] - mu[j]) ** 2) for j in range(d.shape[1])])
+        new = np.abs(d - mu) <= DIFF_CLIP_SIGMAS * np.sqrt(var)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return var / 6.0
 
 
 def _correlation_inflation(r):
