@@ -13,7 +13,9 @@ fitted to a misjudged noise (F1).
 
 from __future__ import annotations
 
+import copy
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -65,6 +67,9 @@ def test_count_sensor_without_noise_takes_the_catalogue_figure(tmp_path):
     assert noise_source(lis) == NOISE_CATALOGUE and float(lis) > 0
     assert field_noise_nT(unit.sensor("gen")) is None   # no figure anywhere: estimated
     assert noise_source(None) is None and noise_source(50.0) == NOISE_STATED
+    # the label survives what the fit's data go through (copies, worker processes)
+    assert noise_source(pickle.loads(pickle.dumps(f))) == NOISE_CATALOGUE
+    assert noise_source(copy.deepcopy(f)) == NOISE_CATALOGUE
 
 
 # n readings; the estimate of a variance from n second differences (white noise: lag

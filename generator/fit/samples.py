@@ -92,7 +92,7 @@ class NoiseFigure(float):
 
     source: str = NOISE_STATED
 
-    def __new__(cls, value, source):
+    def __new__(cls, value, source=NOISE_STATED):
         out = super().__new__(cls, value)
         out.source = source
         return out
