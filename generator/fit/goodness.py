@@ -35,9 +35,13 @@ vectors and a lab field; q the temperature channel's reporting step, an error th
 carries by construction, fit.reference point 5). chi2 / n over the rows is tested against
 the chi-square quantile 1 - NOISE_ALPHA with the effective degrees of freedom (3 N_eff
 for vectors plus N_eff for magnitudes, reference._correlation_inflation per file),
-widened by the stated noise's own uncertainty (reference.NOISE_VAR_UNCERTAINTY: the
-variance is known to +-25 %, so a residual is beyond the noise only when it passes the
-quantile times 1.25). The fit's own parameters (at most 12 (degree + 1)) take some
+widened by the noise figure's own uncertainty (reference.noise_var_uncertainty: a
+figure the unit file states has its variance known to +-25 %, the part catalogue's
+typical figure, used where the unit states none, to +-50 %; a residual is beyond the
+noise only when it passes the quantile times 1.25, or 1.5). A sensor with no figure at
+all (a generic part) has its noise estimated from the residual's second differences
+(reference.difference_noise_var), which also carry the reference's white noise: that
+test cannot see a noisy reference. The fit's own parameters (at most 12 (degree + 1)) take some
 degrees of freedom, which only makes the test more lenient. Passing it is a WARNING, not
 a refusal: the reference may honestly carry more error than the sensor (an attitude
 estimate, a magnetically disturbed lab). Its causes are named in the message
@@ -50,6 +54,7 @@ from __future__ import annotations
 import numpy as np
 
 from generator.errors import InputError
+from generator.fit.reference import NOISE_CATALOGUE
 
 REF_ANGLE_SIGMA_DEG = 10.0     # reference direction error, 1-sigma per axis (see docstring)
 REF_SCALE_SIGMA = 0.02         # reference magnitude error, 1-sigma, relative
@@ -118,23 +123,24 @@ def check_misfit(name, gof, source, accept=False, progress=None):
 def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     """The noise-only test of the module docstring on the samples S (fit.samples._Samples)
     of a fitted calibration. floor_nT: per file (S.file_id) the reference's stated |B|
-    error 1-sigma (None or 0: none stated). None when the sensor states no noise. JSON-able:
+    error 1-sigma (None or 0: none stated). JSON-able:
     chi2_per_row, limit, n_eff, flagged, rms_residual_nT / explained_nT (per axis for
     vector rows, of |B| for magnitude rows), excess_field_error_nT (the vector error the
     noise does not explain, sqrt(3 (rms^2 - explained^2)) for vector rows, rms^2 -
     explained^2 of |B| for magnitude-only fits)."""
     from scipy.stats import chi2 as _chi2
 
-    from generator.fit.reference import NOISE_VAR_UNCERTAINTY, _correlation_inflation
+    from generator.fit.reference import (_correlation_inflation, noise_source,
+                                         noise_var_uncertainty)
     from generator.fit.segments import temperature_quantum
 
     if S.n == 0 or not (np.all(np.isfinite(cal.M_poly)) and np.all(np.isfinite(cal.b_poly_nT))):
         return None       # nothing to test (non-finite coefficients: fit.sanity refuses them)
     fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
     noise = float(S.noise_nT or 0.0)
-    stated = noise > 0
+    has_figure = noise > 0    # stated, or the part catalogue's
     z = cal.apply64(S.x, S.T)
-    if not stated:      # none stated (a generic part): from the residual's own differences
+    if not has_figure:      # none stated (a generic part): from the residual's own differences
         noise = _difference_noise(cal, S, z, fid)
         if noise <= 0:
             return None
@@ -177,7 +183,8 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
         return None
     dof = max(n_eff, 1.0)
     quant = float(_chi2.ppf(1.0 - NOISE_ALPHA, dof) / dof)
-    limit = (1.0 + NOISE_VAR_UNCERTAINTY) * quant
+    unc = noise_var_uncertainty(S.noise_nT if has_figure else None)
+    limit = (1.0 + unc) * quant
     per_row = chi2 / n_rows
     out = {"chi2_per_row": per_row, "limit": limit, "quantile": quant,
            "n_eff": float(n_eff), "n_rows": int(n_rows), "alpha": NOISE_ALPHA,
@@ -195,25 +202,30 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
         out.update(kind="magnitude", rms_residual_nT=float(np.sqrt(r2)),
                    explained_nT=float(np.sqrt(e2)),
                    excess_field_error_nT=float(np.sqrt(max(r2 - e2, 0.0))))
-    out["noise_from"] = "stated" if stated else "sample-to-sample differences"
+    src = noise_source(S.noise_nT) if has_figure else None
+    out["noise_from"] = src or "sample-to-sample differences"
     out["from"] = (f"reading noise {noise:.1f} nT per axis through M"
-                   + ("" if stated else " (none stated: estimated from the residual's "
-                      "sample-to-sample differences)")
+                   + (" (none stated: the part catalogue's typical figure)"
+                      if src == NOISE_CATALOGUE else "")
+                   + ("" if has_figure else " (none stated and none in the part catalogue: "
+                      "estimated from the residual's sample-to-sample differences)")
                    + (f", reference floor {out['floor_nT']:.0f} nT" if out["floor_nT"] else "")
                    + (", temperature reporting step" if np.any(q2 > 0) else "")
                    + f"; chi-square quantile 1 - {NOISE_ALPHA:g} "
                    f"with {n_eff:.0f} effective degrees of freedom, times "
-                   f"{1 + NOISE_VAR_UNCERTAINTY:g} for the noise figure's uncertainty")
+                   f"{1 + unc:g} for the noise figure's uncertainty")
     return out
 
 
 def _difference_noise(cal, S, z, fid) -> float:
-    """Per-axis reading noise (nT, in the reading's scale) when the sensor states none:
-    from the first differences of the residual within each file, mapped back through
-    M^-1 for vector rows (the |B| residual for magnitude rows is one axis's worth),
-    robustly (1.4826 MAD) and / sqrt(2) for a difference of two samples. Only what
-    changes from sample to sample counts (white noise of the reading and of the
-    reference); a slow error is exactly what the test is to find. 0 with too few rows."""
+    """Per-axis reading noise (nT, in the reading's scale) when the sensor has no figure
+    (a generic part, none stated): fit.reference.difference_noise_var of the residual
+    within each file, mapped back through M^-1 for vector rows (the |B| residual for
+    magnitude rows is one axis's worth), averaged over the axes. Only what changes from
+    sample to sample counts (white noise of the reading and of the reference); a slow
+    error is exactly what the test is to find. 0 with too few rows."""
+    from generator.fit.reference import difference_noise_var
+
     v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
     parts = []
     for f in np.unique(fid):
@@ -222,13 +234,14 @@ def _difference_noise(cal, S, z, fid) -> float:
             r = z[m & v] - S.ref[m & v]
             Minv = np.linalg.pinv(cal.M_at(S.T[m & v]))   # pinv: a degenerate M
             # is refused by fit.sanity after this, not here
-            parts.append(np.diff(np.einsum("nij,nj->ni", Minv, r), axis=0).ravel())
+            parts.append(np.einsum("nij,nj->ni", Minv, r))
         if (m & ~v).sum() >= 3:
-            parts.append(np.diff(np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]))
+            e = np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]
+            parts.append(np.repeat(e[:, None], 3, axis=1))       # each axis's worth
     if not parts:
         return 0.0
-    d = np.concatenate(parts)
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    var = difference_noise_var(parts)
+    return 0.0 if var is None else float(np.sqrt(np.mean(var)))
 
 
 def noise_warning(name, gof, predicted=None) -> str | None:

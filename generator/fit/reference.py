@@ -44,8 +44,15 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    squared length of its whitened unit vector in the fitted subspace; >= 0.5 reads
    "data", else "prior" (that parameter is then mostly the prior's value). The
    covariance is S (V_f L_f^-1 V_f^T + V_p V_p^T) S: the data's where fitted, the prior's
-   where held. With no stated reading noise, it is estimated from the first differences
-   of the first pass's residuals (_reading_noise_var) for the errors-in-variables term.
+   where held. The reading noise is the unit file's figure, else the part catalogue's
+   typical one (fit.samples.field_noise_nT); only a part with neither (generic) has it
+   estimated from the second differences of the first pass's residuals
+   (_reading_noise_var) for the errors-in-variables term. The figure's own uncertainty
+   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY) is a systematic error of that
+   correction, which does not average down with N: where the reading barely moves along
+   an axis (a yaw-only flight's vertical) the correction is large and so is its error;
+   it enters the split (a direction the systematic moves by more than the prior's
+   1-sigma is held) and the covariance (_noise_var_systematic).
 5. The reported temperature's reporting step (0.7 degC for the MMC5883's on-chip sensor)
    is an error common to every sample reported with one value (a chamber hold), which
    does not average down like the reading noise: its q^2/12 is propagated through the
@@ -93,6 +100,13 @@ DATA_FRACTION = 0.5        # a parameter is "data" when this much of it lies in 
 # only with that margin taken off the information, so that a reading axis whose signal
 # is below half its noise (rms) is not "determined" by a misstated noise level.
 NOISE_VAR_UNCERTAINTY = 0.25
+# Where a reading-noise figure came from (fit.samples.field_noise_nT, NoiseFigure.source).
+NOISE_STATED = "stated"
+NOISE_CATALOGUE = "part catalogue (typical)"
+# The catalogue's figure is the datasheet's TYPICAL noise (parts.toml: never a guaranteed
+# or a measured one, some read off a resolution): a given unit's noise scatters around
+# it, taken as +-25 % in sigma, i.e. +-50 % in variance (1.22^2 = 1.5).
+CATALOGUE_NOISE_VAR_UNCERTAINTY = 0.5
 GN_MAX_ITER = 30
 # Serial correlation of residuals at most this (n_eff >= n / 199): beyond it the residual is
 # a constant offset, which b takes, not a sample-to-sample statistic.
@@ -559,7 +573,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
     # the reading noise: stated, else estimated after the first pass (_reading_noise_var)
     eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
-    noise_from = "stated" if noise_nT else "none"
+    noise_from = noise_source(noise_nT) or "none"
     theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
     v_grp = np.ones(n_grp)
@@ -581,8 +595,12 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         # the data miss is rarely one coefficient, and holding a whole coefficient would
         # throw away what the data say about the rest of it)
         free = np.ones(p, bool)
+        # the noise figure's own uncertainty: a systematic error of the errors-in-variables
+        # correction, which does not average down with N (_noise_var_systematic)
+        D_sys = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta_obs)[1], eiv_var,
+                                      noise_var_uncertainty(noise_nT))
         split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
-                           S, everything=mirrored)
+                           S, everything=mirrored, systematic=D_sys)
         theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
                                             eiv_var, split, stats)
         ev, EV, fitted = split
@@ -590,7 +608,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             break
         if not noise_nT:
             eiv_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
-            noise_from = "estimated from first differences of the first pass's residuals"
+            noise_from = "estimated from second differences of the first pass's residuals"
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
@@ -613,6 +631,13 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
     sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
+    # the fitted coefficients' response to the noise variance being off by its own 1-sigma
+    # (per reading axis, independent): dtheta = -A dg/dsigma^2 (implicit function theorem
+    # on the gradient of the adjusted cost)
+    D_fit = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta)[1], eiv_var,
+                                  noise_var_uncertainty(noise_nT))
+    G_sys = A @ D_fit
+    C = C + G_sys @ G_sys.T
     if degree > 0 and uncertainty:
         C_T, temp_err = _temperature_error_cov(P, x, unpack(theta), w, T, grp, tau,
                                                (t_lo, t_hi), A)
@@ -668,6 +693,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         "parameters": params, "unobservable": unobs,
         "prior_source": pr.source,
         "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
+                  "variance_uncertainty": noise_var_uncertainty(noise_nT),
                   "reading_nT": float(np.sqrt(eiv_var)), "reading_from": noise_from,
                   "effective_per_file_nT": np.sqrt(v_grp).tolist()},
         "temperature_error": temp_err,
@@ -796,21 +822,56 @@ def _split_information(P, x, x_hat, B, bM, w, stats: ReadingStats | None = None)
 
 
 def _reading_noise_var(d, grp):
-    """Variance of the reading noise per axis when none is stated: from the first
-    differences of d, the first pass's residuals mapped back to the reading (M^-1 r),
-    within each file, robustly (MAD, 1.4826 for a normal), and /2 for a difference of two
-    samples. Only what changes from sample to sample counts: a slow drift (of the
-    reading, or of a fit that is still diluted) is not noise of the reading (it goes to
-    the residual's correlation, _correlation_inflation). The reference's own noise is
-    counted in too: an overestimate, whose adjusted-least-squares bias is that variance
-    over the reading's spread -- negligible where M is determined, and where it is not,
-    observability holds M at the prior."""
-    dd = [np.diff(d[grp == g], axis=0) for g in np.unique(grp)]
-    dd = np.concatenate([a for a in dd if len(a)]) if any(len(a) for a in dd) else None
-    if dd is None or len(dd) < 3:
-        return 0.0
-    mad = np.median(np.abs(dd - np.median(dd, axis=0)), axis=0) * 1.4826
-    return float(np.mean(mad ** 2) / 2.0)
+    """Variance of the reading noise per axis when none is stated (a part with no
+    catalogue figure): difference_noise_var of d, the first pass's residuals mapped back
+    to the reading (M^-1 r), within each file, averaged over the axes. Only what changes
+    from sample to sample counts: a slow drift (of the reading, or of a fit that is still
+    diluted) is not noise of the reading (it goes to the residual's correlation,
+    _correlation_inflation). The reference's own noise is counted in too: an
+    overestimate, whose adjusted-least-squares bias is that variance over the reading's
+    spread -- negligible where M is determined, and where it is not, observability holds M
+    at the prior (its systematic, NOISE_VAR_UNCERTAINTY, is in the split)."""
+    v = difference_noise_var([d[grp == g] for g in np.unique(grp)])
+    return 0.0 if v is None else float(np.mean(v))
+
+
+# Second differences beyond this many of their own standard deviations are outliers
+# (a glitch, a reference jump), left out of difference_noise_var; for normal noise the
+# cut loses 6e-7 of the variance.
+DIFF_CLIP_SIGMAS = 5.0
+
+
+def difference_noise_var(series) -> np.ndarray | None:
+    """Per-axis variance of the white (sample-to-sample) noise of series: a list of
+    (n_i, k) arrays in time order (one per file; or (n_i,) for one axis). From the second
+    differences e_{n+1} - 2 e_n + e_{n-1}, whose variance is 6 sigma^2 for white noise
+    and which cancel an offset and a ramp (a field or residual that changes steadily
+    between samples is not noise), as the mean square about their mean after an
+    iterative DIFF_CLIP_SIGMAS clip. The mean square, not a median of absolute values:
+    quantised readings make the differences whole multiples of the step, and where the
+    noise is below one step most of them are 0, so a median (MAD) sees less than the
+    noise, or nothing; the mean square of quantised readings is the noise's plus the
+    step's q^2/12 when the signal moves by more than a step between samples (the
+    quantisation error is then uniform and independent; that is the figure
+    fit.samples.field_noise_nT states for counts). None with fewer than 3 differences."""
+    dd = []
+    for a in series:
+        a = np.asarray(a, float)
+        a = a.reshape(len(a), -1)
+        if len(a) >= 3:
+            dd.append(a[2:] - 2.0 * a[1:-1] + a[:-2])
+    if not dd or sum(len(a) for a in dd) < 3:
+        return None
+    d = np.concatenate(dd)
+    keep = np.ones(d.shape, bool)
+    for _ in range(5):
+        mu = np.array([np.mean(d[keep[:, j], j]) for j in range(d.shape[1])])
+        var = np.array([np.mean((d[keep[:, j], j] - mu[j]) ** 2) for j in range(d.shape[1])])
+        new = np.abs(d - mu) <= DIFF_CLIP_SIGMAS * np.sqrt(var)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return var / 6.0
 
 
 def _correlation_inflation(r):
@@ -830,13 +891,67 @@ def _correlation_inflation(r):
     return (1.0 + rho) / (1.0 - rho)
 
 
-def _eig_split(JTJ, S, margin=None, everything=False):
+def _eig_split(JTJ, S, margin=None, everything=False, systematic=None):
     """Eigen-split of the whitened information; margin: information to take off first
     (NOISE_VAR_UNCERTAINTY x the noise of x, errors in variables); everything: fit all
-    directions (a mirrored reference, reference_fit)."""
+    directions (a mirrored reference, reference_fit); systematic: (p, m) columns d_j, the
+    gradient's change for a 1-sigma error of each source of a systematic error common to
+    all samples (_noise_var_systematic).
+
+    With a systematic error the data's estimate has the covariance F^-1 + F^-1 D D^T F^-1
+    (F the information, D the columns whitened), and so the information
+    F_eff = F - D (I + D^T F^-1 D)^-1 D^T (Woodbury): a direction whose estimate the
+    systematic moves by more than the prior's 1-sigma carries less information than the
+    prior and is held. Computed on F's positive eigen-subspace (the rest is below
+    FISHER_THRESHOLD already)."""
     F = (JTJ if margin is None else JTJ - margin) * np.outer(S, S)
     ev, EV = np.linalg.eigh(F)
+    if systematic is not None and np.any(systematic) and not everything:
+        pos = ev > 1e-12 * max(float(ev[-1]), 1e-300)
+        Ep, lp = EV[:, pos], ev[pos]
+        Dp = Ep.T @ (systematic * S[:, None])              # whitened, in the eigenbasis
+        K_ = np.eye(Dp.shape[1]) + Dp.T @ (Dp / lp[:, None])
+        Fp = np.diag(lp) - Dp @ np.linalg.solve(K_, Dp.T)
+        lq, U = np.linalg.eigh(0.5 * (Fp + Fp.T))
+        ev = np.concatenate([ev[~pos], lq])
+        EV = np.concatenate([EV[:, ~pos], Ep @ U], axis=1)
+        order = np.argsort(ev)
+        ev, EV = ev[order], EV[:, order]
     return ev, EV, (ev >= FISHER_THRESHOLD) | everything
+
+
+def _noise_var_systematic(W, Mp, eiv_var, rel_uncertainty):
+    """(p, 3): per reading axis c, the change of the adjusted cost's gradient g (J^T W r
+    with the errors-in-variables term, vector_normal) when that axis's noise variance is
+    off by its own 1-sigma, rel_uncertainty x eiv_var. The term is
+    -eiv_var sum_n w_n |M(T_n)|_F^2 = -sum_c sigma_c^2 sum_{k,m} W[k+m] sum_a M_k[a,c] M_m[a,c],
+    so dg/dsigma_c^2 is -sum_m W[k+m] M_m[a,c] on M[k, a, c] and 0 elsewhere. Each axis
+    independently (a part's axes need not share one noise). Zeros without a noise."""
+    K = len(Mp)
+    out = np.zeros((12 * K, 3))
+    if not eiv_var or not rel_uncertainty:
+        return out
+    idx = np.add.outer(np.arange(K), np.arange(K))
+    WM = np.einsum("km,mac->kac", W[idx], Mp)
+    for c in range(3):
+        g = np.zeros((K, 3, 3))
+        g[:, :, c] = -WM[:, :, c]
+        out[3 * K:, c] = g.ravel() * rel_uncertainty * eiv_var
+    return out
+
+
+def noise_source(noise_nT) -> str | None:
+    """Where a noise figure came from: NOISE_STATED, NOISE_CATALOGUE (a
+    fit.samples.NoiseFigure's source), None (no figure). A plain number counts as stated."""
+    if not noise_nT:
+        return None
+    return getattr(noise_nT, "source", NOISE_STATED)
+
+
+def noise_var_uncertainty(noise_nT) -> float:
+    """Relative 1-sigma of the noise VARIANCE of a figure from noise_source's sources."""
+    return (CATALOGUE_NOISE_VAR_UNCERTAINTY if noise_source(noise_nT) == NOISE_CATALOGUE
+            else NOISE_VAR_UNCERTAINTY)
 
 
 def min_abs_det(part="default") -> float:

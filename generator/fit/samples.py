@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from generator.errors import InputError
-from generator.fit.reference import T_REF_C
+from generator.fit.reference import NOISE_CATALOGUE, NOISE_STATED, T_REF_C
 from generator.fit.segments import find_segments
 from generator.io import parts as _parts
 
@@ -162,25 +162,47 @@ class FitData:
     temp_lsb_C: float | None = None           # the part's temperature step (parts.toml)
 
 
-def field_noise_nT(spec) -> float | None:
-    """Stated 1-sigma noise of one axis of the field a sensor's fit sees: noise_nT of one
-    reading with the count quantisation (lsb^2/12) added, over sqrt(2) for a SET/RESET
-    pair ((SET - RESET)/2 averages two readings).
+class NoiseFigure(float):
+    """A per-axis noise figure (nT) that remembers where it came from: `source` is
+    NOISE_STATED (the unit file's noise_nT) or NOISE_CATALOGUE (the part's typical figure,
+    generator/io/parts.toml). It is a float everywhere (FitData.noise_nT, _Samples.noise_nT,
+    reference_fit(noise_nT=...)); fit.reference.noise_source reads the label back."""
 
-    A sensor reading physical units (input = nT, uT, mG, G; ICD section 4) has no count
-    quantisation: its columns hold real numbers, and lsb_nT is then only the input unit's
-    size (1000 nT for uT), not a step of the reading; its noise is the unit's stated
-    noise_nT, else the part's (generator/io/parts.toml)."""
+    source: str = NOISE_STATED
+
+    def __new__(cls, value, source=NOISE_STATED):
+        out = super().__new__(cls, value)
+        out.source = source
+        return out
+
+
+def field_noise_nT(spec) -> float | None:
+    """1-sigma noise of one axis of the field a sensor's fit sees: noise_nT of one
+    reading with the count quantisation (lsb^2/12) added, over sqrt(2) for a SET/RESET
+    pair ((SET - RESET)/2 averages two readings). A NoiseFigure: its source says whether
+    the figure is the unit file's (NOISE_STATED) or the part catalogue's typical one
+    (NOISE_CATALOGUE); None only for a part with no figure (generic) and none stated, whose
+    fit then estimates the noise from the data (fit.reference._reading_noise_var).
+
+    The unit's stated noise_nT, else the part's (generator/io/parts.toml), for count and
+    physical-unit sensors alike: the fit's errors-in-variables correction and its goodness
+    test need the reading's own noise, which sample-to-sample differences of the data
+    cannot give (they carry the reference's noise too, miss it when noise < 1 LSB, and
+    carry the field's own change under fast motion). A sensor reading physical units
+    (input = nT, uT, mG, G; ICD section 4) has no count quantisation: its columns hold
+    real numbers, and lsb_nT is then only the input unit's size (1000 nT for uT), not a
+    step of the reading."""
     if spec is None:
         return None
-    noise = spec.noise_nT
-    if noise is None and not spec.counts:
-        noise = _parts.part(spec.part).noise_nT
+    noise, source = spec.noise_nT, NOISE_STATED
+    if noise is None:
+        part = _parts.find(spec.part)
+        noise, source = (part.noise_nT if part is not None else None), NOISE_CATALOGUE
     if noise is None:
         return None
     quant = float(spec.lsb_nT) ** 2 / 12.0 if spec.counts else 0.0
     per_reading = float(noise) ** 2 + quant
-    return float(np.sqrt(per_reading / (2.0 if spec.set_reset else 1.0)))
+    return NoiseFigure(np.sqrt(per_reading / (2.0 if spec.set_reset else 1.0)), source)
 
 
 def fit_data_from(tel, sensor_data, unit) -> FitData:
