@@ -17,6 +17,17 @@ unit-weight variance s^2 per axis the Fisher information is
     F = (1/s^2) sum_n w_n (|v_n|^2 I - v_n v_n^T)   ( = (tr(B H^T) I - B H^T)/s^2 )
 
 and cov(d) = F^-1; s^2 is estimated from the residual scatter, sum w |r|^2 / (3N - 3).
+That counts the N samples as independent. A residual that drifts with the samples (a
+calibration that does not hold in this file: a reference sensor without temperature, an
+effect the model lacks; a disturbance) is not N independent samples: d is driven by the
+score g_n = w_n v_n x r_n (the gradient of Phi; its sum is zero at the optimum), and its
+variance is F^-1 Var(sum g_n) F^-1, which for serially correlated g is larger than for white
+g by the AR(1) factor (1 + rho)/(1 - rho), rho the lag-1 autocorrelation of g in time order
+(fit.reference._correlation_inflation, the same effective-sample-size model as the sensor
+fits'). cov_stat is s^2 F0^-1 times that factor (`correlation_inflation`, 1 for a white
+residual); it is the score's correlation that counts, not the residual's: a residual whose
+own lag-1 correlation is small can still carry a slowly varying component along v that
+moves H.
 Rows of cov are body axes; `sigma_rad` is its per-axis 1-sigma, `sigma_angle_deg` the
 1-sigma of the rotation angle (cov projected on the rotation axis). An optional extra
 covariance (e.g. from the calibrations' own uncertainty, see `calibration_rotation_cov`)
@@ -44,6 +55,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from generator.errors import InputError
+from generator.fit.reference import _correlation_inflation
 
 # Seed 000 conclusions: after the agreement algorithm the normalised projections differ
 # by no more than 0.5 % and the vectors by no more than 0.07 deg.
@@ -51,6 +63,9 @@ SEED_PROJ_DIFF_PCT = 0.5
 SEED_ANGLE_DEG = 0.07
 
 MIN_SAMPLES = 3
+# note the widening when the score's drift more than doubles the variance (rho > 1/3):
+# below that the sigma moves by less than 1.42x, within what one reads from a sigma
+CORRELATION_NOTE = 2.0
 MIN_SPREAD_DEG = 1.0
 
 
@@ -155,6 +170,7 @@ class AlignmentResult:
     after: dict                        # figures_of_merit with H
     noise_floor_angle_mean_deg: float  # mean angle expected from the residual noise alone
     notes: list = field(default_factory=list)
+    correlation_inflation: float = 1.0  # variance factor of cov_stat for the score's drift
 
     @property
     def sigma_rad(self) -> np.ndarray:
@@ -199,6 +215,7 @@ class AlignmentResult:
             "sigma_axis_deg": self.sigma_deg.tolist(),
             "sigma_axis_stat_deg": self.sigma_stat_deg.tolist(),
             "cov_rad2": self.cov_rad2.tolist(),
+            "correlation_inflation": self.correlation_inflation,
             "residual_sigma_nT": self.residual_sigma_nT,
             "residual_rms_axis_nT": self.residual_rms_axis_nT.tolist(),
             "n_samples": self.n_samples,
@@ -306,7 +323,15 @@ def fit_H(B_body_nT, B_boom_nT, weights=None, *, extra_cov_rad2=None,
         raise InputError(source, "alignment: the information matrix is singular (field "
                                  "directions do not span enough of the sphere): the "
                                  "rotation about the common direction is undetermined")
-    cov_stat = s2 * np.linalg.inv(F0)
+    # the score's serial correlation: a drifting residual is fewer independent samples
+    infl = _correlation_inflation(w[:, None] * np.cross(v, r))
+    if infl > CORRELATION_NOTE:
+        notes.append(f"the residual drifts along the samples (score lag-1 correlation "
+                     f"{(infl - 1.0) / (infl + 1.0):.2f}): the {n} samples count as "
+                     f"{n / infl:.0f} independent ones, sigma widened x{np.sqrt(infl):.1f}; "
+                     "the calibrations do not hold exactly in this file (e.g. a sensor "
+                     "without temperature)")
+    cov_stat = s2 * infl * np.linalg.inv(F0)
     cov_stat = 0.5 * (cov_stat + cov_stat.T)
     cov = cov_stat.copy()
     if extra_cov_rad2 is not None:
@@ -331,7 +356,7 @@ def fit_H(B_body_nT, B_boom_nT, weights=None, *, extra_cov_rad2=None,
         residual_rms_axis_nT=np.sqrt(np.mean(r ** 2, axis=0)),
         n_samples=int(n), spread_deg=float(spread),
         before=figures_of_merit(B1, B2, None), after=figures_of_merit(B1, B2, H),
-        noise_floor_angle_mean_deg=floor, notes=notes)
+        noise_floor_angle_mean_deg=floor, notes=notes, correlation_inflation=float(infl))
 
 
 # =======================================================================================
