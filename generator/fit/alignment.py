@@ -534,6 +534,7 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
     result = fit_H(B1, B2, extra_cov_rad2=cal_cov(ref, fit_sensor, first.H),
                    min_spread_deg=min_spread_deg, source=src)
     H = result.H
+    notes.extend(f"H: {n}" for n in result.notes)   # e.g. its sigma widened for a drift
 
     pairs, checks = {}, {}
     for b in booms:
