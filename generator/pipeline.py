@@ -121,6 +121,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
     from generator.fit.sanity import check_rotation
     from generator.fit.scale_check import check_reading_scale
+    from generator.io.full_scale import check_full_scale
     from generator.io.names import column_fault
     from generator.fit.thermal import fit_unit
 
@@ -180,6 +181,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             fault = column_fault(c)
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
+    check_full_scale(unit, tels)      # every sample beyond full scale: a wrong input unit
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
     cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
                     accept_misfit=accept_misfit, max_samples=max_samples)

@@ -279,10 +279,19 @@ def random_truth(unit: Unit, rng: np.random.Generator) -> Truth:
     return Truth(T_REF_C, H, sensors, board_tau_s, heating_C)
 
 
+# Keys a truth.json written by simulate carries besides the parameters, accepted in an
+# override so that a run's truth.json can be given back (--truth): "simulation" (the record
+# of that run: seed, version, options) is ignored -- the seed of the new run is --seed;
+# "t_ref_C" must be the simulator's (its polynomials are in T - t_ref_C); per sensor,
+# "frame" must be the unit file's and "note" is ignored.
+TRUTH_RECORD_KEYS = ("simulation", "t_ref_C")
+
+
 def override_truth(truth: Truth, d: dict, unit: Unit, source=None) -> Truth:
     """The truth with the values of `d` (a partial truth: the keys of truth.json, see
     docs/simulate.md) put in place of the drawn ones; InputError naming the key on an
-    unknown sensor or key, a wrong shape, a non-finite number or an impossible value."""
+    unknown sensor or key, a wrong shape, a non-finite number or an impossible value.
+    A whole truth.json of a simulate run is accepted (TRUTH_RECORD_KEYS)."""
     from generator.errors import InputError
 
     def arr(v, key, shapes):
@@ -307,8 +316,15 @@ def override_truth(truth: Truth, d: dict, unit: Unit, source=None) -> Truth:
         raise InputError(source, "a truth override is a table of keys (see docs/simulate.md)")
     known = {"H_boom_to_body", "board_tau_s", "board_self_heating_C", "sensors", "coil_study"}
     for k in d:
-        if k not in known:
-            raise InputError(source, f"key {k}: unknown; known keys: {', '.join(sorted(known))}")
+        if k not in known | set(TRUTH_RECORD_KEYS):
+            raise InputError(source, f"key {k}: unknown; known keys: {', '.join(sorted(known))}"
+                                     f" (and {', '.join(TRUTH_RECORD_KEYS)} of a truth.json)")
+    # a truth.json written by simulate: its record-only keys (module TRUTH_RECORD_KEYS)
+    if "t_ref_C" in d and num(d["t_ref_C"], "t_ref_C", -150.0, 200.0) != truth.t_ref_C:
+        raise InputError(source, f"key t_ref_C: {d['t_ref_C']!r}; the simulator's "
+                                 f"polynomials are in T - {truth.t_ref_C:g} degC")
+    if "simulation" in d and not isinstance(d["simulation"], dict):
+        raise InputError(source, "key simulation: a table (the record of a simulate run)")
     sensors = {n: SensorTruth(**{f.name: getattr(st, f.name) for f in fields(st)})
                for n, st in truth.sensors.items()}
     out = Truth(truth.t_ref_C, truth.H_boom_to_body.copy(), sensors, dict(truth.board_tau_s),
@@ -359,10 +375,18 @@ def override_truth(truth: Truth, d: dict, unit: Unit, source=None) -> Truth:
                 st.K_coil_frame_nT_per_A = arr(v, key, [(3, 3)])
             elif k == "noise_nT":
                 st.noise_nT = num(v, key, 0.0, 1e6)
+            elif k == "frame":            # recorded by truth.json: must be the unit's
+                if v != unit.sensor(name).frame:
+                    raise InputError(source, f"key {key}: {v!r}, the unit file has sensor "
+                                             f"{name!r} on the {unit.sensor(name).frame} "
+                                             "board: a truth of another unit?")
+            elif k == "note":             # truth.json's explanation of the model: ignored
+                pass
             else:
                 raise InputError(source, f"key {key}: unknown; known: W_poly_frame, "
                                          "b_poly_frame_nT, chip_offset_poly_sensor_nT, "
-                                         "K_coil_frame_nT_per_A, noise_nT")
+                                         "K_coil_frame_nT_per_A, noise_nT (and frame, note "
+                                         "of a truth.json)")
     return out
 
 

@@ -17,6 +17,23 @@ unit-weight variance s^2 per axis the Fisher information is
     F = (1/s^2) sum_n w_n (|v_n|^2 I - v_n v_n^T)   ( = (tr(B H^T) I - B H^T)/s^2 )
 
 and cov(d) = F^-1; s^2 is estimated from the residual scatter, sum w |r|^2 / (3N - 3).
+That counts the N samples as independent. A residual that drifts with the samples (a
+calibration that does not hold in this file: a reference sensor without temperature, an
+effect the model lacks; a disturbance) is not N independent samples: d is driven by the
+score g_n = w_n v_n x r_n (the gradient of Phi; its sum is zero at the optimum), and its
+variance is F^-1 Var(sum g_n) F^-1, larger than the white-noise s^2 F0^-1 by the long-run
+variance factor of g. That factor is estimated by non-overlapping batch means
+(`long_run_inflation`: floor(sqrt(N)) consecutive batches, the sum of the squared batch
+sums over the sum of the squared samples, at least 1); cov_stat is s^2 F0^-1 times it
+(`correlation_inflation`, 1 for a white residual). It is the score's correlation that
+counts, not the residual's (a residual whose own lag-1 correlation is small can still
+carry a slow component along v that moves H), and batch means, not the AR(1) model of
+the sensor fits (fit.reference._correlation_inflation): the score is white sensor noise
+plus a slow drift, whose lag-1 correlation is the mixture's, moderate, while its long-run
+variance is the drift's. Measured on review #19's unit "eight" (RM3100 reference without
+temperature, seeds 5..12, error m = sqrt(d^T cov^-1 d) against the simulated truth,
+chi_3: 3.37 at 99 %, mean m^2 3): white-noise sigma m 4.5..11.4 (mean m^2 68.5); AR(1)
+factor 4..28, m 1.6..4.4 (mean m^2 6.6); batch means 29..42, m 0.9..2.2 (mean m^2 2.2).
 Rows of cov are body axes; `sigma_rad` is its per-axis 1-sigma, `sigma_angle_deg` the
 1-sigma of the rotation angle (cov projected on the rotation axis). An optional extra
 covariance (e.g. from the calibrations' own uncertainty, see `calibration_rotation_cov`)
@@ -51,6 +68,11 @@ SEED_PROJ_DIFF_PCT = 0.5
 SEED_ANGLE_DEG = 0.07
 
 MIN_SAMPLES = 3
+# note the widening when the score's drift more than doubles the variance (rho > 1/3):
+# below that the sigma moves by less than 1.42x, within what one reads from a sigma
+CORRELATION_NOTE = 2.0
+# batch means need a few batches: floor(sqrt(16)) = 4
+MIN_BATCH_SAMPLES = 16
 MIN_SPREAD_DEG = 1.0
 
 
@@ -155,6 +177,7 @@ class AlignmentResult:
     after: dict                        # figures_of_merit with H
     noise_floor_angle_mean_deg: float  # mean angle expected from the residual noise alone
     notes: list = field(default_factory=list)
+    correlation_inflation: float = 1.0  # variance factor of cov_stat for the score's drift
 
     @property
     def sigma_rad(self) -> np.ndarray:
@@ -199,6 +222,7 @@ class AlignmentResult:
             "sigma_axis_deg": self.sigma_deg.tolist(),
             "sigma_axis_stat_deg": self.sigma_stat_deg.tolist(),
             "cov_rad2": self.cov_rad2.tolist(),
+            "correlation_inflation": self.correlation_inflation,
             "residual_sigma_nT": self.residual_sigma_nT,
             "residual_rms_axis_nT": self.residual_rms_axis_nT.tolist(),
             "n_samples": self.n_samples,
@@ -258,6 +282,21 @@ def direction_spread_deg(B_nT, weights=None):
     return float(np.degrees(np.arcsin(min(1.0, spread)))), vec[:, -1]
 
 
+def long_run_inflation(g) -> float:
+    """Long-run variance factor of a series g (N, k) in time order: Var(sum g) over the
+    white-noise value sum |g - mean|^2, by non-overlapping batch means with floor(sqrt(N))
+    batches (the usual batch count: each batch long against the correlation, enough of
+    them for the estimate). At least 1 (below is the estimate's noise for a white g, whose
+    factor has relative sd sqrt(2 / (k B))); 1 for fewer than MIN_BATCH_SAMPLES samples."""
+    g = np.asarray(g, float)
+    g = g.reshape(len(g), -1) - np.mean(g, axis=0).reshape(1, -1)
+    den = float(np.sum(g * g))
+    if len(g) < MIN_BATCH_SAMPLES or den <= 0.0:
+        return 1.0
+    sums = np.array([b.sum(axis=0) for b in np.array_split(g, int(np.sqrt(len(g))))])
+    return max(1.0, float(np.sum(sums * sums)) / den)
+
+
 def wahba_svd(B1_nT, B2_nT, weights=None) -> np.ndarray:
     """H minimising sum w |B1 - H B2|^2 over rotations: U diag(1, 1, det(U V^T)) V^T."""
     B1 = np.asarray(B1_nT, float)
@@ -306,7 +345,15 @@ def fit_H(B_body_nT, B_boom_nT, weights=None, *, extra_cov_rad2=None,
         raise InputError(source, "alignment: the information matrix is singular (field "
                                  "directions do not span enough of the sphere): the "
                                  "rotation about the common direction is undetermined")
-    cov_stat = s2 * np.linalg.inv(F0)
+    # the score's serial correlation: a drifting residual is fewer independent samples
+    infl = long_run_inflation(w[:, None] * np.cross(v, r))
+    if infl > CORRELATION_NOTE:
+        notes.append(f"the residual drifts along the samples (batch means of the fit's "
+                     f"score: {infl:.1f}x the variance of a white residual): the {n} samples "
+                     f"count as {n / infl:.0f} independent ones, sigma widened "
+                     f"x{np.sqrt(infl):.1f}; the calibrations do not hold exactly in this "
+                     "file (e.g. a sensor without temperature)")
+    cov_stat = s2 * infl * np.linalg.inv(F0)
     cov_stat = 0.5 * (cov_stat + cov_stat.T)
     cov = cov_stat.copy()
     if extra_cov_rad2 is not None:
@@ -331,7 +378,7 @@ def fit_H(B_body_nT, B_boom_nT, weights=None, *, extra_cov_rad2=None,
         residual_rms_axis_nT=np.sqrt(np.mean(r ** 2, axis=0)),
         n_samples=int(n), spread_deg=float(spread),
         before=figures_of_merit(B1, B2, None), after=figures_of_merit(B1, B2, H),
-        noise_floor_angle_mean_deg=floor, notes=notes)
+        noise_floor_angle_mean_deg=floor, notes=notes, correlation_inflation=float(infl))
 
 
 # =======================================================================================
@@ -509,6 +556,7 @@ def align_boom(unit, tel, calibrations, *, fit_sensor=None, coil_K_nT_per_A=None
     result = fit_H(B1, B2, extra_cov_rad2=cal_cov(ref, fit_sensor, first.H),
                    min_spread_deg=min_spread_deg, source=src)
     H = result.H
+    notes.extend(f"H: {n}" for n in result.notes)   # e.g. its sigma widened for a drift
 
     pairs, checks = {}, {}
     for b in booms:

@@ -71,6 +71,34 @@ def check_empty_folder(path, force: bool) -> list:
     return names
 
 
+def check_plan_unit(plan, unit, plan_path, unit_path) -> float:
+    """The lab field of a run that follows `plan` (a plan.json read back): a plan is the
+    program of one unit in one lab, so
+    * a plan recording another unit (its "unit" key, the unit file's [unit] id) is
+      InputError naming the plan file and both ids;
+    * a plan whose lab_field_nT differs (beyond 1e-6 relative, the JSON round trip) from
+      the unit file's lab_field_nT is InputError: the unit file is the authority on its own
+      lab, and a run with two lab fields (the plan's in the thermal campaign, the unit's in
+      the others) simulates no lab; the plan is made again from the unit file;
+    * a unit file without lab_field_nT takes the plan's field (`magcal plan
+      --lab-field-nT`), for every campaign.
+    A plan without a "unit" key (written by hand) is not checked for its unit."""
+    if plan.unit_id and plan.unit_id != unit.id:
+        raise InputError(plan_path, f"key unit: the plan is the program of unit "
+                                    f"{plan.unit_id!r}, {unit_path} is unit {unit.id!r}; "
+                                    f"make its own: magcal plan {unit_path}")
+    if unit.lab_field_nT:
+        field = float(unit.lab_field_nT)
+        if abs(plan.lab_field_nT - field) > 1e-6 * field:
+            raise InputError(plan_path, f"key lab_field_nT: the plan's lab field "
+                                        f"{plan.lab_field_nT:g} nT differs from the unit's "
+                                        f"{field:g} nT (lab_field_nT of {unit_path}), the "
+                                        f"authority on its lab; make the plan again: magcal "
+                                        f"plan {unit_path}")
+        return field
+    return float(plan.lab_field_nT)
+
+
 def load_truth_override(path) -> dict:
     """A truth override file: JSON or TOML (by its suffix), InputError on anything else."""
     path = Path(path)
@@ -113,20 +141,20 @@ def run_simulate(args, progress) -> tuple:
     if override is not None:
         truth = sim.override_truth(truth, override, unit, args.truth)
     notes = []
-    if not unit.lab_field_nT:
+    lab_field_nT = None          # None: the unit's (else seed 000's), scenarios._field_nT
+    if args.plan and "thermal_12pos" in args.campaigns:
+        pass                     # the plan's field, when the unit states none: below
+    elif not unit.lab_field_nT:
         notes.append(f"the unit file has no lab_field_nT: the lab field is seed 000's "
                      f"{sim.LAB_FIELD_nT:g} nT")
     plan = None
     if "thermal_12pos" in args.campaigns:
         if args.plan:
             plan = plan_mod.load_plan(args.plan)
-            if plan.unit_id and plan.unit_id != unit.id:
-                notes.append(f"{args.plan} is the program of unit {plan.unit_id!r}; "
-                             f"followed for {unit.id!r}")
-            field = unit.lab_field_nT or sim.LAB_FIELD_nT
-            if abs(plan.lab_field_nT - field) > 1e-6 * field:
-                notes.append(f"the plan's lab field {plan.lab_field_nT:g} nT is used for the "
-                             f"thermal campaign, the unit's {field:g} nT for the others")
+            lab_field_nT = check_plan_unit(plan, unit, args.plan, args.unit)
+            if not unit.lab_field_nT:
+                notes.append(f"the unit file has no lab_field_nT: the plan's "
+                             f"{lab_field_nT:g} nT is the lab field of every campaign")
             if args.sample_period_s is not None or args.samples_per_segment is not None:
                 raise InputError(args.plan, "--plan sets the sample period and the samples "
                                             "per segment: leave out --sample-period-s and "
@@ -172,6 +200,8 @@ def run_simulate(args, progress) -> tuple:
             if kind not in args.campaigns:
                 continue
             opts = {"plan": plan} if kind == "thermal_12pos" else {}
+            if lab_field_nT is not None and kind != "thermal_12pos":
+                opts["lab_field_nT"] = lab_field_nT       # one lab field per run
             path, arrays = sim.simulate_campaign(kind, unit, truth, np.random.default_rng(ss),
                                                  tmp, **opts)
             files[kind] = path
