@@ -195,8 +195,7 @@ def test_bad_plan_is_one_line(tmp_path, capsys):
 # ---- any unit: simulate, then fit ------------------------------------------------------
 
 PARTS = parts_mod.names()
-# "G" is left out of the draw: the fit fails on it (test_gauss_input_fits below)
-PHYSICAL = ("nT", "uT", "mG")
+PHYSICAL = ("nT", "uT", "mG", "G")
 
 
 def _sensor(i, part_name, frame, axes, temperature, inp, set_reset):
@@ -222,11 +221,7 @@ def units(draw):
         signs = draw(st.lists(st.sampled_from("+-"), min_size=3, max_size=3))
         frame = "boom" if (boom and i > 0 and draw(st.booleans())) else "body"
         part = draw(st.sampled_from(PARTS))
-        # a sensor without temperature in a unit with a boom breaks the boom alignment
-        # (test_boom_unit_with_a_sensor_without_temperature below): drawn with temperature
-        temperature = True if boom else draw(st.booleans())
-        if boom and not parts_mod.part(part).temperature:
-            part = "MPU-9255"
+        temperature = draw(st.booleans())
         sensors.append(_sensor(i, part, frame, tuple(sg + a for sg, a in zip(signs, perm)),
                                temperature, draw(st.sampled_from(PHYSICAL)),
                                draw(st.booleans())))
