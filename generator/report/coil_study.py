@@ -157,11 +157,6 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
               label="seed 000, 30 cm, panel")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    from matplotlib.ticker import NullFormatter
-    ticks = np.unique(r_all)
-    ax.set_xticks(ticks)
-    ax.set_xticklabels([f"{x:g}" for x in ticks])
-    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("distance coil - magnetometer, cm", fontsize=8)
     ax.set_ylabel(f"interference |dB| at {current_A:g} A, nT", fontsize=8)
     ax.grid(alpha=0.3, lw=0.5, which="both")
@@ -169,4 +164,46 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
     ax.tick_params(labelsize=7)
     ax.set_title("Coil study: interference against distance", fontsize=10)
     fig.subplots_adjust(left=0.13, right=0.98, top=0.9, bottom=0.13)
+    distance_ticks(ax, r_all, extra_cm=(30.0,), fontsize=7)
     return _save(fig, path)
+
+
+def distance_ticks(ax, distances_cm, extra_cm=(), fontsize=7) -> list:
+    """x ticks of a log distance axis at the measured distances and extra_cm (the seed's
+    30 cm) whose labels do not overlap: the smallest and the largest measured distance and
+    extra_cm first, then the rest from small to large, each kept only where its label
+    clears those kept (label width
+    from the font size: a digit or point is at most 0.65 em wide in the default font, plus
+    half an em between labels). Call after the axes' limits and position are final.
+    Returns the ticks kept."""
+    from matplotlib.ticker import NullFormatter
+
+    lo, hi = np.log10(ax.get_xlim())
+    fig = ax.get_figure()
+    width_pt = fig.get_size_inches()[0] * 72.0 * ax.get_position().width
+    def inside(v):
+        v = np.unique(np.asarray(v, float))
+        return v[(v > 0) & (np.log10(np.maximum(v, 1e-300)) >= lo)
+                 & (np.log10(np.maximum(v, 1e-300)) <= hi)]
+    r, extra = inside(distances_cm), inside(extra_cm)
+    if not r.size and not extra.size:
+        return []
+    order = ([r.min(), r.max()] if r.size else []) + list(extra) + list(r)
+    kept = []
+
+    def place(x):
+        label = f"{x:g}"
+        centre = (np.log10(x) - lo) / (hi - lo) * width_pt
+        return centre, 0.65 * fontsize * len(label) / 2.0
+
+    for x in order:
+        if any(x == k for k in kept):
+            continue
+        c, half = place(x)
+        if all(abs(c - ck) >= half + hk + 0.5 * fontsize for ck, hk in map(place, kept)):
+            kept.append(x)
+    kept.sort()
+    ax.set_xticks(kept)
+    ax.set_xticklabels([f"{x:g}" for x in kept])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    return kept

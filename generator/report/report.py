@@ -113,8 +113,9 @@ def method_section(cs) -> Section | None:
             if not isinstance(e, dict):
                 return None
             return e.get("rms_vector_nT") or e.get("rms_norm_nT")
-        rows.append([s.name, h.get("scheme", ""), score("joint"), score("segments"),
-                     st.get("chosen", ""), st.get("why", "")])
+        scores = {m: score(m) for m in ("joint", "segments")}
+        cells, why = _held_out_choice(scores, st.get("chosen", ""), st.get("why", ""))
+        rows.append([s.name, h.get("scheme", "")] + cells + [st.get("chosen", ""), why])
     if not rows:
         return None
     return Section("Temperature model: held-out choice", [
@@ -124,6 +125,29 @@ def method_section(cs) -> Section | None:
         "error on held-out data is kept."],
         [Table(["sensor", "held-out scheme", "joint RMS nT", "segments RMS nT", "chosen",
                 "why"], rows, "Held-out comparison")])
+
+
+CHOICE_DECIMALS_MAX = 3      # 0.001 nT: below it two held-out RMS are the same number
+
+
+def _held_out_choice(scores, chosen, why) -> tuple:
+    """(the held-out RMS cells, the why) printed alike: with the decimals that tell the
+    scores apart (at least 1, at most CHOICE_DECIMALS_MAX), so the table shows the
+    difference the choice was made on; scores equal at that precision are said to tie."""
+    got = {m: v for m, v in scores.items() if v is not None}
+    if len(got) < 2 or not str(why).startswith("smaller held-out error"):
+        return [scores[m] for m in scores], why
+    vals = list(got.values())
+    d = next((d for d in range(1, CHOICE_DECIMALS_MAX + 1)
+              if len({f"{v:.{d}f}" for v in vals}) == len(vals)), CHOICE_DECIMALS_MAX)
+    cells = ["-" if v is None else f"{v:.{d}f}" for v in scores.values()]
+    listed = ", ".join(f"{m} {v:.{d}f} nT" for m, v in got.items())
+    if len({f"{v:.{d}f}" for v in vals}) < len(vals):
+        why = (f"a tie within rounding ({listed}: equal to {10.0 ** -d:g} nT); {chosen} "
+               "kept")
+    else:
+        why = f"smaller held-out error: {listed}"
+    return cells, why
 
 
 def polynomial_table(cs, name) -> Table:
@@ -855,12 +879,30 @@ def left_out(cs, analysis, titles, compare=True) -> list:
 
     def missing(prefix):
         return not any(t.startswith(prefix) for t in titles)
+    from generator.report.seed_sections import FIG26_POSITIONS, _rotation_file, _static_file
+    static = _static_file(analysis) is not None
     out = []
+    if missing("Per-axis RMS"):
+        out.append("the per-axis RMS before and after (seed 000's per-axis bars): no sensor "
+                   "has samples with reference vectors in its calibration's frame")
     if missing("Chamber profile"):
         out.append("the chamber profile (seed 000 fig. 21, 23): " + (
             "no sensor reports a temperature (temperature = false)"
             if not any(s.temperature for s in cs.unit.sensors)
             else "no file with static positions"))
+    if missing("Calibrated measurements in the positions"):
+        out.append("the calibrated measurements in the positions (seed 000 fig. 26): " + (
+            "no file with static positions" if not static else
+            f"no sensor has reference vectors in positions "
+            f"{', '.join(str(p) for p in FIG26_POSITIONS)} in its calibration's frame"))
+    if missing("Example calibration: rotation"):
+        out.append("Example calibration: rotation (seed 000 fig. 14): " + (
+            "no rotation among the files (a moving file without reference vectors)"
+            if _rotation_file(analysis) is None else "no sensor has samples in the rotation"))
+    if missing("Example calibration: twelve positions"):
+        out.append("Example calibration: twelve positions (seed 000 fig. 16): " + (
+            "no file with static positions" if not static
+            else "no sensor has samples in the file with static positions"))
     if missing("Agreement of the two magnetometers"):
         out.append("the agreement of the two magnetometers, H (seed 000 fig. 8-10): " + (
             "the unit has no boom sensor" if not any(s.frame == "boom" for s in cs.unit.sensors)
