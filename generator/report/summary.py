@@ -152,26 +152,32 @@ def predicted_line(cs) -> str | None:
 
 
 def noise_used(spec, stats) -> str:
-    """The reading noise per axis the fit used and where it came from: the noise test's
-    figure (fit stats noise_goodness: noise_nT, noise_from), the source named for a
-    reader: 'unit file' (the unit's noise_nT), the part catalogue's typical figure, or
-    estimated from the data (3 significant digits: an estimate, not a stated figure).
-    Any other noise_from is printed as the fit wrote it. '-' when the fit ran no noise
-    test and the unit states none."""
+    """The reading noise per field axis the fit used and where it came from: the noise
+    test's figure (fit stats noise_goodness: noise_nT, noise_from; 3 significant digits),
+    its source named for a reader: the unit file's noise_nT or the part catalogue's
+    typical figure ('stated' before the catalogue was recorded as a source of its own:
+    the unit file where it states one, else the catalogue), with what turns a reading's
+    figure into a field axis' (the count quantisation, the SET/RESET pair's average); or
+    estimated from the data. Any other noise_from is printed as the fit wrote it. '-'
+    when the fit ran no noise test and the unit states none."""
     g = (stats or {}).get("noise_goodness") or {}
     noise, src = g.get("noise_nT"), str(g.get("noise_from") or "")
     if noise is None or not np.isfinite(float(noise)) or float(noise) <= 0:
-        return "-" if not spec.noise_nT else f"{spec.noise_nT:g}, unit file (no noise test ran)"
+        return "-" if not spec.noise_nT else f"{spec.noise_nT:g} (unit file; no noise test ran)"
     noise = float(noise)
-    if src == "stated":       # the unit file's figure, else (before 'part catalogue' was
-        unit = spec.noise_nT  # recorded as its own source) the part catalogue's
-        src = ("unit file" if unit and abs(float(unit) - noise) <= 1e-9 * noise
-               else "part catalogue")
-    if src in ("unit file",) or src.startswith("part catalogue"):
-        return f"{noise:g}, {src}"
+    if src == "stated":
+        src = "unit file" if spec.noise_nT else "part catalogue"
+    if src == "unit file" or src.startswith("part catalogue"):
+        how = [w for w, on in (("with the LSB's quantisation", getattr(spec, "counts", False)),
+                               ("averaged over the SET/RESET pair",
+                                getattr(spec, "set_reset", False))) if on]
+        base = [f"{spec.noise_nT:g} per reading"] if src == "unit file" else []
+        detail = ", ".join(base + how)
+        src = src.replace(" (", ", ").replace(")", "")     # 'part catalogue, typical
+        return f"{significant(noise)} ({src}{': ' + detail if detail else ''})"
     if "difference" in src and not src.startswith("estimated"):
         src = "estimated from " + src
-    return f"{significant(noise)}, {src}" if src else significant(noise)
+    return f"{significant(noise)} ({src})" if src else significant(noise)
 
 
 def verdict(fig, req) -> tuple:
