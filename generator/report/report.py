@@ -730,7 +730,9 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                       r["distance_source"],
                       "-" if r0 is None else
                       pm(r0, r["distance_sigma_cm"]) if r.get("distance_sigma_cm") else
-                      f"{r0:g} ({'assumed' if r['distance_source'] == 'assumed' else 'given'})"]
+                      f"{r0:.3g} ({r['distance_source']})"
+                      if r["distance_source"] in ("assumed", "given") else
+                      f"{r0:.3g} (no 1-sigma)"]
                      + at + ["; ".join(flags) or "-"])
     for w in laws:
         table.append(["law", f"{w.sensor} {w.coil}, {PANEL_STATE[w.panel]}", "-", "-", "-",
