@@ -95,7 +95,8 @@ def _unit_sensors(path):
     (dict(noise_nT=40.0, counts=True, set_reset=True), {"noise_nT": 28.74, "noise_from": "stated"},
      "28.7 (unit file: 40 per reading, with the LSB's quantisation, averaged over the "
      "SET/RESET pair)"),
-    (dict(noise_nT=None, counts=False, set_reset=False), {"noise_nT": 300.0, "noise_from": "stated"},
+    (dict(noise_nT=None, counts=False, set_reset=False),
+     {"noise_nT": 300.0, "noise_from": "stated"},
      "300 (part catalogue)"),
     (dict(noise_nT=None, counts=True, set_reset=False),
      {"noise_nT": 15.2, "noise_from": "part catalogue (typical)"},
