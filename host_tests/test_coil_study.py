@@ -62,9 +62,12 @@ def test_seed_comparison_at_30cm_and_panel_factor(tmp_path):
     assert rows[0]["seed_nT"] == SEED_30CM_NO_PANEL_NT
 
 
-def test_distance_law_two_points_has_no_uncertainty_and_one_point_is_refused():
+def test_distance_law_two_points_is_unchecked_and_one_point_is_refused():
     law = fit_distance_law([10.0, 20.0], [8000.0, 1000.0], [10.0, 10.0])
-    assert law.exponent == pytest.approx(3.0) and law.exponent_sigma is None
+    # two points: the law goes through both, no chi2 (its 1-sigma: host_tests/
+    # test_report_law_sigma.py), flagged as checked by nothing
+    assert law.exponent == pytest.approx(3.0) and law.chi2_per_dof is None
+    assert "unchecked" in law.unchecked() and law.misfit() is None
     with pytest.raises(InputError, match="one distance"):
         fit_distance_law([10.0, 10.0], [8000.0, 8100.0], [10.0, 10.0])
 

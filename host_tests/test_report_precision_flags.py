@@ -69,9 +69,9 @@ def test_chi2_flag_at_the_quantile_of_the_laws_dof():
                                          "K_30cm_sigma_nT_per_A", "r_min_cm", "r_max_cm")}
     assert DistanceLaw(chi2_per_dof=lim, **kw).misfit() is None
     assert DistanceLaw(chi2_per_dof=lim * 1.001, **kw).misfit() is not None
-    # two points: no dof, no chi2 flag
+    # two points: no dof, no chi2 flag, but flagged unchecked (nothing tests the law)
     two = fit_distance_law([10.0, 20.0], [8000.0, 1000.0], [10.0, 10.0])
-    assert two.misfit() is None and two.flags(15.0) == []
+    assert two.misfit() is None and two.flags(15.0) == [two.unchecked()]
 
 
 def test_summary_warns_of_the_flags_at_the_points_the_report_uses():

@@ -266,12 +266,13 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
             law, own = _study_law(study, name, coil)
             n = 3.0 if law is None else law.exponent
             flags = []
+            r0_sigma = None
             if (distance_cm or {}).get(name) is not None:
                 r0, source = float(distance_cm[name]), "given"
             elif study is not None and law is None:
                 r0, source = None, (f"not measured: the coil study has no {coil}")
             elif law is not None and norms[j] > 0:
-                r0 = float(30.0 * (law.K_30cm_nT_per_A / norms[j]) ** (1.0 / n))
+                r0, r0_sigma = law.distance_cm(norms[j], sig[j])
                 source = (f"coil study, this sensor's law ({PANEL_STATE[law.panel]})" if own
                           else f"coil study, the law of {law.sensor} {law.coil} "
                                f"({PANEL_STATE[law.panel]}) carried to this sensor")
@@ -286,10 +287,14 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
                 "current_A": current_A, "interference_nT": x,
                 "interference_sigma_nT": float(sig[j] * current_A),
                 "pct_of_lab_field": (100.0 * x / lab) if lab else None,
-                "distance_cm": r0, "distance_source": source, "law": law,
-                "law_is_own": bool(own), "exponent": n if r0 is not None else None,
+                "distance_cm": r0, "distance_sigma_cm": r0_sigma, "distance_source": source,
+                "law": law, "law_is_own": bool(own), "exponent": n if r0 is not None else None,
                 "at_cm": ({} if r0 is None else
                           {float(r): float(scale_power(x, r0, r, n)) for r in points_cm}),
+                "at_cm_sigma": ({} if r0 is None else
+                                {float(r): _at_sigma(x, float(sig[j] * current_A), r0, r, law,
+                                                     source, current_A)
+                                 for r in points_cm}),
                 "seed_no_panel_at_cm": {float(r): float(scale_power(
                     SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, seed_n))
                     for r in points_cm},
@@ -305,6 +310,21 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
 
 
 PANEL_STATE = {0: "without panel", 1: "with panel"}
+
+
+def _at_sigma(x, x_sigma, r0, r, law, source, current_A):
+    """1-sigma of the interference x (at r0) carried to r. On a law's distance (source
+    not 'given'/'assumed') the value is the law's own, so is its 1-sigma; at a given or
+    assumed distance: x's 1-sigma and the law's exponent's, the distance itself carries
+    none (it is not measured)."""
+    if law is not None and source not in ("given", "assumed"):
+        sig = law.sigma_at(r, current_A)
+        return None if sig is None else float(sig)
+    rel2 = (x_sigma / x) ** 2 if x > 0 else 0.0
+    if law is not None and law.exponent_sigma is not None:
+        rel2 += (np.log(r0 / r) * law.exponent_sigma) ** 2
+    n = 3.0 if law is None else law.exponent
+    return float(scale_power(x, r0, r, n) * np.sqrt(rel2))
 
 
 def _study_law(study, sensor, coil) -> tuple:
@@ -464,26 +484,73 @@ class DistanceLaw:
     """|K|(r) = K_30 (30 cm / r)^n, fitted to the points of one sensor, coil and panel
     state by weighted least squares in log-log (weights from the points' 1-sigma); the
     uncertainties from the covariance, scaled by sqrt(chi2/dof) where the scatter exceeds
-    the points' own errors (Birge ratio)."""
+    the points' own errors (Birge ratio). Two points leave no degree of freedom: the law
+    goes through both, its uncertainty is the points' 1-sigma propagated plainly (nothing
+    can tell whether they scatter more than their errors: flagged `unchecked`)."""
     sensor: str
     coil: str
     panel: int
     n_points: int
     exponent: float
-    exponent_sigma: float | None        # None: two points, no degree of freedom left
+    exponent_sigma: float | None        # None: not known (a law built without its fit)
     K_30cm_nT_per_A: float
     K_30cm_sigma_nT_per_A: float | None
-    chi2_per_dof: float | None
+    chi2_per_dof: float | None          # None: two points, no degree of freedom left
     r_min_cm: float | None = None       # the measured distances' span (None: not recorded)
     r_max_cm: float | None = None
+    # covariance of (ln K30, n), 2 x 2 nested list; None: the two 1-sigma taken independent
+    cov_lnK30_n: list | None = None
 
     def at(self, r_cm, current_A=1.0):
         return self.K_30cm_nT_per_A * (30.0 / np.asarray(r_cm, float)) ** self.exponent \
             * current_A
 
+    def _cov(self) -> np.ndarray | None:
+        if self.cov_lnK30_n is not None:
+            return np.asarray(self.cov_lnK30_n, float)
+        if self.exponent_sigma is None or self.K_30cm_sigma_nT_per_A is None:
+            return None
+        return np.diag([(self.K_30cm_sigma_nT_per_A / self.K_30cm_nT_per_A) ** 2,
+                        self.exponent_sigma ** 2])
+
+    def sigma_at(self, r_cm, current_A=1.0):
+        """1-sigma of at(r_cm, current_A), first order in (ln K30, n) with their
+        covariance: ln at = ln K30 - n ln(r / 30 cm). None where the law has no
+        uncertainty."""
+        C = self._cov()
+        if C is None:
+            return None
+        g = -np.log(np.asarray(r_cm, float) / 30.0)
+        var_ln = C[0, 0] + 2 * g * C[0, 1] + g * g * C[1, 1]
+        return self.at(r_cm, current_A) * np.sqrt(np.maximum(var_ln, 0.0))
+
+    def distance_cm(self, K_norm_nT_per_A, K_norm_sigma_nT_per_A=None) -> tuple:
+        """(r, 1-sigma of r or None): where the law gives |K| = K_norm. First order in
+        (ln K30, n) with their covariance and in ln K_norm, taken independent of the law's
+        points (a separate measurement)."""
+        K = float(K_norm_nT_per_A)
+        n = self.exponent
+        d = np.log(self.K_30cm_nT_per_A) - np.log(K)
+        r = float(30.0 * np.exp(d / n))
+        C = self._cov()
+        if C is None:
+            return r, None
+        g = np.array([1.0 / n, -d / n ** 2])           # d ln r / d (ln K30, n)
+        var_ln = float(g @ C @ g)
+        if K_norm_sigma_nT_per_A is not None:
+            var_ln += (float(K_norm_sigma_nT_per_A) / K / n) ** 2
+        return r, r * float(np.sqrt(max(var_ln, 0.0)))
+
     @property
     def dof(self) -> int:
         return self.n_points - 2
+
+    def unchecked(self) -> str | None:
+        """The flag when nothing tests the law against its points (two points: it goes
+        through both, no degree of freedom for a misfit test); else None."""
+        if self.dof > 0:
+            return None
+        return f"unchecked: {self.n_points} points, no misfit test"
 
     def chi2_limit_per_dof(self) -> float | None:
         """CHI2_QUANTILE quantile of chi2 at the law's dof, per dof (None: no dof)."""
@@ -515,15 +582,16 @@ class DistanceLaw:
                 f"{self.r_min_cm:g}..{self.r_max_cm:g} cm")
 
     def flags(self, *r_cm) -> list:
-        """Every flag of the law used at the distances r_cm (misfit, extrapolation)."""
-        out = [self.misfit()] + [self.extrapolated(r) for r in r_cm]
+        """Every flag of the law used at the distances r_cm (misfit or unchecked,
+        extrapolation)."""
+        out = [self.misfit(), self.unchecked()] + [self.extrapolated(r) for r in r_cm]
         return [f for f in out if f]
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("sensor", "coil", "panel", "n_points",
                                               "exponent", "exponent_sigma", "K_30cm_nT_per_A",
                                               "K_30cm_sigma_nT_per_A", "chi2_per_dof",
-                                              "r_min_cm", "r_max_cm")}
+                                              "r_min_cm", "r_max_cm", "cov_lnK30_n")}
 
 
 @dataclass
@@ -575,16 +643,17 @@ def fit_distance_law(r_cm, K_norm, K_sigma, *, sensor="", coil="", panel=0, sour
     beta = cov @ (A.T @ (w ** 2 * y))
     dof = len(r) - 2
     chi2 = float(np.sum(((y - A @ beta) * w) ** 2))
-    if dof > 0:
+    if dof > 0:      # Birge: scatter beyond the errors widens them; two points cannot tell
         cov = cov * max(1.0, chi2 / dof)
     K30 = float(np.exp(beta[0]))
     return DistanceLaw(sensor=sensor, coil=coil, panel=int(panel), n_points=int(len(r)),
                        exponent=float(beta[1]),
-                       exponent_sigma=float(np.sqrt(cov[1, 1])) if dof > 0 else None,
+                       exponent_sigma=float(np.sqrt(cov[1, 1])),
                        K_30cm_nT_per_A=K30,
-                       K_30cm_sigma_nT_per_A=float(K30 * np.sqrt(cov[0, 0])) if dof > 0 else None,
+                       K_30cm_sigma_nT_per_A=float(K30 * np.sqrt(cov[0, 0])),
                        chi2_per_dof=chi2 / dof if dof > 0 else None,
-                       r_min_cm=float(r.min()), r_max_cm=float(r.max()))
+                       r_min_cm=float(r.min()), r_max_cm=float(r.max()),
+                       cov_lnK30_n=cov.tolist())
 
 
 def fit_coil_study(unit, telemetries) -> CoilStudy:

@@ -14,7 +14,7 @@ import numpy as np
 
 from generator.fit.coils import (SEED_30CM_NO_PANEL_NT, SEED_30CM_PANEL_NT, SEED_CURRENT_A,
                                  fit_coil_study, is_coil_study)
-from generator.report.document import Section, Table, pm
+from generator.report.document import Section, Table, pm, significant
 
 PANEL = {0: "without panel", 1: "with panel"}
 
@@ -32,19 +32,17 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         point_rows.append([p.sensor, p.coil, PANEL[p.panel], f"{p.distance_cm:g}",
                            pm(p.K_norm_nT_per_A, p.K_norm_sigma_nT_per_A),
                            pm(p.K_norm_nT_per_A * current_A, p.K_norm_sigma_nT_per_A * current_A),
-                           "-" if law is None else f"{float(law.at(p.distance_cm, current_A)):.1f}",
+                           "-" if law is None else law_value_text(law, p.distance_cm, current_A),
                            p.n_samples])
     law_rows = []
     for w, c in zip(study.laws, study.seed_comparison(current_A)):
         lim = w.chi2_limit_per_dof()
         law_rows.append([w.sensor, w.coil, PANEL[w.panel], w.n_points,
                          f"{w.r_min_cm:g}..{w.r_max_cm:g}",
-                         pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
-                         else f"{w.exponent:.3f} (2 points)",
-                         pm(c["at_30cm_nT"], c["sigma_nT"]) if c["sigma_nT"]
-                         else f"{c['at_30cm_nT']:.1f}",
+                         exponent_text(w), law_value_text(w, 30.0, current_A),
                          f"{c['seed_nT']:.2f}", _ratio(c),
-                         "-" if w.chi2_per_dof is None else
+                         f"- ({w.n_points} points: no degree of freedom)"
+                         if w.chi2_per_dof is None else
                          f"{w.chi2_per_dof:.2f} (99 %: {lim:.2f})",
                          "; ".join(w.flags(30.0)) or "-"])
     paragraphs = [
@@ -54,7 +52,10 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         "campaign: the readings against the current plus a constant per static position. "
         f"Through the points of each sensor and panel state the law |K| = K30 (30 cm / r)^n "
         "is fitted in log-log, weighted by the points' 1-sigma, its uncertainty scaled up "
-        "by sqrt(chi2/dof) where the points scatter more than their errors. A dipole gives "
+        "by sqrt(chi2/dof) where the points scatter more than their errors. With two "
+        "distances the law goes through both points: its 1-sigma is theirs propagated "
+        "plainly, and no degree of freedom is left to test whether they scatter more than "
+        "their errors (flag 'unchecked'). A dipole gives "
         f"n = 3. The seed measured {SEED_30CM_NO_PANEL_NT} nT without and "
         f"{SEED_30CM_PANEL_NT} nT with the panel at 30 cm and {SEED_CURRENT_A:g} A.",
         "What to look for: points on their line (chi2/dof near 1), n within its "
@@ -62,12 +63,13 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         f"{SEED_30CM_PANEL_NT / SEED_30CM_NO_PANEL_NT:.2f}.",
         "Flags: chi2/dof above its 99 % quantile at the law's degrees of freedom (points "
         "that scatter only by their 1-sigma exceed it once in a hundred laws: beyond it "
-        "the errors or the power law are off), and a law evaluated outside the distances "
+        "the errors or the power law are off), a law through two points that no misfit "
+        "test checks (unchecked), and a law evaluated outside the distances "
         "it was measured at (the 30 cm comparison with the seed is then extrapolated)."]
     ratios = _panel_ratios(study)
     if ratios:
         paragraphs.append("Panel factor at 30 cm (with / without): " + "; ".join(
-            f"{s} {c}: {pm(r, sig) if sig else f'{r:.2f}'}"
+            f"{s} {c}: {pm(r, sig) if sig else significant(r, 2) + ' (no 1-sigma)'}"
             for (s, c), (r, sig) in ratios.items()) + ".")
     paragraphs += [f"Note: {n}" for n in study.notes]
     return [Section(f"Coil study: interference against distance at {current_A:g} A", paragraphs,
@@ -82,6 +84,21 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
                       "1-sigma, the fitted laws, the seed's 30 cm figures", [0, 1])])]
 
 
+def exponent_text(law) -> str:
+    """The law's n to its 1-sigma, and '(2 points, unchecked)' where no misfit test backs
+    the 1-sigma (plain propagation of the two points' errors)."""
+    n = (pm(law.exponent, law.exponent_sigma) if law.exponent_sigma
+         else f"{law.exponent:.2f} (no 1-sigma)")
+    return n + (f" ({law.n_points} points, unchecked)" if law.unchecked() else "")
+
+
+def law_value_text(law, r_cm, current_A) -> str:
+    """The law's interference at r_cm and current_A, to its 1-sigma."""
+    sig = law.sigma_at(r_cm, current_A)
+    v = float(law.at(r_cm, current_A))
+    return pm(v, sig) if sig else significant(v) + " (no 1-sigma)"
+
+
 def _fit(cs, analysis):
     tels = [t for t in getattr(analysis, "tels", []) if is_coil_study(t)]
     return fit_coil_study(cs.unit, tels) if tels else None
@@ -91,7 +108,7 @@ def _ratio(c) -> str:
     """The ratio to the seed's figure, to the precision of its 1-sigma where known."""
     if c["sigma_nT"]:
         return pm(c["ratio_to_seed"], c["sigma_nT"] / c["seed_nT"])
-    return f"{c['ratio_to_seed']:.2f}"
+    return significant(c["ratio_to_seed"], 2) + " (no 1-sigma)"
 
 
 def _panel_ratios(study) -> dict:
@@ -103,7 +120,7 @@ def _panel_ratios(study) -> dict:
         if base is not None and base.K_30cm_nT_per_A > 0:
             r = w.K_30cm_nT_per_A / base.K_30cm_nT_per_A
             sig = None   # first order, the two laws independent (separate points)
-            if w.K_30cm_sigma_nT_per_A and base.K_30cm_sigma_nT_per_A:
+            if w.K_30cm_sigma_nT_per_A is not None and base.K_30cm_sigma_nT_per_A is not None:
                 sig = r * np.hypot(w.K_30cm_sigma_nT_per_A / w.K_30cm_nT_per_A,
                                    base.K_30cm_sigma_nT_per_A / base.K_30cm_nT_per_A)
             out[(w.sensor, w.coil)] = (r, sig)
@@ -132,9 +149,7 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
         law = study.law(*key)
         if law is not None:
             ax.loglog(grid, law.at(grid, current_A), "-" if key[2] == 0 else "--", lw=0.8,
-                      color=color, label=f"law, {PANEL[key[2]]}: n = "
-                      + (pm(law.exponent, law.exponent_sigma) if law.exponent_sigma
-                         else f"{law.exponent:.2f}"))
+                      color=color, label=f"law, {PANEL[key[2]]}: n = " + exponent_text(law))
     seed = current_A / SEED_CURRENT_A
     ax.loglog([30.0], [SEED_30CM_NO_PANEL_NT * seed], "*", ms=10, color="k",
               label="seed 000, 30 cm, no panel")
@@ -142,11 +157,6 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
               label="seed 000, 30 cm, panel")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    from matplotlib.ticker import NullFormatter
-    ticks = np.unique(r_all)
-    ax.set_xticks(ticks)
-    ax.set_xticklabels([f"{x:g}" for x in ticks])
-    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("distance coil - magnetometer, cm", fontsize=8)
     ax.set_ylabel(f"interference |dB| at {current_A:g} A, nT", fontsize=8)
     ax.grid(alpha=0.3, lw=0.5, which="both")
@@ -154,4 +164,46 @@ def coil_study_figure(path, study, current_A=SEED_CURRENT_A) -> Path:
     ax.tick_params(labelsize=7)
     ax.set_title("Coil study: interference against distance", fontsize=10)
     fig.subplots_adjust(left=0.13, right=0.98, top=0.9, bottom=0.13)
+    distance_ticks(ax, r_all, extra_cm=(30.0,), fontsize=7)
     return _save(fig, path)
+
+
+def distance_ticks(ax, distances_cm, extra_cm=(), fontsize=7) -> list:
+    """x ticks of a log distance axis at the measured distances and extra_cm (the seed's
+    30 cm) whose labels do not overlap: the smallest and the largest measured distance and
+    extra_cm first, then the rest from small to large, each kept only where its label
+    clears those kept (label width
+    from the font size: a digit or point is at most 0.65 em wide in the default font, plus
+    half an em between labels). Call after the axes' limits and position are final.
+    Returns the ticks kept."""
+    from matplotlib.ticker import NullFormatter
+
+    lo, hi = np.log10(ax.get_xlim())
+    fig = ax.get_figure()
+    width_pt = fig.get_size_inches()[0] * 72.0 * ax.get_position().width
+    def inside(v):
+        v = np.unique(np.asarray(v, float))
+        return v[(v > 0) & (np.log10(np.maximum(v, 1e-300)) >= lo)
+                 & (np.log10(np.maximum(v, 1e-300)) <= hi)]
+    r, extra = inside(distances_cm), inside(extra_cm)
+    if not r.size and not extra.size:
+        return []
+    order = ([r.min(), r.max()] if r.size else []) + list(extra) + list(r)
+    kept = []
+
+    def place(x):
+        label = f"{x:g}"
+        centre = (np.log10(x) - lo) / (hi - lo) * width_pt
+        return centre, 0.65 * fontsize * len(label) / 2.0
+
+    for x in order:
+        if any(x == k for k in kept):
+            continue
+        c, half = place(x)
+        if all(abs(c - ck) >= half + hk + 0.5 * fontsize for ck, hk in map(place, kept)):
+            kept.append(x)
+    kept.sort()
+    ax.set_xticks(kept)
+    ax.set_xticklabels([f"{x:g}" for x in kept])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    return kept

@@ -234,6 +234,22 @@ def resolved(value, resolution) -> str:
     return f"{v:.{max(0, -int(np.floor(np.log10(r))))}f}"
 
 
+def significant(value, n=3) -> str:
+    """value to n significant digits, in plain notation (28077.5 -> '28100', 0.32571 ->
+    '0.326'): for a value without a 1-sigma, printed to no more digits than it can carry;
+    the caller says why it has no 1-sigma."""
+    v = float(value)
+    if not np.isfinite(v):
+        return "-"
+    if v == 0:
+        return "0"
+    place = n - 1 - int(np.floor(np.log10(abs(v))))
+    if place > 0:
+        return f"{round(v, place) + 0.0:.{place}f}"
+    q = 10.0 ** (-place)
+    return f"{round(v / q) * q + 0.0:.0f}"
+
+
 def pm(value, sigma, digits=None, sign=False) -> str:
     """'value ± sigma' to the sigma's precision: sigma to 2 significant digits, the value
     rounded to the same decimal place (1234.5678 ± 45.6 -> '1235 ± 46', 2696 ± 107 ->

@@ -9,7 +9,14 @@ problems(html_path) -> list of one-line problems (empty: fit to read):
   axes with nothing drawn in them;
 * a "not drawn" / "not computed" message in the page;
 * a numpy repr in the page ('np.float64(1.2)', 'array([...])'): a number formatted by its
-  repr, not printed to its precision;
+  repr, not printed to its precision; and numpy's str() of an array ('[1. 2. 3.]', two or
+  more numbers between brackets separated by blanks only, or one ending in a bare point,
+  '[1.]'), which a citation '[1]', a list '[1, 2]' or an interval '[-20, 55] degC' is not;
+* a non-number printed as a value: a table cell that is nan / inf (any case, signed, with
+  a unit or a 1-sigma: 'NaN', '-inf', 'inf nT', '1.2 ± inf'), and in the text a nan / inf
+  where a number stands: after '=', ':' or '±', or before a unit or '±' ('H: nan
+  deg', 'K = inf nT/A'); the words used in prose ('coefficients that are all quiet NaN',
+  'fails on NaN') are not values;
 * a table without a data row.
 """
 
@@ -30,15 +37,32 @@ from generator.report.figures import EMPTY_AXES_KEY
 MIN_INK = 0.002
 FAILURE_TEXT = re.compile(r"not drawn|not computed", re.IGNORECASE)
 NUMPY_REPR = re.compile(r"\bnp\.[a-z_]+\d*\(|\barray\(|\bdtype=")
+# numpy's str() of an array: '[1. 2. 3.]', '[ 0.5 -1.  2. ]', '[1 2 3]', '[1.e-03 2.e+00]',
+# '[1. ... 9.]', '[[1. 2.] [3. 4.]]' (inner), '[1.]'; not '[1]', '[1.5]', '[1, 2]'
+_NUM = r"[-+]?(?:\d+\.?\d*(?:e[-+]?\d+)?|\.\d+|nan|inf)"
+NUMPY_STR = re.compile(rf"\[\s*{_NUM}(?:\s+(?:{_NUM}|\.\.\.))+\s*\]"
+                       r"|\[\s*[-+]?\d+\.(?:e[-+]?\d+)?\s*\]", re.IGNORECASE)
+_NONNUM = r"[-+]?(?:nan|inf(?:inity)?)"
+# a unit after a value (case-sensitive: 'A' is ampere, 'a' is a word)
+_UNIT = (r"(?-i:(?:nT|µT|uT|mG|G|degC|deg|°C|°|%|cm|mm|m|ppm|A|mA|s|ms|min|h|Hz|K|dB)"
+         r"(?:/[A-Za-z]+)?)(?![\w])")
+# a table cell that is a non-number: alone, with a unit, or in a value ± sigma
+NONNUMBER_CELL = re.compile(rf"{_NONNUM}(?:\s*{_UNIT})?|{_NONNUM}\s*±.*|.*±\s*{_NONNUM}"
+                            rf"(?:\s*{_UNIT})?", re.IGNORECASE)
+# nan / inf where a number stands in running text (module docstring)
+NONNUMBER_TEXT = re.compile(rf"(?:[=:±]\s*){_NONNUM}(?![\w])"
+                            rf"|(?<![\w.\-+]){_NONNUM}\s*(?:±|{_UNIT})", re.IGNORECASE)
 
 
 class _Page(HTMLParser):
     def __init__(self):
         super().__init__()
         self.images, self.tables, self.text = [], [], []
+        self.cells, self.prose = [], []        # table cells' text; the text outside them
         self._in_table = None
         self._cell = False
         self._caption = False
+        self._td = None                        # the text of the open td / th
 
     def handle_starttag(self, tag, attrs):
         a = dict(attrs)
@@ -49,10 +73,15 @@ class _Page(HTMLParser):
             self.tables.append(self._in_table)
         elif tag == "td" and self._in_table is not None and not self._cell:
             self._cell = True
+        if tag in ("td", "th"):
+            self._td = []
         elif tag == "caption":
             self._caption = True
 
     def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._td is not None:
+            self.cells.append("".join(self._td).strip())
+            self._td = None
         if tag == "tr" and self._in_table is not None and self._cell:
             self._in_table["rows"] += 1
             self._cell = False
@@ -63,6 +92,7 @@ class _Page(HTMLParser):
 
     def handle_data(self, data):
         self.text.append(data)
+        (self._td if self._td is not None else self.prose).append(data)
         if self._in_table is not None and self._caption:
             self._in_table["caption"] += data
 
@@ -106,4 +136,20 @@ def problems(html_path) -> list:
         out.append("page says: " + text[max(0, m.start() - 40):m.end() + 60].strip())
     for m in NUMPY_REPR.finditer(text):
         out.append("numpy repr in the page: " + text[max(0, m.start() - 40):m.end() + 40].strip())
+    for m in NUMPY_STR.finditer(text):
+        out.append("numpy array printed in the page: "
+                   + text[max(0, m.start() - 40):m.end() + 40].strip())
+    return out + nonnumber_problems(page.cells, page.prose)
+
+
+def nonnumber_problems(cells, prose) -> list:
+    """nan / inf printed as a value: in table cells (the cell itself, or where a number
+    stands in a longer cell) and in the text outside tables (module docstring)."""
+    out = []
+    for c in cells:
+        if NONNUMBER_CELL.fullmatch(c) or NONNUMBER_TEXT.search(c):
+            out.append(f"non-number in a table cell: {c[:80]!r}")
+    text = " ".join(prose)
+    for m in NONNUMBER_TEXT.finditer(text):
+        out.append("non-number in the page: " + text[max(0, m.start() - 40):m.end() + 40].strip())
     return out

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 
-from generator.report.document import Report, Section, Table, pm, resolved
+from generator.report.document import Report, Section, Table, pm, resolved, significant
 from generator.report.setreset_report import setreset_section  # noqa: F401 (a hook, re-exported)
 
 
@@ -113,8 +113,9 @@ def method_section(cs) -> Section | None:
             if not isinstance(e, dict):
                 return None
             return e.get("rms_vector_nT") or e.get("rms_norm_nT")
-        rows.append([s.name, h.get("scheme", ""), score("joint"), score("segments"),
-                     st.get("chosen", ""), st.get("why", "")])
+        scores = {m: score(m) for m in ("joint", "segments")}
+        cells, why = _held_out_choice(scores, st.get("chosen", ""), st.get("why", ""))
+        rows.append([s.name, h.get("scheme", "")] + cells + [st.get("chosen", ""), why])
     if not rows:
         return None
     return Section("Temperature model: held-out choice", [
@@ -124,6 +125,29 @@ def method_section(cs) -> Section | None:
         "error on held-out data is kept."],
         [Table(["sensor", "held-out scheme", "joint RMS nT", "segments RMS nT", "chosen",
                 "why"], rows, "Held-out comparison")])
+
+
+CHOICE_DECIMALS_MAX = 3      # 0.001 nT: below it two held-out RMS are the same number
+
+
+def _held_out_choice(scores, chosen, why) -> tuple:
+    """(the held-out RMS cells, the why) printed alike: with the decimals that tell the
+    scores apart (at least 1, at most CHOICE_DECIMALS_MAX), so the table shows the
+    difference the choice was made on; scores equal at that precision are said to tie."""
+    got = {m: v for m, v in scores.items() if v is not None}
+    if len(got) < 2 or not str(why).startswith("smaller held-out error"):
+        return [scores[m] for m in scores], why
+    vals = list(got.values())
+    d = next((d for d in range(1, CHOICE_DECIMALS_MAX + 1)
+              if len({f"{v:.{d}f}" for v in vals}) == len(vals)), CHOICE_DECIMALS_MAX)
+    cells = ["-" if v is None else f"{v:.{d}f}" for v in scores.values()]
+    listed = ", ".join(f"{m} {v:.{d}f} nT" for m, v in got.items())
+    if len({f"{v:.{d}f}" for v in vals}) < len(vals):
+        why = (f"a tie within rounding ({listed}: equal to {10.0 ** -d:g} nT); {chosen} "
+               "kept")
+    else:
+        why = f"smaller held-out error: {listed}"
+    return cells, why
 
 
 def polynomial_table(cs, name) -> Table:
@@ -662,6 +686,10 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
     return out
 
 
+def _pm_or_why(value, sigma) -> str:
+    return pm(value, sigma) if sigma else significant(value) + " (no 1-sigma)"
+
+
 def _coil_sections(cs, analysis, out_dir) -> list:
     from generator.fit.coils import PANEL_STATE, SEED_POINTS_CM, correction_table
 
@@ -682,33 +710,53 @@ def _coil_sections(cs, analysis, out_dir) -> list:
         how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
                "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
                "given, so nothing about distance is measured")
+    from generator.report.coil_study import exponent_text, law_value_text
     table, laws = [], []
     for r in rows:
         law, r0 = r["law"], r["distance_cm"]
         if law is not None and all(w is not law for w in laws):
             laws.append(law)
         at = (["-"] * len(pts) if r0 is None else ["law row"] * len(pts)
-              if law is not None else [r["at_cm"][p] for p in pts])
-        flags = list(r["flags"]) + (["assumed distance, dipole fall-off"]
+              if law is not None else [_pm_or_why(r["at_cm"][p], r["at_cm_sigma"].get(p))
+                                       for p in pts])
+        flags = list(r["flags"]) + (["assumed distance, dipole fall-off (the 1-sigma is "
+                                     "K's alone)"]
                                     if r["distance_source"] == "assumed" else [])
+        x, xs = r["interference_nT"], r["interference_sigma_nT"]
+        pct = r["pct_of_lab_field"]
         table.append([r["sensor"], r["coil"],
-                      pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]),
-                      pm(r["interference_nT"], r["interference_sigma_nT"]),
-                      r["pct_of_lab_field"], r["distance_source"],
-                      "-" if r0 is None else f"{r0:.3g}"] + at
-                     + ["; ".join(flags) or "-"])
+                      pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]), pm(x, xs),
+                      "-" if pct is None else pm(pct, pct * xs / x) if x > 0 else pct,
+                      r["distance_source"],
+                      "-" if r0 is None else
+                      pm(r0, r["distance_sigma_cm"]) if r.get("distance_sigma_cm") else
+                      f"{r0:.3g} ({r['distance_source']})"
+                      if r["distance_source"] in ("assumed", "given") else
+                      f"{r0:.3g} (no 1-sigma)"]
+                     + at + ["; ".join(flags) or "-"])
     for w in laws:
         table.append(["law", f"{w.sensor} {w.coil}, {PANEL_STATE[w.panel]}", "-", "-", "-",
-                      "n = " + (pm(w.exponent, w.exponent_sigma) if w.exponent_sigma
-                                else f"{w.exponent:.3f} (2 points)"),
-                      f"measured {w.r_min_cm:g}..{w.r_max_cm:g}"]
-                     + [float(w.at(p, 0.1)) for p in pts] + ["; ".join(w.flags(*pts)) or "-"])
+                      "n = " + exponent_text(w), f"measured {w.r_min_cm:g}..{w.r_max_cm:g}"]
+                     + [law_value_text(w, p, 0.1) for p in pts]
+                     + ["; ".join(w.flags(*pts)) or "-"])
     seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
+    # the seed's 30 cm figures as it quotes them (no 1-sigma given); at 5 and 15 cm they are
+    # scaled by the first row's law: its exponent's 1-sigma alone (the seed's figure has
+    # none), or, without a study, by an assumed 1/r^3 that carries none: 3 digits
+    law0 = rows[0]["law"] if rows[0]["distance_cm"] is not None else None
     for label, seed in (("no panel", seed_np), ("with panel", seed_p)):
-        table.append(["seed 000", label, "-", seed[30.0], 100 * seed[30.0] / 51540.0,
-                      "measured at 30 cm only; 5 and 15 cm scaled by the law above"
-                      if laws else "measured at 30 cm only; 5 and 15 cm scaled as 1/r^3",
-                      30.0] + [seed[p] for p in pts] + ["-"])
+        scaled = [f"{seed[30.0]:g}" if p == 30.0 else
+                  pm(seed[p], seed[p] * abs(np.log(30.0 / p)) * law0.exponent_sigma)
+                  if law0 is not None and law0.exponent_sigma else significant(seed[p])
+                  for p in pts]
+        table.append(["seed 000", label, "-", f"{seed[30.0]:g}",
+                      significant(100 * seed[30.0] / 51540.0, 2),
+                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled by the "
+                      f"law of {law0.sensor} {law0.coil}, {PANEL_STATE[law0.panel]} (1-sigma: "
+                      "its exponent's)" if law0 is not None else
+                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled as "
+                      "1/r^3, an assumption with no 1-sigma: 3 significant digits",
+                      "30"] + scaled + ["-"])
     sec = Section("Magnetorquer interference at 0.1 A", [
         f"|K column| x 0.1 A per sensor and coil from {tel.path} (1-sigma after ±); {how}. "
         "The seed's points are 5, 15 and 30 cm; it measured 167.87 nT without and 307.57 nT "
@@ -833,12 +881,30 @@ def left_out(cs, analysis, titles, compare=True) -> list:
 
     def missing(prefix):
         return not any(t.startswith(prefix) for t in titles)
+    from generator.report.seed_sections import FIG26_POSITIONS, _rotation_file, _static_file
+    static = _static_file(analysis) is not None
     out = []
+    if missing("Per-axis RMS"):
+        out.append("the per-axis RMS before and after (seed 000's per-axis bars): no sensor "
+                   "has samples with reference vectors in its calibration's frame")
     if missing("Chamber profile"):
         out.append("the chamber profile (seed 000 fig. 21, 23): " + (
             "no sensor reports a temperature (temperature = false)"
             if not any(s.temperature for s in cs.unit.sensors)
             else "no file with static positions"))
+    if missing("Calibrated measurements in the positions"):
+        out.append("the calibrated measurements in the positions (seed 000 fig. 26): " + (
+            "no file with static positions" if not static else
+            f"no sensor has reference vectors in positions "
+            f"{', '.join(str(p) for p in FIG26_POSITIONS)} in its calibration's frame"))
+    if missing("Example calibration: rotation"):
+        out.append("Example calibration: rotation (seed 000 fig. 14): " + (
+            "no rotation among the files (a moving file without reference vectors)"
+            if _rotation_file(analysis) is None else "no sensor has samples in the rotation"))
+    if missing("Example calibration: twelve positions"):
+        out.append("Example calibration: twelve positions (seed 000 fig. 16): " + (
+            "no file with static positions" if not static
+            else "no sensor has samples in the file with static positions"))
     if missing("Agreement of the two magnetometers"):
         out.append("the agreement of the two magnetometers, H (seed 000 fig. 8-10): " + (
             "the unit has no boom sensor" if not any(s.frame == "boom" for s in cs.unit.sensors)

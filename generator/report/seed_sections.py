@@ -101,10 +101,11 @@ def profile_section(cs, analysis, out_dir):
         series, segs, positions)
     tables = [Table(["sensor", "min degC", "max degC", "segments", "levels",
                      "level temperatures degC"], sum_rows,
-                    "Temperature range, segments and levels per sensor"),
-              Table(["sensor", "position", "start h", "end h", "minutes", "mean degC",
-                     "samples"], seg_rows,
-                    "Constant-temperature segments found (the fit's segment finder)")]
+                    "Temperature range, segments and levels per sensor")]
+    if seg_rows:       # none found: said in the text, not shown as an empty table
+        tables.append(Table(["sensor", "position", "start h", "end h", "minutes",
+                             "mean degC", "samples"], seg_rows,
+                            "Constant-temperature segments found (the fit's segment finder)"))
     paras = ["The recorded chamber profile split into constant-temperature segments, and "
              "the sensor temperatures (seed 000 fig. 21 and 23). A segment is a stretch of "
              "one position where the sensor's temperature stays within the finder's "
@@ -119,7 +120,7 @@ def profile_section(cs, analysis, out_dir):
                                "temperature segments found, shaded bands and numbers: the "
                                "positions. Look for a bar at every chamber level in every "
                                "position, and for sensors on one board moving together.",
-                     [0, 1])])
+                     list(range(len(tables))))])
 
 
 # ---- fig. 26 --------------------------------------------------------------------------

@@ -14,6 +14,8 @@ report's CampaignAnalysis):
   widened by the chain's margin temp_margin_C (docs/chain.md);
 * the calibrated temperature range; what was fitted and what held at the prior (the
   reference fit's per-coefficient "data"/"prior" tags, fit stats "observability");
+* the reading noise per axis the fit used and where it came from (the unit file, the part
+  catalogue's typical figure, or estimated from the data: fit stats noise_goodness);
 * warnings (the sanity checks before a calibration is written, the noise-only goodness
   test and the mounting-rotation check, fit.goodness and fit.sanity);
 * the predicted calibration error at the unit's field (fit stats "predicted_error": from
@@ -33,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.report.document import Section, Table
+from generator.report.document import Section, Table, significant
 
 
 def requirements(cs) -> tuple:
@@ -149,6 +151,35 @@ def predicted_line(cs) -> str | None:
             "noise): " + "; ".join(parts) + ".")
 
 
+def noise_used(spec, stats) -> str:
+    """The reading noise per field axis the fit used and where it came from: the noise
+    test's figure (fit stats noise_goodness: noise_nT, noise_from; 3 significant digits),
+    its source named for a reader: the unit file's noise_nT or the part catalogue's
+    typical figure ('stated' before the catalogue was recorded as a source of its own:
+    the unit file where it states one, else the catalogue), with what turns a reading's
+    figure into a field axis' (the count quantisation, the SET/RESET pair's average); or
+    estimated from the data. Any other noise_from is printed as the fit wrote it. '-'
+    when the fit ran no noise test and the unit states none."""
+    g = (stats or {}).get("noise_goodness") or {}
+    noise, src = g.get("noise_nT"), str(g.get("noise_from") or "")
+    if noise is None or not np.isfinite(float(noise)) or float(noise) <= 0:
+        return "-" if not spec.noise_nT else f"{spec.noise_nT:g} (unit file; no noise test ran)"
+    noise = float(noise)
+    if src == "stated":
+        src = "unit file" if spec.noise_nT else "part catalogue"
+    if src == "unit file" or src.startswith("part catalogue"):
+        how = [w for w, on in (("with the LSB's quantisation", getattr(spec, "counts", False)),
+                               ("averaged over the SET/RESET pair",
+                                getattr(spec, "set_reset", False))) if on]
+        base = [f"{spec.noise_nT:g} per reading"] if src == "unit file" else []
+        detail = ", ".join(base + how)
+        src = src.replace(" (", ", ").replace(")", "")     # 'part catalogue, typical
+        return f"{significant(noise)} ({src}{': ' + detail if detail else ''})"
+    if "difference" in src and not src.startswith("estimated"):
+        src = "estimated from " + src
+    return f"{significant(noise)} ({src})" if src else significant(noise)
+
+
 def verdict(fig, req) -> tuple:
     """(verdict text, [reasons]) of one sensor against the requirements."""
     if not req:
@@ -195,7 +226,7 @@ def summary_section(cs, analysis) -> Section:
         vt, why = verdict(f, req)
         ang = (lambda k: f.get(k))
         rows.append([
-            s.name, s.part, s.noise_nT, f.get("norm_before_nT"), f.get("norm_after_nT"),
+            s.name, s.part, noise_used(s, st), f.get("norm_before_nT"), f.get("norm_after_nT"),
             ang("angle_before_deg"), ang("angle_after_deg"),
             f"{100 * f['valid_fraction']:.1f}%" if f.get("valid_fraction") is not None
             else None,
@@ -236,7 +267,8 @@ def summary_section(cs, analysis) -> Section:
     pred = predicted_line(cs)
     if pred:
         paras.append(pred)
-    tables = [Table(["sensor", "part", "stated noise nT/axis", "|B| RMS before nT", "|B| RMS after nT",
+    tables = [Table(["sensor", "part", "noise the fit used nT/axis", "|B| RMS before nT",
+                     "|B| RMS after nT",
                      "angle RMS before deg", "angle RMS after deg", "valid",
                      "calibrated degC", "fitted / held at the prior", "verdict"], rows,
                     "Per sensor: errors before and after, validity, range, verdict")]
