@@ -57,12 +57,39 @@ def test_thermal_shock_at_one_hertz_kept():
     assert screen_temperatures(t, None, time_s)[1] == {"impossible": 0, "outlying": 0}
 
 
-def test_step_without_return_kept():
-    """One impossible jump and no way back: which side is wrong is unknown; nothing is
-    rejected by the excursion rule (a chamber step logged at 1 Hz)."""
+def test_step_without_return_between_equal_stretches_kept():
+    """One impossible jump between stretches of the same length: which side is wrong is
+    unknown, nothing is rejected."""
     t = np.concatenate([np.full(400, 25.0), np.full(400, -20.0)])
     t = t + np.random.default_rng(3).normal(0, 0.05, len(t))
     assert screen_temperatures(t, None, np.arange(800, dtype=float))[1]["outlying"] == 0
+
+
+@pytest.mark.parametrize("rows", [1, 3, 20])
+@pytest.mark.parametrize("where", ["start", "end"])
+@pytest.mark.parametrize("value_C", [85.0, 120.0, -70.0])
+def test_block_at_a_file_edge_rejected(rows, where, value_C):
+    """A power-on value in the first rows, a block in the last: a jump on one side, the
+    file's edge on the other, shorter than the stretch across the jump."""
+    time_s, t = _ramp(3000, 60.0, np.random.default_rng(4), rate_C_per_s=0.005 / 60.0,
+                      start_C=-5.0)                     # -5 .. 10 degC over 50 h
+    sl = slice(0, rows) if where == "start" else slice(len(t) - rows, len(t))
+    t[sl] = value_C
+    ok, counts = screen_temperatures(t, None, time_s)
+    assert counts["outlying"] == rows and not ok[sl].any()
+
+
+@pytest.mark.parametrize("rows", [1, 3, 20])
+def test_block_right_after_a_gap_rejected(rows):
+    """Logging stops for 960 s, resumes with a few rows at 85 degC, then drops back to the
+    ramp within 60 s: the way out is a jump the board cannot make, the way in crosses the
+    gap; the block is shorter than what follows."""
+    rng = np.random.default_rng(5)
+    time_s = np.concatenate([np.arange(1000) * 60.0, 1000 * 60.0 + 960 + np.arange(1000) * 60.0])
+    t = np.round(-5.0 + 0.0003 * time_s + rng.normal(0, 0.05, len(time_s)), 2)
+    t[1000:1000 + rows] = 85.0
+    ok, counts = screen_temperatures(t, None, time_s)
+    assert counts["outlying"] == rows and not ok[1000:1000 + rows].any()
 
 
 @settings(max_examples=40, deadline=None)

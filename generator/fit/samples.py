@@ -111,24 +111,42 @@ def screen_temperatures(temp_C, usable=None, time_s=None,
 
 
 def _excursions(t, time_s, lim) -> np.ndarray:
-    """(n,) bool: samples of t in an excursion (TEMP_SPAN_C, BOARD_TAU_MIN_S): stretches
-    between two jumps the board cannot make (beyond lim and what a board moves in their
-    time step), that come back to within what is possible of the level before, and are
-    shorter than the stretches on either side."""
+    """(n,) bool: samples of t in a corrupt stretch (TEMP_SPAN_C, BOARD_TAU_MIN_S).
+
+    The series is cut at every change beyond lim: a JUMP where the board cannot make it
+    in the time step, a GAP where it can only because the time step is long (logging
+    stopped). A stretch is rejected when
+    * jumps enter and leave it, it comes back to within what is possible of the level
+      before, and it is shorter than the stretches on either side (an excursion); or
+    * a jump is on one side only, the file's start or end or a gap on the other (nothing
+      to come back to), and it is shorter than the stretch across the jump (a power-on
+      value in the first rows, a block right after logging resumed)."""
     out = np.zeros(len(t), bool)
-    possible = np.maximum(lim, _possible_change_C(np.diff(time_s)))
-    jumps = np.nonzero(np.abs(np.diff(t)) > possible)[0]    # jump k: between k and k + 1
-    if len(jumps) < 2:
+    change = np.abs(np.diff(t))
+    jump = change > np.maximum(lim, _possible_change_C(np.diff(time_s)))
+    cut = np.nonzero(change > lim)[0]                       # cut k: between k and k + 1
+    if not jump.any():
         return out
-    edges = np.concatenate([[-1], jumps, [len(t) - 1]])     # stretch i: edges[i]+1..edges[i+1]
+    edges = np.concatenate([[-1], cut, [len(t) - 1]])      # stretch i: edges[i]+1..edges[i+1]
     length = np.diff(edges)
-    for i in range(1, len(edges) - 2):
-        a, b = edges[i], edges[i + 1]                       # jumps in (a -> a+1), out (b -> b+1)
-        before, after = t[a], t[b + 1]
-        back = abs(after - before) <= max(lim, float(_possible_change_C(
-            time_s[b + 1] - time_s[a])))
-        away = np.sign(t[a + 1] - before) == np.sign(t[b] - after)
-        if back and away and length[i] < length[i - 1] and length[i] < length[i + 1]:
+    n = len(length)
+    for i in range(n):
+        a, b = edges[i], edges[i + 1]
+        jump_in = i > 0 and bool(jump[a])                   # cut a: a -> a + 1
+        jump_out = i < n - 1 and bool(jump[b])              # cut b: b -> b + 1
+        if jump_in and jump_out:
+            before, after = t[a], t[b + 1]
+            back = abs(after - before) <= max(lim, float(_possible_change_C(
+                time_s[b + 1] - time_s[a])))
+            away = np.sign(t[a + 1] - before) == np.sign(t[b] - after)
+            bad = back and away and length[i] < length[i - 1] and length[i] < length[i + 1]
+        elif jump_in:
+            bad = length[i] < length[i - 1]
+        elif jump_out:
+            bad = length[i] < length[i + 1]
+        else:
+            bad = False
+        if bad:
             out[a + 1:b + 1] = True
     return out
 
