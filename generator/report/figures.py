@@ -112,11 +112,14 @@ def _run_deferred(k):
 
 
 class parallel:
-    """Draw the figures requested inside the block together, on up to `workers` cores."""
+    """Draw the figures requested inside the block together, on up to `workers` cores
+    (generator.forked: plain forked children; a figure whose child failed is drawn again
+    in this process, where its error is raised as usual; an interrupt kills the
+    children)."""
 
     def __init__(self, workers=None):
-        import os
-        self.workers = workers or min(2, os.cpu_count() or 1)
+        from generator.forked import default_workers
+        self.workers = workers or default_workers()
 
     def __enter__(self):
         global _DEFERRED
@@ -129,60 +132,17 @@ class parallel:
         try:
             if exc_type is not None or not calls:
                 return False
-            import os
-            if not hasattr(os, "fork") or self.workers < 2 or len(calls) < 2:
-                for fn, args, kwargs in calls:
-                    fn(*args, **kwargs)
-            else:
+            from contextlib import closing
+
+            from generator.forked import can_fork, forked_map
+            if can_fork(len(calls), self.workers):
                 _warm_up()   # load matplotlib and its fonts once, before the workers fork
-                _draw_forked(len(calls), min(self.workers, len(calls)))
+            with closing(forked_map(_run_deferred, range(len(calls)), self.workers)) as done:
+                for _ in done:
+                    pass
         finally:
             _DEFERRED = None
         return False
-
-
-def _draw_forked(n_calls, workers):
-    """Draw deferred calls 0..n_calls-1 in `workers` forked children, call k in child
-    k % workers, and wait for them. Plain fork + waitpid, no multiprocessing.Pool: a Pool
-    runs handler threads in the parent and shares a queue lock with its workers, and its
-    shutdown was seen to hang for good (a worker left waiting on that lock). Here a child
-    shares nothing with the parent but the drawing it was forked to do, and ends with
-    os._exit (no atexit, no buffered output of the parent's written twice). A child that
-    fails leaves its calls to be drawn again in the parent, where the error is raised as
-    usual; an interrupt while waiting kills the children before it goes on."""
-    import os
-    import signal
-    pids = []
-    try:
-        for w in range(workers):
-            pid = os.fork()
-            if pid == 0:                                     # the child
-                code = 1
-                try:
-                    for k in range(w, n_calls, workers):
-                        _run_deferred(k)
-                    code = 0
-                finally:
-                    os._exit(code)
-            pids.append(pid)
-        failed = []
-        for w, pid in enumerate(pids):
-            _, status = os.waitpid(pid, 0)
-            pids[w] = None
-            if not (os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0):
-                failed.append(w)
-    except BaseException:
-        for pid in pids:
-            if pid is not None:
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                    os.waitpid(pid, 0)
-                except OSError:
-                    pass
-        raise
-    for w in failed:
-        for k in range(w, n_calls, workers):
-            _run_deferred(k)
 
 
 EMPTY_AXES_KEY = "magcal-empty-axes"   # PNG text chunk: visible axes with nothing drawn
