@@ -62,15 +62,18 @@ def can_fork(n_items: int, workers: int) -> bool:
             and threading.active_count() == 1)
 
 
-def forked_map(fn, items, workers=None, keep=()):
+def forked_map(fn, items, workers=None, keep=(), before_fork=None):
     """fn(item) for item in items: an iterator yielding each result in the items' order as
     soon as it is back; the calls spread over forked children (module doc). Iterate it to
-    the end (or close it): the children are reaped when it finishes."""
+    the end (or close it): the children are reaped when it finishes. before_fork(), if
+    given, runs in this process just before the children are forked, and only then: the
+    work every child would otherwise repeat on its own (lazy imports, loaded fonts), done
+    once and inherited."""
     items = list(items)
     workers = default_workers() if workers is None else workers
     if not can_fork(len(items), workers):
         return (fn(it) for it in items)
-    return _run(fn, items, min(workers, len(items)), tuple(keep))
+    return _run(fn, items, min(workers, len(items)), tuple(keep), before_fork)
 
 
 # ---- the child ------------------------------------------------------------------------
@@ -241,10 +244,12 @@ def _stop(pids, fds, kill) -> None:
     del pids[:], fds[:]
 
 
-def _run(fn, items, workers, keep):
+def _run(fn, items, workers, keep, before_fork):
     pids, fds = [], []
     finished = False
     try:
+        if before_fork is not None:
+            before_fork()
         if not _start(fn, items, workers, keep, pids, fds):
             _stop(pids, fds, kill=True)     # no fork to be had: the serial loop
             for it in items:

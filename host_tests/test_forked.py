@@ -264,3 +264,21 @@ def test_exception_state_round_trips_through_pickle():
     back = forked._rebuild(pickle.loads(pickle.dumps(forked._exception_state(e))))
     assert type(back) is InputError and str(back) == str(e)
     assert (back.path, back.line, back.column) == (e.path, e.line, e.column)
+
+
+def test_before_fork_runs_once_in_the_parent_and_only_when_forking(forks):
+    calls = []
+    marker = []
+
+    def prepare():
+        calls.append(os.getpid())
+        marker.append("ready")
+
+    got = list(forked_map(lambda k: (k, list(marker)), range(3), workers=2,
+                          before_fork=prepare))
+    assert calls == [os.getpid()] and len(forks) == 2
+    assert got == [(k, ["ready"]) for k in range(3)]      # the children inherited it
+    calls.clear()
+    assert list(forked_map(lambda k: k, range(3), workers=1, before_fork=prepare)) == \
+        [0, 1, 2]
+    assert calls == []

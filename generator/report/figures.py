@@ -134,10 +134,11 @@ class parallel:
                 return False
             from contextlib import closing
 
-            from generator.forked import can_fork, forked_map
-            if can_fork(len(calls), self.workers):
-                _warm_up()   # load matplotlib and its fonts once, before the workers fork
-            with closing(forked_map(_run_deferred, range(len(calls)), self.workers)) as done:
+            from generator.forked import forked_map
+
+            # _warm_up: matplotlib and its fonts loaded once, before the workers fork
+            with closing(forked_map(_run_deferred, range(len(calls)), self.workers,
+                                    before_fork=_warm_up)) as done:
                 for _ in done:
                     pass
         finally:
