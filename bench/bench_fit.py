@@ -57,6 +57,26 @@ Not yet at the issue's targets: the fit is still ~2x the 1 s target (145 referen
 fits per campaign, each ~10 passes over its samples plus ~5 ms of fixed numpy/Python
 cost; the held-out comparison is ~70 % of it, cProfile), and the figures (not changed in
 this step) are ~7x the 1 s target.
+
+A run after the forked sensor fits, Horner's M(T)/b(T) and the figure cuts (2026-11-24
+14:04-14:10 UTC, load average ~2.5-3.6 on the 2 shared cores, --repeat 2
+--previous-commit 6c7136b, the tree before these steps):
+  today's fit, sensors serial (MAGCAL_WORKERS=1) -> forked: wall 3.17 s -> 3.23 s
+    (ratio 0.98x), CPU 2.07 s -> 2.27 s (ratio 0.91x)
+  fit CPU: 9.30 s (f6f3a45), 11.05 s (f639afc) -> 2.27 s   ratio 4.10x, 4.87x
+  fit against 6c7136b: CPU 2.31 s -> 2.27 s (ratio 1.02x), wall 2.35 s -> 3.23 s
+  report, figures drawn serially, CPU: 7.28 s (f639afc) -> 5.48 s   ratio 1.33x
+  today's report, figures serial -> forked: wall 7.74 s -> 8.50 s, CPU 5.48 s -> 5.63 s
+  fit memory per sample: 1966 B -> 911 B   ratio 2.16x
+The wall times of that run are the load's: the forked children only shorten the wall
+time when the second core is free, and during it the other jobs held it (a figure
+worker's calls took ~2-3x their CPU time in wall). Alternating the two in one process a
+few minutes later (fit after a first one, MAGCAL_WORKERS=1 / 2, three times each): wall
+2.03, 2.15, 2.10 s serial against 2.25, 1.36, 1.44 s forked, CPU 2.02-2.08 s against
+2.17-2.33 s (the forks cost ~0.1-0.25 s of CPU: five sensors over two children, 3 + 2,
+bound the wall time at ~3/5 of the serial one). Serially the fit's CPU went 2.31 s ->
+2.07 s (Horner's rule for M(T), b(T): ~12 % of the fit before, cProfile; the reference
+directions counted on a sample of the rows).
 """
 
 from __future__ import annotations
