@@ -17,7 +17,7 @@ Failures keep the serial behaviour:
   raises the same exception, rebuilt in the parent, when its turn comes in the order;
 * any other failure (another exception, a result that does not pickle, a child that died)
   re-runs that call in the parent, where it fails, or not, as it would serially (its own
-  traceback);
+  traceback); a child that died leaves the rest of its share to the parent as well;
 * an interrupt in the parent (KeyboardInterrupt, the CLI's SIGTERM exception) kills and
   reaps every child before it goes on; a child itself never unwinds into the parent's
   code (os._exit in every case).
@@ -30,9 +30,12 @@ child already forked is killed and reaped first).
 
 Output: the parent flushes sys.stdout and sys.stderr before it forks (a child must not
 inherit, and later write, text the parent had buffered) and a child flushes its own
-before os._exit (what a call printed is not lost; it may interleave with the parent's). `workers` defaults to
-default_workers(): the MAGCAL_WORKERS environment variable if set, else min(2,
-os.cpu_count()).
+before os._exit (what a call printed is not lost; it may interleave with the parent's).
+A caller whose calls report progress returns their lines with the result and prints them
+itself, in order (generator.fit.thermal.fit_unit).
+
+`workers` defaults to default_workers(): the MAGCAL_WORKERS environment variable if set
+(1: everything serial, in the process), else min(2, os.cpu_count()).
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ def default_workers() -> int:
 
 
 def can_fork(n_items: int, workers: int) -> bool:
+    """Would forked_map fork for n_items calls on `workers` (module doc: when it does not)."""
     return (hasattr(os, "fork") and workers >= 2 and n_items >= 2 and not _IN_CHILD[0]
             and threading.active_count() == 1)
 
