@@ -162,7 +162,10 @@ def _save(fig, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if getattr(fig, "_magcal_fixed", False):
         _fixed_margins(fig)
-    fig.savefig(path, dpi=DPI, metadata={EMPTY_AXES_KEY: "; ".join(empty_axes(fig))})
+    # zlib level 3, not PIL's 6: the same pixels, a third less encoding time for ~7 % more
+    # bytes (the thermal campaign report's twelve PNGs: 1.52 MB instead of 1.42 MB)
+    fig.savefig(path, dpi=DPI, metadata={EMPTY_AXES_KEY: "; ".join(empty_axes(fig))},
+                pil_kwargs={"compress_level": 3})
     return path
 
 
