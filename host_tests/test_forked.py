@@ -20,7 +20,8 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this
 
 @pytest.fixture
 def forks(monkeypatch):
-    """The pids of the children forked by the test (os.fork recorded in the parent)."""
+    """The pids of the children forked by the test (os.fork recorded in the parent). Any
+    still there after the test (a failed one) are killed and reaped: none outlives it."""
     pids = []
     real = os.fork
 
@@ -30,7 +31,14 @@ def forks(monkeypatch):
             pids.append(pid)
         return pid
     monkeypatch.setattr(os, "fork", fork)
-    return pids
+    yield pids
+    for pid in pids:
+        try:       # only a child not reaped yet (its pid cannot have been reused)
+            if os.waitpid(pid, os.WNOHANG) == (0, 0):
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+        except ChildProcessError:
+            pass
 
 
 def _reaped(pid) -> bool:
@@ -146,7 +154,9 @@ def test_interrupt_kills_and_reaps_the_children(forks):
     try:
         g = forked_map(_sleep_after_first, range(4), workers=2)
         assert next(g) == 0
-        signal.setitimer(signal.ITIMER_REAL, 0.3)   # the parent now waits for item 1
+        # the parent now waits for item 1; the timer repeats, so that a parent left
+        # waiting for a child it failed to kill fails here instead of hanging
+        signal.setitimer(signal.ITIMER_REAL, 0.3, 20.0)
         with pytest.raises(KeyboardInterrupt):
             next(g)
     finally:
@@ -160,10 +170,24 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+class _Hung(Exception):
+    pass
+
+
+def _hung(signum, frame):
+    raise _Hung("still waiting for a child after 20 s")
+
+
 def test_closing_early_kills_and_reaps_the_children(forks):
-    g = forked_map(_sleep_after_first, range(4), workers=2)
-    assert next(g) == 0
-    g.close()
+    previous = signal.signal(signal.SIGALRM, _hung)   # a failure, not a hang, if not killed
+    signal.setitimer(signal.ITIMER_REAL, 20.0)
+    try:
+        g = forked_map(_sleep_after_first, range(4), workers=2)
+        assert next(g) == 0
+        g.close()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
     assert len(forks) == 2 and all(_reaped(p) for p in forks)
 
 
