@@ -18,12 +18,17 @@ slowed by contention, which would blur the ratio). On the shared campaign
 samsat_fm1/thermal_12pos.csv:
 
 * fit: generator.pipeline.fit (read, all five sensors' fits: candidate degrees,
-  held-out folds, covariances, checks), best CPU time (time.process_time) of --repeat
-  rounds (each round a fresh process per tree, trees interleaved, the better of two fits
-  in it: the first also pays lazy imports);
+  held-out folds, covariances, checks), best wall time (time.perf_counter) and best CPU
+  time of --repeat rounds (each round a fresh process per tree, trees interleaved, the
+  better of two fits in it: the first also pays lazy imports). CPU is the process's own
+  plus its reaped children's (os.times): today's fit runs the sensors in 2 forked
+  children (generator.forked), whose CPU the process's own time would leave out. Today's
+  fit is also run with MAGCAL_WORKERS=1 (the sensors one after the other, in the
+  process), so that what the children buy is seen in the same run: wall time on a free
+  second core, against the CPU the forks add;
 * report: generator.report.report.fit_report of that fit, figures drawn serially in the
-  process (the CPU time they cost; `magcal fit` spreads them over 2 cores), best of
-  --repeat;
+  process (the CPU time they cost), best of --repeat; today's also as `magcal fit` draws
+  them (2 forked children), wall and CPU;
 * memory per sample: peak RSS (wait4) of generator.pipeline.fit (what `magcal fit
   --no-report` runs; the baseline has no --no-report) on the campaign
   repeated to each of --rows rows (bench_io.write_long_file), as the slope between the
@@ -52,6 +57,26 @@ Not yet at the issue's targets: the fit is still ~2x the 1 s target (145 referen
 fits per campaign, each ~10 passes over its samples plus ~5 ms of fixed numpy/Python
 cost; the held-out comparison is ~70 % of it, cProfile), and the figures (not changed in
 this step) are ~7x the 1 s target.
+
+A run after the forked sensor fits, Horner's M(T)/b(T) and the figure cuts (2026-11-24
+14:04-14:10 UTC, load average ~2.5-3.6 on the 2 shared cores, --repeat 2
+--previous-commit 6c7136b, the tree before these steps):
+  today's fit, sensors serial (MAGCAL_WORKERS=1) -> forked: wall 3.17 s -> 3.23 s
+    (ratio 0.98x), CPU 2.07 s -> 2.27 s (ratio 0.91x)
+  fit CPU: 9.30 s (f6f3a45), 11.05 s (f639afc) -> 2.27 s   ratio 4.10x, 4.87x
+  fit against 6c7136b: CPU 2.31 s -> 2.27 s (ratio 1.02x), wall 2.35 s -> 3.23 s
+  report, figures drawn serially, CPU: 7.28 s (f639afc) -> 5.48 s   ratio 1.33x
+  today's report, figures serial -> forked: wall 7.74 s -> 8.50 s, CPU 5.48 s -> 5.63 s
+  fit memory per sample: 1966 B -> 911 B   ratio 2.16x
+The wall times of that run are the load's: the forked children only shorten the wall
+time when the second core is free, and during it the other jobs held it (a figure
+worker's calls took ~2-3x their CPU time in wall). Alternating the two in one process a
+few minutes later (fit after a first one, MAGCAL_WORKERS=1 / 2, three times each): wall
+2.03, 2.15, 2.10 s serial against 2.25, 1.36, 1.44 s forked, CPU 2.02-2.08 s against
+2.17-2.33 s (the forks cost ~0.1-0.25 s of CPU: five sensors over two children, 3 + 2,
+bound the wall time at ~3/5 of the serial one). Serially the fit's CPU went 2.31 s ->
+2.07 s (Horner's rule for M(T), b(T): ~12 % of the fit before, cProfile; the reference
+directions counted on a sample of the rows).
 """
 
 from __future__ import annotations
@@ -71,31 +96,45 @@ sys.path.insert(0, str(REPO / "bench"))
 from bench_io import FM1, write_long_file  # noqa: E402
 
 DRIVER = r"""
-import json, sys, time
+import json, os, sys, time
 from generator import pipeline
 from generator.report import figures as F
 from generator.report.report import fit_report
-unit, data, out, report = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4] == "1"
-t_fit, t_rep = [], []
+unit, data, out, report = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4]
+
+
+def timed(fn):
+    # wall (perf_counter) and CPU of this process plus of its reaped children (os.times:
+    # the forked sensor fits and figure workers are reaped before fn returns)
+    w0, c0 = time.perf_counter(), os.times()
+    r = fn()
+    w1, c1 = time.perf_counter(), os.times()
+    own = (c1.user - c0.user) + (c1.system - c0.system)
+    kids = (c1.children_user - c0.children_user) + (c1.children_system - c0.children_system)
+    return r, w1 - w0, own, own + kids
+
+
+fits = []
 for _ in range(2):          # the first fit also pays the lazy imports inside the fit
-    t0 = time.process_time()
-    cs = pipeline.fit(unit, [data])
-    t_fit.append(time.process_time() - t0)
-if report:
+    cs, wall, own, cpu = timed(lambda: pipeline.fit(unit, [data]))
+    fits.append((wall, own, cpu))
+res = {"fit_wall_s": min(f[0] for f in fits), "fit_s": min(f[1] for f in fits),
+       "fit_cpu_s": min(f[2] for f in fits)}
+if report == "serial":      # figures drawn in this process: the CPU they cost
     F.parallel.__init__ = lambda self, workers=None: setattr(self, "workers", 1)
-    t0 = time.process_time()
-    fit_report(cs, out, [data])
-    t_rep.append(time.process_time() - t0)
-print(json.dumps({"fit_s": min(t_fit), "report_s": min(t_rep) if t_rep else None}))
+if report != "none":        # "forked": as `magcal fit` draws them
+    _, wall, own, cpu = timed(lambda: fit_report(cs, out, [data]))
+    res.update(report_wall_s=wall, report_s=own, report_cpu_s=cpu)
+print(json.dumps(res))
 """
 
 
 FIT_ONLY = "import sys; from generator import pipeline; pipeline.fit(sys.argv[1], [sys.argv[2]])"
 
 
-def _env(tree: Path) -> dict:
+def _env(tree: Path, **extra) -> dict:
     return dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1",
-                OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg")
+                OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="Agg", **extra)
 
 
 def extract(rev: str, dest: Path) -> Path:
@@ -107,10 +146,11 @@ def extract(rev: str, dest: Path) -> Path:
     return dest
 
 
-def timings(tree: Path, out: Path, report: bool) -> dict:
+def timings(tree: Path, out: Path, report: str, **env) -> dict:
+    """report: "none", "serial" (figures in the process) or "forked" (as `magcal fit`)."""
     p = subprocess.run([sys.executable, "-c", DRIVER, str(FM1 / "unit.toml"),
-                        str(FM1 / "thermal_12pos.csv"), str(out), "1" if report else "0"],
-                       env=_env(tree), capture_output=True, text=True, cwd=out.parent)
+                        str(FM1 / "thermal_12pos.csv"), str(out), report],
+                       env=_env(tree, **env), capture_output=True, text=True, cwd=out.parent)
     if p.returncode:
         raise SystemExit(f"{tree}: {p.stderr.strip().splitlines()[-1]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -145,12 +185,19 @@ def main():
                  "today": REPO}
         # --repeat rounds, each tree once per round (interleaved: a shared machine's load
         # changes over the run and would otherwise favour one tree); the best of the rounds
+        # today twice more: its fit with MAGCAL_WORKERS=1 (the sensors one after the other
+        # in the process: what the forked children buy, in wall and in CPU), and its report
+        # as `magcal fit` draws it (forked figures: wall and CPU with the children's)
+        runs = {k: (tree, "none" if a.no_report else "serial", {})
+                for k, tree in trees.items()}
+        runs["today_serial"] = (REPO, "none", {"MAGCAL_WORKERS": "1"})
+        if not a.no_report:
+            runs["today_forked_report"] = (REPO, "forked", {})
         res = {}
         for _ in range(a.repeat):
-            for k, tree in trees.items():
-                r = timings(tree, tmp / f"rep_{k}", not a.no_report)
-                res[k] = {m: (v if k not in res else min(v, res[k][m]) if v is not None
-                              else None) for m, v in r.items()}
+            for k, (tree, report, env) in runs.items():
+                r = timings(tree, tmp / f"rep_{k}", report, **env)
+                res[k] = {m: (v if k not in res else min(v, res[k][m])) for m, v in r.items()}
         if not a.no_memory:
             n1, n2 = (int(v) for v in a.rows.split(","))
             files = {}
@@ -163,18 +210,31 @@ def main():
                 res[k]["rss_MiB"] = m
                 res[k]["bytes_per_sample"] = (m[n2] - m[n1]) * 2**20 / (n2 - n1)
     b, rb, pv, t = res["baseline"], res["report_baseline"], res["previous"], res["today"]
-    print(f"samsat_fm1 thermal_12pos, CPU s, best of {a.repeat}, BLAS 1 thread; "
-          f"baseline {a.baseline_commit}, report baseline {a.report_baseline_commit}")
-    print(f"  fit:    {b['fit_s']:.2f} s ({a.baseline_commit}), "
-          f"{rb['fit_s']:.2f} s ({a.report_baseline_commit}) -> {t['fit_s']:.2f} s   "
-          f"ratio {b['fit_s'] / t['fit_s']:.2f}x, {rb['fit_s'] / t['fit_s']:.2f}x")
-    print(f"  fit against {a.previous_commit}: {pv['fit_s']:.2f} s -> {t['fit_s']:.2f} s   "
-          f"ratio {pv['fit_s'] / t['fit_s']:.2f}x")
+    ts = res["today_serial"]
+    print(f"samsat_fm1 thermal_12pos, best of {a.repeat}, BLAS 1 thread; baseline "
+          f"{a.baseline_commit}, report baseline {a.report_baseline_commit}; CPU = the "
+          f"process's own + its reaped children's (the forked sensor fits and figures)")
+    print(f"  today's fit, sensors serial (MAGCAL_WORKERS=1) -> forked: wall "
+          f"{ts['fit_wall_s']:.2f} s -> {t['fit_wall_s']:.2f} s (ratio "
+          f"{ts['fit_wall_s'] / t['fit_wall_s']:.2f}x), CPU {ts['fit_cpu_s']:.2f} s -> "
+          f"{t['fit_cpu_s']:.2f} s (ratio {ts['fit_cpu_s'] / t['fit_cpu_s']:.2f}x)")
+    print(f"  fit CPU: {b['fit_cpu_s']:.2f} s ({a.baseline_commit}), "
+          f"{rb['fit_cpu_s']:.2f} s ({a.report_baseline_commit}) -> {t['fit_cpu_s']:.2f} s"
+          f"   ratio {b['fit_cpu_s'] / t['fit_cpu_s']:.2f}x, "
+          f"{rb['fit_cpu_s'] / t['fit_cpu_s']:.2f}x")
+    print(f"  fit against {a.previous_commit}: CPU {pv['fit_cpu_s']:.2f} s -> "
+          f"{t['fit_cpu_s']:.2f} s (ratio {pv['fit_cpu_s'] / t['fit_cpu_s']:.2f}x), wall "
+          f"{pv['fit_wall_s']:.2f} s -> {t['fit_wall_s']:.2f} s (ratio "
+          f"{pv['fit_wall_s'] / t['fit_wall_s']:.2f}x)")
     if not a.no_report:
-        print(f"  report (figures drawn serially): {rb['report_s']:.2f} s "
-              f"({a.report_baseline_commit}) -> {t['report_s']:.2f} s   ratio "
-              f"{rb['report_s'] / t['report_s']:.2f}x   [{a.baseline_commit}, fewer "
-              f"figures: {b['report_s']:.2f} s]")
+        tf = res["today_forked_report"]
+        print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "
+              f"({a.report_baseline_commit}) -> {t['report_cpu_s']:.2f} s   ratio "
+              f"{rb['report_cpu_s'] / t['report_cpu_s']:.2f}x   [{a.baseline_commit}, "
+              f"fewer figures: {b['report_cpu_s']:.2f} s]")
+        print(f"  today's report, figures serial -> forked (as magcal fit): wall "
+              f"{t['report_wall_s']:.2f} s -> {tf['report_wall_s']:.2f} s, CPU "
+              f"{t['report_cpu_s']:.2f} s -> {tf['report_cpu_s']:.2f} s")
     if "bytes_per_sample" in t:
         print(f"  fit memory per sample (peak RSS slope, pipeline.fit): "
               f"{b['bytes_per_sample']:.0f} B -> {t['bytes_per_sample']:.0f} B   ratio "

@@ -20,6 +20,20 @@ import numpy as np
 POLY_DEGREE = 3  # cubic in temperature (seed 000 eq. 7)
 
 
+def _horner(coeffs, d) -> np.ndarray:
+    """sum_k coeffs[k] * d**k by Horner's rule, in place: (((c_K d + c_K-1) d + ...) d + c_0.
+    coeffs (K, *shape), d broadcastable against shape (a trailing 1 per axis of shape). The
+    float64 fitting model: no powers of d (a pow per sample for d**3) and no temporaries per
+    term; the last bits differ from the sum of powers (the float32 flight reference,
+    generator.flight.chain, has its own order, as the C)."""
+    out = np.empty(np.broadcast_shapes(np.shape(d), coeffs.shape[1:]))
+    out[...] = coeffs[-1]
+    for k in range(coeffs.shape[0] - 2, -1, -1):
+        out *= d
+        out += coeffs[k]
+    return out
+
+
 @dataclass
 class SensorCalibration:
     name: str
@@ -51,13 +65,11 @@ class SensorCalibration:
 
     def b_at(self, temp_C) -> np.ndarray:
         """b(T), shape (..., 3), float64 (for fitting and plots, not the flight reference)."""
-        d = self.dT(temp_C)[..., None]
-        return sum(self.b_poly_nT[k] * d**k for k in range(self.b_poly_nT.shape[0]))
+        return _horner(self.b_poly_nT, self.dT(temp_C)[..., None])
 
     def M_at(self, temp_C) -> np.ndarray:
         """M(T), shape (..., 3, 3), float64."""
-        d = self.dT(temp_C)[..., None, None]
-        return sum(self.M_poly[k] * d**k for k in range(self.M_poly.shape[0]))
+        return _horner(self.M_poly, self.dT(temp_C)[..., None, None])
 
     def apply64(self, field_frame_nT, temp_C) -> np.ndarray:
         """B_cal in float64 (fitting and diagnostics; the flight reference is chain.py)."""

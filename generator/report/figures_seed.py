@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _deferrable, _figure,
-                                      _save)
+                                      _lean_ticks, _save)
 
 BAND = 0.35          # sphere_projections: points within 0.35 |B| of the plane (~20 deg)
 MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only gets slower
@@ -27,6 +27,18 @@ MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only g
 
 def _thin(n):
     return slice(None, None, max(1, n // MAX_POINTS))
+
+
+def thinning_note(counts, what="samples") -> str:
+    """The caption's statement of the decimation _thin applies to series of these lengths:
+    "" when every point is drawn, else e.g. " Drawn: every 12th of the 36,000 samples"."""
+    notes = sorted({(max(1, int(n) // MAX_POINTS), int(n)) for n in counts if int(n)})
+    notes = [(k, n) for k, n in notes if k > 1]
+    if not notes:
+        return ""
+    def nth(k):
+        return f"{k}{'th' if 10 <= k % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(k % 10, 'th')}"
+    return " Drawn: " + "; ".join(f"every {nth(k)} of the {n:,} {what}" for k, n in notes) + "."
 
 
 @_deferrable(lambda path, *a, **k: Path(path))
@@ -61,6 +73,7 @@ def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
         ax.legend(fontsize=6, markerscale=4)
     for ax in axes.ravel():
         ax.grid(alpha=0.3, lw=0.5)
+        _lean_ticks(ax)
         ax.tick_params(labelsize=7)
     axes[0, 0].legend(fontsize=7, markerscale=5)
     fig.suptitle(title, fontsize=10)
@@ -97,6 +110,7 @@ def sphere_projections(path, title, rows) -> Path:
             ax.set_xlabel(f"B{'xyz'[i]}, µT", fontsize=8)
             ax.set_ylabel(f"B{'xyz'[j]}, µT", fontsize=8)
             ax.set_title(f"{label}: {'xyz'[i]}{'xyz'[j]} plane", fontsize=9)
+            _lean_ticks(ax, nx=5, ny=5)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, lw=0.5)
         axes[r, 0].legend(fontsize=6, markerscale=3, loc="upper right")
@@ -157,9 +171,12 @@ def positions_timeline(path, title, rows) -> Path:
             ax.plot(t[sl], cal[sl, c] - ref[sl, c], ".", ms=1.5, color=_AFTER,
                     label="calibrated")
             ax.axhline(0.0, lw=0.8, color="#2ca02c", label="reference")
-            for pos, t0, t1 in bounds:
-                ax.axvline(t0, color="#888888", lw=0.5, ls=":")
+            if len(bounds):     # one collection of full-height lines, not a line each
+                ax.vlines([t0 for _, t0, _ in bounds], 0, 1,
+                          transform=ax.get_xaxis_transform(), color="#888888", lw=0.5,
+                          ls=":")
             ax.set_title(f"{label}: B{'xyz'[c]} - reference", fontsize=9)
+            _lean_ticks(ax, ny=5)   # few ticks: tick objects are most of the drawing time
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, lw=0.5)
             if r == n - 1:

@@ -165,7 +165,8 @@ def positions_section(cs, analysis, out_dir):
         [(png.name, "Raw (grey) and calibrated (blue) components minus the reference "
                     "vector. Look for the calibrated points on zero at every temperature, "
                     "within the noise; raw ones sit off by the offset and scale error and "
-                    "drift as the chamber steps.")])
+                    "drift as the chamber steps."
+                    + figures_seed.thinning_note([len(r[1]) for r in rows_fig]))])
 
 
 # ---- per-axis RMS ---------------------------------------------------------------------
@@ -255,7 +256,9 @@ def examples_sections(cs, analysis, out_dir) -> list:
             [(png.name, "Raw (grey) and calibrated (blue) readings near each coordinate "
                         "plane (within 0.35 |B| of it), green: the circle of the reference "
                         "magnitude. Look for the calibrated points on the circle and "
-                        "centred; raw points form a shifted, stretched ellipse.",
+                        "centred; raw points form a shifted, stretched ellipse."
+                        + figures_seed.thinning_note([len(r[1]) for r in rows_fig],
+                                                     "samples, of those near each plane"),
               list(range(len(tables))))]))
     return out
 
@@ -291,7 +294,8 @@ def projections_section(out_dir, time_s, B_ref, B_boom, H, *, pair) -> Section:
         [(png.name, f"Rows 1-2: {names[0]} (black) and {names[1]} (coloured), before and "
                     "after H; row 3: their difference in %. Look for the difference after H "
                     "scattered about zero within the noise; before H a fixed misalignment "
-                    "shows as a difference that follows the attitude.")])
+                    "shows as a difference that follows the attitude."
+                    + figures_seed.thinning_note([len(t)]))])
 
 
 # ---- rotation against twelve positions ----------------------------------------------
