@@ -493,8 +493,9 @@ _MAIN_PID = [None]
 
 def _on_sigterm(signum, frame):
     if os.getpid() != _MAIN_PID[0]:
-        # a forked worker (a sensor fit or a figure, generator/forked.py) inherited this handler: it ends the
-        # way SIGTERM ends it by default, quietly, and its parent cleans up
+        # a forked worker (a sensor fit or a figure, generator/forked.py) inherited this
+        # handler: it ends the way SIGTERM ends it by default, quietly, and its parent
+        # cleans up
         os._exit(128 + signal.SIGTERM)
     raise _Terminated()
 
