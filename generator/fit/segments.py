@@ -2,7 +2,7 @@
 grouping across positions into temperature levels.
 
 Public: Segment, find_segments, group_levels, temperature_quantum, temperature_noise,
-segment_band_C.
+segment_band_C, step_and_white_noise_C.
 """
 
 from __future__ import annotations
@@ -82,12 +82,12 @@ def segment_band_C(temp_C, *, temp_lsb_C=None, min_band_C=0.5) -> float:
     to spare. sigma_n: temperature_noise measures the raw reading, quantisation included
     (sigma_tot^2 = sigma_n^2 + q^2/12 where the dither exceeds about q/2; below, the
     quantisation error is not white and the floor q/sqrt(12) holds)."""
-    q, sigma_w = _step_and_white_noise(temp_C, temp_lsb_C)
+    q, sigma_w = step_and_white_noise_C(temp_C, temp_lsb_C)
     sigma_f = np.sqrt(sigma_w ** 2 + q * q / 12.0)
     return float(max(min_band_C, 6.0 * sigma_f))
 
 
-def _step_and_white_noise(temp_C, temp_lsb_C=None):
+def step_and_white_noise_C(temp_C, temp_lsb_C=None):
     """(q, sigma_w): the reporting step and the white noise of the 5-sample median
     filtered reading (MEDIAN5_SD sigma_n, sigma_n the raw noise less quantisation; see
     segment_band_C)."""
@@ -150,7 +150,7 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
         pos[:] = 1
     if band_C is None:
         band_C = segment_band_C(T[ok], temp_lsb_C=temp_lsb_C, min_band_C=min_band_C)
-    q, sigma_w = _step_and_white_noise(T[ok], temp_lsb_C)
+    q, sigma_w = step_and_white_noise_C(T[ok], temp_lsb_C)
     limits = _SettleLimits(width_C=max(band_C, 2.0 * q), q_C=q, sigma_w_C=sigma_w,
                            min_band_C=min_band_C)
     dt = np.diff(t[ok])
