@@ -120,16 +120,16 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
     """Constant-temperature segments, found in the reported temperature itself.
 
     A sample is settled when some window of `window_s` that contains it keeps the
-    (5-sample median filtered) temperature within `band_C`. A settled run is split into
-    plateaus: the longest stretch of consecutive samples that stays inside one interval
-    of width band_C is a plateau, and what is left before and after it is split the same
-    way (a run that joins two holds by a slow transition, or a hold and the tail of the
-    board's approach to it, gives a plateau per hold). Neighbouring pieces of one hold
-    are joined again (a glitch, or a hold whose true temperature crosses one code
-    boundary while it dithers, cuts a hold into pieces): less than min_duration_s apart,
-    together within max(band_C, 2 q) and their means within max(min_band_C, 1.5 q), q the
-    reporting step. What lasts `min_duration_s` is a segment. The boards lag the chamber,
-    so nothing about the chamber profile is assumed.
+    (5-sample median filtered) temperature within `band_C`. In each settled stretch the
+    segment is the settled part of the hold: the longest part that spans at most
+    max(band_C, 2 q) (q the reporting step) and whose fitted drift and end blocks stay
+    within the drift limit (_SettleLimits: min_band_C + q + 3 sd of noise), so the
+    board's approach to its level and its departure at the next ramp are left out. What
+    is left before and after is searched the same way; a part found there is another
+    segment only if it reads another level (_SettleLimits.level_gap_C) and is not the
+    approach to a segment after it. What lasts `min_duration_s` is a segment (one per
+    hold; docs/segments.md). The boards lag the chamber, so nothing about the chamber
+    profile is assumed.
 
     band_C defaults to segment_band_C (6 sigma of noise and quantisation: 1.21 degC for
     the MMC5883's 0.7 degC step, which a hold dithering between two codes stays within;
