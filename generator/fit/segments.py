@@ -211,6 +211,30 @@ class _SettleLimits:
         return max(self.width_C, 2.0 * max(self.min_band_C, self.q_C))
 
 
+class _RangeExtreme:
+    """Maximum (or minimum) of x[i:j] for many j at once: a sparse table (level k holds
+    the extreme of every 2^k consecutive values), so each query costs two lookups."""
+
+    def __init__(self, x, fn):
+        self.fn = fn
+        self.levels = [np.asarray(x, float)]
+        w = 1
+        while 2 * w <= len(x):
+            prev = self.levels[-1]
+            self.levels.append(fn(prev[:-w], prev[w:]))
+            w *= 2
+
+    def query(self, i, js):
+        js = np.asarray(js, int)
+        k = np.floor(np.log2(js - i)).astype(int)
+        out = np.empty(len(js))
+        for kk in np.unique(k):
+            m = k == kk
+            lv = self.levels[kk]
+            out[m] = self.fn(lv[i], lv[js[m] - (1 << int(kk))])
+        return out
+
+
 def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     """(start, stop, drift_C) of the longest stretch of x (times ts) meeting lim
     (_SettleLimits), lasting min_duration_s; None if there is none. Starts and stops are
@@ -221,6 +245,7 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     g = max(1, n // 200)
     tc = ts - ts[0]
     P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
+    hi, lo = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum)
     best = None
     for i in range(0, n - 2 * n_block + 1, g):
         js = np.unique(np.concatenate([np.arange(i + 2 * n_block, n + 1, g), [n]]))
@@ -233,8 +258,7 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
             continue
         js, dur = js[keep], dur[keep]
         k = js - i
-        sub = x[i:js[-1]]
-        span = np.maximum.accumulate(sub)[k - 1] - np.minimum.accumulate(sub)[k - 1]
+        span = hi.query(i, js) - lo.query(i, js)
         N = k.astype(float)
         St, Sx, Stt, Stx = (p[js] - p[i] for p in P)
         den = N * Stt - St * St
