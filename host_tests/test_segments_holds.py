@@ -124,6 +124,8 @@ def test_one_segment_per_hold(tmp_path, unit_key, seed):
             assert inside, (s.name, g.position, g.t_start_s, g.t_stop_s, g.temp_C)
             count[inside[0]] += 1
         assert count.tolist() == [1] * len(holds), (s.name, count.tolist())
+        # "at least 10 min" from first to last sample, as the report prints it
+        assert all(g.duration_s >= 600.0 for g in segs), (s.name, min(g.duration_s for g in segs))
         # the true board temperature inside a segment: the reading's span (at most the
         # width max(band, 2 q)) plus a step q and 6 sigma of white noise it cannot see
         q, sigma_w = step_and_white_noise_C(d.temp_C[use], lsb)
@@ -135,7 +137,7 @@ def test_one_segment_per_hold(tmp_path, unit_key, seed):
 
 def _check(capsys, tmp_path):
     rc = main(["check", str(tmp_path / "unit.toml"), str(tmp_path / "thermal_12pos.csv"),
-               "--plan", str(tmp_path / "plan.json")])
+               "--plan", str(tmp_path / "plan.json"), "-q"])
     out, err = capsys.readouterr()
     return rc, out, err
 
@@ -163,6 +165,19 @@ def test_check_fails_boards_that_never_settled(tmp_path, capsys, unit_key):
             k = np.searchsorted(t, it["start_s"] + it["duration_s"]) - 1
             lag_C = T[k] - truth.board_self_heating_C[board] - it["setpoint_C"]
             assert abs(lag_C) > plan.settle_tolerance_C + 0.7, (board, it, lag_C)
+    # the segment finder: still at most one segment per hold (the boards drift through
+    # each hold; what is left of a hold is not cut into pieces)
+    tel = read_telemetry(tmp_path / "thermal_12pos.csv", unit)
+    pre = preprocess(tel, unit)
+    all_holds = [it for it in plan.chamber_program() if it["action"] == "hold"]
+    for s in unit.sensors:
+        d = pre[s.name]
+        segs = find_segments(tel.time_s, d.temp_C, tel.get("position"), d.usable,
+                             temp_lsb_C=temperature_lsb_C(s.part))
+        for it in all_holds:
+            end = it["start_s"] + it["duration_s"]
+            n = sum(1 for g in segs if it["start_s"] <= g.t_start_s < end)
+            assert n <= 1, (s.name, it, n)
     rc, out, err = _check(capsys, tmp_path)
     assert rc == 2, out
     assert len(err.strip().splitlines()) == 1 and "does not cover the plan" in err

@@ -250,7 +250,9 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     for i in range(0, n - 2 * n_block + 1, g):
         js = np.unique(np.concatenate([np.arange(i + 2 * n_block, n + 1, g), [n]]))
         js = js[js - i >= 2 * n_block]
-        dur = ts[js - 1] - ts[i] + dt_med
+        # a segment lasts min_duration_s from its first sample to its last (what
+        # Segment.duration_s and the report show), not one sample period less
+        dur = ts[js - 1] - ts[i]
         keep = dur >= min_duration_s
         if best is not None:
             keep &= dur > best[3]
@@ -304,7 +306,7 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
         todo = [(int(a), int(b))]
         while todo:
             a0, b0 = todo.pop()
-            if b0 - a0 < 2 or ts[b0 - 1] - ts[a0] + dt_med < min_duration_s:
+            if b0 - a0 < 2 or ts[b0 - 1] - ts[a0] < min_duration_s:
                 continue
             got = _longest_settled(ts[a0:b0], Tf[a0:b0], lim, n_block, min_duration_s,
                                    dt_med)
