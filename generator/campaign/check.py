@@ -889,9 +889,19 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                 reach = (f"never reached: the sensors report {lo:.1f}..{hi:.1f} degC, and a "
                          "calibration is clamped outside its data" if lo is not None
                          else "never reached")
+                # per sensor, its segment closest to the level (after its offset)
+                near_seg = {}
+                for (p, LL), u in unsettled.items():
+                    if LL == L:
+                        for n, v in u.items():
+                            near_seg[n] = min(near_seg.get(n, math.inf), v)
+                closest = ("; closest segment " + ", ".join(
+                    f"{n} {v:.1f} degC from it (settled: within "
+                    f"{settle[n]['tolerance_C']:.2f})" for n, v in sorted(near_seg.items()))
+                    if near_seg else "")
                 gaps.append(f"level {L:g} degC: no settled segment in any position ("
                             + ("samples reach it but the temperature never settled: holds "
-                               "too short?" if ns else reach) + ")")
+                               "too short?" if ns else reach) + closest + ")")
                 for c in lc:
                     c["reported_with_level"] = True
         groups = {}
@@ -1032,9 +1042,12 @@ def summary_line(result) -> str:
     missing_pos = [p["position"] for p in result.get("positions", []) if p["rows"] == 0]
     if missing_pos:
         kinds.append(f"positions {_fmt_list(missing_pos)} missing")
-    lv = [gg.split(":")[0] for gg in g if gg.startswith("level ") and "any position" in gg]
-    if lv:
-        kinds.append(", ".join(lv) + " missing")
+    lv = [gg for gg in g if gg.startswith("level ") and "any position" in gg]
+    for what, has in (("missing", lambda gg: "never settled" not in gg),
+                      ("not settled", lambda gg: "never settled" in gg)):
+        sel = [gg.split(":")[0] for gg in lv if has(gg)]
+        if sel:
+            kinds.append(", ".join(sel) + " " + what)
     poor = [n for n, s in result.get("sensors", {}).items()
             if s.get("prediction", {}).get("poorly_determined")]
     if poor:
