@@ -38,6 +38,7 @@ from generator.fit.calibration import POLY_DEGREE
 from generator.errors import InputError
 from generator.io.parts import temperature_lsb_C
 from generator.fit.ellipsoid import SYM_INDEX, _sym_grad, coverage
+from generator.fit.segments import step_and_white_noise_C
 from generator.fit.thermal import (DEGREE_STEP_C, T_REF_C, _powers, find_segments,
                           temperature_quantum)
 
@@ -58,6 +59,9 @@ MIN_DIRECTION_EIG = 0.1
 MIN_ICOSA_FRACTION = 0.75
 # Samples per (position, level) segment when no plan says otherwise.
 MIN_SEGMENT_SAMPLES = 30
+# How far back before a segment the reading is looked at to tell whether the board was
+# cooled or heated into it (the segment finder's 10 min window).
+APPROACH_LOOKBACK_S = 600.0
 
 
 # =======================================================================================
@@ -395,6 +399,65 @@ def gather_samples(unit, tels, pres=None) -> dict:
             name=s.name, x=cat["x"].reshape(-1, 3), T=cat["T"], ref=cat["ref"].reshape(-1, 3),
             norm=cat["norm"], position=cat["pos"].astype(int), file=cat["file"].astype(int),
             time_s=cat["t"], segments=segs, excluded=excluded, file_flags=flags)
+    return out
+
+
+def settled_segments(unit, samples, nearest_level, settle_tolerance_C) -> dict:
+    """Which constant-temperature segments are settled at their plan level, per sensor:
+    {name: {"offset_C", "tolerance_C", "segments": [{"settled", "from_level_C"}, ...]}}
+    (segments in SensorSamples.segments order; from_level_C None off the plan's levels).
+
+    A board lags the chamber as a first-order system: until it has settled, its reading
+    sits on the side it came from (above the level when cooled into it, below when heated),
+    while self-heating or the sensor's own temperature offset shift every level the same
+    way. So the sensor's offset is the midpoint of the median deviation (segment mean less
+    level) of the segments entered cooling and of those entered heating (0 when only one
+    kind exists), and a segment is settled when
+
+    * its mean is within tol + q/2 + 3 sigma_w / sqrt(N) of level + offset: tol the plan's
+      settling tolerance, q the reporting step (the mean of a reading pinned to one code is
+      off by up to q/2), sigma_w the white noise of the filtered reading over N samples;
+    * its drift (Segment.drift_C) is within tol + q + 3 sigma_w sqrt(12 / N) (a difference
+      of quantised readings errs by up to q; generator.fit.segments).
+
+    Whether a segment was entered cooling or heating: the sensor's mean reading over the
+    APPROACH_LOOKBACK_S before it (same file) against the segment's mean."""
+    tol = float(settle_tolerance_C)
+    parts = {s.name: s.part for s in unit.sensors}
+    out = {}
+    for name, S in samples.items():
+        q, sw = step_and_white_noise_C(S.T, temperature_lsb_C(parts.get(name))) \
+            if S.n > 2 else (0.0, 0.0)
+        rows = []
+        for sg in S.segments:
+            L = nearest_level(sg.temp_C)
+            if L is None or len(sg.index) == 0:
+                rows.append((None, 0.0))
+                continue
+            i0 = sg.index[0]
+            t0 = S.time_s[i0]
+            before = ((S.file == S.file[i0]) & (S.time_s < t0)
+                      & (S.time_s >= t0 - APPROACH_LOOKBACK_S))
+            came = float(np.sign(np.mean(S.T[before]) - sg.temp_C)) if before.any() else 0.0
+            rows.append((sg.temp_C - L, came))
+        cool = [d for d, c in rows if d is not None and c > 0]
+        heat = [d for d, c in rows if d is not None and c < 0]
+        offset = 0.5 * (float(np.median(cool)) + float(np.median(heat))) \
+            if cool and heat else 0.0
+        segs = []
+        for sg, (d, _) in zip(S.segments, rows):
+            if d is None:
+                segs.append({"settled": False, "from_level_C": None})
+                continue
+            n = max(len(sg.index), 1)
+            tol_mean = tol + q / 2 + 3 * sw / math.sqrt(n)
+            tol_drift = tol + q + 3 * sw * math.sqrt(12.0 / n)
+            dev = d - offset
+            segs.append({"settled": bool(abs(dev) <= tol_mean
+                                         and abs(sg.drift_C) <= tol_drift),
+                         "from_level_C": float(dev)})
+        out[name] = {"offset_C": float(offset), "tolerance_C": float(tol + q / 2),
+                     "step_C": float(q), "segments": segs}
     return out
 
 
@@ -750,17 +813,23 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
         k = int(np.argmin([abs(temp - L) for L in levels]))
         return levels[k] if abs(temp - levels[k]) <= match_tol else None
 
-    cells = {}
+    settle = settled_segments(unit, samples, nearest_level, profile.settle_tolerance_C)
+    cells, unsettled = {}, {}
     level_seen = {L: {} for L in levels}        # level -> sensor -> list of segment temps
     unplanned = []
     for name, S in samples.items():
-        for sg in S.segments:
+        for k, sg in enumerate(S.segments):
             L = nearest_level(sg.temp_C)
             if L is None:
                 unplanned.append(sg.temp_C)
                 continue
             level_seen[L].setdefault(name, []).append(sg.temp_C)
             if sg.position <= 0:
+                continue
+            off = settle[name]["segments"][k]
+            if not off["settled"]:
+                u = unsettled.setdefault((sg.position, L), {})
+                u[name] = max(u.get(name, 0.0), abs(off["from_level_C"]))
                 continue
             c = cells.setdefault((sg.position, L), {}).setdefault(
                 name, {"samples": 0, "duration_s": 0.0, "temps": []})
@@ -791,11 +860,12 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                 for name, S in samples.items():
                     c = cells.get((num, L), {}).get(name)
                     near = int(((S.position == num) & (np.abs(S.T - L) <= match_tol)).sum())
+                    far = unsettled.get((num, L), {}).get(name)
                     if c and c["samples"] >= min_samples:
                         st = "ok"
                     elif c:
                         st = "short"
-                    elif near:
+                    elif near or far is not None:
                         st = "not settled"
                     else:
                         st = "missing"
@@ -803,6 +873,7 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                                 "settled_s": c["duration_s"] if c else 0.0,
                                 "temp_C": float(np.mean(c["temps"])) if c else None,
                                 "samples_near_level": near,
+                                "unsettled_from_level_C": far,
                                 "saturated": _count_at(tels, S, "saturated", num, pres, name,
                                                        (L - match_tol, L + match_tol))}
                 worst = max((b["status"] for b in by.values()), key=STATUS_ORDER.index)
@@ -818,9 +889,19 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                 reach = (f"never reached: the sensors report {lo:.1f}..{hi:.1f} degC, and a "
                          "calibration is clamped outside its data" if lo is not None
                          else "never reached")
+                # per sensor, its segment closest to the level (after its offset)
+                near_seg = {}
+                for (p, LL), u in unsettled.items():
+                    if LL == L:
+                        for n, v in u.items():
+                            near_seg[n] = min(near_seg.get(n, math.inf), v)
+                closest = ("; closest segment " + ", ".join(
+                    f"{n} {v:.1f} degC from it (settled: within "
+                    f"{settle[n]['tolerance_C']:.2f})" for n, v in sorted(near_seg.items()))
+                    if near_seg else "")
                 gaps.append(f"level {L:g} degC: no settled segment in any position ("
                             + ("samples reach it but the temperature never settled: holds "
-                               "too short?" if ns else reach) + ")")
+                               "too short?" if ns else reach) + closest + ")")
                 for c in lc:
                     c["reported_with_level"] = True
         groups = {}
@@ -833,10 +914,25 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
             what = {"short": f"fewer than {min_samples} settled samples",
                     "not settled": "temperature not settled",
                     "missing": "no samples at this level"}[st]
+            far = {n: max((unsettled.get((p, L), {}).get(n) or 0.0) for p in plist)
+                   for n in bad}
+            if st == "not settled" and any(far.values()):
+                what += " (" + ", ".join(
+                    f"{n}: a segment {v:.1f} degC from the level, settled within "
+                    f"{settle[n]['tolerance_C']:.2f}" for n, v in far.items() if v) + ")"
             gaps.append(f"level {L:g} degC, position(s) {_fmt_list(plist)}: {what} "
                         f"({', '.join(bad)})")
     result["levels"] = level_out
     result["cells"] = cells_out
+    result["settling"] = {n: {k: v for k, v in d.items() if k != "segments"}
+                          for n, d in settle.items()}
+    for n, d in settle.items():
+        if plan_applies and d["offset_C"] != 0.0:
+            notes.append(f"{n}: reads {abs(d['offset_C']):.2f} degC "
+                         f"{'above' if d['offset_C'] > 0 else 'below'} the set-points "
+                         "(self-heating or the sensor's temperature offset: the midpoint of "
+                         "the holds entered cooling and those entered heating); a segment is "
+                         f"settled within {d['tolerance_C']:.2f} degC of set-point + offset")
 
     # ---- per sensor: samples, coverage, coefficient prediction ------------------------
     plan_range = (min(levels), max(levels)) if plan_applies else None
@@ -946,9 +1042,12 @@ def summary_line(result) -> str:
     missing_pos = [p["position"] for p in result.get("positions", []) if p["rows"] == 0]
     if missing_pos:
         kinds.append(f"positions {_fmt_list(missing_pos)} missing")
-    lv = [gg.split(":")[0] for gg in g if gg.startswith("level ") and "any position" in gg]
-    if lv:
-        kinds.append(", ".join(lv) + " missing")
+    lv = [gg for gg in g if gg.startswith("level ") and "any position" in gg]
+    for what, has in (("missing", lambda gg: "never settled" not in gg),
+                      ("not settled", lambda gg: "never settled" in gg)):
+        sel = [gg.split(":")[0] for gg in lv if has(gg)]
+        if sel:
+            kinds.append(", ".join(sel) + " " + what)
     poor = [n for n, s in result.get("sensors", {}).items()
             if s.get("prediction", {}).get("poorly_determined")]
     if poor:

@@ -2,7 +2,7 @@
 grouping across positions into temperature levels.
 
 Public: Segment, find_segments, group_levels, temperature_quantum, temperature_noise,
-segment_band_C.
+segment_band_C, step_and_white_noise_C.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ class Segment:
     t_start_s: float
     t_stop_s: float
     position: int = 0          # static position (0: none given)
+    drift_C: float = 0.0       # fitted linear drift of the reading over the segment (end - start)
 
     @property
     def duration_s(self) -> float:
@@ -81,12 +82,20 @@ def segment_band_C(temp_C, *, temp_lsb_C=None, min_band_C=0.5) -> float:
     to spare. sigma_n: temperature_noise measures the raw reading, quantisation included
     (sigma_tot^2 = sigma_n^2 + q^2/12 where the dither exceeds about q/2; below, the
     quantisation error is not white and the floor q/sqrt(12) holds)."""
+    q, sigma_w = step_and_white_noise_C(temp_C, temp_lsb_C)
+    sigma_f = np.sqrt(sigma_w ** 2 + q * q / 12.0)
+    return float(max(min_band_C, 6.0 * sigma_f))
+
+
+def step_and_white_noise_C(temp_C, temp_lsb_C=None):
+    """(q, sigma_w): the reporting step and the white noise of the 5-sample median
+    filtered reading (MEDIAN5_SD sigma_n, sigma_n the raw noise less quantisation; see
+    segment_band_C)."""
     T = np.asarray(temp_C, float)
     T = T[np.isfinite(T)]
     q = temperature_step_C(T, temp_lsb_C)
     sigma_n2 = max(0.0, temperature_noise(T) ** 2 - q * q / 12.0)
-    sigma_f = np.sqrt(MEDIAN5_SD ** 2 * sigma_n2 + q * q / 12.0)
-    return float(max(min_band_C, 6.0 * sigma_f))
+    return q, float(MEDIAN5_SD * np.sqrt(sigma_n2))
 
 
 def temperature_step_C(temp_C, temp_lsb_C=None) -> float:
@@ -111,16 +120,16 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
     """Constant-temperature segments, found in the reported temperature itself.
 
     A sample is settled when some window of `window_s` that contains it keeps the
-    (5-sample median filtered) temperature within `band_C`. A settled run is split into
-    plateaus: the longest stretch of consecutive samples that stays inside one interval
-    of width band_C is a plateau, and what is left before and after it is split the same
-    way (a run that joins two holds by a slow transition, or a hold and the tail of the
-    board's approach to it, gives a plateau per hold). Neighbouring pieces of one hold
-    are joined again (a glitch, or a hold whose true temperature crosses one code
-    boundary while it dithers, cuts a hold into pieces): less than min_duration_s apart,
-    together within max(band_C, 2 q) and their means within max(min_band_C, 1.5 q), q the
-    reporting step. What lasts `min_duration_s` is a segment. The boards lag the chamber,
-    so nothing about the chamber profile is assumed.
+    (5-sample median filtered) temperature within `band_C`. In each settled stretch the
+    segment is the settled part of the hold: the longest part that spans at most
+    max(band_C, 2 q) (q the reporting step) and whose fitted drift and end blocks stay
+    within the drift limit (_SettleLimits: min_band_C + q + 3 sd of noise), so the
+    board's approach to its level and its departure at the next ramp are left out. What
+    is left before and after is searched the same way; a part found there is another
+    segment only if it reads another level (_SettleLimits.level_gap_C) and is not the
+    approach to a segment after it. What lasts `min_duration_s` is a segment (one per
+    hold; docs/segments.md). The boards lag the chamber, so nothing about the chamber
+    profile is assumed.
 
     band_C defaults to segment_band_C (6 sigma of noise and quantisation: 1.21 degC for
     the MMC5883's 0.7 degC step, which a hold dithering between two codes stays within;
@@ -141,17 +150,9 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
         pos[:] = 1
     if band_C is None:
         band_C = segment_band_C(T[ok], temp_lsb_C=temp_lsb_C, min_band_C=min_band_C)
-    # pieces of one hold -- cut by a glitch, or by a true temperature that crosses one
-    # code boundary while it dithers (three codes, 2 q: more than the band) -- are joined
-    # again: neighbours less than min_duration_s apart that together span at most
-    # max(band, 2 q) and whose means differ by at most max(min_band_C, 1.5 q). Two pieces
-    # of one hold share their middle code, so their means differ by about one step; two
-    # holds 2 degC apart read at least two codes apart at 0.7 degC steps (2 q = 1.4 degC),
-    # span four codes or more together with their dither, and their means differ by more
-    # than 1.5 q (the 0.5 q between leaves room for a piece that holds the end of the
-    # board's approach)
-    q = temperature_step_C(T[ok], temp_lsb_C)
-    join_C = (max(band_C, 2.0 * q), max(min_band_C, 1.5 * q))
+    q, sigma_w = step_and_white_noise_C(T[ok], temp_lsb_C)
+    limits = _SettleLimits(width_C=max(band_C, 2.0 * q), q_C=q, sigma_w_C=sigma_w,
+                           min_band_C=min_band_C)
     dt = np.diff(t[ok])
     dt_med = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
     # runs of constant position, split at time gaps
@@ -162,7 +163,7 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
     for rid in np.unique(run_id[ok & (pos > 0)]):
         idx = np.nonzero((run_id == rid) & ok)[0]
         segs.extend(_segments_in_run(idx, t, T, int(pos[idx[0]]), dt_med, window_s,
-                                     min_duration_s, band_C, join_C))
+                                     min_duration_s, band_C, limits))
     return segs
 
 
@@ -171,44 +172,126 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
 _SLACK = 1e-9
 
 
-def _plateaus(Tf, a, b, width_C, out):
-    """Split Tf[a:b] into plateaus (see find_segments): appends (start, stop) to out, in
-    time order.
+@dataclass
+class _SettleLimits:
+    """What a settled stretch of a reading may show (find_segments).
 
-    The plateau is the longest stretch of consecutive samples whose values stay inside
-    one interval [v, v + width_C]; v runs over a grid from the smallest value in steps of
-    width_C / 20 (a quantised reading's codes lie on its step, and the grid meets each
-    code within width_C / 20). What is left before and after it is split the same way
-    (iteratively: a run of many small pieces must not exhaust the call stack)."""
-    found = []
-    todo = [(a, b)]
-    while todo:
-        a, b = todo.pop()
-        if b - a <= 0:
+    * width_C: its (median-filtered) values span at most max(band, 2 q): the band of a
+      constant temperature, or three codes of a quantised one whose true temperature sits
+      on a code boundary while it dithers (a span the band alone would cut);
+    * drift: the fitted linear drift over the stretch (end - start) and the mean of its
+      first and last blocks (window_s / 4) against the stretch's mean are within
+      min_band_C + q + 3 sd: min_band_C the smallest true drift counted (the plan's
+      default settling tolerance, 0.5 degC); q the reporting step, because a quantised
+      reading errs by up to q/2 either way, so a difference of two readings (or of the
+      dither fractions of two blocks: a 0.3 degC drift across a code boundary moves a
+      dithering reading by nearly a whole step) is off by up to q; sd the white noise's
+      contribution to the estimate (sigma_w sqrt(12 / N) for the drift of N samples,
+      sigma_w sqrt(1/N_b + 1/N) for a block of N_b). A board still approaching its level
+      (a first-order lag) or leaving it at the next ramp drifts monotonically beyond this:
+      that part of the hold is not settled data.
+    """
+    width_C: float
+    q_C: float
+    sigma_w_C: float
+    min_band_C: float
+
+    def drift_C(self, n):
+        return self.min_band_C + self.q_C + 3.0 * self.sigma_w_C * np.sqrt(
+            12.0 / np.maximum(n, 1))
+
+    def block_C(self, n_block, n):
+        return self.min_band_C + self.q_C + 3.0 * self.sigma_w_C * np.sqrt(
+            1.0 / n_block + 1.0 / np.maximum(n, 1))
+
+    @property
+    def level_gap_C(self):
+        """Two settled stretches of one run read different holds when their means differ
+        by more than this: the width, and at least twice the smallest drift counted."""
+        return max(self.width_C, 2.0 * max(self.min_band_C, self.q_C))
+
+
+class _RangeExtreme:
+    """Maximum (or minimum) of x[i:j] for many j at once: a sparse table (level k holds
+    the extreme of every 2^k consecutive values), so each query costs two lookups."""
+
+    def __init__(self, x, fn):
+        self.fn = fn
+        self.levels = [np.asarray(x, float)]
+        w = 1
+        while 2 * w <= len(x):
+            prev = self.levels[-1]
+            self.levels.append(fn(prev[:-w], prev[w:]))
+            w *= 2
+
+    def query(self, i, js):
+        js = np.asarray(js, int)
+        k = np.floor(np.log2(js - i)).astype(int)
+        out = np.empty(len(js))
+        for kk in np.unique(k):
+            m = k == kk
+            lv = self.levels[kk]
+            out[m] = self.fn(lv[i], lv[js[m] - (1 << int(kk))])
+        return out
+
+
+def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
+    """(start, stop, drift_C) of the longest stretch of x (times ts) meeting lim
+    (_SettleLimits), lasting min_duration_s; None if there is none. Starts and stops are
+    tried on a grid of about 200 points per run (every sample in runs up to 200 long)."""
+    n = len(x)
+    if n < 2 * n_block:
+        return None
+    g = max(1, n // 200)
+    tc = ts - ts[0]
+    P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
+    hi, lo = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum)
+    best = None
+    for i in range(0, n - 2 * n_block + 1, g):
+        js = np.unique(np.concatenate([np.arange(i + 2 * n_block, n + 1, g), [n]]))
+        js = js[js - i >= 2 * n_block]
+        # a segment lasts min_duration_s from its first sample to its last (what
+        # Segment.duration_s and the report show), not one sample period less
+        dur = ts[js - 1] - ts[i]
+        keep = dur >= min_duration_s
+        if best is not None:
+            keep &= dur > best[3]
+        if not keep.any():
             continue
-        seg = Tf[a:b]
-        lo, hi = float(seg.min()), float(seg.max())
-        edges = lo + np.arange(int((hi - lo) / (width_C / 20.0)) + 1) * (width_C / 20.0)
-        best = (0, 0, 0)
-        for v in edges:
-            inside = (seg >= v - _SLACK * width_C) & (seg <= v + width_C * (1 + _SLACK))
-            for s0, e0 in _runs(inside):
-                if e0 - s0 > best[0]:
-                    best = (int(e0 - s0), int(s0), int(e0))
-        _, s, e = best
-        found.append((a + s, a + e))
-        todo += [(a, a + s), (a + e, b)]
-    out.extend(sorted(found))
+        js, dur = js[keep], dur[keep]
+        k = js - i
+        span = hi.query(i, js) - lo.query(i, js)
+        N = k.astype(float)
+        St, Sx, Stt, Stx = (p[js] - p[i] for p in P)
+        den = N * Stt - St * St
+        slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
+        drift = slope * (ts[js - 1] - ts[i])
+        mean = Sx / N
+        first = (P[1][i + n_block] - P[1][i]) / n_block
+        last = (P[1][js] - P[1][js - n_block]) / n_block
+        ok = ((span <= lim.width_C * (1 + _SLACK))
+              & (np.abs(drift) <= lim.drift_C(N))
+              & (np.abs(first - mean) <= lim.block_C(n_block, N))
+              & (np.abs(last - mean) <= lim.block_C(n_block, N)))
+        if ok.any():
+            m = int(np.argmax(np.where(ok, dur, -1.0)))
+            best = (i, int(js[m]), float(drift[m]), float(dur[m]))
+    return None if best is None else best[:3]
 
 
-def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band_C,
-                     join_C):
+def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band_C, lim):
+    """Segments of one run of constant position (find_segments): in each settled stretch
+    (windows of window_s within band_C), the longest part meeting lim (_SettleLimits);
+    what is left before and after it is searched the same way, and a part found there is
+    another segment only if it reads another level (lim.level_gap_C away): the rest of the
+    board's approach to a hold is not a segment of its own."""
     n_w = max(3, int(round(window_s / dt_med)))
     if len(idx) < n_w:
         return []
     from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
 
     Tf = median_filter(T[idx], size=5, mode="nearest") if len(idx) >= 5 else T[idx]
+    ts = t[idx]
     win = np.lib.stride_tricks.sliding_window_view(Tf, n_w)
     quiet = (win.max(axis=1) - win.min(axis=1)) <= band_C * (1 + _SLACK)
     cover = np.zeros(len(idx) + 1, int)
@@ -216,30 +299,42 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
     np.add.at(cover, starts, 1)
     np.add.at(cover, starts + n_w, -1)
     settled = np.cumsum(cover)[:-1] > 0
-    out = []
+    n_block = max(3, n_w // 4)
+    found = []
     for a, b in _runs(settled):
-        _plateaus(Tf, int(a), int(b), band_C, out)
-    # join neighbouring pieces of one hold (find_segments: join_C), short ones too (the
-    # last minutes of a hold that dithers onto a third code are such a piece), then keep
-    # what lasts min_duration_s
-    joined = []
-    for a, b in out:
-        keep = np.arange(a, b)
-        if joined:
-            union = np.concatenate([joined[-1], keep])
-            if (np.ptp(Tf[union]) <= join_C[0] * (1 + _SLACK)
-                    and abs(np.mean(Tf[keep]) - np.mean(Tf[joined[-1]])) <= join_C[1]
-                    and t[idx[a]] - t[idx[joined[-1][-1]]] < min_duration_s):
-                joined[-1] = union
+        means, found_run = [], []
+        todo = [(int(a), int(b))]
+        while todo:
+            a0, b0 = todo.pop()
+            if b0 - a0 < 2 or ts[b0 - 1] - ts[a0] < min_duration_s:
                 continue
-        joined.append(keep)
-    segs = [k for k in joined if t[idx[k[-1]]] - t[idx[k[0]]] + dt_med >= min_duration_s]
+            got = _longest_settled(ts[a0:b0], Tf[a0:b0], lim, n_block, min_duration_s,
+                                   dt_med)
+            if got is None:
+                continue
+            s, e, drift = got
+            todo += [(a0, a0 + s), (a0 + e, b0)]
+            m = float(np.mean(Tf[a0 + s:a0 + e]))
+            if any(abs(m - mm) <= lim.level_gap_C for mm in means):
+                continue
+            # the board's approach to a segment found before (this piece earlier, drifting
+            # towards it by more than half the drift limit): not a hold of its own. (A
+            # piece after a segment drifting away from it may be the next hold reached
+            # through a slow transition; the departure at a ramp is short, its drift grows.)
+            later = [(ss, mm) for (ss, _, _), mm in zip(found_run, means) if ss >= a0 + e]
+            if later:
+                ss, mm = min(later)
+                if drift * np.sign(mm - m) > 0.5 * lim.drift_C(e - s):
+                    continue
+            means.append(m)
+            found_run.append((a0 + s, a0 + e, drift))
+            found.append((a0 + s, a0 + e, drift))
     result = []
-    for keep in segs:
-        ii = idx[keep]
+    for a, b, drift in sorted(found):
+        ii = idx[a:b]
         result.append(Segment(index=ii, temp_C=float(np.mean(T[ii])),
-                              temp_range_C=float(np.ptp(Tf[keep])), t_start_s=float(t[ii[0]]),
-                              t_stop_s=float(t[ii[-1]]), position=position))
+                              temp_range_C=float(np.ptp(Tf[a:b])), t_start_s=float(t[ii[0]]),
+                              t_stop_s=float(t[ii[-1]]), position=position, drift_C=drift))
     return result
 
 
