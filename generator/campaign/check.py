@@ -570,9 +570,11 @@ def predict_sensor(S: SensorSamples, spec, target_C, *, noise_nT=None,
                    limit_b_nT=LIMIT_B_nT, limit_m=LIMIT_M) -> dict:
     """Predicted 1-sigma of b_i(T), m_ij(T) over target_C = (lo, hi) from this campaign's
     design; flags coefficients above the limits (JSON-able dict)."""
-    if not (noise_nT or spec.noise_nT) and not spec.counts:
-        # a physical-unit input: lsb_nT is the unit's size (1000 nT for uT), not a noise;
-        # the part's stated noise it is (fit.samples.field_noise_nT, as the fit uses)
+    if not (noise_nT or spec.noise_nT):
+        # none stated: the part catalogue's typical noise, as the fit uses it
+        # (fit.samples.field_noise_nT; counts: with the LSB's quantisation). lsb_nT is no
+        # noise figure: for a physical-unit input it is the unit's size (1000 nT for uT),
+        # for counts one step (8 nT for a QMC5883L whose noise is 200 nT)
         from generator.fit.samples import field_noise_nT
         noise_nT = field_noise_nT(spec)
     noise = float(noise_nT or spec.noise_nT or spec.lsb_nT)
