@@ -99,6 +99,22 @@ def test_quiet_part_without_noise_is_no_reflection(tmp_path, seed):
     assert noise["reading_nT"] < HMC_CATALOGUE_nT          # clipped to the data's bound
     assert "clipped" in noise["reading_from"]
     _check_within(cal, truth, arrays)
+    # the HMC5883L has no temperature channel: the noise test knows it (finding 6)
+    assert cal.stats["noise_goodness"]["no_temperature_channel"]
+
+
+def test_noise_warning_names_the_real_temperature_cause():
+    # finding 6: a sensor with no temperature channel has no temperature column to be
+    # stuck; its constant model cannot follow the board's drift over a thermal sweep
+    from generator.fit.goodness import noise_warning
+    gof = {"flagged": True, "kind": "vector", "rms_residual_nT": 900.0,
+           "explained_nT": 200.0, "excess_field_error_nT": 1500.0, "from": "x",
+           "chi2_per_row": 20.0, "limit": 1.3}
+    with_t = noise_warning("m", gof)
+    assert "stuck or wrong temperature column" in with_t
+    without = noise_warning("m", dict(gof, no_temperature_channel=True))
+    assert "stuck" not in without
+    assert "no temperature channel" in without and "thermal sweep" in without
 
 
 def test_figure_4x_too_small_is_warned_and_predicted_covers_achieved(tmp_path):

@@ -45,8 +45,12 @@ test cannot see a noisy reference. The fit's own parameters (at most 12 (degree 
 degrees of freedom, which only makes the test more lenient. Passing it is a WARNING, not
 a refusal: the reference may honestly carry more error than the sensor (an attitude
 estimate, a magnetically disturbed lab). Its causes are named in the message
-(noise_warning): a reference worse than the sensor, a stuck or wrong temperature column,
-an effect the model lacks (magcal trace finds those).
+(noise_warning): a reference worse than the sensor, a stuck or wrong temperature column
+(for a sensor with no temperature channel instead: the board's drift over a thermal
+sweep, which its constant model cannot take), an effect the model lacks (magcal trace
+finds those). A STATED figure below the readings' own sample-to-sample scatter (beyond
+its uncertainty) is warned as such ("check noise_nT"; _figure_below_scatter); the fit
+counts the noise up to that scatter in its 1-sigma (fit.reference.noise_var_sigma).
 """
 
 from __future__ import annotations
@@ -62,6 +66,8 @@ MISFIT_ALPHA = 1e-6            # false-refusal probability of the test for a rig
 # false-warning probability per sensor of the noise-only test (noise_misfit) on data the
 # noise, the reference's stated floor and the model explain
 NOISE_ALPHA = 1e-3
+# The note fit.samples._gather leaves for a sensor with temperature = false
+NO_TEMPERATURE_NOTE = "temperature = false"
 
 
 def vector_misfit(cal, S) -> dict | None:
@@ -204,6 +210,10 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
                    excess_field_error_nT=float(np.sqrt(max(r2 - e2, 0.0))))
     src = noise_source(S.noise_nT) if has_figure else None
     out["noise_from"] = src or "sample-to-sample differences"
+    # a sensor with no temperature channel (temperature = false) has a constant model:
+    # a temperature column cannot be its cause, its board's drift can (noise_warning)
+    out["no_temperature_channel"] = any(NO_TEMPERATURE_NOTE in str(m)
+                                        for m in (cal.stats or {}).get("notes", []))
     if src == NOISE_STATED:
         below = _figure_below_scatter(cal, S, z, fid, noise, NOISE_VAR_UNCERTAINTY)
         if below:
@@ -303,12 +313,16 @@ def noise_warning(name, gof, predicted=None) -> str | None:
         tail = f"{gof['excess_field_error_nT']:.0f} nT of it the noise does not explain"
     what = "per axis against the reference vectors" if gof["kind"] == "vector" else \
         "of |B| against the reference magnitude"
+    temp_cause = ("no temperature channel (temperature = false: a constant calibration, "
+                  "so the board's drift over a thermal sweep cannot be modelled)"
+                  if gof.get("no_temperature_channel")
+                  else "a stuck or wrong temperature column")
     return (f"sensor '{name}': the fit leaves {gof['rms_residual_nT']:.0f} nT rms {what}, "
             f"beyond what the reading noise explains ({gof['explained_nT']:.0f} nT: "
             f"{gof['from']}; chi2/row {gof['chi2_per_row']:.3g} > {gof['limit']:.3g}). "
             "Likely causes: the reference carries more error than the sensor noise (an "
-            "attitude estimate, a field model, a disturbed lab), a stuck or wrong "
-            "temperature column, or an effect the model lacks (run `magcal trace` to find "
+            f"attitude estimate, a field model, a disturbed lab), {temp_cause}, or an "
+            "effect the model lacks (run `magcal trace` to find "
             f"it); the calibration is kept, {tail}" + (f". Also: {fig}" if fig else ""))
 
 
