@@ -47,12 +47,25 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    where held. The reading noise is the unit file's figure, else the part catalogue's
    typical one (fit.samples.field_noise_nT); only a part with neither (generic) has it
    estimated from the second differences of the first pass's residuals
-   (_reading_noise_var) for the errors-in-variables term. The figure's own uncertainty
-   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY) is a systematic error of that
+   (_reading_noise_var) for the errors-in-variables term. The data bound the figure from
+   above: the second differences of the readings (noise plus the field's motion between
+   samples) and, after the first pass, of its residual mapped back to the reading (noise
+   plus the reference's white noise) each give an upper bound of the reading noise; the
+   smaller, per axis, is the data bound (data_noise_var_bound). The correction never
+   subtracts more than the quietest axis's bound (clipped_noise_var: a catalogue figure
+   above a quiet unit's real noise would make a barely moving axis's corrected moment
+   negative and M a reflection). The figure's own uncertainty
+   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY), and at least the gap up to
+   the largest data bound where the figure is below it (noise_var_sigma: a figure stated
+   too small), is a systematic error of that
    correction, which does not average down with N: where the reading barely moves along
    an axis (a yaw-only flight's vertical) the correction is large and so is its error;
    it enters the split (a direction the systematic moves by more than the prior's
-   1-sigma is held) and the covariance (_noise_var_systematic).
+   1-sigma is held) and the covariance (_noise_var_systematic). A linear start that is
+   a reflection counts as a mirrored reference only where the directions the data
+   determine make it one (_mirror_is_determined); the fitted directions' information
+   is floored at the prior's (_solve_floored), so no fitted coefficient gets a 1-sigma
+   of 0 from an over-corrected moment.
 5. The reported temperature's reporting step (0.7 degC for the MMC5883's on-chip sensor)
    is an error common to every sample reported with one value (a chamber hold), which
    does not average down like the reading noise: its q^2/12 is propagated through the
