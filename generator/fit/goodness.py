@@ -239,11 +239,9 @@ def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
     the residual's mapped back to the reading (noise plus the reference's white noise;
     _difference_noise_var). Flagged when their mean over the axes exceeds the figure's
     variance by more than its own 1-sigma (unc, relative) plus three standard errors of
-    the estimate itself: a second difference of white noise has variance 6 sigma^2 and
-    lag-1/lag-2 correlations -2/3 and 1/6, so the mean square of n of them has a relative
-    standard error sqrt(2 (1 + 2 (4/9 + 1/36)) / n) = 1.97 / sqrt(n), per axis, over 3
-    axes 1.97 / sqrt(3 n)."""
-    from generator.fit.reference import data_noise_var_bound
+    the estimate itself (fit.reference.DIFF_VAR_REL_SE / sqrt(n) per axis, over 3 axes
+    / sqrt(3 n))."""
+    from generator.fit.reference import DIFF_VAR_REL_SE, data_noise_var_bound
 
     bound = data_noise_var_bound(S.x, fid)
     res = _difference_noise_var(cal, S, z, fid)
@@ -251,7 +249,7 @@ def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
         return None
     data_var = float(np.mean(np.minimum(bound, res)))
     n_diff = max(S.n - 2 * len(np.unique(fid)), 1)
-    limit = noise ** 2 * (1.0 + unc) * (1.0 + 3.0 * 1.97 / np.sqrt(3.0 * n_diff))
+    limit = noise ** 2 * (1.0 + unc) * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(3.0 * n_diff))
     if data_var <= limit:
         return None
     return {"stated_nT": float(noise), "data_scatter_nT": float(np.sqrt(data_var)),

@@ -587,7 +587,9 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     # the reading noise: stated, else estimated after the first pass (_reading_noise_var);
     # never beyond the readings' own sample-to-sample scatter (data_noise_var_bound)
     bound_var = data_noise_var_bound(x, grp)
-    eiv_var = clipped_noise_var(float(noise_nT) ** 2 if noise_nT else 0.0, bound_var)
+    n_diff = n - 2 * n_grp
+    eiv_var = clipped_noise_var(float(noise_nT) ** 2 if noise_nT else 0.0,
+                                bound_var)
     noise_from = noise_source(noise_nT) or "none"
     theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
@@ -642,7 +644,8 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
                                         bound_var)
             noise_from = "estimated from second differences of the first pass's residuals"
         else:
-            eiv_var = clipped_noise_var(float(noise_nT) ** 2, bound_var)
+            eiv_var = clipped_noise_var(float(noise_nT) ** 2,
+                                        bound_var)
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
@@ -651,7 +654,9 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
                 * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
-    if noise_nT and eiv_var < float(noise_nT) ** 2:
+    # said only beyond the bound's own estimation error (DIFF_VAR_REL_SE, 3 sigma)
+    if noise_nT and eiv_var * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(max(n_diff, 1))) \
+            < float(noise_nT) ** 2:
         noise_from += (", clipped to the readings' own sample-to-sample scatter "
                        f"({np.sqrt(eiv_var):.4g} nT)")
     # covariance of the posterior (module docstring), in scaled units; held: the prior's.
@@ -973,6 +978,12 @@ def data_noise_var_bound(x, grp):
     return difference_noise_var([x[grp == g] for g in np.unique(grp)])
 
 
+# Relative standard error of difference_noise_var's variance from n second differences of
+# white noise, times sqrt(n): their lag correlations are -2/3 and 1/6, so the mean square
+# has variance 2 (1 + 2 (4/9 + 1/36)) / n = 3.89 / n of its mean squared.
+DIFF_VAR_REL_SE = float(np.sqrt(2.0 * (1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0))))
+
+
 def clipped_noise_var(var, bound_var) -> float:
     """The errors-in-variables variance: var (a figure squared, or an estimate), but never
     above the quietest axis's data bound (data_noise_var_bound). Subtracting more noise
@@ -980,7 +991,10 @@ def clipped_noise_var(var, bound_var) -> float:
     axis (a 2 deg tilt: the vertical reading moves by ~1 uT) too small or negative, which
     turns that column of M into a large or mirrored one. One variance for all axes: the
     quietest axis's bound, so that no axis is over-corrected (an axis noisier than that
-    keeps a dilution bias of the difference over its spread, small where it is excited)."""
+    keeps a dilution bias of the difference over its spread, small where it is excited).
+    The bound's own estimate, not its upper confidence limit: subtracting even a few %
+    too much on a barely moving axis bends M far more than the same too little (the
+    moment's relative error is the excess over the axis's true spread)."""
     if bound_var is None or not var:
         return float(var or 0.0)
     return float(min(var, float(np.min(bound_var))))
