@@ -45,8 +45,12 @@ test cannot see a noisy reference. The fit's own parameters (at most 12 (degree 
 degrees of freedom, which only makes the test more lenient. Passing it is a WARNING, not
 a refusal: the reference may honestly carry more error than the sensor (an attitude
 estimate, a magnetically disturbed lab). Its causes are named in the message
-(noise_warning): a reference worse than the sensor, a stuck or wrong temperature column,
-an effect the model lacks (magcal trace finds those).
+(noise_warning): a reference worse than the sensor, a stuck or wrong temperature column
+(for a sensor with no temperature channel instead: the board's drift over a thermal
+sweep, which its constant model cannot take), an effect the model lacks (magcal trace
+finds those). A STATED figure below the readings' own sample-to-sample scatter (beyond
+its uncertainty) is warned as such ("check noise_nT"; _figure_below_scatter); the fit
+counts the noise up to that scatter in its 1-sigma (fit.reference.noise_var_sigma).
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from __future__ import annotations
 import numpy as np
 
 from generator.errors import InputError
-from generator.fit.reference import NOISE_CATALOGUE
+from generator.fit.reference import NOISE_CATALOGUE, NOISE_STATED, NOISE_VAR_UNCERTAINTY
 
 REF_ANGLE_SIGMA_DEG = 10.0     # reference direction error, 1-sigma per axis (see docstring)
 REF_SCALE_SIGMA = 0.02         # reference magnitude error, 1-sigma, relative
@@ -62,6 +66,8 @@ MISFIT_ALPHA = 1e-6            # false-refusal probability of the test for a rig
 # false-warning probability per sensor of the noise-only test (noise_misfit) on data the
 # noise, the reference's stated floor and the model explain
 NOISE_ALPHA = 1e-3
+# The note fit.samples._gather leaves for a sensor with temperature = false
+NO_TEMPERATURE_NOTE = "temperature = false"
 
 
 def vector_misfit(cal, S) -> dict | None:
@@ -204,6 +210,14 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
                    excess_field_error_nT=float(np.sqrt(max(r2 - e2, 0.0))))
     src = noise_source(S.noise_nT) if has_figure else None
     out["noise_from"] = src or "sample-to-sample differences"
+    # a sensor with no temperature channel (temperature = false) has a constant model:
+    # a temperature column cannot be its cause, its board's drift can (noise_warning)
+    out["no_temperature_channel"] = any(NO_TEMPERATURE_NOTE in str(m)
+                                        for m in (cal.stats or {}).get("notes", []))
+    if src == NOISE_STATED:
+        below = _figure_below_scatter(cal, S, z, fid, noise, NOISE_VAR_UNCERTAINTY)
+        if below:
+            out["stated_below_data"] = below
     out["from"] = (f"reading noise {noise:.1f} nT per axis through M"
                    + (" (none stated: the part catalogue's typical figure)"
                       if src == NOISE_CATALOGUE else "")
@@ -217,6 +231,33 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     return out
 
 
+def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
+    """A stated noise figure below the data's own sample-to-sample scatter beyond its
+    uncertainty (None otherwise). The scatter, per axis, is the smaller of two upper
+    bounds of the reading noise (fit.reference.data_noise_var_bound's reasoning): the
+    readings' own second differences (noise plus the field's motion between samples) and
+    the residual's mapped back to the reading (noise plus the reference's white noise;
+    _difference_noise_var). Flagged when their mean over the axes exceeds the figure's
+    variance by more than its own 1-sigma (unc, relative) plus three standard errors of
+    the estimate itself (fit.reference.DIFF_VAR_REL_SE / sqrt(n) per axis, over 3 axes
+    / sqrt(3 n))."""
+    from generator.fit.reference import DIFF_VAR_REL_SE, data_noise_var_bound
+
+    bound = data_noise_var_bound(S.x, fid)
+    res = _difference_noise_var(cal, S, z, fid)
+    if bound is None or res is None:
+        return None
+    data_var = float(np.mean(np.minimum(bound, res)))
+    n_diff = max(S.n - 2 * len(np.unique(fid)), 1)
+    limit = noise ** 2 * (1.0 + unc) * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(3.0 * n_diff))
+    if data_var <= limit:
+        return None
+    return {"stated_nT": float(noise), "data_scatter_nT": float(np.sqrt(data_var)),
+            "limit_nT": float(np.sqrt(limit)),
+            "from": "second differences of the readings and of the residual mapped back "
+                    "to the reading, the smaller per axis, mean over the axes"}
+
+
 def _difference_noise(cal, S, z, fid) -> float:
     """Per-axis reading noise (nT, in the reading's scale) when the sensor has no figure
     (a generic part, none stated): fit.reference.difference_noise_var of the residual
@@ -224,6 +265,12 @@ def _difference_noise(cal, S, z, fid) -> float:
     magnitude rows is one axis's worth), averaged over the axes. Only what changes from
     sample to sample counts (white noise of the reading and of the reference); a slow
     error is exactly what the test is to find. 0 with too few rows."""
+    var = _difference_noise_var(cal, S, z, fid)
+    return 0.0 if var is None else float(np.sqrt(np.mean(var)))
+
+
+def _difference_noise_var(cal, S, z, fid) -> np.ndarray | None:
+    """_difference_noise's variance per axis (3,), None with too few rows."""
     from generator.fit.reference import difference_noise_var
 
     v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
@@ -239,16 +286,18 @@ def _difference_noise(cal, S, z, fid) -> float:
             e = np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]
             parts.append(np.repeat(e[:, None], 3, axis=1))       # each axis's worth
     if not parts:
-        return 0.0
-    var = difference_noise_var(parts)
-    return 0.0 if var is None else float(np.sqrt(np.mean(var)))
+        return None
+    return difference_noise_var(parts)
 
 
 def noise_warning(name, gof, predicted=None) -> str | None:
     """The one-line warning of a flagged noise_misfit (None when not flagged); predicted:
-    the calibration's stats["predicted_error"] (whether it was raised)."""
+    the calibration's stats["predicted_error"] (whether it was raised). A stated figure
+    below the data's own scatter (gof["stated_below_data"]) is warned too, flagged or
+    not (figure_warning)."""
+    fig = figure_warning(name, gof)
     if not gof or not gof.get("flagged"):
-        return None
+        return fig
     pe = predicted or {}
     if pe.get("raised_to_achieved"):
         tail = (f"its predicted error is raised to that residual's part beyond the noise, "
@@ -262,13 +311,30 @@ def noise_warning(name, gof, predicted=None) -> str | None:
         tail = f"{gof['excess_field_error_nT']:.0f} nT of it the noise does not explain"
     what = "per axis against the reference vectors" if gof["kind"] == "vector" else \
         "of |B| against the reference magnitude"
+    temp_cause = ("no temperature channel (temperature = false: a constant calibration, "
+                  "so the board's drift over a thermal sweep cannot be modelled)"
+                  if gof.get("no_temperature_channel")
+                  else "a stuck or wrong temperature column")
     return (f"sensor '{name}': the fit leaves {gof['rms_residual_nT']:.0f} nT rms {what}, "
             f"beyond what the reading noise explains ({gof['explained_nT']:.0f} nT: "
             f"{gof['from']}; chi2/row {gof['chi2_per_row']:.3g} > {gof['limit']:.3g}). "
             "Likely causes: the reference carries more error than the sensor noise (an "
-            "attitude estimate, a field model, a disturbed lab), a stuck or wrong "
-            "temperature column, or an effect the model lacks (run `magcal trace` to find "
-            f"it); the calibration is kept, {tail}")
+            f"attitude estimate, a field model, a disturbed lab), {temp_cause}, or an "
+            "effect the model lacks (run `magcal trace` to find "
+            f"it); the calibration is kept, {tail}" + (f". Also: {fig}" if fig else ""))
+
+
+def figure_warning(name, gof) -> str | None:
+    """The one-line warning of a stated noise figure below the readings' own scatter
+    (noise_misfit's stated_below_data), None when there is none."""
+    b = (gof or {}).get("stated_below_data")
+    if not b:
+        return None
+    return (f"sensor '{name}': the unit's noise_nT ({b['stated_nT']:.0f} nT per axis, "
+            f"quantisation included) is below the readings' own sample-to-sample scatter "
+            f"({b['data_scatter_nT']:.0f} nT; beyond the figure's uncertainty, "
+            f"{b['limit_nT']:.0f} nT): check noise_nT; the fit's 1-sigma counts the "
+            "noise up to that scatter")
 
 
 # A temperature column that stays on one reported value while another sensor of the same

@@ -47,12 +47,25 @@ one reference direction hardly varies, e.g. a flight turning mostly in yaw).
    where held. The reading noise is the unit file's figure, else the part catalogue's
    typical one (fit.samples.field_noise_nT); only a part with neither (generic) has it
    estimated from the second differences of the first pass's residuals
-   (_reading_noise_var) for the errors-in-variables term. The figure's own uncertainty
-   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY) is a systematic error of that
+   (_reading_noise_var) for the errors-in-variables term. The data bound the figure from
+   above: the second differences of the readings (noise plus the field's motion between
+   samples) and, after the first pass, of its residual mapped back to the reading (noise
+   plus the reference's white noise) each give an upper bound of the reading noise; the
+   smaller, per axis, is the data bound (data_noise_var_bound). The correction never
+   subtracts more than the quietest axis's bound (clipped_noise_var: a catalogue figure
+   above a quiet unit's real noise would make a barely moving axis's corrected moment
+   negative and M a reflection). The figure's own uncertainty
+   (NOISE_VAR_UNCERTAINTY, CATALOGUE_NOISE_VAR_UNCERTAINTY), and at least the gap up to
+   the largest data bound where the figure is below it (noise_var_sigma: a figure stated
+   too small), is a systematic error of that
    correction, which does not average down with N: where the reading barely moves along
    an axis (a yaw-only flight's vertical) the correction is large and so is its error;
    it enters the split (a direction the systematic moves by more than the prior's
-   1-sigma is held) and the covariance (_noise_var_systematic).
+   1-sigma is held) and the covariance (_noise_var_systematic). A linear start that is
+   a reflection counts as a mirrored reference only where the directions the data
+   determine make it one (_mirror_is_determined); the fitted directions' information
+   is floored at the prior's (_solve_floored), so no fitted coefficient gets a 1-sigma
+   of 0 from an over-corrected moment.
 5. The reported temperature's reporting step (0.7 degC for the MMC5883's on-chip sensor)
    is an error common to every sample reported with one value (a chamber hold), which
    does not average down like the reading noise: its q^2/12 is propagated through the
@@ -576,8 +589,12 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     b0_obs[0] = np.mean(x - P[:, 1:] @ b0_obs[1:] - ref_read, axis=0)
     x_hat = P @ b0_obs + ref_read
     stats = ReadingStats(P, x, grp, x_hat)        # J^T W J's sufficient statistics per file
-    # the reading noise: stated, else estimated after the first pass (_reading_noise_var)
-    eiv_var = float(noise_nT) ** 2 if noise_nT else 0.0
+    # the reading noise: stated, else estimated after the first pass (_reading_noise_var);
+    # never beyond the readings' own sample-to-sample scatter (data_noise_var_bound)
+    bound_var = data_noise_var_bound(x, grp)
+    n_diff = n - 2 * n_grp
+    eiv_var = clipped_noise_var(float(noise_nT) ** 2 if noise_nT else 0.0,
+                                bound_var)
     noise_from = noise_source(noise_nT) or "none"
     theta_obs = np.concatenate([b0_obs.ravel(), M0_obs.ravel()])
     # pass 1 with a common variance, pass 2 with each file's effective variance
@@ -602,18 +619,38 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         free = np.ones(p, bool)
         # the noise figure's own uncertainty: a systematic error of the errors-in-variables
         # correction, which does not average down with N (_noise_var_systematic)
+        # (pass 1: the figure's own; the data bound's gap only from pass 2, when the
+        # residual's scatter, free of the field's motion, has tightened the bound)
         D_sys = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta_obs)[1], eiv_var,
-                                      noise_var_uncertainty(noise_nT))
-        split = _eig_split(_split_information(P, x, x_hat, B, unpack(theta_obs), w, stats),
-                           S, everything=mirrored, systematic=D_sys)
+                                      noise_var_sigma(eiv_var, noise_nT,
+                                                      bound_var if _pass else None))
+        F_split = _split_information(P, x, x_hat, B, unpack(theta_obs), w, stats)
+        split = _eig_split(F_split, S, everything=False, systematic=D_sys)
+        if mirrored and _pass == 0:
+            # a mirror that only weakly determined directions make (an errors-in-variables
+            # correction as large as a reading axis's spread) is no mirrored reference:
+            # those directions are held like any weak one (_mirror_is_determined)
+            mirrored = _mirror_is_determined(theta, theta0, S, split, unpack)
+        if mirrored:
+            split = _eig_split(F_split, S, everything=True, systematic=D_sys)
         theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
                                             eiv_var, split, stats)
         ev, EV, fitted = split
         if _pass == 1:
             break
+        # the first pass's residual mapped back to the reading: its scatter is a second
+        # upper bound of the reading noise (it carries the reference's noise, but not the
+        # field's motion); the data bound is the smaller of the two, per axis
+        res_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
+        if res_var is not None:
+            bound_var = res_var if bound_var is None else np.minimum(bound_var, res_var)
         if not noise_nT:
-            eiv_var = _reading_noise_var(_solve_M(P, unpack(theta)[1], r), grp)
+            eiv_var = clipped_noise_var(0.0 if res_var is None else float(np.mean(res_var)),
+                                        bound_var)
             noise_from = "estimated from second differences of the first pass's residuals"
+        else:
+            eiv_var = clipped_noise_var(float(noise_nT) ** 2,
+                                        bound_var)
         # errors-in-variables: each file's effective variance (sensor noise through M plus
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
@@ -622,6 +659,11 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
                 * _correlation_inflation(r[m])
         w = 1.0 / v_grp[grp]
+    # said only beyond the bound's own estimation error (DIFF_VAR_REL_SE, 3 sigma)
+    if noise_nT and eiv_var * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(max(n_diff, 1))) \
+            < float(noise_nT) ** 2:
+        noise_from += (", clipped to the readings' own sample-to-sample scatter "
+                       f"({np.sqrt(eiv_var):.4g} nT)")
     # covariance of the posterior (module docstring), in scaled units; held: the prior's.
     # The split is pass 2's (judged with the final weights w); where nothing is held,
     # theta is pass 2's result and so are its cost, J^T W J and residuals.
@@ -632,7 +674,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
                                         stats.weighted(w))
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
-    A = (Vf @ np.linalg.solve(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
+    A = (Vf @ _solve_floored(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
     temp_err = None
     sig_noise = np.sqrt(np.maximum(np.diag(C), 0))     # the readings' noise alone
@@ -640,7 +682,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     # (per reading axis, independent): dtheta = -A dg/dsigma^2 (implicit function theorem
     # on the gradient of the adjusted cost)
     D_fit = _noise_var_systematic(stats.weighted(w)["W"], unpack(theta)[1], eiv_var,
-                                  noise_var_uncertainty(noise_nT))
+                                  noise_var_sigma(eiv_var, noise_nT, bound_var))
     G_sys = A @ D_fit
     C = C + G_sys @ G_sys.T
     if degree > 0 and uncertainty:
@@ -700,6 +742,11 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         "noise": {"stated_nT": None if noise_nT is None else float(noise_nT),
                   "variance_uncertainty": noise_var_uncertainty(noise_nT),
                   "reading_nT": float(np.sqrt(eiv_var)), "reading_from": noise_from,
+                  # the readings' own second-difference scatter per axis: an upper bound
+                  # of their noise (data_noise_var_bound)
+                  "data_bound_nT": (None if bound_var is None
+                                    else np.sqrt(bound_var).tolist()),
+                  "variance_sigma_nT2": noise_var_sigma(eiv_var, noise_nT, bound_var),
                   "effective_per_file_nT": np.sqrt(v_grp).tolist()},
         "temperature_error": temp_err,
         "estimator": "calibrated-minus-reference least squares (linear start, Gauss-Newton), "
@@ -827,17 +874,17 @@ def _split_information(P, x, x_hat, B, bM, w, stats: ReadingStats | None = None)
 
 
 def _reading_noise_var(d, grp):
-    """Variance of the reading noise per axis when none is stated (a part with no
-    catalogue figure): difference_noise_var of d, the first pass's residuals mapped back
-    to the reading (M^-1 r), within each file, averaged over the axes. Only what changes
+    """Variance of the reading noise per axis (3,) (None with too few samples), for a part
+    with no figure (the mean over the axes) and as a bound of a figure
+    (data_noise_var_bound): difference_noise_var of d, the first pass's residuals mapped
+    back to the reading (M^-1 r), within each file. Only what changes
     from sample to sample counts: a slow drift (of the reading, or of a fit that is still
     diluted) is not noise of the reading (it goes to the residual's correlation,
     _correlation_inflation). The reference's own noise is counted in too: an
     overestimate, whose adjusted-least-squares bias is that variance over the reading's
     spread -- negligible where M is determined, and where it is not, observability holds M
     at the prior (its systematic, NOISE_VAR_UNCERTAINTY, is in the split)."""
-    v = difference_noise_var([d[grp == g] for g in np.unique(grp)])
-    return 0.0 if v is None else float(np.mean(v))
+    return difference_noise_var([d[grp == g] for g in np.unique(grp)])
 
 
 # Second differences beyond this many of their own standard deviations are outliers
@@ -925,23 +972,69 @@ def _eig_split(JTJ, S, margin=None, everything=False, systematic=None):
     return ev, EV, (ev >= FISHER_THRESHOLD) | everything
 
 
-def _noise_var_systematic(W, Mp, eiv_var, rel_uncertainty):
+def data_noise_var_bound(x, grp):
+    """(3,) per reading axis, an UPPER bound of the reading noise's variance from the
+    data themselves: difference_noise_var of the readings within each file. Second
+    differences cancel the field's offset and ramp; what is left is the reading's white
+    noise plus the curvature of the field's own motion between samples (B (omega dt)^2:
+    14 nT for 45 uT turning 1 deg per sample), so it is never below the noise. None with
+    too few samples."""
+    grp = np.zeros(len(x), int) if grp is None else np.asarray(grp)
+    return difference_noise_var([x[grp == g] for g in np.unique(grp)])
+
+
+# Relative standard error of difference_noise_var's variance from n second differences of
+# white noise, times sqrt(n): their lag correlations are -2/3 and 1/6, so the mean square
+# has variance 2 (1 + 2 (4/9 + 1/36)) / n = 3.89 / n of its mean squared.
+DIFF_VAR_REL_SE = float(np.sqrt(2.0 * (1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0))))
+
+
+def clipped_noise_var(var, bound_var) -> float:
+    """The errors-in-variables variance: var (a figure squared, or an estimate), but never
+    above the quietest axis's data bound (data_noise_var_bound). Subtracting more noise
+    than the readings carry makes the corrected second moment of a weakly excited reading
+    axis (a 2 deg tilt: the vertical reading moves by ~1 uT) too small or negative, which
+    turns that column of M into a large or mirrored one. One variance for all axes: the
+    quietest axis's bound, so that no axis is over-corrected (an axis noisier than that
+    keeps a dilution bias of the difference over its spread, small where it is excited).
+    The bound's own estimate, not its upper confidence limit: subtracting even a few %
+    too much on a barely moving axis bends M far more than the same too little (the
+    moment's relative error is the excess over the axis's true spread)."""
+    if bound_var is None or not var:
+        return float(var or 0.0)
+    return float(min(var, float(np.min(bound_var))))
+
+
+def noise_var_sigma(eiv_var, noise_nT, bound_var) -> float:
+    """1-sigma of the errors-in-variables variance eiv_var (per axis): the figure's own
+    relative uncertainty (noise_var_uncertainty), and at least the distance to the largest
+    data bound (data_noise_var_bound): the readings' noise lies between the figure and
+    that bound when the figure is below it (a figure stated too small, or the reference's
+    or the motion's share of the scatter), so the whole gap is the error the correction
+    may make. Conservative: the information and the covariance count with it."""
+    s = noise_var_uncertainty(noise_nT) * eiv_var
+    if bound_var is not None and eiv_var:
+        s = max(s, float(np.max(bound_var)) - eiv_var)
+    return float(s)
+
+
+def _noise_var_systematic(W, Mp, eiv_var, var_sigma):
     """(p, 3): per reading axis c, the change of the adjusted cost's gradient g (J^T W r
     with the errors-in-variables term, vector_normal) when that axis's noise variance is
-    off by its own 1-sigma, rel_uncertainty x eiv_var. The term is
+    off by its own 1-sigma, var_sigma (noise_var_sigma). The term is
     -eiv_var sum_n w_n |M(T_n)|_F^2 = -sum_c sigma_c^2 sum_{k,m} W[k+m] sum_a M_k[a,c] M_m[a,c],
     so dg/dsigma_c^2 is -sum_m W[k+m] M_m[a,c] on M[k, a, c] and 0 elsewhere. Each axis
     independently (a part's axes need not share one noise). Zeros without a noise."""
     K = len(Mp)
     out = np.zeros((12 * K, 3))
-    if not eiv_var or not rel_uncertainty:
+    if not eiv_var or not var_sigma:
         return out
     idx = np.add.outer(np.arange(K), np.arange(K))
     WM = np.einsum("km,mac->kac", W[idx], Mp)
     for c in range(3):
         g = np.zeros((K, 3, 3))
         g[:, :, c] = -WM[:, :, c]
-        out[3 * K:, c] = g.ravel() * rel_uncertainty * eiv_var
+        out[3 * K:, c] = g.ravel() * var_sigma
     return out
 
 
@@ -965,6 +1058,38 @@ def min_abs_det(part="default") -> float:
     reflection); one nearer 0 is a degenerate fit (M not determined by the data)."""
     s = PART_PRIOR_SIGMA.get(part, PART_PRIOR_SIGMA["default"])["M"][0]
     return (1.0 - 3.0 * s) ** 3
+
+
+def _solve_floored(Fv, R):
+    """Fv^-1 R for the whitened information Fv of the fitted directions, with Fv's
+    eigenvalues floored at FISHER_THRESHOLD (the prior's own information) where one falls
+    below it. The split judged these directions on the cross information; the adjusted
+    least squares' information (errors-in-variables term subtracted) can still fall below
+    the prior's, or below 0, in a direction whose reading axis barely moves: its inverse
+    would give a 1-sigma of 0 (a negative variance clipped) or an unbounded response.
+    There the data determine the direction no better than the prior, so the prior's
+    1-sigma is the honest figure. Where every eigenvalue is above it, a plain solve."""
+    lam, U = np.linalg.eigh(0.5 * (Fv + Fv.T))
+    if len(lam) == 0 or lam[0] >= FISHER_THRESHOLD:
+        return np.linalg.solve(Fv, R)
+    return U @ ((U.T @ R) / np.maximum(lam, FISHER_THRESHOLD)[:, None])
+
+
+def _mirror_is_determined(theta, theta0, S, split, unpack) -> bool:
+    """Whether the linear start theta's reflection (det M0 <= -min_abs_det) lies in
+    directions the data determine: the start with its weak directions (whitened
+    information |lambda| < FISHER_THRESHOLD: the data say less about them than the prior)
+    put back at the prior still has det M0 <= -min_abs_det. A mirrored reference
+    (swapped or negated ref columns) makes directions whose information is strongly
+    NEGATIVE (the reading moves against the reference: lambda <= -FISHER_THRESHOLD) and
+    keeps its reflection there; a sign flipped by a weakly excited reading axis (the
+    vertical of a yaw-only flight) is gone once that axis is held."""
+    ev, EV, fitted = split
+    keep = fitted | (ev <= -FISHER_THRESHOLD)
+    Vk = EV[:, keep]
+    z = (theta - theta0) / S
+    th = theta0 + S * (Vk @ (Vk.T @ z))
+    return bool(np.linalg.det(unpack(th)[1][0]) <= -min_abs_det())
 
 
 def _noise_margin(W, K, eiv_var):

@@ -206,7 +206,10 @@ def field_noise_nT(spec) -> float | None:
     physical-unit sensors alike: the fit's errors-in-variables correction and its goodness
     test need the reading's own noise, which sample-to-sample differences of the data
     cannot give (they carry the reference's noise too, miss it when noise < 1 LSB, and
-    carry the field's own change under fast motion). A sensor reading physical units
+    carry the field's own change under fast motion). They do give an UPPER bound of it,
+    which the fit applies to this figure (fit.reference.data_noise_var_bound: the
+    correction clipped to it, the figure's uncertainty widened up to it) and the goodness
+    test compares a stated figure with (fit.goodness.figure_warning). A sensor reading physical units
     (input = nT, uT, mG, G; ICD section 4) has no count quantisation: its columns hold
     real numbers, and lsb_nT is then only the input unit's size (1000 nT for uT), not a
     step of the reading."""

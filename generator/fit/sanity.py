@@ -3,7 +3,12 @@
 * det M(T) > 0 over the calibrated range: a magnetometer calibration is a proper linear
   map; a negative determinant is a reflection, i.e. the reference vectors are mirrored
   against the readings (two reference columns swapped, one negated, or a wrong axis
-  mapping in the unit file). It is never a property of a real sensor. A det near 0
+  mapping in the unit file). It is never a property of a real sensor, unless the data do
+  not determine its sign: a negative det within DET_SIGMAS of its own 1-sigma of 0
+  (det_sigma; a column of M that a barely moving reading axis leaves free) is named as
+  that, not as swapped columns (fit.reference holds such weak directions at the prior,
+  and calls a linear start mirrored only where the determined directions make it so,
+  so this too is a guard). A det near 0
   (|det M| < (1 - 3 s)^3, 0.343 for s = 0.1, s below) is not a reflection but a degenerate
   fit: M not determined by the data (observability in generator.fit.reference holds such
   directions at the prior, so this is a guard); the message says "degenerate".
@@ -44,6 +49,25 @@ ORTHO_TOL = 1e-6
 # (The simulator's units, campaign.simulate.random_truth, rotate by at most ~2 deg.)
 MOUNTING_TOLERANCE_DEG = 3.0
 MOUNTING_KEY = "mounting_tolerance_deg"
+
+
+# A negative det M within this many of its own 1-sigma of 0 is not a determined reflection
+# (a mirrored reference makes det ~ -1 with a 1-sigma of a few % at most): 3 sigma, a
+# 0.13 % one-sided chance that a determined reflection is called undetermined.
+DET_SIGMAS = 3.0
+
+
+def det_sigma(cal, T) -> float | None:
+    """1-sigma of det M(T) from the coefficients' 1-sigma (first order, independent
+    elements: d det / d M_ij is the cofactor det M (M^-1)_ji); None without 1-sigma.
+    Degree-0 sigma only (M_poly_sigma[0]): the temperature terms' share is small at the
+    reference temperature, where the reflection check first looks."""
+    if getattr(cal, "M_poly_sigma", None) is None:
+        return None
+    M = cal.M_at(np.array([T]))[0]
+    sM = np.asarray(cal.M_poly_sigma[0], float)
+    cof = np.linalg.det(M) * np.linalg.inv(M).T
+    return float(np.sqrt(np.sum((cof * sM) ** 2)))
 
 
 def max_condition(part="default") -> float:
@@ -169,6 +193,14 @@ def check_calibration(cal, spec, source=None, unit=None, prior=None) -> dict:
                                      "determine M (readings that hardly move, or a reference "
                                      "that does not follow them); record a rotation, or give "
                                      "a ground calibration with --prior")
+        sd = det_sigma(cal, T[k])
+        if sd is not None and abs(det[k]) <= DET_SIGMAS * sd:
+            raise InputError(source, f"sensor '{name}': the sign of det M is not determined "
+                                     f"by the data (det M = {det[k]:.3g} +- {sd:.2g} at "
+                                     f"{T[k]:.1f} degC, within {DET_SIGMAS:g} sigma of 0): a "
+                                     "reading axis that hardly moves (a flat flight), not a "
+                                     "mirrored reference; record more attitude change, or "
+                                     "give a ground calibration with --prior")
         raise InputError(source, f"sensor '{name}': the fitted matrix M is a reflection "
                                  f"(det M = {det[k]:.3f} at {T[k]:.1f} degC): the reference "
                                  "vectors are mirrored against the readings; likely cause: "

@@ -606,8 +606,10 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         held = [p["name"] for p in cal.observability.get("parameters", [])
                 if p["source"] == "prior"]
         if held:
-            say(f"{s.name}: not determined by the data, held at the prior "
-                f"({cal.observability.get('prior_source')}): {', '.join(held)}")
+            say(f"{s.name}: held at the prior ({cal.observability.get('prior_source')}; "
+                "data share of the information in brackets): " + ", ".join(
+                    f"{p['name']} ({100 * p['data_fraction']:.0f} %)"
+                    for p in cal.observability.get("parameters", []) if p["source"] == "prior"))
         for w in cal.stats["sanity"]["warnings"]:
             say(f"WARNING: {w}")
             cal.stats.setdefault("notes", []).append(w)
