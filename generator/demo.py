@@ -137,7 +137,8 @@ def orbit_recalibration(out: Path, paths: dict, ground_json: Path, seed: int, pr
         f"{s['table_bytes']} bytes in {s['parts']} parts of at most {s['chunk_bytes']} bytes; "
         "the diff is orbit/uplink/diff.txt."]
     table = Table(["sensor", "|B| error before nT", "|B| error after nT", "floor nT",
-                   "after / floor"], rows)
+                   "after / floor"], rows, "In-flight recalibration: held-out |B| error "
+                  "against the field model, before and after")
     lines = ["", "in-flight recalibration (ISS TLE, IGRF-14, ground calibration as prior), "
                  "held-out |B| error against the field model",
              f"{'sensor':8s} {'before':>8s} {'after':>8s} {'floor':>8s} {'ratio':>6s}"]
@@ -249,10 +250,14 @@ def run_demo(out: Path, seed: int = 1, progress=None) -> int:
               "|B| RMS calibrated nT", "|B| RMS true parameters nT", "ratio to truth",
               "angle calibrated deg", "angle true parameters deg"]
     rep.add(Section("Result on the thermal campaign", [
-        "Jig data, boom stowed (H not applied)."], [Table(header, thermal_rows)]))
+        "Jig data, boom stowed (H not applied)."],
+        [Table(header, thermal_rows, "Thermal campaign: the flight C against the Python "
+               "reference and the simulator's truth")]))
     rep.add(Section("Result in orbit (flight campaign)", [
         "Orbit telemetry with the boom deployed and the magnetorquers switching: the chain "
-        "applies the coil coupling and H."], [Table(header, flight_rows)]))
+        "applies the coil coupling and H."],
+        [Table(header, flight_rows, "Orbit campaign: the flight C against the Python "
+               "reference and the simulator's truth")]))
     rep.add(Section("Uplink table", [
         f"table.bin: {len(table)} bytes; the flight validator accepts it (code {accepted}) "
         f"and rejects it with one bit flipped (code {int(rejected)}: {th.strerror(rejected)})."]))

@@ -18,6 +18,10 @@
   absorbed something that is not the sensor (a wrong reference, a magnet next to it);
   but strong soft iron can be real, so this one is a flag (stats["sanity"]["warnings"]
   and the fit's progress), not an error.
+* the scale of M (|det M|^(1/3), the geometric mean of its singular values) within the
+  same 1 +- 3 s: a scale far outside is readings in another unit than the unit file says
+  (counts declared as nT, mG data declared as uT: factors below the 20 of
+  fit.scale_check's input check). A flag, like the condition number.
 * offsets b(T) within the part's range: an offset larger than the full scale of the raw
   output cannot come from a sensor that still reads the field.
 * H orthogonal with det +1 (boom alignment): |H^T H - I| < 1e-6.
@@ -215,12 +219,27 @@ def check_calibration(cal, spec, source=None, unit=None, prior=None) -> dict:
                         "terms within 3 sigma of the "
                         "part's); check the reference's scale, and for a magnetised object "
                         "next to the sensor")
+    scale = np.abs(det) ** (1.0 / 3.0)            # the geometric mean of M's singular values
+    s_part = PART_PRIOR_SIGMA.get(spec.part, PART_PRIOR_SIGMA["default"])["M"][0]
+    lo, hi = 1.0 - 3.0 * s_part, 1.0 + 3.0 * s_part
+    k = int(np.argmax(np.abs(np.log(np.maximum(scale, 1e-300)))))
+    if not lo <= scale[k] <= hi:
+        how = (f"lsb_nT = {spec.lsb_nT:g}" if getattr(spec, "counts", True)
+               else f"input = \"{spec.input}\"")
+        warnings.append(f"sensor '{name}': the fitted M scales the readings by "
+                        f"{scale[k]:.3g} (|det M|^(1/3) at {T[k]:.1f} degC), beyond a "
+                        f"{spec.part}'s scale tolerance {lo:.2f}..{hi:.2f} (3 sigma of the "
+                        f"part's): the readings are most likely not in the unit the unit "
+                        f"file says ({how}), or the reference's magnitude is not the field's "
+                        "(lab_field_nT, ref_* columns); check both before using this "
+                        "calibration")
     lim = offset_range_nT(spec)
     bmax = float(np.max(np.abs(b)))
     if bmax > lim:
         raise InputError(source, f"sensor '{name}': fitted offset {bmax:.0f} nT exceeds the "
                                  f"part's range {lim:.0f} nT; likely cause: {offset_cause(spec)}")
     out = {"det_M_min": float(np.min(det)), "cond_M_max": float(np.max(cond)),
+           "scale_M_min": float(np.min(scale)), "scale_M_max": float(np.max(scale)),
            "cond_M_limit": cmax, "offset_max_nT": bmax,
            "offset_limit_nT": lim if np.isfinite(lim) else None,
            "warnings": warnings}

@@ -669,7 +669,8 @@ def seed000_sections(cs, analysis: CampaignAnalysis | None, out_dir) -> list:
             "projections per axis and angle between the reference and the boom vectors, before "
             "and after H (seed 000 eq. 2-3). Noise alone gives a mean angle of "
             f"{al.get('noise_floor_angle_mean_deg', float('nan')):.4f} deg."]
-            + [f"Note on H: {n}" for n in al.get("notes", []) if isinstance(n, str)],
+            + [n if n.startswith("H:") else f"H: {n}" for n in al.get("notes", [])
+               if isinstance(n, str)],
             [Table(["", "samples", "proj. diff x mean %", "y mean %", "z mean %",
                     "proj. diff max %", "angle mean deg", "angle max deg"], rows,
                    "Before and after H, beside the seed's figures")]))
