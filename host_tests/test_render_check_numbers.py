@@ -79,3 +79,26 @@ def test_what_is_not_an_array_or_a_non_number_passes_in_a_cell(tmp_path, text):
 def test_a_non_number_in_the_text_is_caught(tmp_path, sentence):
     probs = render_check.problems(_report(tmp_path, paragraph=PROSE + " " + sentence))
     assert len(probs) == 1 and "non-number in the page" in probs[0], probs
+
+
+@pytest.mark.parametrize("text", ["None", "None nT", "nan..nan degC", "-20.0..nan degC",
+                                  "[-694.0, nan, -1195.0]", "[-694.0, None, -1195.0]",
+                                  "(nan, nan, nan)", "1.2 (nan)", "[nan]"])
+def test_non_numbers_in_the_reports_own_forms_are_caught(tmp_path, text):
+    """Ranges, lists, tuples and bracketed sigmas as the report prints them (review #19c)."""
+    probs = render_check.problems(_with_cell(tmp_path, text))
+    assert any("non-number in a table cell" in p for p in probs), probs
+    if text != "None":        # a bare None in prose is a word ("None of the sensors")
+        probs = render_check.problems(_report(tmp_path / "p", paragraph=f"{PROSE} x {text}."))
+        assert any("non-number in the page" in p for p in probs), probs
+
+
+@pytest.mark.parametrize("sentence", ["None of the sensors was held.", "-19.0..55.9 degC",
+                                      "tables 1..3", "x ... y", "Nothing left. None."])
+def test_words_and_true_ranges_pass(tmp_path, sentence):
+    assert render_check.problems(_report(tmp_path, paragraph=PROSE + " " + sentence)) == []
+
+
+def test_numpy_bool_repr_is_caught(tmp_path):
+    probs = render_check.problems(_report(tmp_path, paragraph=PROSE + " flagged: np.True_"))
+    assert any("numpy" in p for p in probs), probs

@@ -16,7 +16,9 @@ problems(html_path) -> list of one-line problems (empty: fit to read):
   a unit or a 1-sigma: 'NaN', '-inf', 'inf nT', '1.2 ± inf'), and in the text a nan / inf
   where a number stands: after '=', ':' or '±', or before a unit or '±' ('H: nan
   deg', 'K = inf nT/A'); the words used in prose ('coefficients that are all quiet NaN',
-  'fails on NaN') are not values;
+  'fails on NaN') are not values; nan / inf / None in a range ('-20.0..nan degC'), a list
+  or tuple ('[-694.0, nan, -1195.0]', '(nan, nan)'), a bracketed sigma ('1.2 (nan)'),
+  None as a value ('None nT', '= None', a cell that is None) and numpy's np.True_;
 * a table without a data row.
 """
 
@@ -36,7 +38,7 @@ from generator.report.figures import EMPTY_AXES_KEY
 # frame at all; empty axes are caught by EMPTY_AXES_KEY.
 MIN_INK = 0.002
 FAILURE_TEXT = re.compile(r"not drawn|not computed", re.IGNORECASE)
-NUMPY_REPR = re.compile(r"\bnp\.[a-z_]+\d*\(|\barray\(|\bdtype=")
+NUMPY_REPR = re.compile(r"\bnp\.[a-z_]+\d*\(|\barray\(|\bdtype=|\bnp\.(?:True_|False_)")
 # numpy's str() of an array: '[1. 2. 3.]', '[ 0.5 -1.  2. ]', '[1 2 3]', '[1.e-03 2.e+00]',
 # '[1. ... 9.]', '[[1. 2.] [3. 4.]]' (inner), '[1.]'; not '[1]', '[1.5]', '[1, 2]'
 _NUM = r"[-+]?(?:\d+\.?\d*(?:e[-+]?\d+)?|\.\d+|nan|inf)"
@@ -52,6 +54,17 @@ NONNUMBER_CELL = re.compile(rf"{_NONNUM}(?:\s*{_UNIT})?|{_NONNUM}\s*±.*|.*±\s*
 # nan / inf where a number stands in running text (module docstring)
 NONNUMBER_TEXT = re.compile(rf"(?:[=:±]\s*){_NONNUM}(?![\w])"
                             rf"|(?<![\w.\-+]){_NONNUM}\s*(?:±|{_UNIT})", re.IGNORECASE)
+
+
+# nan / inf / None inside the forms a report prints numbers in: a range 'a..b', a list or
+# tuple element '[1.0, nan, 2.0]' / '(nan, nan)', a bracketed sigma '1.2 (nan)'; and None
+# printed as a value ('None nT', '= None', a cell that is None)
+_NONVAL = rf"(?:{_NONNUM}|None)"
+NONNUMBER_FORMS = re.compile(
+    rf"(?:(?<![\w.]){_NONVAL}\s*\.\.(?!\.)|(?<!\.)\.\.\s*{_NONVAL}(?![\w]))"
+    rf"|[\[(,]\s*{_NONVAL}\s*(?=[,\])])"
+    rf"|(?-i:None)\s*{_UNIT}|[=:±]\s*(?-i:None)\b", re.IGNORECASE)
+NONE_CELL = re.compile(rf"None(?:\s*{_UNIT})?")
 
 
 class _Page(HTMLParser):
@@ -147,9 +160,12 @@ def nonnumber_problems(cells, prose) -> list:
     stands in a longer cell) and in the text outside tables (module docstring)."""
     out = []
     for c in cells:
-        if NONNUMBER_CELL.fullmatch(c) or NONNUMBER_TEXT.search(c):
+        if (NONNUMBER_CELL.fullmatch(c) or NONE_CELL.fullmatch(c.strip())
+                or NONNUMBER_TEXT.search(c) or NONNUMBER_FORMS.search(c)):
             out.append(f"non-number in a table cell: {c[:80]!r}")
     text = " ".join(prose)
-    for m in NONNUMBER_TEXT.finditer(text):
-        out.append("non-number in the page: " + text[max(0, m.start() - 40):m.end() + 40].strip())
+    for pattern in (NONNUMBER_TEXT, NONNUMBER_FORMS):
+        for m in pattern.finditer(text):
+            out.append("non-number in the page: "
+                       + text[max(0, m.start() - 40):m.end() + 40].strip())
     return out
