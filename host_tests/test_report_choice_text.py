@@ -87,7 +87,10 @@ def test_summary_noise_is_what_the_fit_used_and_says_its_source(no_rotation):
 
 
 def _unit_sensors(path):
-    import tomllib
+    try:
+        import tomllib
+    except ImportError:            # Python 3.10
+        import tomli as tomllib
     return tomllib.loads(path.read_text())["sensor"]
 
 

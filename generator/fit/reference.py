@@ -725,8 +725,12 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
         col = np.sqrt(np.diag(JTJ))
         col[col == 0] = 1.0
         Gn = JTJ / np.outer(col, col)
-        evn = np.linalg.eigvalsh(Gn)
-        cond = float(np.sqrt(evn[-1] / evn[0])) if evn[0] > 0 else float("inf")
+        try:                       # LAPACK may not converge on a near-degenerate design
+            evn = np.linalg.eigvalsh(Gn) if np.all(np.isfinite(Gn)) else None
+        except np.linalg.LinAlgError:
+            evn = None
+        cond = (float(np.sqrt(evn[-1] / evn[0])) if evn is not None and evn[0] > 0
+                else float("inf"))
     info = {
         "n": int(n), "degree": int(degree), "cond": cond, "t_range_C": (t_lo, t_hi),
         "b_poly_sigma_nT": bsig, "M_poly_sigma": Msig,
