@@ -92,6 +92,15 @@ def test_capped_trace_says_so_is_bounded_deterministic_and_finds_the_effect(plan
     assert res.coefficients.fit_info["trace"]["subsample"] == info["text"]
     found = [(n, e, c) for n, e, c, _ in found_effects(res)]
     assert found == [(case.sensor, "channel_bias", [case.channel])], found
+    # the apply over every row: all usable rows counted, the traced coefficients below
+    # the baseline's where the effect was found, unchanged where nothing was added
+    rows = d["subsample"]["all_rows"]
+    assert set(rows) == set(res.traces)
+    assert all(v["samples"] > info["traced"] for v in rows.values())
+    assert rows[case.sensor]["traced_rms_nT"] < rows[case.sensor]["baseline_rms_nT"]
+    for n, t in res.traces.items():
+        if not t.steps:
+            assert rows[n]["traced_rms_nT"] == rows[n]["baseline_rms_nT"]
     again = tr.trace(case.unit, [tel], max_samples=CAP)
     assert _json(again) == d
 

@@ -49,6 +49,9 @@ TAU_MAX_S = 1200.0
 BLOCK_TAUS = 5.0
 MIN_BLOCK_ROWS = 1000
 MIN_BLOCKS = 20
+# rows per piece of the all-rows apply (all_rows_rms): its per-sample arrays (no design
+# matrix) for this many rows at a time; long against the blocks (a restart per piece)
+ALL_ROWS_CHUNK = 200_000
 
 
 def block_rows(tels, max_samples) -> int:
@@ -103,6 +106,42 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
                      f"(one in {k} of each file, drawn at random, seed fixed; cap "
                      f"{max_samples:,}, `--max-samples`), each block traced as a file of its "
                      f"own (lag recursions restart at its first row; time constants scanned "
-                     f"up to ~{tau_max_s:.0f} s); the figures are those of the blocks")}
+                     f"up to ~{tau_max_s:.0f} s); the held-out figures are those of the blocks "
+                     f"(all_rows: the coefficients applied to every row, in-sample)")}
     return ([b for bl in out[:len(tels)] for b in bl],
             [b for bl in out[len(tels):] for b in bl], info)
+
+
+def all_rows_rms(base, traced, tels, sensors) -> dict:
+    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual (vector
+    rows per axis, magnitude rows; static-position rows, whose constants are fitted, left
+    out) over EVERY usable row of the data files, of the baseline coefficient set and of
+    the traced one (the apply of fixed coefficients: linear in the rows), in pieces of
+    ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a piece's
+    first row, as at a block's: a restart error over its first few tau only). In-sample:
+    the rows the trace fitted on are among them."""
+    from generator.trace.coefficients import model_from_coefficients
+    from generator.trace.samples import POS, gather_samples
+    unit = traced.unit
+    ch = list(dict.fromkeys(c for cs in (base, traced) for s in unit.sensors
+                            for c in cs.spec.opts(s).kernel_channels))
+    acc = {n: [0.0, 0.0, 0, 0] for n in sensors}
+    pieces = [_block(t, a, min(t.n, a + ALL_ROWS_CHUNK)) if t.n > ALL_ROWS_CHUNK else t
+              for t in tels for a in range(0, max(t.n, 1), ALL_ROWS_CHUNK)]
+    for tel in pieces:
+        S_all = gather_samples(unit, [tel], [0], coils=traced.spec.coils,
+                               H=traced.unit_values.get("H_boom_to_body"), channels=ch)
+        for n in sensors:
+            S = S_all[n]
+            S = S.subset(S.kind != POS)
+            if S.n == 0:
+                continue
+            for j, cs in enumerate((base, traced)):
+                m = model_from_coefficients(cs, n, S)
+                r = m.residual(m.theta[None], S)[0]
+                acc[n][j] += float(r @ r)
+            acc[n][2] += len(r)
+            acc[n][3] += S.n
+    return {n: {"baseline_rms_nT": float(np.sqrt(a[0] / a[2])),
+                "traced_rms_nT": float(np.sqrt(a[1] / a[2])), "samples": a[3]}
+            for n, a in acc.items() if a[2]}

@@ -84,7 +84,7 @@ from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
 from generator.fit.samples import check_max_samples
-from generator.trace.subsample import MAX_TRACE_SAMPLES, subsample_files
+from generator.trace.subsample import MAX_TRACE_SAMPLES, all_rows_rms, subsample_files
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
@@ -820,6 +820,12 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         info["subsample"] = subsample["text"]
     _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
+    if subsample:        # the figures of the blocks, and the apply over every row
+        subsample["all_rows"] = all_rows_rms(base, cs, tels_all, list(traces))
+        for n, v in subsample["all_rows"].items():
+            say(f"{n}: over all {v['samples']:,} usable samples of the data files (in-sample): "
+                f"RMS {v['baseline_rms_nT']:.2f} nT baseline -> {v['traced_rms_nT']:.2f} nT "
+                "traced")
     sources = {"data": [str(t.path) for t in tels_all],
                "holdout": [str(t.path) for t in hold_all],
                "baseline": "supplied coefficients" if coeffs is not None else
