@@ -8,7 +8,6 @@ files are passed through unchanged (docs/fit_samples.md, "magcal trace").
 from __future__ import annotations
 
 import math
-import zlib
 
 import numpy as np
 
@@ -79,7 +78,7 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
     consecutive blocks of L rows (block_rows), one block drawn at random in each run of k
     consecutive blocks of a file (fit.samples.systematic_sample; numpy PCG64 seeded from
-    seed and the file's index), each kept block a Telemetry of its own, and info the
+    seed and the file's index: not its name, so a renamed file gives the same draw), each kept block a Telemetry of its own, and info the
     figures of the note."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
@@ -91,8 +90,7 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     out = []
     for fi, t in enumerate(list(tels) + list(hold)):
         nb = -(-t.n // L)
-        rng = np.random.Generator(np.random.PCG64(
-            [seed, fi, zlib.crc32(str(t.path).encode())]))
+        rng = np.random.Generator(np.random.PCG64([seed, fi]))
         picks = systematic_sample(nb, k, rng) if nb else np.zeros(0, int)
         out.append([_block(t, int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks])
     n_kept = sum(b.n for bl in out for b in bl)
