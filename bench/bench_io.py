@@ -55,10 +55,7 @@ noisy, every "after" ran before its "before"; the memory figures are not):
   trace 10^5 rows (measured alone, `magcal trace unit.toml <10^5 rows> -o ...` through
     measured()): 129 s, 1389 MiB peak, about 13 KiB a sample: 10^6 rows would need
     ~13 GiB. The trace keeps per-sample design columns (generator/trace/*); its input is
-    the reader above. Since tsub9 a trace above 100,000 rows works on contiguous blocks
-    (generator/trace/subsample.py): 3x10^5 rows traced on 75,600 in 30.8 s wall and
-    1.09 GB peak (one run, no uncapped run beside it: not a ratio); --trace-rows above
-    10^5 measures the capped trace.
+    the reader above.
 
 Recorded (sub6, 2026-11-24, 2 shared cores at load ~4; times noisy, memory not):
     python3 bench/bench_io.py --rows 0 --read-rows 0 --fit-rows 0 --no-thermal \
