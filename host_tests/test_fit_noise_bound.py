@@ -188,3 +188,27 @@ def test_sanity_names_an_undetermined_sign_not_swapped_columns():
     sure.M_poly_sigma = np.full((1, 3, 3), 0.01)
     with pytest.raises(InputError, match="reflection.*swapped"):
         check_calibration(sure, spec, "f.csv")
+
+
+def test_catalogue_figure_below_the_readings_scatter_names_a_noisier_unit():
+    """A part three times noisier than its catalogue figure, no noise_nT (review #16 round
+    d): the warning names the readings' own scatter, not only the reference."""
+    from generator.fit.goodness import figure_warning, noise_misfit
+    del noise_misfit
+    gof = {"stated_below_data": {"stated_nT": 200.0, "data_scatter_nT": 600.0,
+                                 "limit_nT": 250.0, "figure_from": "part catalogue (typical)"}}
+    w = figure_warning("qmc", gof)
+    assert "part catalogue's typical noise (200 nT" in w and "600 nT" in w
+    assert "noisier than the typical part" in w and "noise_nT" in w
+    gof["stated_below_data"]["figure_from"] = "stated"
+    assert "the unit's noise_nT (200 nT" in figure_warning("qmc", gof)
+
+
+def test_noisier_part_than_its_catalogue_is_named(tmp_path):
+    """HMC5883L at 600 nT, catalogue 200, no noise_nT (review #16 round d): the warning
+    says the readings scatter beyond the catalogue's figure; coefficients within K_SIGMA."""
+    cal, truth, tels, arrays, _ = _fit_with(tmp_path, dict(HMC, noise_nT=600.0), None, 76)
+    below = cal.stats["noise_goodness"].get("stated_below_data")
+    assert below and below["figure_from"] == "part catalogue (typical)", below
+    assert any("noisier than the typical part" in w for w in cal.stats["sanity"]["warnings"])
+    _check_within(cal, truth, arrays)

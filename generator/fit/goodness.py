@@ -48,9 +48,10 @@ estimate, a magnetically disturbed lab). Its causes are named in the message
 (noise_warning): a reference worse than the sensor, a stuck or wrong temperature column
 (for a sensor with no temperature channel instead: the board's drift over a thermal
 sweep, which its constant model cannot take), an effect the model lacks (magcal trace
-finds those). A STATED figure below the readings' own sample-to-sample scatter (beyond
-its uncertainty) is warned as such ("check noise_nT"; _figure_below_scatter); the fit
-counts the noise up to that scatter in its 1-sigma (fit.reference.noise_var_sigma).
+finds those). A stated or catalogue figure below the readings' own sample-to-sample
+scatter (beyond its uncertainty) is warned as such ("check noise_nT", or a sensor noisier
+than the catalogue's typical figure; _figure_below_scatter); the fit counts the noise up
+to that scatter in its 1-sigma (fit.reference.noise_var_sigma).
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ from __future__ import annotations
 import numpy as np
 
 from generator.errors import InputError
-from generator.fit.reference import NOISE_CATALOGUE, NOISE_STATED, NOISE_VAR_UNCERTAINTY
+from generator.fit.reference import (CATALOGUE_NOISE_VAR_UNCERTAINTY, NOISE_CATALOGUE,
+                                    NOISE_STATED, NOISE_VAR_UNCERTAINTY)
 
 REF_ANGLE_SIGMA_DEG = 10.0     # reference direction error, 1-sigma per axis (see docstring)
 REF_SCALE_SIGMA = 0.02         # reference magnitude error, 1-sigma, relative
@@ -214,9 +216,12 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     # a temperature column cannot be its cause, its board's drift can (noise_warning)
     out["no_temperature_channel"] = any(NO_TEMPERATURE_NOTE in str(m)
                                         for m in (cal.stats or {}).get("notes", []))
-    if src == NOISE_STATED:
-        below = _figure_below_scatter(cal, S, z, fid, noise, NOISE_VAR_UNCERTAINTY)
+    if src in (NOISE_STATED, NOISE_CATALOGUE):
+        below = _figure_below_scatter(cal, S, z, fid, noise, NOISE_VAR_UNCERTAINTY
+                                      if src == NOISE_STATED
+                                      else CATALOGUE_NOISE_VAR_UNCERTAINTY)
         if below:
+            below["figure_from"] = src
             out["stated_below_data"] = below
     out["from"] = (f"reading noise {noise:.1f} nT per axis through M"
                    + (" (none stated: the part catalogue's typical figure)"
@@ -330,6 +335,15 @@ def figure_warning(name, gof) -> str | None:
     b = (gof or {}).get("stated_below_data")
     if not b:
         return None
+    if b.get("figure_from") == NOISE_CATALOGUE:
+        return (f"sensor '{name}': the part catalogue's typical noise ({b['stated_nT']:.0f} "
+                f"nT per axis, quantisation included; the unit file states none) is below "
+                f"the readings' own sample-to-sample scatter ({b['data_scatter_nT']:.0f} nT; "
+                f"beyond the figure's uncertainty, {b['limit_nT']:.0f} nT): the readings are "
+                "noisier than the typical part (a noisier unit, or interference changing "
+                "from sample to sample), which explains a residual beyond the catalogue's "
+                "noise; state the unit's noise_nT in the unit file; the fit's 1-sigma counts "
+                "the noise up to that scatter")
     return (f"sensor '{name}': the unit's noise_nT ({b['stated_nT']:.0f} nT per axis, "
             f"quantisation included) is below the readings' own sample-to-sample scatter "
             f"({b['data_scatter_nT']:.0f} nT; beyond the figure's uncertainty, "

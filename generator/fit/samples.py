@@ -362,7 +362,8 @@ def _gather(name, datas, notes, per_file, max_samples=MAX_FIT_SAMPLES, say=None)
         if t_rej["impossible"] or t_rej["outlying"]:
             notes.append(f"{d.source}: temperatures rejected: {t_rej['impossible']} impossible "
                          f"(outside {TEMP_POSSIBLE_C[0]:g}..{TEMP_POSSIBLE_C[1]:g} degC), "
-                         f"{t_rej['outlying']} outlying (spikes off the running median)")
+                         f"{t_rej['outlying']} outlying (spikes off the running median, blocks a "
+                         "board cannot reach and leave: docs/temperature_screen.md)")
         if n_coil:
             notes.append(f"{d.source}: {n_coil} samples with non-zero coil current left out "
                          "from the temperature fit (the coil coupling K is fitted from them separately)")
