@@ -212,8 +212,8 @@ class _SettleLimits:
 
 
 class _RangeExtreme:
-    """Maximum (or minimum) of x[i:j] for many j at once: a sparse table (level k holds
-    the extreme of every 2^k consecutive values), so each query costs two lookups."""
+    """Maximum (or minimum) of x[i:j] for many (i, j) at once: a sparse table (level k
+    holds the extreme of every 2^k consecutive values), so each query costs two lookups."""
 
     def __init__(self, x, fn):
         self.fn = fn
@@ -224,59 +224,61 @@ class _RangeExtreme:
             self.levels.append(fn(prev[:-w], prev[w:]))
             w *= 2
 
-    def query(self, i, js):
-        js = np.asarray(js, int)
-        k = np.floor(np.log2(js - i)).astype(int)
-        out = np.empty(len(js))
+    def query(self, i, j):
+        """Extreme of x[i[m]:j[m]] for every m (i < j, equal-length integer arrays)."""
+        k = np.floor(np.log2(j - i)).astype(int)
+        out = np.empty(len(j))
         for kk in np.unique(k):
             m = k == kk
             lv = self.levels[kk]
-            out[m] = self.fn(lv[i], lv[js[m] - (1 << int(kk))])
+            out[m] = self.fn(lv[i[m]], lv[j[m] - (1 << int(kk))])
         return out
 
 
 def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     """(start, stop, drift_C) of the longest stretch of x (times ts) meeting lim
     (_SettleLimits), lasting min_duration_s; None if there is none. Starts and stops are
-    tried on a grid of about 200 points per run (every sample in runs up to 200 long)."""
+    tried on a grid of about 200 points per run (every sample in runs up to 200 long):
+    starts i = 0, g, 2 g, ..., stops j = 2 n_block + m g and n, with j - i >= 2 n_block.
+    All (i, j) pairs are tested at once; of the longest that pass, the first start, then
+    the first stop (ties as a scan over starts keeping the first strictly longer one)."""
     n = len(x)
     if n < 2 * n_block:
         return None
     g = max(1, n // 200)
+    starts = np.arange(0, n - 2 * n_block + 1, g)
+    stops = np.unique(np.concatenate([np.arange(2 * n_block, n + 1, g), [n]]))
+    # every start's stops: those on the grid at least 2 n_block after it (a start is a
+    # multiple of g, so its own grid i + 2 n_block + m g is the common one from there)
+    I, J = np.nonzero(stops[None, :] - starts[:, None] >= 2 * n_block)
+    i, j = starts[I], stops[J]
+    # a segment lasts min_duration_s from its first sample to its last (what
+    # Segment.duration_s and the report show), not one sample period less
+    dur = ts[j - 1] - ts[i]
+    keep = dur >= min_duration_s
+    if not keep.any():
+        return None
+    i, j, dur = i[keep], j[keep], dur[keep]
     tc = ts - ts[0]
     P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
     hi, lo = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum)
-    best = None
-    for i in range(0, n - 2 * n_block + 1, g):
-        js = np.unique(np.concatenate([np.arange(i + 2 * n_block, n + 1, g), [n]]))
-        js = js[js - i >= 2 * n_block]
-        # a segment lasts min_duration_s from its first sample to its last (what
-        # Segment.duration_s and the report show), not one sample period less
-        dur = ts[js - 1] - ts[i]
-        keep = dur >= min_duration_s
-        if best is not None:
-            keep &= dur > best[3]
-        if not keep.any():
-            continue
-        js, dur = js[keep], dur[keep]
-        k = js - i
-        span = hi.query(i, js) - lo.query(i, js)
-        N = k.astype(float)
-        St, Sx, Stt, Stx = (p[js] - p[i] for p in P)
-        den = N * Stt - St * St
-        slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
-        drift = slope * (ts[js - 1] - ts[i])
-        mean = Sx / N
-        first = (P[1][i + n_block] - P[1][i]) / n_block
-        last = (P[1][js] - P[1][js - n_block]) / n_block
-        ok = ((span <= lim.width_C * (1 + _SLACK))
-              & (np.abs(drift) <= lim.drift_C(N))
-              & (np.abs(first - mean) <= lim.block_C(n_block, N))
-              & (np.abs(last - mean) <= lim.block_C(n_block, N)))
-        if ok.any():
-            m = int(np.argmax(np.where(ok, dur, -1.0)))
-            best = (i, int(js[m]), float(drift[m]), float(dur[m]))
-    return None if best is None else best[:3]
+    span = hi.query(i, j) - lo.query(i, j)
+    N = (j - i).astype(float)
+    St, Sx, Stt, Stx = (p[j] - p[i] for p in P)
+    den = N * Stt - St * St
+    slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
+    drift = slope * (ts[j - 1] - ts[i])
+    mean = Sx / N
+    first = (P[1][i + n_block] - P[1][i]) / n_block
+    last = (P[1][j] - P[1][j - n_block]) / n_block
+    ok = ((span <= lim.width_C * (1 + _SLACK))
+          & (np.abs(drift) <= lim.drift_C(N))
+          & (np.abs(first - mean) <= lim.block_C(n_block, N))
+          & (np.abs(last - mean) <= lim.block_C(n_block, N)))
+    if not ok.any():
+        return None
+    m = int(np.argmax(np.where(ok, dur, -np.inf)))    # pairs in (start, stop) order
+    return int(i[m]), int(j[m]), float(drift[m])
 
 
 def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band_C, lim):
