@@ -228,11 +228,19 @@ class _RangeExtreme:
         """Extreme of x[i[m]:j[m]] for every m (i < j, equal-length integer arrays)."""
         k = np.floor(np.log2(j - i)).astype(int)
         out = np.empty(len(j))
-        for kk in np.unique(k):
+        if not len(j):
+            return out
+        for kk in range(int(k.min()), int(k.max()) + 1):
             m = k == kk
             lv = self.levels[kk]
-            out[m] = self.fn(lv[i[m]], lv[j[m] - (1 << int(kk))])
+            out[m] = self.fn(lv[i[m]], lv[j[m] - (1 << kk)])
         return out
+
+
+# the settled-part search tests the longest (start, stop) pairs first: those lasting at
+# least these fractions of the longest candidate, then the rest (what it finds is the
+# same whatever the fractions: a band is searched only when every longer pair failed)
+_DURATION_BANDS = (0.99, 0.95, 0.85, 0.6)
 
 
 def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
@@ -240,8 +248,10 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     (_SettleLimits), lasting min_duration_s; None if there is none. Starts and stops are
     tried on a grid of about 200 points per run (every sample in runs up to 200 long):
     starts i = 0, g, 2 g, ..., stops j = 2 n_block + m g and n, with j - i >= 2 n_block.
-    All (i, j) pairs are tested at once; of the longest that pass, the first start, then
-    the first stop (ties as a scan over starts keeping the first strictly longer one)."""
+    Of the longest pairs that pass, the first start, then the first stop (as a scan over
+    starts keeping the first strictly longer one). The pairs are tested in bands of
+    decreasing duration (_DURATION_BANDS), many at once, and the search stops at the first
+    band where one passes: every longer pair was tested and failed."""
     n = len(x)
     if n < 2 * n_block:
         return None
@@ -249,36 +259,51 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     starts = np.arange(0, n - 2 * n_block + 1, g)
     stops = np.unique(np.concatenate([np.arange(2 * n_block, n + 1, g), [n]]))
     # every start's stops: those on the grid at least 2 n_block after it (a start is a
-    # multiple of g, so its own grid i + 2 n_block + m g is the common one from there)
-    I, J = np.nonzero(stops[None, :] - starts[:, None] >= 2 * n_block)
-    i, j = starts[I], stops[J]
-    # a segment lasts min_duration_s from its first sample to its last (what
+    # multiple of g, so its own grid i + 2 n_block + m g is the common one from there).
+    # A segment lasts min_duration_s from its first sample to its last (what
     # Segment.duration_s and the report show), not one sample period less
-    dur = ts[j - 1] - ts[i]
-    keep = dur >= min_duration_s
-    if not keep.any():
+    t_i, t_j = ts[starts], ts[stops - 1]
+    # a bound on the longest pair's duration (the bands are fractions of it)
+    longest = float(t_j.max() - t_i.min())
+    if longest < min_duration_s:
         return None
-    i, j, dur = i[keep], j[keep], dur[keep]
     tc = ts - ts[0]
     P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
     hi, lo = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum)
-    span = hi.query(i, j) - lo.query(i, j)
-    N = (j - i).astype(float)
-    St, Sx, Stt, Stx = (p[j] - p[i] for p in P)
-    den = N * Stt - St * St
-    slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
-    drift = slope * (ts[j - 1] - ts[i])
-    mean = Sx / N
-    first = (P[1][i + n_block] - P[1][i]) / n_block
-    last = (P[1][j] - P[1][j - n_block]) / n_block
-    ok = ((span <= lim.width_C * (1 + _SLACK))
-          & (np.abs(drift) <= lim.drift_C(N))
-          & (np.abs(first - mean) <= lim.block_C(n_block, N))
-          & (np.abs(last - mean) <= lim.block_C(n_block, N)))
-    if not ok.any():
-        return None
-    m = int(np.argmax(np.where(ok, dur, -np.inf)))    # pairs in (start, stop) order
-    return int(i[m]), int(j[m]), float(drift[m])
+    above = np.inf
+    for band in (*_DURATION_BANDS, None):
+        below, above = above, (-np.inf if band is None else band * longest)
+        # the starts and stops that can make a pair lasting `above` (a sub-grid: its pairs
+        # in (start, stop) order, so argmax takes the first of equal durations); a
+        # difference rounds monotonically, so the row's longest is against the last stop
+        rows = np.nonzero(t_j.max() - t_i >= above)[0]
+        cols = np.nonzero(t_j - t_i.min() >= above)[0]
+        dur2 = t_j[cols][None, :] - t_i[rows][:, None]
+        cand = ((stops[cols][None, :] - starts[rows][:, None] >= 2 * n_block)
+                & (dur2 >= min_duration_s) & (dur2 >= above) & (dur2 < below))
+        I, J = np.nonzero(cand)
+        if not len(I):
+            continue
+        dur = dur2[I, J]
+        I, J = rows[I], cols[J]
+        i, j = starts[I], stops[J]
+        span = hi.query(i, j) - lo.query(i, j)
+        N = (j - i).astype(float)
+        St, Sx, Stt, Stx = (p[j] - p[i] for p in P)
+        den = N * Stt - St * St
+        slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
+        drift = slope * (ts[j - 1] - ts[i])
+        mean = Sx / N
+        first = (P[1][i + n_block] - P[1][i]) / n_block
+        last = (P[1][j] - P[1][j - n_block]) / n_block
+        ok = ((span <= lim.width_C * (1 + _SLACK))
+              & (np.abs(drift) <= lim.drift_C(N))
+              & (np.abs(first - mean) <= lim.block_C(n_block, N))
+              & (np.abs(last - mean) <= lim.block_C(n_block, N)))
+        if ok.any():
+            m = int(np.argmax(np.where(ok, dur, -np.inf)))
+            return int(i[m]), int(j[m]), float(drift[m])
+    return None
 
 
 def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band_C, lim):
