@@ -284,8 +284,11 @@ def _difference_noise_var(cal, S, z, fid) -> np.ndarray | None:
         m = fid == f
         if (m & v).sum() >= 3:
             r = z[m & v] - S.ref[m & v]
-            Minv = np.linalg.pinv(cal.M_at(S.T[m & v]))   # pinv: a degenerate M
-            # is refused by fit.sanity after this, not here
+            # pinv: a degenerate M is refused by fit.sanity after this, not here. M(T) is
+            # a function of the reported temperature, which takes few distinct values
+            # (a reporting step): one pseudo-inverse per value, the same matrices
+            T_u, at = np.unique(S.T[m & v], return_inverse=True)
+            Minv = np.linalg.pinv(cal.M_at(T_u))[np.ravel(at)]
             parts.append(np.einsum("nij,nj->ni", Minv, r))
         if (m & ~v).sum() >= 3:
             e = np.linalg.norm(z[m & ~v], axis=1) - S.norm[m & ~v]

@@ -918,13 +918,14 @@ def difference_noise_var(series) -> np.ndarray | None:
             dd.append(a[2:] - 2.0 * a[1:-1] + a[:-2])
     if not dd or sum(len(a) for a in dd) < 3:
         return None
-    d = np.concatenate(dd)
-    keep = np.ones(d.shape, bool)
+    d = np.ascontiguousarray(np.concatenate(dd).T)        # (k, n): an axis contiguous
+    keep = None                                           # None: every difference
     for _ in range(5):
-        mu = np.array([np.mean(d[keep[:, j], j]) for j in range(d.shape[1])])
-        var = np.array([np.mean((d[keep[:, j], j] - mu[j]) ** 2) for j in range(d.shape[1])])
-        new = np.abs(d - mu) <= DIFF_CLIP_SIGMAS * np.sqrt(var)
-        if np.array_equal(new, keep):
+        kept = list(d) if keep is None else [a[m] for a, m in zip(d, keep)]
+        mu = np.array([np.mean(a) for a in kept])
+        var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
+        new = np.abs(d - mu[:, None]) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
+        if new.all() if keep is None else np.array_equal(new, keep):
             break
         keep = new
     return var / 6.0
