@@ -169,6 +169,17 @@ def parameter_names(degree):
                for c in range(3)])
 
 
+def _group_labels(group, n):
+    """0..G-1 per sample in the order of np.unique(group) (zeros without groups, or where
+    every sample is of one group: the usual single file, without a sort)."""
+    if group is None:
+        return np.zeros(n, int)
+    g = np.asarray(group)
+    if n and np.all(g == g.flat[0]):
+        return np.zeros(n, np.intp)
+    return np.unique(g, return_inverse=True)[1]
+
+
 def _powers(dT_scaled, degree):
     """[1, d, d^2, ...] per sample, (N, degree+1)."""
     P = np.empty((len(dT_scaled), degree + 1))
@@ -213,13 +224,21 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
         if w is not None:
             D *= w[sl, None]
         xs = x[sl]
-        cols = [np.ones((len(xs), 1))]
+        # H = [1, x, x x^T] (13 columns), or [1, m, x x_c^T] or both (25), written in place
+        H = np.empty((len(xs), ncol))
+        H[:, 0] = 1.0
+        c = 1
         if x_cross is None or both:
-            cols += [xs, (xs[:, :, None] * xs[:, None, :]).reshape(-1, 9)]
+            H[:, 1:4] = xs
+            np.multiply(xs[:, :, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+            c = 13
         if x_cross is not None:
             xc = x_cross[sl]
-            cols += [0.5 * (xs + xc), (xs[:, :, None] * xc[:, None, :]).reshape(-1, 9)]
-        H = np.concatenate(cols, axis=1)      # (n, 13), or (n, 25) with both
+            m = H[:, c:c + 3]
+            np.add(xs, xc, out=m)
+            m *= 0.5
+            np.multiply(xs[:, :, None], xc[:, None, :],
+                        out=H[:, c + 3:c + 12].reshape(-1, 3, 3))
         g = grp_a[sl]
         if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
             sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
@@ -264,13 +283,22 @@ def normal_matrix(mom, bp, Mp, eiv_var=0.0):
     Yj = Xs - Wjj @ bp                                        # (ns, K, 3): per s, j
     R = np.einsum("sjc,jal->scal", Yj, Mp)
     idx = np.add.outer(np.arange(K), np.arange(K))            # s = k + m
+    nb = 3 * K
+    out = np.zeros((12 * K, 12 * K))
+    out[:nb, :nb] = Q[idx].transpose(0, 2, 1, 3).reshape(nb, nb)   # b-b [k,l,m,p]
+    Mb = -R[idx].transpose(0, 3, 2, 1, 4).reshape(9 * K, nb)       # M-b [k,a,c,m,l]
+    out[nb:, :nb] = Mb
+    out[:nb, nb:] = Mb.T
+    # M-M: delta_aa' A_{k+m}[c,d], i.e. [k,a,c,m,a',d] zero unless a = a'
+    MM = out[nb:, nb:].reshape(K, 3, 3, K, 3, 3)
     G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
-    MM = np.einsum("kcmd,ab->kacmbd", G, np.eye(3)).reshape(9 * K, 9 * K)
-    bb = Q[idx].transpose(0, 2, 1, 3).reshape(3 * K, 3 * K)   # [k,l,m,p]
-    Mb = -R[idx].transpose(0, 3, 2, 1, 4).reshape(9 * K, 3 * K)   # [k,a,c,m,l]
-    if eiv_var:
-        MM = MM - eiv_var * np.kron(W[idx], np.eye(9))
-    return np.block([[bb, Mb.T], [Mb, MM]])
+    for a in range(3):
+        MM[:, a, :, :, a, :] = G
+    if eiv_var:     # - eiv_var sum w P_k P_m on the diagonal of each (k, m) block
+        MMf = out[nb:, nb:].reshape(K, 9, K, 9)
+        for i in range(9):
+            MMf[:, i, :, i] -= eiv_var * W[idx]
+    return out
 
 
 class ReadingStats:
@@ -445,7 +473,8 @@ def _linear_sums(P, x, B):
         A = _linear_design(P, x, sl)
         G += A.T @ A
         AtB += A.T @ B[sl]
-    return G, AtB, G[3 * K:, 3 * K:].copy()
+    # the design of a single block is kept for _linear_residual_var (no second build)
+    return G, AtB, G[3 * K:, 3 * K:].copy(), (A if n <= MOMENT_CHUNK else None)
 
 
 def _linear_residual_var(P, x, B, sums):
@@ -454,7 +483,7 @@ def _linear_residual_var(P, x, B, sums):
     solution where they are singular, whose residual is the least-squares one); the
     residual itself summed per block of samples (no (N x 4K) decomposition)."""
     n, K = P.shape
-    G, AtB, _ = sums
+    G, AtB, _, A_one = sums
     col = np.sqrt(np.diag(G))
     col[col == 0] = 1.0
     sol = np.linalg.lstsq(G / np.outer(col, col), AtB / col[:, None], rcond=None)[0] \
@@ -462,7 +491,8 @@ def _linear_residual_var(P, x, B, sums):
     ssr = 0.0
     for a in range(0, n, MOMENT_CHUNK):
         sl = slice(a, min(a + MOMENT_CHUNK, n))
-        ssr += float(np.sum((B[sl] - _linear_design(P, x, sl) @ sol) ** 2))
+        A = _linear_design(P, x, sl) if A_one is None else A_one
+        ssr += float(np.sum((B[sl] - A @ sol) ** 2))
     return ssr / max(3 * (n - 4 * K), 1)
 
 
@@ -483,7 +513,7 @@ def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     b0, M0, bs, Ms = prior_s
     c0 = np.zeros((K, 3))
     c0[0] = -M0[0] @ b0[0]
-    G, AtB, PtP = (w * a for a in sums)
+    G, AtB, PtP = (w * a for a in sums[:3])
     if eiv_var:
         G[:3 * K, :3 * K] -= eiv_var * np.kron(PtP, np.eye(3))
     Mk = np.zeros((K, 3, 3))
@@ -568,8 +598,7 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     theta0 = np.concatenate([prior_s[0].ravel(), prior_s[1].ravel()])
     S = np.concatenate([prior_s[2].ravel(), prior_s[3].ravel()])
     lo_s, hi_s = (t_lo - t_ref_C) / tau, (t_hi - t_ref_C) / tau
-    grp = np.zeros(n, int) if group is None else np.unique(np.asarray(group),
-                                                           return_inverse=True)[1]
+    grp = _group_labels(group, n)
     n_grp = int(grp.max()) + 1
 
     def unpack(th):
