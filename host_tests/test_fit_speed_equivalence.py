@@ -53,3 +53,39 @@ def test_difference_noise_var_bit_for_bit(seed, sizes, k, q, spikes, flat):
         assert got is None
     else:
         assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
+
+
+# ---- the temperature reporting step's rows per bin (reference.temperature_error_rows) ---
+# The per-bin sums now come from the bin's moments (sum w, sum w x, sum w x x^T) instead of
+# a row per sample: the same sums in another order, equal to rounding. Bound: a recursive
+# sum of N terms errs by at most N eps relative to the sum of their magnitudes (N <= 3000
+# per bin here: 7e-13); y = x - b(T) with |b| < |x| / 10 loses at most a factor ~1.2 more
+# in the moment form. 1e-10 of each bin row's magnitude covers both with margin, and a
+# wrong term (a sign, a transposed M, a missing derivative) is off by O(1).
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), degree=st.integers(1, 3), n=st.integers(5, 3000),
+       n_files=st.integers(1, 3), clamp=st.booleans(), weighted=st.booleans())
+def test_temperature_error_rows_match_the_rows_per_sample(seed, degree, n, n_files, clamp,
+                                                         weighted):
+    from generator.fit.reference import (_bin_sums, _powers, temperature_bins,
+                                         temperature_derivative, temperature_error_rows,
+                                         vector_gradient_rows)
+
+    rng = np.random.default_rng(seed)
+    K = degree + 1
+    T = np.round(rng.uniform(-20, 60, n) / 0.7) * 0.7        # quantised: shared values
+    grp = rng.integers(0, n_files, n)
+    t_range = (-10.0, 50.0) if clamp else (float(T.min()), float(T.max()))
+    tau = max(abs(t_range[0] - 25.0), abs(t_range[1] - 25.0), 1.0)
+    P = _powers((np.clip(T, *t_range) - 25.0) / tau, degree)
+    x = rng.normal(0, 30000, (n, 3))
+    bp = rng.normal(0, 500, (K, 3)) / np.arange(1, K + 1)[:, None] ** 2
+    Mp = np.eye(3)[None] * (np.arange(K) == 0)[:, None, None] + rng.normal(0, 0.02, (K, 3, 3))
+    w = rng.uniform(0.5, 2.0, n_files)[grp] if weighted else None
+    key, var_b, _ = temperature_bins(T, grp)
+    got = temperature_error_rows(P, x, (bp, Mp), w, T, key, len(var_b), tau, t_range)
+    D = temperature_derivative(P, x, (bp, Mp), T, tau, t_range)
+    rows = vector_gradient_rows(P, x, (bp, Mp), w, D)
+    want = _bin_sums(np.zeros((len(var_b), 12 * K)), key, rows)
+    scale = _bin_sums(np.zeros((len(var_b), 12 * K)), key, np.abs(rows))
+    assert np.all(np.abs(got - want) <= 1e-10 * scale.max(axis=1, keepdims=True))

@@ -801,16 +801,52 @@ def _temperature_error_cov(P, x, bM, w, T, grp, tau, t_range, A):
     D_n e_v, D_n = dr_n/dT (temperature_derivative), and the estimate by -A J^T W D e_v
     (A the fit's response, the data part of the covariance). Returns (C_T, figures)."""
     key, var_b, fig = temperature_bins(T, grp)
-    n = len(x)
-    w = np.broadcast_to(np.ones(n) if w is None else np.asarray(w, float), (n,))
-    Hb = np.zeros((len(var_b), P.shape[1] * 12))
-    for a in range(0, n, MOMENT_CHUNK):     # in blocks: no (N, 12 K) array at once
-        sl = slice(a, min(a + MOMENT_CHUNK, n))
-        D = temperature_derivative(P[sl], x[sl], bM, T[sl], tau, t_range)
-        _bin_sums(Hb, key[sl], vector_gradient_rows(P[sl], x[sl], bM, w[sl], D))
+    Hb = temperature_error_rows(P, x, bM, w, T, key, len(var_b), tau, t_range)
     Q = (Hb * var_b[:, None]).T @ Hb
     C_T = A @ Q @ A.T
     return 0.5 * (C_T + C_T.T), fig
+
+
+def temperature_error_rows(P, x, bM, w, T, key, n_bins, tau, t_range):
+    """Per bin v (key: the bin of each sample) the sum of the rows J_n^T w_n D_n
+    (vector_gradient_rows of temperature_derivative), (n_bins, 12 K). A bin holds one
+    reported temperature (temperature_bins: one file, one value), so P_n, M(T_n), b(T_n)
+    and their derivatives are the bin's, and D_n = M'(T)(x_n - b(T)) - M(T) b'(T) is
+    linear in the reading: the sums need only the bin's sum w, sum w x and sum w x x^T
+    (one pass over the samples, 13 columns), not a (N, 12 K) row per sample."""
+    n, K = P.shape
+    w = np.broadcast_to(np.ones(n) if w is None else np.asarray(w, float), (n,))
+    S = np.zeros((n_bins, 13))
+    for a in range(0, n, MOMENT_CHUNK):     # in blocks: bounded temporaries
+        sl = slice(a, min(a + MOMENT_CHUNK, n))
+        xs, ws = x[sl], w[sl]
+        H = np.empty((len(xs), 13))
+        H[:, 0] = ws
+        np.multiply(ws[:, None], xs, out=H[:, 1:4])
+        np.multiply(H[:, 1:4, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+        _bin_sums(S, key[sl], H)
+    first = np.zeros(n_bins, np.intp)          # a sample of each bin: its T and powers
+    first[key[::-1]] = np.arange(n)[::-1]
+    Pb, Tb = P[first], T[first]
+    bp, Mp = bM
+    inside = (Tb >= t_range[0]) & (Tb <= t_range[1])
+    dts = Pb[:, 1] if K > 1 else np.zeros(n_bins)
+    dPb = np.zeros_like(Pb)
+    for k in range(1, K):
+        dPb[:, k] = k * dts ** (k - 1) / tau
+    dPb[~inside] = 0.0
+    Mb = (Pb @ Mp.reshape(K, 9)).reshape(-1, 3, 3)
+    dMb = (dPb @ Mp.reshape(K, 9)).reshape(-1, 3, 3)
+    bb, Mdb = Pb @ bp, np.einsum("vij,vj->vi", Mb, dPb @ bp)      # b(T), M(T) b'(T)
+    s0, s1, s2 = S[:, 0], S[:, 1:4], S[:, 4:13].reshape(-1, 3, 3)
+    Y1 = s1 - s0[:, None] * bb                                     # sum w y, y = x - b(T)
+    Y2 = (s2 - s1[:, :, None] * bb[:, None, :] - bb[:, :, None] * s1[:, None, :]
+          + s0[:, None, None] * bb[:, :, None] * bb[:, None, :])    # sum w y y^T
+    SD = np.einsum("vij,vj->vi", dMb, Y1) - s0[:, None] * Mdb       # sum w D
+    SDy = np.einsum("vij,vjk->vik", dMb, Y2) - Mdb[:, :, None] * Y1[:, None, :]  # sum w D y^T
+    gb = -Pb[:, :, None] * np.einsum("vil,vi->vl", Mb, SD)[:, None, :]     # [k, l]
+    gM = Pb[:, :, None, None] * SDy[:, None, :, :]                         # [k, a, c]
+    return np.concatenate([gb.reshape(n_bins, -1), gM.reshape(n_bins, -1)], axis=1)
 
 
 def temperature_derivative(P, x, bM, T, tau, t_range):
