@@ -384,13 +384,12 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
         stats["segments"]["unavailable"] = (f"{len(levels)} constant-temperature level(s) "
                                             "found; the segments method needs 2 or more")
     # ---- held-out comparison
-    groups = np.unique(S.group)
+    groups, group_no = np.unique(S.group, return_inverse=True)
     k = min(CV_FOLDS, len(groups))
     methods = ["joint"] + (["segments"] if seg_ok else [])
     held = {m: {"vec": [], "norm": [], "failed": []} for m in methods}
     if seg_ok and k >= 2:
-        fold_of = {g: i % k for i, g in enumerate(groups)}
-        fold = np.array([fold_of[g] for g in S.group])
+        fold = np.ravel(group_no) % k        # the i-th group (sorted) in fold i mod k
         for f in range(k):
             train = fold != f
             Str, Ste = S.subset(train), S.subset(~train)
@@ -467,12 +466,11 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
     # blocks (the orbital thermal cycle repeats, so each block spans the data's range),
     # among degrees 0..deg (deg: one per DEGREE_STEP_C of span); a failed fold rules
     # that degree out
-    groups = np.unique(S.group)
+    groups, group_no = np.unique(S.group, return_inverse=True)
     k = min(CV_FOLDS, len(groups))
     scores = {}
     if deg > 0 and k >= 2:
-        fold_of = {g: i % k for i, g in enumerate(groups)}
-        fold = np.array([fold_of[g] for g in S.group])
+        fold = np.ravel(group_no) % k        # the i-th group (sorted) in fold i mod k
         for d in range(deg + 1):
             res = []
             for f in range(k):
