@@ -4,14 +4,15 @@ today's code against the code at --baseline-commit, measured in the same run.
 
     python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
                                [--report-baseline-commit f639afc]
-                               [--previous-commit ceb8243]
+                               [--previous-commit 5335ede]
                                [--rows 36000,144000] [--no-memory] [--no-report]
 
 Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
 equations) and --report-baseline-commit (the report as this work found it: the same
 figures as today, drawn with constrained layout; the older commit's report has fewer
-figures, so its time is printed but is no baseline) and --previous-commit (the fit before
-the moment-based Gauss-Newton iterates: the ratio of that step alone). Each baseline's generator/ is
+figures, so its time is printed but is no baseline) and --previous-commit (the tree before
+the latest step: 5335ede, main before the fspeed10 work; also run with MAGCAL_WORKERS=1,
+so that the ratio of the sensors' fits themselves is seen without the forks). Each baseline's generator/ is
 extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
 tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
 slowed by contention, which would blur the ratio). On the shared campaign
@@ -171,7 +172,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
     ap.add_argument("--report-baseline-commit", default="f639afc")
-    ap.add_argument("--previous-commit", default="ceb8243")
+    ap.add_argument("--previous-commit", default="5335ede")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
@@ -191,6 +192,7 @@ def main():
         runs = {k: (tree, "none" if a.no_report else "serial", {})
                 for k, tree in trees.items()}
         runs["today_serial"] = (REPO, "none", {"MAGCAL_WORKERS": "1"})
+        runs["previous_serial"] = (trees["previous"], "none", {"MAGCAL_WORKERS": "1"})
         if not a.no_report:
             runs["today_forked_report"] = (REPO, "forked", {})
         res = {}
@@ -226,6 +228,11 @@ def main():
           f"{t['fit_cpu_s']:.2f} s (ratio {pv['fit_cpu_s'] / t['fit_cpu_s']:.2f}x), wall "
           f"{pv['fit_wall_s']:.2f} s -> {t['fit_wall_s']:.2f} s (ratio "
           f"{pv['fit_wall_s'] / t['fit_wall_s']:.2f}x)")
+    ps = res["previous_serial"]
+    print(f"  fit against {a.previous_commit}, sensors serial (MAGCAL_WORKERS=1): CPU "
+          f"{ps['fit_cpu_s']:.2f} s -> {ts['fit_cpu_s']:.2f} s (ratio "
+          f"{ps['fit_cpu_s'] / ts['fit_cpu_s']:.2f}x), wall {ps['fit_wall_s']:.2f} s -> "
+          f"{ts['fit_wall_s']:.2f} s (ratio {ps['fit_wall_s'] / ts['fit_wall_s']:.2f}x)")
     if not a.no_report:
         tf = res["today_forked_report"]
         print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "
