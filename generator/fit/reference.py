@@ -180,6 +180,14 @@ def _group_labels(group, n):
     return np.unique(g, return_inverse=True)[1]
 
 
+def _by_group(a, grp):
+    """[a[grp == g] for g in np.unique(grp)], without the sort and copies for one group."""
+    grp = np.asarray(grp)
+    if len(grp) and grp.flat[0] == grp.min() == grp.max():
+        return [a]
+    return [a[grp == g] for g in np.unique(grp)]
+
+
 def _powers(dT_scaled, degree):
     """[1, d, d^2, ...] per sample, (N, degree+1)."""
     P = np.empty((len(dT_scaled), degree + 1))
@@ -700,8 +708,10 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
     if Vp.shape[1]:
         zp = Vp.T @ ((theta - theta0) / S)
         theta = theta - S * (Vp @ zp)      # exactly at the prior where held
-        cost, JTJ, _, r = vector_normal(P, x, B, *unpack(theta), True, w, eiv_var,
-                                        stats.weighted(w))
+        # its cost and residuals per sample, J^T W J from the moments (no gradient)
+        mom_w = stats.weighted(w)
+        cost, _, _, r = vector_normal(P, x, B, *unpack(theta), False, w, eiv_var, mom_w)
+        JTJ = normal_matrix(mom_w, *unpack(theta), eiv_var)
     Fv = Vf.T @ (JTJ * np.outer(S, S)) @ Vf
     A = (Vf @ _solve_floored(Fv, Vf.T)) * np.outer(S, S)     # the fit's linear response
     C = A + (Vp @ Vp.T) * np.outer(S, S)
@@ -953,7 +963,7 @@ def _reading_noise_var(d, grp):
     overestimate, whose adjusted-least-squares bias is that variance over the reading's
     spread -- negligible where M is determined, and where it is not, observability holds M
     at the prior (its systematic, NOISE_VAR_UNCERTAINTY, is in the split)."""
-    return difference_noise_var([d[grp == g] for g in np.unique(grp)])
+    return difference_noise_var(_by_group(d, grp))
 
 
 # Second differences beyond this many of their own standard deviations are outliers
@@ -1050,7 +1060,7 @@ def data_noise_var_bound(x, grp):
     14 nT for 45 uT turning 1 deg per sample), so it is never below the noise. None with
     too few samples."""
     grp = np.zeros(len(x), int) if grp is None else np.asarray(grp)
-    return difference_noise_var([x[grp == g] for g in np.unique(grp)])
+    return difference_noise_var(_by_group(x, grp))
 
 
 # Relative standard error of difference_noise_var's variance from n second differences of
