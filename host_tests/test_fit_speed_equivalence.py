@@ -89,3 +89,23 @@ def test_temperature_error_rows_match_the_rows_per_sample(seed, degree, n, n_fil
     want = _bin_sums(np.zeros((len(var_b), 12 * K)), key, rows)
     scale = _bin_sums(np.zeros((len(var_b), 12 * K)), key, np.abs(rows))
     assert np.all(np.abs(got - want) <= 1e-10 * scale.max(axis=1, keepdims=True))
+
+
+# ---- b(T), M(T) once per reported temperature value (calibration.PerValue) -------------
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 2000), q=st.sampled_from([0.0, 0.7]),
+       h=st.sampled_from([0.0, 0.5, -0.5]))
+def test_per_value_is_the_per_sample_arithmetic(seed, n, q, h):
+    from generator.fit.calibration import SensorCalibration
+
+    rng = np.random.default_rng(seed)
+    T = rng.uniform(-30, 70, n)
+    if q:
+        T = np.round(T / q) * q
+    cal = SensorCalibration("s", rng.normal(0, 300, (4, 3)),
+                            np.eye(3) + rng.normal(0, 0.01, (4, 3, 3)), 25.0, -20.0, 60.0)
+    x = rng.normal(0, 4e4, (n, 3))
+    pv = cal.per_value(T)
+    for got, want in ((pv.apply64(x, h), cal.apply64(x, T + h)), (pv.M_at(h), cal.M_at(T + h)),
+                      (pv.b_at(h), cal.b_at(T + h))):
+        assert np.array_equal(got.view(np.uint64), want.view(np.uint64))

@@ -75,3 +75,31 @@ class SensorCalibration:
         """B_cal in float64 (fitting and diagnostics; the flight reference is chain.py)."""
         x = np.asarray(field_frame_nT, dtype=float) - self.b_at(temp_C)
         return np.einsum("...ij,...j->...i", self.M_at(temp_C), x)
+
+    def per_value(self, temp_C) -> "PerValue":
+        """b(T), M(T) and apply64 at many samples' temperatures, evaluated once per
+        distinct value (a reported temperature takes few: its reporting step)."""
+        return PerValue(self, temp_C)
+
+
+class PerValue:
+    """SensorCalibration.b_at / M_at / apply64 at temp_C (+ a shift h_C), computed at the
+    distinct values of temp_C and spread to the samples: the same numbers as per sample
+    (each value's polynomial is the same arithmetic), one sort instead of a polynomial
+    per sample and call."""
+
+    def __init__(self, cal: SensorCalibration, temp_C):
+        self.cal = cal
+        self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
+        self.at = np.ravel(at)
+
+    def M_at(self, h_C=0.0) -> np.ndarray:
+        return self.cal.M_at(self.values + h_C)[self.at]
+
+    def b_at(self, h_C=0.0) -> np.ndarray:
+        return self.cal.b_at(self.values + h_C)[self.at]
+
+    def apply64(self, field_frame_nT, h_C=0.0) -> np.ndarray:
+        """cal.apply64(field_frame_nT, temp_C + h_C)."""
+        x = np.asarray(field_frame_nT, dtype=float) - self.b_at(h_C)
+        return np.einsum("...ij,...j->...i", self.M_at(h_C), x)

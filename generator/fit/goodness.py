@@ -81,10 +81,11 @@ def vector_misfit(cal, S) -> dict | None:
 
     if not S.is_vec.any() or not cal.body_frame:   # magnitudes only: M up to a rotation
         return None
-    z = cal.apply64(S.x, S.T)
+    at_T = cal.per_value(S.T)        # b(T), M(T) once per reported value
+    z = at_T.apply64(S.x)
     r = z - S.ref
     v = S.is_vec
-    M = cal.M_at(S.T[v])
+    M = at_T.M_at()[v]
     read2 = float(S.noise_nT or 0.0) ** 2 * np.einsum("nij,nij->n", M, M) / 3.0
     F2 = np.sum(S.ref[v] ** 2, axis=1)
     th = np.radians(REF_ANGLE_SIGMA_DEG)
@@ -147,16 +148,8 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
     noise = float(S.noise_nT or 0.0)
     has_figure = noise > 0    # stated, or the part catalogue's
-    # b(T) and M(T) are functions of the reported temperature, which takes few distinct
-    # values (a reporting step): evaluated once per value, the same numbers as per sample
-    T_u, at = np.unique(S.T, return_inverse=True)
-    at = np.ravel(at)
-
-    def apply64(h_C=0.0):             # cal.apply64(S.x, S.T + h_C)
-        return np.einsum("...ij,...j->...i", cal.M_at(T_u + h_C)[at],
-                         S.x - cal.b_at(T_u + h_C)[at])
-
-    z = apply64()
+    at_T = cal.per_value(S.T)        # b(T), M(T) once per reported value
+    z = at_T.apply64(S.x)
     if not has_figure:      # none stated (a generic part): from the residual's own differences
         noise = _difference_noise(cal, S, z, fid)
         if noise <= 0:
@@ -165,14 +158,14 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     if floor_nT is not None:
         fl = np.asarray([float(f or 0.0) for f in floor_nT])
         floor = fl[np.clip(fid, 0, len(fl) - 1)] if len(fl) else floor
-    M = cal.M_at(T_u)[at]
+    M = at_T.M_at()
     # the temperature's reporting step: z's change per degC times q^2/12 (per file)
     q2 = np.zeros(S.n)
     for f in np.unique(fid):
         m = fid == f
         q2[m] = temperature_quantum(S.T[m]) ** 2 / 12.0
     h = 0.5
-    dz = (apply64(h) - apply64(-h)) / (2 * h)
+    dz = (at_T.apply64(S.x, h) - at_T.apply64(S.x, -h)) / (2 * h)
     # a magnitude-only calibration (M symmetric, known up to a rotation) is judged on |B|
     v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
     vec_var = (noise ** 2 * np.einsum("nij,nij->n", M, M) / 3.0 + floor ** 2 / 3.0
