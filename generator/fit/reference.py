@@ -1213,6 +1213,7 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         return cost, (normal_matrix(mom, bp, Mp, eiv_var) if jac else None), g
 
     first = True
+    SS = np.outer(S_f, S_f)
     for _ in range(GN_MAX_ITER):
         cost, JTJ, g = vector_normal_(at(z), True)
         if split is not None and len(f) == len(S):
@@ -1220,12 +1221,14 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         else:
             ev, EV, fitted = _eig_split(JTJ[np.ix_(f, f)], S_f, margin)
         Vf = EV[:, fitted]
-        evj = np.einsum("pi,pq,qi->i", Vf, JTJ[np.ix_(f, f)] * np.outer(S_f, S_f), Vf)
+        Jw = JTJ[np.ix_(f, f)] * SS            # whitened J^T W J of the free parameters
+        evj = np.einsum("pi,pq,qi->i", Vf, Jw, Vf)
         if first:               # the start's component where the data say nothing: the prior
             z = Vf @ (Vf.T @ z)
             cost, JTJ, g = vector_normal_(at(z), True)
             first = False
-        Fv = Vf.T @ (JTJ[np.ix_(f, f)] * np.outer(S_f, S_f)) @ Vf
+            Jw = JTJ[np.ix_(f, f)] * SS
+        Fv = Vf.T @ Jw @ Vf
         dz = -Vf @ np.linalg.solve(Fv, Vf.T @ (S_f * g[f]))
         step = 1.0
         while step > 1e-4:
