@@ -78,6 +78,42 @@ few minutes later (fit after a first one, MAGCAL_WORKERS=1 / 2, three times each
 bound the wall time at ~3/5 of the serial one). Serially the fit's CPU went 2.31 s ->
 2.07 s (Horner's rule for M(T), b(T): ~12 % of the fit before, cProfile; the reference
 directions counted on a sample of the rows).
+
+A run after the fspeed10 steps (2026-11-24 18:29-18:31 UTC, load average 2.4-2.6 on the
+2 shared cores, --repeat 2 --no-memory --no-report; --previous-commit 5335ede, main
+before them; e1fb205):
+  fit against 5335ede, sensors serial (MAGCAL_WORKERS=1): CPU 4.36 s -> 2.04 s (ratio
+    2.14x), wall 4.49 s -> 2.05 s (ratio 2.19x)
+  fit against 5335ede, forked (CPU with the children's): CPU 4.58 s -> 2.17 s (ratio
+    2.11x), wall 4.64 s -> 2.16 s (ratio 2.15x)
+  today's fit, serial -> forked: wall 2.05 s -> 2.16 s (0.95x: the other jobs held the
+    second core during the run; five fits in a row in one process right after, 18:32
+    UTC: forked 1.34-2.26 s wall, 1.34 s when the second core was free; serially
+    1.99-2.17 s CPU)
+  fit CPU: 8.97 s (f6f3a45), 10.42 s (f639afc) -> 2.17 s   ratio 4.13x, 4.80x
+The coefficients.json of six fits (bench/fit_equivalence.py: the shared unit's thermal
+campaign and all its files, the demo's ground campaigns, three simulated units of other
+parts) are identical bit for bit to 5335ede's. What made the step: the segment finder
+(merged after the profile above: 1.7 s of the 4.4 s at 5335ede, process time per part)
+tests its (start, stop) pairs as arrays in bands of decreasing duration and stops at the
+first band with a pass (0.14 s for five sensors); the noise check's M(T)^+ and the checks'
+b(T), M(T) once per reported temperature value (calibration.PerValue); the temperature
+reporting step's covariance from each (file, value) bin's moments instead of a (N, 12 K)
+row per sample; fixed costs of each reference fit (J^T W J assembled in place, one
+file's groups without a sort, the linear start's design once, the clipped second
+differences on contiguous axes).
+Where the serial 2.0-2.1 s goes now (process time per part, MAGCAL_WORKERS=1): the
+held-out folds' joint fits 30 % (20 fits of 27,000 samples, ~30 ms each: ~8 passes over
+the samples that no moment can replace -- residuals at each Gauss-Newton start and end,
+second differences, M(T)^-1 r), their per-level fits 26 % (120 constant fits of ~2,500
+samples, ~4 ms each, mostly fixed numpy cost), the five final fits 15 %, the noise and
+misfit checks 10 %, reading the samples and finding the segments 9 %. Evaluated and not
+taken: warm-starting the folds' Gauss-Newton from the full fit (an iterate costs no pass
+over the samples, ~0.3 ms, and the runs take ~3 iterates: < 0.05 s to gain, for results
+that move within the stopping tolerance instead of being identical); moments shared
+across folds (only the moment passes are additive, ~7 ms of a fold's ~30 ms, and the
+cross moments with x_hat depend on each subset's mean offset). The 1 s target is not
+reached: serially ~2x it, forked ~1.35x when the second core is free.
 """
 
 from __future__ import annotations
