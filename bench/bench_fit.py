@@ -91,9 +91,12 @@ before them; e1fb205):
     UTC: forked 1.34-2.26 s wall, 1.34 s when the second core was free; serially
     1.99-2.17 s CPU)
   fit CPU: 8.97 s (f6f3a45), 10.42 s (f639afc) -> 2.17 s   ratio 4.13x, 4.80x
-The coefficients.json of six fits (bench/fit_equivalence.py: the shared unit's thermal
-campaign and all its files, the demo's ground campaigns, three simulated units of other
-parts) are identical bit for bit to 5335ede's. What made the step: the segment finder
+The coefficients.json of seven fits (bench/fit_equivalence.py, 18:36 UTC: the shared
+unit's thermal campaign, all its files, its orbit file on a prior, the demo's ground
+campaigns, three simulated units of other parts) are identical to 5335ede's bit for bit
+but for the 1-sigma of the thermal campaign's fit (uncertainty_1sigma and the
+observability sigmas: at most 5e-15 relative, the temperature reporting step's
+covariance summed per bin); coefficients, degrees, flags, warnings and texts identical. What made the step: the segment finder
 (merged after the profile above: 1.7 s of the 4.4 s at 5335ede, process time per part)
 tests its (start, stop) pairs as arrays in bands of decreasing duration and stops at the
 first band with a pass (0.14 s for five sensors); the noise check's M(T)^+ and the checks'

@@ -5,10 +5,13 @@
     python3 bench/fit_equivalence.py [--baseline-commit 5335ede] [--keep DIR]
 
 Cases (each fitted by generator.pipeline.fit in a fresh subprocess per tree, BLAS pinned
-to one thread, MAGCAL_WORKERS=1):
+to one thread, MAGCAL_WORKERS=1, run outside any checkout and checked to import the tree's
+own generator/):
 
 * fm1_thermal, fm1_all: the shared unit samsat_fm1 (thermal_12pos; and thermal_12pos,
   rotation, coils, flight_6h: the coil coupling and the boom alignment too);
+* fm1_orbit_on_prior: its flight_6h alone on the prior of its ground campaigns (fitted
+  by the baseline tree): the in-flight recalibration (magnitudes on a prior);
 * demo: the demo's simulated unit (generator.campaign.simulate.make_example, seed 1) and
   its four ground campaigns, as `magcal demo` fits them;
 * u_lis (LIS3MDL + QMC5883L), u_phys (a physical-input generic part with SET/RESET, float64,
@@ -130,8 +133,15 @@ FIT = r"""
 import json, sys
 from generator import pipeline
 cases = json.loads(sys.argv[1])
-for name, (unit, files, out) in cases.items():
-    pipeline.fit(unit, files).save(out)
+for name, (unit, files, out, prior) in cases.items():
+    pipeline.fit(unit, files, prior=prior).save(out)
+"""
+
+# the fits ran the generator/ of the tree asked for (not another one on sys.path)
+CHECK_TREE = r"""
+import generator, pathlib, sys
+assert pathlib.Path(generator.__file__).resolve().parent.parent == \
+    pathlib.Path(sys.argv[2]).resolve(), (generator.__file__, sys.argv[2])
 """
 
 DEMO = r"""
@@ -142,19 +152,31 @@ simulate.make_example(sys.argv[1], seed=1)
 
 
 def make_cases(tree: Path, data: Path) -> dict:
-    """{case: (unit.toml, [files])}, the simulated ones written by `tree`'s simulator."""
+    """{case: (unit.toml, [files][, prior])}, the simulated ones written by `tree`'s
+    simulator, the prior fitted by `tree`."""
     env = _env(tree)
+    data.mkdir(parents=True, exist_ok=True)
     cases = {"fm1_thermal": (FM1 / "unit.toml", [FM1 / "thermal_12pos.csv"]),
              "fm1_all": (FM1 / "unit.toml", [FM1 / f for f in (
                  "thermal_12pos.csv", "rotation.csv", "coils.csv", "flight_6h.csv")])}
-    subprocess.run([sys.executable, "-c", DEMO, str(data / "demo")], env=env, check=True)
+    # the in-flight recalibration: the orbit file's magnitudes on a ground calibration
+    # (the prior, fitted by `tree` from the ground files)
+    prior = data / "fm1_ground.json"
+    subprocess.run([sys.executable, "-c", FIT, json.dumps({"ground": (
+        str(FM1 / "unit.toml"), [str(FM1 / f) for f in ("thermal_12pos.csv", "rotation.csv",
+                                                         "coils.csv")], str(prior), None)})],
+                   env=env, check=True, cwd=data)
+    cases["fm1_orbit_on_prior"] = (FM1 / "unit.toml", [FM1 / "flight_6h.csv"], prior)
+    subprocess.run([sys.executable, "-c", DEMO, str(data / "demo")], env=env, check=True,
+                   cwd=data)
     cases["demo"] = (data / "demo" / "unit.toml", [data / "demo" / f"{k}.csv" for k in (
         "thermal_12pos", "rotation", "coils", "coil_study")])
     for name, text in UNITS.items():
         (data / f"{name}.toml").write_text(text, encoding="utf-8")
         subprocess.run([sys.executable, "-m", "generator.cli", "simulate",
                         str(data / f"{name}.toml"), "-o", str(data / name), "--seed", "7",
-                        "-q", "--campaigns", "thermal_12pos", "rotation"], env=env, check=True)
+                        "-q", "--campaigns", "thermal_12pos", "rotation"], env=env,
+                       check=True, cwd=data)
         cases[name] = (data / name / "unit.toml",
                        [data / name / f"{k}.csv" for k in ("thermal_12pos", "rotation")])
     return cases
@@ -162,10 +184,13 @@ def make_cases(tree: Path, data: Path) -> dict:
 
 def fit_all(tree: Path, cases: dict, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    arg = {k: (str(u), [str(f) for f in fs], str(out / f"{k}.json"))
-           for k, (u, fs) in cases.items()}
-    p = subprocess.run([sys.executable, "-c", FIT, json.dumps(arg)],
-                       env=_env(tree, MAGCAL_WORKERS="1"), capture_output=True, text=True)
+    arg = {k: (str(c[0]), [str(f) for f in c[1]], str(out / f"{k}.json"),
+               str(c[2]) if len(c) > 2 else None) for k, c in cases.items()}
+    # cwd: not a checkout (python -c puts the working directory first on sys.path, which
+    # would import the generator/ found there instead of `tree`'s)
+    p = subprocess.run([sys.executable, "-c", CHECK_TREE + FIT, json.dumps(arg), str(tree)],
+                       env=_env(tree, MAGCAL_WORKERS="1"), capture_output=True, text=True,
+                       cwd=out)
     if p.returncode:
         raise SystemExit(f"{tree}: {p.stderr.strip()[-2000:]}")
     return {k: json.loads(Path(v[2]).read_text()) for k, v in arg.items()}
