@@ -289,10 +289,25 @@ def _save(fig, path) -> Path:
     if getattr(fig, "_magcal_fixed", False):
         _fixed_margins(fig)
     _ticks_in_view(fig)
-    # zlib level 3, not PIL's 6: the same pixels, a third less encoding time for ~7 % more
-    # bytes (the thermal campaign report's twelve PNGs: 1.52 MB instead of 1.42 MB)
-    fig.savefig(path, dpi=DPI, metadata={EMPTY_AXES_KEY: "; ".join(empty_axes(fig))},
-                pil_kwargs={"compress_level": 3})
+    import matplotlib
+    from PIL import Image, PngImagePlugin
+
+    # Drawn on the figure's Agg canvas at DPI (the figure's own dpi: _figure), as savefig
+    # would, and written as an RGB PNG when every pixel is opaque (the figures' white
+    # background): the same pixels as savefig's RGBA PNG, with a quarter less to filter and
+    # compress (the thermal campaign's twelve PNGs: PNG encoding ~0.24 -> ~0.18 s CPU,
+    # 1.52 -> 1.35 MB). zlib level 3, not PIL's 6: the same pixels, a third less encoding
+    # time for ~7 % more bytes. Text chunks: matplotlib's "Software", EMPTY_AXES_KEY.
+    fig.set_dpi(DPI)
+    fig.canvas.draw()
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    pixels = rgba[..., :3] if (rgba[..., 3] == 255).all() else rgba
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Software", f"Matplotlib version{matplotlib.__version__}, "
+                              "https://matplotlib.org/")
+    info.add_text(EMPTY_AXES_KEY, "; ".join(empty_axes(fig)))
+    Image.fromarray(np.ascontiguousarray(pixels)).save(
+        path, format="png", pnginfo=info, compress_level=3, dpi=(DPI, DPI))
     return path
 
 
