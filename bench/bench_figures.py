@@ -1,0 +1,138 @@
+#!/usr/bin/env python3
+"""The fit report's figures (issue 20, item 3: "the figures under 1 s more"): CPU per
+figure, today's code against the code at --baseline-commit, measured in the same run.
+
+    python3 bench/bench_figures.py [--repeat 3] [--baseline-commit 5335ede]
+
+The baseline's generator/ is extracted from git (bench_fit.extract: `git archive`) into a
+temporary directory. Each round runs fresh subprocesses per tree (trees interleaved,
+BLAS pinned to one thread, bench_fit._env), which fits the shared thermal campaign
+samsat_fm1/thermal_12pos.csv (generator.pipeline.fit), runs
+generator.report.report.fit_report with the figure calls recorded instead of drawn (the
+calls `with figures.parallel():` collects), then:
+
+* serial: draws each recorded call in the process, one after the other, in the report's
+  order: CPU time (time.process_time) per call -- what each figure costs, first draws
+  included (as in a report, each figure drawn once per process);
+* forked: in another fresh process, draws all of them through figures.parallel (2 forked
+  workers, as `magcal fit` draws them): wall time (time.perf_counter) and CPU of the
+  process and its reaped children (os.times).
+
+Prints per figure the best of --repeat rounds for both trees and the ratio baseline /
+today, and the totals. The result is the ratio, not the seconds: the machine is shared.
+No thresholds. The report's other work (CampaignAnalysis: the segments found again for
+the figures' data, ~2.4 s CPU on this campaign) is not drawing and not measured here;
+bench_fit.py times the whole report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
+from bench_fit import _env, extract  # noqa: E402
+from bench_io import FM1  # noqa: E402
+
+DRIVER = r"""
+import json, os, sys, time
+from pathlib import Path
+from generator import pipeline
+from generator.report import figures as F
+from generator.report.report import fit_report
+unit, data, out, mode = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4]
+cs = pipeline.fit(unit, [data])
+
+calls = []
+class Recorder(F.parallel):         # collect the deferred calls, draw nothing
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            calls.extend(F._DEFERRED)
+        F._DEFERRED = None
+        return False
+real = F.parallel
+F.parallel = Recorder
+fit_report(cs, out / "record", [data])
+F.parallel = real
+
+
+def label(args):
+    a = args[0]
+    paths = [j["path"] for j in a] if isinstance(a, list) else [a]
+    return "+".join(Path(p).stem for p in paths)
+
+
+if mode == "serial":
+    F._warm_up()                    # as parallel() does before its workers fork
+    serial = []
+    for fn, args, kwargs in calls:
+        c0 = time.process_time()
+        fn(*args, **kwargs)
+        serial.append([f"{fn.__name__}: {label(args)}", time.process_time() - c0])
+    print(json.dumps({"serial": serial}))
+else:
+    w0, c0 = time.perf_counter(), os.times()
+    with F.parallel(workers=2):
+        F._DEFERRED.extend(calls)
+    w1, c1 = time.perf_counter(), os.times()
+    cpu = sum(c1[:4]) - sum(c0[:4])     # user, system, children's user and system
+    print(json.dumps({"forked_wall_s": w1 - w0, "forked_cpu_s": cpu}))
+"""
+
+
+def run(tree: Path, out: Path, mode: str) -> dict:
+    """mode "serial" or "forked", in a fresh process (no caches of the other mode)."""
+    out.mkdir(parents=True, exist_ok=True)
+    p = subprocess.run([sys.executable, "-c", DRIVER, str(FM1 / "unit.toml"),
+                        str(FM1 / "thermal_12pos.csv"), str(out), mode],
+                       env=_env(tree), capture_output=True, text=True, cwd=out)
+    if p.returncode:
+        raise SystemExit(f"{tree}: {(p.stderr.strip().splitlines() or ['failed'])[-1]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--baseline-commit", default="5335ede")
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="bench_figures_") as tmp:
+        tmp = Path(tmp)
+        trees = {"baseline": extract(a.baseline_commit, tmp / "baseline"), "today": REPO}
+        rounds = {name: [] for name in trees}
+        for r in range(a.repeat):
+            for name, tree in trees.items():
+                res = run(tree, tmp / f"out_{name}_{r}", "serial")
+                res.update(run(tree, tmp / f"out_{name}_{r}_f", "forked"))
+                rounds[name].append(res)
+    best = {}
+    for name, rs in rounds.items():
+        per = {}
+        for res in rs:
+            for k, (lab, s) in enumerate(res["serial"]):
+                per[(k, lab)] = min(per.get((k, lab), s), s)
+        best[name] = {"per": per,
+                      "total": min(sum(s for _, s in res["serial"]) for res in rs),
+                      "wall": min(res["forked_wall_s"] for res in rs),
+                      "cpu": min(res["forked_cpu_s"] for res in rs)}
+    b, t = best["baseline"], best["today"]
+    print(f"figure CPU, best of {a.repeat} (baseline {a.baseline_commit} -> today), s:")
+    for key in sorted(set(b["per"]) | set(t["per"])):
+        bs, ts = b["per"].get(key), t["per"].get(key)
+        ratio = f"{bs / ts:5.2f}x" if bs and ts else "  -  "
+        fmt = lambda v: f"{v:6.3f}" if v is not None else "   -  "   # noqa: E731
+        print(f"  {key[1][:60]:60s} {fmt(bs)} -> {fmt(ts)}  {ratio}")
+    print(f"  all figures, serial CPU (best round total): {b['total']:.3f} -> {t['total']:.3f} s"
+          f"  ratio {b['total'] / t['total']:.2f}x")
+    print(f"  all figures forked (2 workers, as `magcal fit`): wall {b['wall']:.3f} -> "
+          f"{t['wall']:.3f} s  ratio {b['wall'] / t['wall']:.2f}x;  CPU {b['cpu']:.3f} -> "
+          f"{t['cpu']:.3f} s  ratio {b['cpu'] / t['cpu']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
