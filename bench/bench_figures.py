@@ -23,6 +23,30 @@ today, and the totals. The result is the ratio, not the seconds: the machine is 
 No thresholds. The report's other work (CampaignAnalysis: the segments found again for
 the figures' data, ~2.4 s CPU on this campaign) is not drawing and not measured here;
 bench_fit.py times the whole report.
+
+One run (2026-11-24 18:33-18:35 UTC, 2 cores shared with other helpers' jobs, load
+average 1.8-2.5, --repeat 3; today = 80a5a79):
+  _coefficient_grids (5 PNG)  calls 2 -> 1   1.374 -> 1.061 s  1.30x
+  axis_rms_bars               0.112 -> 0.178 s  0.63x (noise and first draws: see below)
+  error_maps (2 PNG)          0.576 -> 0.513 s  1.12x
+  positions_timeline          0.602 -> 0.504 s  1.19x
+  rms_bars                    0.524 -> 0.439 s  1.19x
+  sphere_projections          0.493 -> 0.435 s  1.13x
+  temperature_profile         0.177 -> 0.173 s  1.02x
+  all figures, serial CPU: 3.946 -> 3.336 s  ratio 1.18x
+  forked: wall 2.446 -> 3.861 s, CPU 4.070 -> 3.860 s (ratio 1.05x)
+The forked wall times of that run are the load's, not the code's: with the other jobs on
+the two cores a worker's figures took up to 2x their CPU time in wall, and today's best
+round never had the second core free. What the hand-out changes shows in the CPU each
+worker drew (one run of each, the figures logged per worker, 18:36 UTC): baseline
+(item k to worker k % 2) 2.45 s and 1.92 s, today 1.83 s and 1.80 s; the wall time on a
+free second core is about the larger share plus ~0.3 s of warm-up and fork.
+Per figure the CPU of a first draw moves with what the process drew before (text
+metrics and fonts are cached per process; axis_rms_bars pays the first mathtext parse,
+~0.07 s, its "10^n" tick labels: in the baseline's order another figure had paid part
+of it). The PNGs: the same pixels as the baseline's (the twelve PNGs of the report
+compared pixel by pixel), written as RGB instead of RGBA (~11 % fewer bytes); two runs
+give identical files.
 """
 
 from __future__ import annotations
