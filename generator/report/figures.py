@@ -128,18 +128,18 @@ _IN_VIEW_CLASSES = {}
 
 
 def _ticks_in_view(fig):
-    """An axis without a label text gets a fixed label position (set_label_coords: not
-    measured, not drawn either way). Every plain 2D axes of fig (not colour bars) gets _InViewTicks on its major and
-    minor locators of the kinds that return locations outside the view (MaxNLocator and
-    AutoLocator, LogLocator, AutoMinorLocator); fixed and null locators are left as they
-    are. Changes the class of the locator object in place, so shared axes (one locator)
-    follow, and calling it again is harmless."""
+    """Every plain 2D axes of fig (not colour bars): an axis without a label text gets a
+    fixed label position (set_label_coords: not measured, not drawn either way), and
+    _InViewTicks goes on its major and minor locators of the kinds that return locations
+    outside the view (MaxNLocator and AutoLocator, LogLocator, AutoMinorLocator); fixed
+    and null locators are left as they are. The locator object's class is changed in
+    place, so shared axes (one locator) follow; calling this again is harmless."""
     from matplotlib.ticker import AutoMinorLocator, LogLocator, MaxNLocator
     for ax in fig.axes:
         if ax.name != "rectilinear" or hasattr(ax, "_colorbar"):
             continue
         for axis in (ax.xaxis, ax.yaxis):
-            if not axis.label.get_text() and axis._autolabelpos:
+            if not axis.label.get_text() and getattr(axis, "_autolabelpos", False):
                 # no axis label: nothing to place below (beside) the tick labels, whose
                 # boxes matplotlib would otherwise measure a second time on each draw
                 axis.set_label_coords(0.5, 0.5)
