@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _deferrable, _figure,
-                                      _lean_ticks, _save)
+from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _axes_title, _deferrable,
+                                      _figure, _lean_ticks, _save)
 
 BAND = 0.35          # sphere_projections: points within 0.35 |B| of the plane (~20 deg)
 MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only gets slower
@@ -57,7 +57,7 @@ def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
             ax.plot(t[sl], u_ref[sl, c], ".", ms=1.5, color="#444444", label=names[0])
             ax.plot(t[sl], ub[sl, c], ".", ms=1.2, color=_AXIS_COLORS[c], alpha=0.6,
                     label=names[1])
-            ax.set_title(f"{'xyz'[c]} axis, {label}", fontsize=9)
+            _axes_title(ax, f"{'xyz'[c]} axis, {label}", fontsize=9)
             if c == 0:
                 ax.set_ylabel("B/|B|", fontsize=8)
     for c in range(3):
@@ -66,7 +66,7 @@ def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
                 label="before H")
         ax.plot(t[sl], 100 * (u_after[sl, c] - u_ref[sl, c]), ".", ms=1.2,
                 color=_AXIS_COLORS[c], label="after H")
-        ax.set_title(f"{'xyz'[c]} axis: {names[1]} - {names[0]}", fontsize=9)
+        _axes_title(ax, f"{'xyz'[c]} axis: {names[1]} - {names[0]}", fontsize=9)
         ax.set_xlabel(time_label, fontsize=8)
         if c == 0:
             ax.set_ylabel("difference, %", fontsize=8)
@@ -109,7 +109,7 @@ def sphere_projections(path, title, rows) -> Path:
             ax.set_aspect("equal", adjustable="datalim")
             ax.set_xlabel(f"B{'xyz'[i]}, µT", fontsize=8)
             ax.set_ylabel(f"B{'xyz'[j]}, µT", fontsize=8)
-            ax.set_title(f"{label}: {'xyz'[i]}{'xyz'[j]} plane", fontsize=9)
+            _axes_title(ax, f"{label}: {'xyz'[i]}{'xyz'[j]} plane", fontsize=9)
             _lean_ticks(ax, nx=5, ny=5)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, lw=0.5)
@@ -175,7 +175,7 @@ def positions_timeline(path, title, rows) -> Path:
                 ax.vlines([t0 for _, t0, _ in bounds], 0, 1,
                           transform=ax.get_xaxis_transform(), color="#888888", lw=0.5,
                           ls=":")
-            ax.set_title(f"{label}: B{'xyz'[c]} - reference", fontsize=9)
+            _axes_title(ax, f"{label}: B{'xyz'[c]} - reference", fontsize=9)
             _lean_ticks(ax, ny=5)   # few ticks: tick objects are most of the drawing time
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, lw=0.5)
