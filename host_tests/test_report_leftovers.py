@@ -117,3 +117,118 @@ def test_missing_lab_field_is_named_as_missing(plan_json, tmp_path):
     msg = str(e.value)
     assert "edited_plan.json" in msg and "key lab_field_nT: missing" in msg
     assert "None" not in msg
+
+
+# ---------------------------------------------------------------------------------------
+# D. a distance law the points do not determine is said so, not printed as numbers
+# ---------------------------------------------------------------------------------------
+UNDETERMINED = "undetermined (distances 29.5-30 cm too close)"
+
+
+def test_exponent_rule_is_relative_sigma_one():
+    """n is undetermined exactly when its 1-sigma reaches its magnitude."""
+    from generator.fit.coils import DistanceLaw
+    from generator.report.coil_study import exponent_text
+
+    def law(n, sig):
+        return DistanceLaw("mmc2", "coil_x_A", 0, 2, n, sig, 1000.0, 10.0, None, 29.5, 30.0)
+    assert law(2.0, 1.99).undetermined() is None
+    assert "±" in exponent_text(law(2.0, 1.99))
+    for n, sig in ((2.0, 2.0), (-0.5, 3.0)):
+        assert law(n, sig).undetermined().startswith("undetermined")
+        assert exponent_text(law(n, sig)) == UNDETERMINED
+        assert any(f.startswith("undetermined") for f in law(n, sig).flags())
+
+
+def test_close_distances_print_undetermined_not_numbers():
+    """Two points 0.5 cm apart with 5 % errors: n's 1-sigma is sqrt(2) 0.05 / ln(30/29.5)
+    = 4.2, above n = ln(100/98) / ln(30/29.5) = 1.2. Values at 5 and 15 cm carry it by
+    ln(30/r) (7.5 and 2.9 in ln): undetermined. At 30 cm, measured, the law keeps its
+    number; a law measured at 5..30 cm keeps all of them."""
+    from generator.fit.coils import fit_distance_law
+    from generator.report.coil_study import exponent_text, law_value_text
+
+    w = fit_distance_law([29.5, 30.0], [100.0, 98.0], [5.0, 4.9])
+    assert w.exponent_sigma >= abs(w.exponent)
+    assert exponent_text(w) == UNDETERMINED
+    for r in (5.0, 15.0):
+        assert law_value_text(w, r, 0.1) == UNDETERMINED
+    assert "±" in law_value_text(w, 30.0, 0.1)
+    flags = "; ".join(w.flags(5.0, 15.0, 30.0))
+    assert "undetermined: n =" in flags and "undetermined at 5, 15 cm" in flags
+    r = np.array([5.0, 15.0, 30.0])
+    good = fit_distance_law(r, 1000.0 * (30.0 / r) ** 3, 0.01 * 1000.0 * (30.0 / r) ** 3)
+    assert good.undetermined() is None and "±" in exponent_text(good)
+    assert all("±" in law_value_text(good, x, 0.1) for x in r)
+    assert not any(f.startswith("undetermined") for f in good.flags(*r))
+
+
+@pytest.fixture(scope="module")
+def close_study_fit(tmp_path_factory):
+    """The example unit (fast campaigns) fitted with a coil study at 29.5 and 30 cm
+    without the panel only: the report of `magcal fit`."""
+    from generator.campaign import simulate as sim
+
+    d = tmp_path_factory.mktemp("close")
+    paths = sim.make_example(d / "ex", seed=3, size="fast")
+    unit = load_unit(paths["unit"])
+    truth = sim.load_truth(paths["truth"], unit)
+    study, _ = sim.simulate_campaign("coil_study", unit, truth, np.random.default_rng(7),
+                                     d, name="close_study", distances_cm=(29.5, 30.0),
+                                     panels=(0,), hold_s=3.0)
+    out = d / "fit"
+    assert main(["fit", str(paths["unit"]), str(paths["thermal_12pos"]), str(paths["coils"]),
+                 str(study), "-o", str(out), "-q"]) == 0
+    return (out / "report.md").read_text(), paths
+
+
+def _section(md, title):
+    return md.split(f"## {title}")[1].split("\n## ")[0]
+
+
+def test_report_says_undetermined_at_the_seed_points(close_study_fit):
+    md, _ = close_study_fit
+    sec = _section(md, "Magnetorquer interference at 0.1 A")
+    law_row = next(l for l in sec.splitlines() if l.startswith("| law |"))
+    cells = [c.strip() for c in law_row.strip("|").split("|")]
+    # columns: ..., at 5 cm, at 15 cm, at 30 cm, flags; 5 and 15 cm: ln-sigma >= 1
+    assert cells[-4] == cells[-3] == UNDETERMINED, cells
+    assert "±" in cells[-2]
+    seed_rows = [l for l in sec.splitlines() if l.startswith("| seed 000 |")]
+    assert len(seed_rows) == 2
+    for row in seed_rows:
+        assert row.count(UNDETERMINED) == 2 and "e+" not in row, row
+    # the study has no with-panel law: the seed's with-panel row says whose law it is
+    with_panel = next(r for r in seed_rows if "| with panel |" in r)
+    assert "the without panel law, the study has no with panel law" in with_panel
+    # flagged among the warnings at the top (n itself may or may not reach its 1-sigma with
+    # these points: the rule is held by the tests above)
+    warnings = _section(md, "Summary and verdict").split("Warnings of the fit")[1]
+    assert "undetermined at 5, 15 cm" in warnings
+
+
+def test_seed_rows_take_each_panel_state_own_law(tmp_path):
+    """The seed's with-panel figure is carried to 5 and 15 cm by the with-panel law of the
+    study, the without-panel one by the without-panel law (review #19 D: the with-panel
+    row used the without-panel law)."""
+    from generator.campaign import simulate as sim
+    from generator.fit.coils import (SEED_30CM_NO_PANEL_NT, SEED_30CM_PANEL_NT, fit_coil_study,
+                                     fit_coils, interference_table)
+    from generator.io.telemetry_csv import read_telemetry
+
+    paths = sim.make_example(tmp_path / "ex", seed=4, size="fast")
+    unit = load_unit(paths["unit"])
+    study = fit_coil_study(unit, [read_telemetry(paths["coil_study"], unit)])
+    cf = fit_coils(unit, [read_telemetry(paths["coils"], unit)])
+    rows = [r for r in interference_table(unit, cf, study=study) if r["law"] is not None]
+    assert rows
+    for r in rows:
+        np_law, p_law = r["seed_no_panel_law"], r["seed_panel_law"]
+        assert (np_law.panel, p_law.panel) == (0, 1)
+        assert (np_law.sensor, np_law.coil) == (p_law.sensor, p_law.coil) == \
+            (r["law"].sensor, r["law"].coil)
+        assert p_law.exponent != np_law.exponent      # two fits of independent points
+        assert r["seed_panel_at_cm"][5.0] == pytest.approx(SEED_30CM_PANEL_NT * 6.0 **
+                                                           p_law.exponent)
+        assert r["seed_no_panel_at_cm"][5.0] == pytest.approx(SEED_30CM_NO_PANEL_NT * 6.0 **
+                                                              np_law.exponent)

@@ -712,15 +712,23 @@ def _coil_sections(cs, analysis, out_dir) -> list:
         how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
                "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
                "given, so nothing about distance is measured")
-    from generator.report.coil_study import exponent_text, law_value_text
+    from generator.report.coil_study import exponent_text, law_value_text, undetermined_text
     table, laws = [], []
     for r in rows:
         law, r0 = r["law"], r["distance_cm"]
         if law is not None and all(w is not law for w in laws):
             laws.append(law)
+
+        def carried(p):     # a value carried by a law: undetermined at relative sigma >= 1
+            v, sig = r["at_cm"][p], r["at_cm_sigma"].get(p)
+            if law is not None and sig is not None and sig >= v:
+                return undetermined_text(law)
+            return _pm_or_why(v, sig)
         at = (["-"] * len(pts) if r0 is None else ["law row"] * len(pts)
-              if law is not None else [_pm_or_why(r["at_cm"][p], r["at_cm_sigma"].get(p))
-                                       for p in pts])
+              if law is not None else [carried(p) for p in pts])
+        r_sig = r.get("distance_sigma_cm")
+        r_loose = (law is not None and r["distance_source"] not in ("assumed", "given")
+                   and (law.undetermined() or (r_sig is not None and r_sig >= r0)))
         flags = list(r["flags"]) + (["assumed distance, dipole fall-off (the 1-sigma is "
                                      "K's alone)"]
                                     if r["distance_source"] == "assumed" else [])
@@ -730,7 +738,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                       pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]), pm(x, xs),
                       "-" if pct is None else pm(pct, pct * xs / x) if x > 0 else pct,
                       r["distance_source"],
-                      "-" if r0 is None else
+                      "-" if r0 is None else undetermined_text(law) if r_loose else
                       pm(r0, r["distance_sigma_cm"]) if r.get("distance_sigma_cm") else
                       f"{r0:.3g} ({r['distance_source']})"
                       if r["distance_source"] in ("assumed", "given") else
@@ -742,30 +750,45 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                      + [law_value_text(w, p, 0.1) for p in pts]
                      + ["; ".join(w.flags(*pts)) or "-"])
     seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
-    # the seed's 30 cm figures as it quotes them (no 1-sigma given); at 5 and 15 cm they are
-    # scaled by the first row's law: its exponent's 1-sigma alone (the seed's figure has
-    # none), or, without a study, by an assumed 1/r^3 that carries none: 3 digits
-    law0 = rows[0]["law"] if rows[0]["distance_cm"] is not None else None
-    for label, seed in (("no panel", seed_np), ("with panel", seed_p)):
-        scaled = [f"{seed[30.0]:g}" if p == 30.0 else
-                  pm(seed[p], seed[p] * abs(np.log(30.0 / p)) * law0.exponent_sigma)
-                  if law0 is not None and law0.exponent_sigma else significant(seed[p])
-                  for p in pts]
+    # the seed's 30 cm figures as it quotes them (no 1-sigma given); at 5 and 15 cm each
+    # panel state is scaled by its own law of the first row's sensor and coil (the other
+    # state's where the study did not measure it, said so): its exponent's 1-sigma alone
+    # (the seed's figure has none), 'undetermined' where that spans more than a factor e;
+    # without a study by an assumed 1/r^3 that carries none: 3 digits
+    for label, seed, key, panel in (("no panel", seed_np, "seed_no_panel_law", 0),
+                                    ("with panel", seed_p, "seed_panel_law", 1)):
+        law_s = rows[0][key] if rows[0]["distance_cm"] is not None else None
+
+        def scaled(p):
+            if p == 30.0:
+                return f"{seed[30.0]:g}"
+            if law_s is None or not law_s.exponent_sigma:
+                return significant(seed[p])
+            ln_sig = abs(np.log(30.0 / p)) * law_s.exponent_sigma
+            return (undetermined_text(law_s) if ln_sig >= 1.0 or law_s.undetermined()
+                    else pm(seed[p], seed[p] * ln_sig))
+        if law_s is None:
+            how_s = ("measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled as "
+                     "1/r^3, an assumption with no 1-sigma: 3 significant digits")
+        else:
+            how_s = ("measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled by the "
+                     f"law of {law_s.sensor} {law_s.coil}, {PANEL_STATE[law_s.panel]} "
+                     "(1-sigma: its exponent's)")
+            if law_s.panel != panel:
+                how_s += (f": the {PANEL_STATE[law_s.panel]} law, the study has no "
+                          f"{PANEL_STATE[panel]} law of this sensor and coil")
         table.append(["seed 000", label, "-", f"{seed[30.0]:g}",
-                      significant(100 * seed[30.0] / 51540.0, 2),
-                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled by the "
-                      f"law of {law0.sensor} {law0.coil}, {PANEL_STATE[law0.panel]} (1-sigma: "
-                      "its exponent's)" if law0 is not None else
-                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled as "
-                      "1/r^3, an assumption with no 1-sigma: 3 significant digits",
-                      "30"] + scaled + ["-"])
+                      significant(100 * seed[30.0] / 51540.0, 2), how_s,
+                      "30"] + [scaled(p) for p in pts] + ["-"])
     sec = Section("Magnetorquer interference at 0.1 A", [
         f"|K column| x 0.1 A per sensor and coil from {tel.path} (1-sigma after ±); {how}. "
         "The seed's points are 5, 15 and 30 cm; it measured 167.87 nT without and 307.57 nT "
         "with the solar panel at 30 cm and 0.1 A.",
         "Flags: a law whose points scatter beyond their errors (chi2 above its 99 % "
-        "quantile at the law's degrees of freedom) and a law used outside the distances "
-        "it was measured at (extrapolated)."],
+        "quantile at the law's degrees of freedom), a law used outside the distances "
+        "it was measured at (extrapolated), and an exponent or value the law's points do "
+        "not determine (its 1-sigma at least its magnitude, or spanning more than a factor "
+        "e: printed 'undetermined')."],
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
                 "distance law", "r cm"] + [f"at {p:g} cm nT" for p in pts] + ["flags"],
                table, "Interference by sensor and coil")])
