@@ -232,3 +232,45 @@ def test_seed_rows_take_each_panel_state_own_law(tmp_path):
                                                            p_law.exponent)
         assert r["seed_no_panel_at_cm"][5.0] == pytest.approx(SEED_30CM_NO_PANEL_NT * 6.0 **
                                                               np_law.exponent)
+
+
+# ---------------------------------------------------------------------------------------
+# E. H to the digits its 1-sigma supports; the reference sensor drawn on top
+# ---------------------------------------------------------------------------------------
+def test_h_printed_to_its_sigma(tmp_path):
+    """A rotation error of 2e-3 rad (1-sigma) about each axis: entry ij moves with
+    variance sigma^2 |e_i x h_j|^2 = sigma^2 (1 - H_ij^2), at most 2.0e-3 (the entries'
+    1-sigma the fit stores, pipeline.rotation_sigma), so H prints to 4 decimals (the
+    second digit of 0.0020), not to 1e-6."""
+    from scipy.spatial.transform import Rotation
+
+    from generator.pipeline import rotation_sigma
+    from generator.report import report as R
+
+    H = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix()
+    H_sigma = rotation_sigma(H, np.diag([4e-6, 4e-6, 4e-6]))
+    assert np.allclose(H_sigma, 2e-3 * np.sqrt(1 - H ** 2))
+    sec = R.alignment_section(tmp_path, np.full(50, 1.0), np.full(50, 0.05), H=H,
+                              sigma_angle_deg=np.degrees(2e-3), H_sigma=H_sigma)
+    table = sec.tables[-1]
+    cells = [c for row in table.rows for c in row[1:]]
+    assert all(len(c.split(".")[1]) == 4 for c in cells), cells
+    assert np.allclose(np.array(cells, float).reshape(3, 3), H, atol=0.5e-4)
+    assert "largest per entry 0.0020" in table.caption
+    # without the entries' 1-sigma: the rotation's 1-sigma in rad sets the place
+    sec = R.alignment_section(tmp_path, np.full(50, 1.0), np.full(50, 0.05), H=H,
+                              sigma_angle_deg=np.degrees(2e-5))
+    assert all(len(c.split(".")[1]) == 6 for row in sec.tables[-1].rows for c in row[1:])
+
+
+def test_reference_sensor_is_drawn_on_top(tmp_path, monkeypatch):
+    from generator.report import figures_seed
+
+    figs = []
+    monkeypatch.setattr(figures_seed, "_save", lambda fig, path: figs.append(fig) or path)
+    t = np.arange(100.0)
+    u = np.tile([0.6, 0.0, 0.8], (100, 1))
+    figures_seed.projections_before_after(tmp_path / "p.png", "x", t, u, u, u, ["ref", "boom"])
+    for ax in figs[0].axes[:6]:          # rows 1-2: the projections before and after H
+        z = {ln.get_label(): ln.get_zorder() for ln in ax.get_lines()}
+        assert z["ref"] > z["boom"], z

@@ -499,9 +499,12 @@ def _slug(s) -> str:
 
 def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/mmc2",
                       time_s=None, H=None, sigma_angle_deg=None, seed_after_deg=0.07,
-                      title=None, stem=None) -> Section:
+                      title=None, stem=None, H_sigma=None) -> Section:
     """Angle between the two magnetometers' vectors before (H = I) and after the alignment
-    H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out."""
+    H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out.
+    H is printed to the digits its 1-sigma supports (h_matrix_table): H_sigma, its
+    entries' 1-sigma (the coefficient set's uncertainty_1sigma, pipeline.rotation_sigma),
+    else sigma_angle_deg."""
     from generator.report import figures
 
     b = np.asarray(angle_before_deg, float)
@@ -521,16 +524,39 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
     tables = [Table(["", "samples", "mean deg", "RMS deg", "95 % deg", "max deg"], rows,
                     f"{pair}: angle statistics")]
     if H is not None:
-        Hm = np.asarray(H, float)
-        tables.append(Table(["row", "x", "y", "z"],
-                            [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)]
-                             for i, ax in enumerate("xyz")],
-                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
-                                                  if sigma_angle_deg is not None else "")))
+        tables.append(h_matrix_table(H, H_sigma, sigma_angle_deg))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
                    [(png.name, f"{pair}: angle between the vectors before and after H. Look "
                                "for the angle after H down at the noise's level, with no trend "
                                "in time; before H it is the misalignment itself.", [0])])
+
+
+def h_matrix_table(H, H_sigma=None, sigma_angle_deg=None) -> Table:
+    """H (boom -> body) to the digits its 1-sigma supports: every entry rounded where the
+    largest entry's 1-sigma has its second significant digit (pm, the report's value-with-
+    sigma rule; one decimal place for the whole matrix, since the diagonal's own first-order
+    1-sigma vanishes: its error is second order in the rotation). The entries' 1-sigma
+    H_sigma (3x3, first order in the rotation error: pipeline.rotation_sigma, stored in the
+    coefficient set's uncertainty_1sigma), else the rotation's 1-sigma (an off-diagonal
+    entry moves by up to the rotation angle in rad); with neither, 6 decimals and the
+    caption says so."""
+    Hm = np.asarray(H, float)
+    sig = None
+    if H_sigma is not None:
+        sig = float(np.max(np.asarray(H_sigma, float)))
+    elif sigma_angle_deg is not None:
+        sig = float(np.radians(sigma_angle_deg))
+    if sig is not None and np.isfinite(sig) and sig > 0:
+        cells = [[ax] + [pm(Hm[i, j], sig).split(" ± ")[0] for j in range(3)]
+                 for i, ax in enumerate("xyz")]
+        caption = (f"H (boom -> body), to its 1-sigma (largest per entry "
+                   f"{significant(sig, 2)})")
+    else:
+        cells = [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)] for i, ax in enumerate("xyz")]
+        caption = "H (boom -> body), no 1-sigma: 6 decimals"
+    if sigma_angle_deg is not None:
+        caption += f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
+    return Table(["row", "x", "y", "z"], cells, caption)
 
 
 def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
@@ -838,7 +864,8 @@ def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     return [alignment_section(out_dir, angle_between_deg(B1, B2),
                               angle_between_deg(B1, B2 @ H.T), pair=f"{ref}/{boom}",
                               time_s=tel.time_s[mask], H=H,
-                              sigma_angle_deg=res.get("sigma_angle_deg")),
+                              sigma_angle_deg=res.get("sigma_angle_deg"),
+                              H_sigma=cs.uncertainty.get(boom, {}).get("H_boom_to_body")),
             projections_section(out_dir, tel.time_s[mask], B1, B2, H, pair=f"{ref}/{boom}")]
 
 
