@@ -274,3 +274,56 @@ def test_reference_sensor_is_drawn_on_top(tmp_path, monkeypatch):
     for ax in figs[0].axes[:6]:          # rows 1-2: the projections before and after H
         z = {ln.get_label(): ln.get_zorder() for ln in ax.get_lines()}
         assert z["ref"] > z["boom"], z
+
+
+# ---------------------------------------------------------------------------------------
+# F. fit warns, as check does, when a level never settles
+# ---------------------------------------------------------------------------------------
+def _levels_in(text):
+    """The levels of a settling warning / check gap: 'level(s) 10, 25 degC ...'."""
+    import re
+    m = re.search(r"level(?:\(s\))? ([-\d., ]+) degC", text)
+    return {float(v) for v in m.group(1).split(",")} if m else set()
+
+
+def test_fit_warns_when_holds_never_settle(tmp_path, capsys):
+    """Holds of 6 min on boards with 10-20 min time constants (simulate.random_truth): the
+    boards pass through every level without settling. fit prints a WARNING line per
+    sensor and the report's warnings carry it, naming the levels `magcal check` names."""
+    from generator.campaign.simulate import (make_example_unit, random_truth,
+                                             simulate_campaign, write_unit_toml)
+
+    unit = make_example_unit()
+    write_unit_toml(unit, tmp_path / "unit.toml")
+    truth = random_truth(unit, np.random.default_rng(3))
+    short, _ = simulate_campaign("thermal_12pos", unit, truth, np.random.default_rng(4),
+                                 tmp_path, name="short", hold_s=360.0, sample_period_s=20.0)
+    assert main(["check", str(tmp_path / "unit.toml"), str(short), "--json", "-q"]) == 2
+    res = json.loads(capsys.readouterr().out)
+    never = set().union(*(_levels_in(g) for g in res["gaps"] if "never settled" in g))
+    assert never
+    assert main(["fit", str(tmp_path / "unit.toml"), str(short), "-o",
+                 str(tmp_path / "fit")]) == 0
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if "WARNING:" in ln and "no settled segment" in ln]
+    assert {ln.split("WARNING: ")[1].split(":")[0] for ln in lines} == \
+        {s.name for s in unit.sensors}
+    for ln in lines:
+        assert _levels_in(ln) and _levels_in(ln) <= never, (ln, never)
+    md = (tmp_path / "fit" / "report.md").read_text()
+    warnings = md.split("Warnings of the fit")[1].split("\n## ")[0]
+    assert warnings.count("no settled segment in any position") == len(unit.sensors)
+    cs = json.loads((tmp_path / "fit" / "coefficients.json").read_text())
+    assert "no settled segment" in json.dumps(cs)
+
+
+def test_fit_on_a_settled_campaign_has_no_settling_warning(fm1_dir):
+    """The shared thermal campaign, which `magcal check` passes (test_plan_check): no
+    settling warning."""
+    from generator import pipeline
+
+    cs = pipeline.fit(str(fm1_dir / "unit.toml"), [str(fm1_dir / "thermal_12pos.csv")],
+                      progress=lambda m: None)
+    for n, s in cs.fit_info["sensors"].items():
+        assert not [w for w in s["stats"].get("campaign_warnings", [])
+                    if "no settled segment" in w], n
