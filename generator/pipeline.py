@@ -192,6 +192,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
     _orbit_notes(unit, tels, cals, info, progress)
+    _settling_warnings(unit, data_paths, tels, cals, info, progress)
     from generator.trace.coefficients import sr_chain_options
     sr_opts, sr_values = sr_chain_options(cals)
     for n in sr_opts:
@@ -348,6 +349,26 @@ def _orbit_notes(unit, tels, cals, info, progress) -> None:
         if reached is not None and fit.get("n"):
             _floor_warning(s.name, float(reached), int(fit["n"]), noise, model, floor,
                            duration_s, cals[s.name], info, progress)
+
+
+def _settling_warnings(unit, data_paths, tels, cals, info, progress) -> None:
+    """campaign.check.settling_warnings on the static-position files (magcal check's own
+    analysis, default program): a sensor that reaches a level without ever settling there
+    gets a warning in the output, the report's summary and the fit's notes. Kept apart
+    from the sanity warnings (stats["campaign_warnings"]): it is about the campaign, not
+    the calibration's plausibility, and the calibration is still written."""
+    from generator.campaign.check import settling_warnings
+
+    static = [p for p, t in zip(data_paths, tels) if t.get("position") is not None
+              and bool(np.any(np.nan_to_num(np.asarray(t.get("position"), float)) > 0))]
+    if not static:
+        return
+    for name, w in settling_warnings(unit, static).items():
+        if name not in cals:
+            continue
+        cals[name].stats.setdefault("campaign_warnings", []).append(w)
+        info["notes"].append(f"WARNING: {name}: {w}")
+        progress(f"WARNING: {name}: {w}")
 
 
 def _floor_warning(name, reached, n, noise, model, floor, duration_s, cal, info,

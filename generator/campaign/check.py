@@ -1035,6 +1035,43 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     return result
 
 
+def settling_warnings(unit, data_paths, profile=None) -> dict:
+    """{sensor: warning} for `magcal fit` (review #19 F): the levels of the program
+    (profile, else magcal plan's default, as `magcal check` without --plan) that a sensor's
+    samples reach in static positions without a settled segment in any position. Taken
+    from check_campaign's own cells (a level none of whose cells is 'ok' or 'short' for the
+    sensor and some is 'not settled'), so fit and check say the same; {} where the program
+    does not apply (no static-position file)."""
+    result = check_campaign(unit, data_paths, profile)
+    if not result["plan"]["applied"]:
+        return {}
+    by = {}
+    for c in result["cells"]:
+        for n, b in c["sensors"].items():
+            by.setdefault(n, {}).setdefault(c["level_C"], []).append(b)
+    out = {}
+    for n, levels in by.items():
+        bad, far = [], []
+        for L, cells in sorted(levels.items()):
+            status = {b["status"] for b in cells}
+            if status & {"ok", "short"} or "not settled" not in status:
+                continue
+            bad.append(L)
+            d = [b["unsettled_from_level_C"] for b in cells
+                 if b["unsettled_from_level_C"] is not None]
+            if d:
+                far.append(f"{min(d):.1f} degC from {L:g}")
+        if bad:
+            out[n] = (f"level(s) {', '.join(f'{L:g}' for L in bad)} degC of the "
+                      f"{result['plan']['source']}: no settled segment in any position, "
+                      "the samples reach the level but the temperature never settled "
+                      "(holds too short for the boards?"
+                      + (f"; closest segment {', '.join(far)}" if far else "")
+                      + "); the per-level method has no point there. magcal check "
+                      "[--plan PLAN.json] lists the cells")
+    return out
+
+
 def summary_line(result) -> str:
     """One line for stderr."""
     if result["adequate"]:

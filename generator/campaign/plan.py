@@ -346,8 +346,17 @@ def make_plan(unit, *, lab_field_nT=None, inclination_deg=DEFAULT_INCLINATION_DE
 # =======================================================================================
 def plan_from_json_dict(d: dict, source=None) -> TestPlan:
     """The TestPlan of a plan.json written by `magcal plan` (InputError naming the key on
-    anything malformed). The derived items (chamber program, durations) are recomputed
-    from the steps, so a program edited by hand stays consistent."""
+    anything malformed, missing or contradicting the steps).
+
+    A plan is a contract between the lab and the tools: `magcal check` reads its levels and
+    positions, `magcal simulate` its steps, and the lab runs its chamber program. A plan
+    edited by hand whose summary fields (levels_C, board_tau_s, settle_tolerance_C,
+    samples_per_segment, sample_period_s, ramp_C_per_min, room_C, return_ramp_s,
+    lab_field_nT, inclination_deg) contradict its steps or positions would make each tool
+    follow a different program, so it is refused (InputError naming the key; see
+    _check_consistent). The derived items (position_duration_s, total_duration_s,
+    samples_total, chamber_program) may be left out of a hand-edited plan and are then
+    recomputed from the steps; given, they must agree with them too."""
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise InputError(source, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
     if d.get("format_version") != FORMAT_VERSION:
@@ -355,6 +364,9 @@ def plan_from_json_dict(d: dict, source=None) -> TestPlan:
                                  f"supported (this is {FORMAT_VERSION})")
 
     def num(obj, key, where, lo=-math.inf, hi=math.inf):
+        if isinstance(obj, dict) and key not in obj:
+            raise InputError(source, f"key {where}{key}: missing (a number in "
+                                     f"[{lo:g}, {hi:g}])")
         v = obj.get(key) if isinstance(obj, dict) else None
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                 or not lo <= v <= hi:
@@ -410,11 +422,125 @@ def plan_from_json_dict(d: dict, source=None) -> TestPlan:
         reposition_s=num(d, "reposition_s", "", 0.0, 1e7), steps=steps,
         return_ramp_s=num(d, "return_ramp_s", "", 0.0, 1e7),
         assumptions=[str(a) for a in d.get("assumptions", [])])
+    _check_consistent(d, plan, source)
     rows = plan.total_duration_s / plan.sample_period_s
     if rows > len(plan.positions) * MAX_CYCLE_ROWS:
         raise InputError(source, f"plan: {rows:.3g} samples in all; at most "
                                  f"{len(plan.positions) * MAX_CYCLE_ROWS:g}")
     return plan
+
+
+def _agree(a, b) -> bool:
+    """Two values of the same quantity computed by the same formula agree: a plan written
+    by `magcal plan` round-trips through JSON exactly (repr of a float), so the tolerance
+    only has to absorb the 12-digit rounding of R_body_to_ned (relative 1e-12) and
+    recomputing sums in another order; 1e-9 relative (plus 1e-6 absolute for zeros) is far
+    above that and far below any edit that means something (a microsecond of a hold)."""
+    return abs(float(a) - float(b)) <= 1e-9 * max(abs(float(a)), abs(float(b))) + 1e-6
+
+
+def _check_consistent(d: dict, plan: TestPlan, source) -> None:
+    """InputError naming the first key of plan.json `d` that contradicts the steps and
+    positions `plan` was read from (see plan_from_json_dict)."""
+    def bad(key, msg, hint="a plan is one program: make it again with magcal plan, or edit "
+                           "both"):
+        raise InputError(source, f"key {key}: {msg}; {hint}")
+
+    # levels: check reads levels_C, simulate follows the steps
+    if "levels_C" not in d:
+        bad("levels_C", "missing (the plan's temperature levels, those of its steps)")
+    levels = d["levels_C"]
+    if not isinstance(levels, list) or len(levels) != len(plan.steps) or any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) or not _agree(v, s.level_C)
+            for v, s in zip(levels, plan.steps)):
+        bad("levels_C", f"{levels!r} contradicts the steps' levels "
+                        f"{[s.level_C for s in plan.steps]}")
+    rate = plan.ramp_C_per_min / 60.0
+    record_s = plan.samples_per_segment * plan.sample_period_s
+    for i, s in enumerate(plan.steps):
+        w = f"steps[{i}]."
+        if i == 0:
+            # entered from the farther of room temperature and the last level (make_plan)
+            far = max(abs(s.level_C - plan.room_C), abs(s.level_C - plan.steps[-1].level_C))
+            if not (_agree(s.from_C, plan.room_C) or _agree(s.from_C, plan.steps[-1].level_C)) \
+                    or not _agree(abs(s.level_C - s.from_C), far):
+                bad(w + "from_C", f"{s.from_C:g} degC: the first level is entered from the "
+                                  f"farther of room_C ({plan.room_C:g}) and the last level "
+                                  f"({plan.steps[-1].level_C:g})")
+        elif not _agree(s.from_C, plan.steps[i - 1].level_C):
+            bad(w + "from_C", f"{s.from_C:g} degC is not the previous level "
+                              f"({plan.steps[i - 1].level_C:g} degC)")
+        if not _agree(s.step_C, abs(s.level_C - s.from_C)):
+            bad(w + "step_C", f"{s.step_C:g} degC is not |level_C - from_C| = "
+                              f"{abs(s.level_C - s.from_C):g} degC")
+        settle = settle_time_s(s.step_C, plan.board_tau_s, plan.settle_tolerance_C)
+        if not _agree(s.settle_s, settle):
+            implied = ""
+            if s.step_C > plan.settle_tolerance_C:
+                tau = s.settle_s / math.log(s.step_C / plan.settle_tolerance_C)
+                implied = f", which needs board_tau_s {tau:g} s"
+            bad("board_tau_s", f"{plan.board_tau_s:g} s (settle_tolerance_C "
+                               f"{plan.settle_tolerance_C:g}) contradicts {w}settle_s "
+                               f"{s.settle_s:g} s (tau ln(step_C / tolerance) = {settle:g} s"
+                               f"{implied})")
+        if not _agree(s.record_s, record_s):
+            bad("samples_per_segment", f"{plan.samples_per_segment} x sample_period_s "
+                                       f"{plan.sample_period_s:g} s = {record_s:g} s contradicts "
+                                       f"{w}record_s {s.record_s:g} s")
+        prev = plan.room_C if i == 0 else plan.steps[i - 1].level_C
+        if not _agree(s.ramp_s, abs(s.level_C - prev) / rate):
+            bad("ramp_C_per_min", f"{plan.ramp_C_per_min:g} degC/min contradicts {w}ramp_s "
+                                  f"{s.ramp_s:g} s ({abs(s.level_C - prev):g} degC from "
+                                  f"{prev:g} degC takes {abs(s.level_C - prev) / rate:g} s)")
+        # a hold may be lengthened by hand, not shortened below its settling + recording:
+        # the recording would start before the boards settle
+        if s.hold_s < s.settle_s + s.record_s - 1e-6:
+            bad(w + "hold_s", f"{s.hold_s:g} s is shorter than settle_s + record_s = "
+                              f"{s.settle_s + s.record_s:g} s")
+    ret = abs(plan.steps[-1].level_C - plan.room_C) / rate
+    if not _agree(plan.return_ramp_s, ret):
+        bad("return_ramp_s", f"{plan.return_ramp_s:g} s contradicts the return from the last "
+                             f"level to room_C at ramp_C_per_min ({ret:g} s)")
+    # positions: the field each expects is R^T B_lab(lab_field_nT, inclination_deg)
+    b_lab = lab_field_ned(plan.lab_field_nT, plan.inclination_deg)
+    for i, p in enumerate(plan.positions):
+        R = np.asarray(p.R_body_to_ned, float)
+        got = np.asarray(p.expected_field_body_nT, float)
+        want = R.T @ b_lab
+        if abs(np.linalg.norm(got) - plan.lab_field_nT) > 1e-6 * plan.lab_field_nT:
+            bad("lab_field_nT", f"{plan.lab_field_nT:g} nT contradicts "
+                                f"positions[{i}].expected_field_body_nT (magnitude "
+                                f"{np.linalg.norm(got):.6g} nT)")
+        if np.max(np.abs(got - want)) > 1e-6 * plan.lab_field_nT:
+            bad(f"positions[{i}].expected_field_body_nT",
+                f"{np.round(got, 3).tolist()} nT is not R_body_to_ned^T of the lab field "
+                f"({plan.lab_field_nT:g} nT at inclination_deg {plan.inclination_deg:g}): "
+                f"{np.round(want, 3).tolist()} nT")
+        for key, lab in (("up", _NED_UP), ("north", _NED_NORTH), ("east", _NED_EAST)):
+            if getattr(p, key) != _body_axis_name(R.T @ lab):
+                bad(f"positions[{i}].{key}", f"{getattr(p, key)!r} contradicts R_body_to_ned "
+                                             f"({_body_axis_name(R.T @ lab)})")
+    # derived items: optional, else as recomputed from the steps
+    for key in ("position_duration_s", "total_duration_s", "samples_total"):
+        if key in d and (isinstance(d[key], bool) or not isinstance(d[key], (int, float))
+                         or not _agree(d[key], getattr(plan, key))):
+            bad(key, f"{d[key]!r} contradicts the steps ({getattr(plan, key):g})",
+                "leave the derived keys out to have them recomputed")
+    if "chamber_program" in d:
+        prog, want = d["chamber_program"], plan.chamber_program()
+        if not isinstance(prog, list) or len(prog) != len(want):
+            bad("chamber_program", f"{len(prog) if isinstance(prog, list) else prog!r} "
+                                   f"items, the steps make {len(want)}",
+                "leave it out to have it recomputed")
+        for i, (g, w) in enumerate(zip(prog, want)):
+            for k, v in w.items():
+                gv = g.get(k) if isinstance(g, dict) else None
+                same = (gv == v) if isinstance(v, (str, int)) and not isinstance(v, float) \
+                    else (isinstance(gv, (int, float)) and not isinstance(gv, bool)
+                          and _agree(gv, v))
+                if not same:
+                    bad(f"chamber_program[{i}].{k}", f"{gv!r} contradicts the steps ({v!r})",
+                        "leave chamber_program out to have it recomputed")
 
 
 def _is_matrix(v) -> bool:
@@ -458,35 +584,10 @@ class PlanProfile:
 
 def load_profile(path) -> PlanProfile:
     """Read a plan.json written by `magcal plan` (InputError on anything malformed)."""
+    # the whole plan, checked as `magcal simulate` checks it: a plan whose levels_C
+    # contradict its steps would have check and simulate follow different programs
     path = Path(path)
-    d = load_json(path, "test plan")
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
-        raise InputError(path, f"not a {FORMAT} file (missing 'format': '{FORMAT}')")
-    if d.get("format_version") != FORMAT_VERSION:
-        raise InputError(path, f"format_version {d.get('format_version')!r} is not supported "
-                               f"(this is {FORMAT_VERSION})")
-    try:
-        pos = []
-        for p in d["positions"]:
-            v = [float(x) for x in p["expected_field_body_nT"]]
-            if len(v) != 3 or not all(math.isfinite(x) for x in v):
-                raise ValueError(f"position {p.get('number')}: expected_field_body_nT")
-            up = p.get("up")
-            if up is not None and up not in {f"{s}{a}" for s in "+-" for a in "XYZ"}:
-                raise ValueError(f"position {p.get('number')}: up {up!r}")
-            pos.append({"number": int(p["number"]), "label": str(p.get("label", "")),
-                        "up": up, "expected_field_body_nT": v})
-        levels = [float(v) for v in d["levels_C"]]
-        prof = PlanProfile(source=str(path), positions=pos, levels_C=levels,
-                           samples_per_segment=int(d["samples_per_segment"]),
-                           sample_period_s=float(d["sample_period_s"]),
-                           settle_tolerance_C=float(d.get("settle_tolerance_C",
-                                                          DEFAULT_SETTLE_TOL_C)))
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(path, f"bad test plan: {e}") from None
-    if not levels or not pos:
-        raise InputError(path, "bad test plan: no positions or no levels")
-    return prof
+    return PlanProfile.from_plan(load_plan(path), source=str(path))
 
 
 # =======================================================================================

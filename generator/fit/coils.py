@@ -240,8 +240,9 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
     """Rows {sensor, coil, K_col_nT_per_A, sigma, interference_nT, pct_of_lab_field,
     distance_cm, distance_source, law (DistanceLaw or None), law_is_own, exponent,
     at_cm {r: nT}, seed_no_panel_at_cm {r: nT} (the seed's 30 cm figure scaled by
-    r^-exponent; only 30 cm is measured in the seed), seed_panel_at_cm,
-    equivalent_distance_cm, flags [str]}.
+    r^-exponent; only 30 cm is measured in the seed), seed_panel_at_cm (each panel state
+    scaled by its own law: seed_no_panel_law, seed_panel_law, the row's law where the study
+    did not measure that state, None: 1/r^3), equivalent_distance_cm, flags [str]}.
 
     With a coil study (fit_coil_study) each row takes the law measured for its own sensor
     and coil (law_is_own), else the law the study measured for that coil on another sensor,
@@ -280,7 +281,13 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
                 r0, source = default_distance_cm(spec), "assumed"
             if law is not None:
                 flags = law.flags(r0, *points_cm)
-            seed_n = 3.0 if r0 is None else n
+            # the seed's figures carried to points_cm: each panel state by its own law
+            # (the study's law of this row's sensor and coil in that state), else by the
+            # row's law (the other state's: said so by seed_*_law's panel), else 1/r^3
+            law_np = _panel_law(study, law, 0)
+            law_p = _panel_law(study, law, 1)
+            n_np = 3.0 if law_np is None else law_np.exponent
+            n_p = 3.0 if law_p is None else law_p.exponent
             rows.append({
                 "sensor": name, "coil": coil, "frame": spec.frame,
                 "K_col_nT_per_A": float(norms[j]), "K_col_sigma_nT_per_A": float(sig[j]),
@@ -296,13 +303,14 @@ def interference_table(unit, coil_fit: CoilFit, *, current_A: float = SEED_CURRE
                                                      source, current_A)
                                  for r in points_cm}),
                 "seed_no_panel_at_cm": {float(r): float(scale_power(
-                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, seed_n))
+                    SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n_np))
                     for r in points_cm},
                 "seed_panel_at_cm": {float(r): float(scale_power(
-                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, seed_n))
+                    SEED_30CM_PANEL_NT * current_A / SEED_CURRENT_A, 30.0, r, n_p))
                     for r in points_cm},
+                "seed_no_panel_law": law_np, "seed_panel_law": law_p,
                 "equivalent_distance_cm": (equivalent_distance_cm(
-                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=seed_n)
+                    x, SEED_30CM_NO_PANEL_NT * current_A / SEED_CURRENT_A, exponent=n_np)
                     if x > 0 else None),
                 "flags": flags,
             })
@@ -325,6 +333,15 @@ def _at_sigma(x, x_sigma, r0, r, law, source, current_A):
         rel2 += (np.log(r0 / r) * law.exponent_sigma) ** 2
     n = 3.0 if law is None else law.exponent
     return float(scale_power(x, r0, r, n) * np.sqrt(rel2))
+
+
+def _panel_law(study, law, panel):
+    """The study's law of law's sensor and coil in the given panel state; law itself when
+    the study did not measure that state (its panel then says which state it is); None
+    without a law."""
+    if law is None or law.panel == panel or study is None:
+        return law
+    return study.law(law.sensor, law.coil, panel) or law
 
 
 def _study_law(study, sensor, coil) -> tuple:
@@ -545,6 +562,37 @@ class DistanceLaw:
     def dof(self) -> int:
         return self.n_points - 2
 
+    # Not determined (review #19 D), a statistical rule, not a threshold read off a run:
+    # * the exponent, when its 1-sigma is at least its magnitude (relative sigma >= 1):
+    #   the 1-sigma interval of n then includes 0, so the points cannot tell the law's
+    #   fall-off from no fall-off at all;
+    # * a value of the law at r, when the 1-sigma of ln |K(r)| is at least 1: its 1-sigma
+    #   interval spans more than a factor e either way (e^-1 .. e^+1 of the value), so not
+    #   even its order of magnitude is known. Away from the measured span this is n's
+    #   1-sigma carried by ln(30 cm / r): distances close together (29.5 and 30 cm) leave
+    #   n so loose that the law's values at 5 cm are any number.
+    # Both are printed "undetermined (...)" instead of numbers and flagged.
+    def undetermined(self) -> str | None:
+        """The flag when the points do not determine the exponent (its 1-sigma at least
+        its magnitude, see above); else None (also when n has no 1-sigma)."""
+        if self.exponent_sigma is None or self.exponent_sigma < abs(self.exponent):
+            return None
+        return (f"undetermined: n = {self.exponent:.3g} with 1-sigma "
+                f"{self.exponent_sigma:.2g} (distances {self.span_text()} too close for "
+                "the points' 1-sigma)")
+
+    def undetermined_at(self, r_cm) -> bool:
+        """The law's value at r_cm is not determined: its ln 1-sigma at least 1 (the
+        1-sigma interval spans more than a factor e either way; see above)."""
+        sig = self.sigma_at(r_cm)
+        return sig is not None and float(sig) >= float(self.at(r_cm))
+
+    def span_text(self) -> str:
+        """The measured distances, '29.5-30 cm' (without unit when not recorded: '?')."""
+        if self.r_min_cm is None or self.r_max_cm is None:
+            return "?"
+        return f"{self.r_min_cm:g}-{self.r_max_cm:g} cm"
+
     def unchecked(self) -> str | None:
         """The flag when nothing tests the law against its points (two points: it goes
         through both, no degree of freedom for a misfit test); else None."""
@@ -582,9 +630,14 @@ class DistanceLaw:
                 f"{self.r_min_cm:g}..{self.r_max_cm:g} cm")
 
     def flags(self, *r_cm) -> list:
-        """Every flag of the law used at the distances r_cm (misfit or unchecked,
-        extrapolation)."""
-        out = [self.misfit(), self.unchecked()] + [self.extrapolated(r) for r in r_cm]
+        """Every flag of the law used at the distances r_cm (undetermined exponent, misfit
+        or unchecked, extrapolation, a value not determined at one of r_cm)."""
+        loose = [r for r in dict.fromkeys(r_cm) if r is not None and self.undetermined_at(r)]
+        out = [self.undetermined(), self.misfit(), self.unchecked()] \
+            + [self.extrapolated(r) for r in r_cm] \
+            + ([f"undetermined at {', '.join(f'{float(r):.3g}' for r in loose)} cm: the "
+                "value's 1-sigma spans more than a factor e (distances "
+                f"{self.span_text()} too close for the points' 1-sigma)"] if loose else [])
         return [f for f in out if f]
 
     def to_dict(self) -> dict:

@@ -40,7 +40,8 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         law_rows.append([w.sensor, w.coil, PANEL[w.panel], w.n_points,
                          f"{w.r_min_cm:g}..{w.r_max_cm:g}",
                          exponent_text(w), law_value_text(w, 30.0, current_A),
-                         f"{c['seed_nT']:.2f}", _ratio(c),
+                         f"{c['seed_nT']:.2f}",
+                         undetermined_text(w) if w.undetermined_at(30.0) else _ratio(c),
                          f"- ({w.n_points} points: no degree of freedom)"
                          if w.chi2_per_dof is None else
                          f"{w.chi2_per_dof:.2f} (99 %: {lim:.2f})",
@@ -64,13 +65,16 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
         "Flags: chi2/dof above its 99 % quantile at the law's degrees of freedom (points "
         "that scatter only by their 1-sigma exceed it once in a hundred laws: beyond it "
         "the errors or the power law are off), a law through two points that no misfit "
-        "test checks (unchecked), and a law evaluated outside the distances "
-        "it was measured at (the 30 cm comparison with the seed is then extrapolated)."]
+        "test checks (unchecked), a law evaluated outside the distances "
+        "it was measured at (the 30 cm comparison with the seed is then extrapolated), and "
+        "an exponent or value the points do not determine (undetermined: its 1-sigma at "
+        "least its magnitude, or a value's 1-sigma spanning more than a factor e; printed "
+        "'undetermined' instead of numbers)."]
     ratios = _panel_ratios(study)
     if ratios:
         paragraphs.append("Panel factor at 30 cm (with / without): " + "; ".join(
-            f"{s} {c}: {pm(r, sig) if sig else significant(r, 2) + ' (no 1-sigma)'}"
-            for (s, c), (r, sig) in ratios.items()) + ".")
+            f"{s} {c}: {why or (pm(r, sig) if sig else significant(r, 2) + ' (no 1-sigma)')}"
+            for (s, c), (r, sig, why) in ratios.items()) + ".")
     paragraphs += [f"Note: {n}" for n in study.notes]
     return [Section(f"Coil study: interference against distance at {current_A:g} A", paragraphs,
                     [Table(["sensor", "coil", "panel", "points", "measured cm", "exponent n",
@@ -84,16 +88,28 @@ def coil_study_sections(cs, analysis, out_dir, current_A=SEED_CURRENT_A) -> list
                       "1-sigma, the fitted laws, the seed's 30 cm figures", [0, 1])])]
 
 
+def undetermined_text(law) -> str:
+    """What the report prints instead of a law's number the points do not determine
+    (DistanceLaw.undetermined, undetermined_at: relative 1-sigma at least 1)."""
+    return f"undetermined (distances {law.span_text()} too close)"
+
+
 def exponent_text(law) -> str:
     """The law's n to its 1-sigma, and '(2 points, unchecked)' where no misfit test backs
-    the 1-sigma (plain propagation of the two points' errors)."""
+    the 1-sigma (plain propagation of the two points' errors); 'undetermined (...)' where
+    the 1-sigma is at least n's magnitude."""
+    if law.undetermined():
+        return undetermined_text(law)
     n = (pm(law.exponent, law.exponent_sigma) if law.exponent_sigma
          else f"{law.exponent:.2f} (no 1-sigma)")
     return n + (f" ({law.n_points} points, unchecked)" if law.unchecked() else "")
 
 
 def law_value_text(law, r_cm, current_A) -> str:
-    """The law's interference at r_cm and current_A, to its 1-sigma."""
+    """The law's interference at r_cm and current_A, to its 1-sigma; 'undetermined (...)'
+    where that 1-sigma spans more than a factor e."""
+    if law.undetermined_at(r_cm):
+        return undetermined_text(law)
     sig = law.sigma_at(r_cm, current_A)
     v = float(law.at(r_cm, current_A))
     return pm(v, sig) if sig else significant(v) + " (no 1-sigma)"
@@ -123,7 +139,8 @@ def _panel_ratios(study) -> dict:
             if w.K_30cm_sigma_nT_per_A is not None and base.K_30cm_sigma_nT_per_A is not None:
                 sig = r * np.hypot(w.K_30cm_sigma_nT_per_A / w.K_30cm_nT_per_A,
                                    base.K_30cm_sigma_nT_per_A / base.K_30cm_nT_per_A)
-            out[(w.sensor, w.coil)] = (r, sig)
+            loose = next((x for x in (w, base) if x.undetermined_at(30.0)), None)
+            out[(w.sensor, w.coil)] = (r, sig, loose and undetermined_text(loose))
     return out
 
 

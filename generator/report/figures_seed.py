@@ -54,7 +54,7 @@ def projections_before_after(path, title, time, u_ref, u_before, u_after, names,
     for r, (label, ub) in enumerate((("before H", u_before), ("after H", u_after))):
         for c in range(3):
             ax = axes[r, c]
-            ax.plot(t[sl], u_ref[sl, c], ".", ms=1.5, color="#444444", label=names[0])
+            ax.plot(t[sl], u_ref[sl, c], ".", ms=0.8, color="k", label=names[0], zorder=3)
             ax.plot(t[sl], ub[sl, c], ".", ms=1.2, color=_AXIS_COLORS[c], alpha=0.6,
                     label=names[1])
             _axes_title(ax, f"{'xyz'[c]} axis, {label}", fontsize=9)

@@ -499,9 +499,12 @@ def _slug(s) -> str:
 
 def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/mmc2",
                       time_s=None, H=None, sigma_angle_deg=None, seed_after_deg=0.07,
-                      title=None, stem=None) -> Section:
+                      title=None, stem=None, H_sigma=None) -> Section:
     """Angle between the two magnetometers' vectors before (H = I) and after the alignment
-    H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out."""
+    H (seed 000 fig. 10). Per-sample angles in, figure + table of their statistics out.
+    H is printed to the digits its 1-sigma supports (h_matrix_table): H_sigma, its
+    entries' 1-sigma (the coefficient set's uncertainty_1sigma, pipeline.rotation_sigma),
+    else sigma_angle_deg."""
     from generator.report import figures
 
     b = np.asarray(angle_before_deg, float)
@@ -521,16 +524,39 @@ def alignment_section(out_dir, angle_before_deg, angle_after_deg, *, pair="mmc1/
     tables = [Table(["", "samples", "mean deg", "RMS deg", "95 % deg", "max deg"], rows,
                     f"{pair}: angle statistics")]
     if H is not None:
-        Hm = np.asarray(H, float)
-        tables.append(Table(["row", "x", "y", "z"],
-                            [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)]
-                             for i, ax in enumerate("xyz")],
-                            "H (boom -> body)" + (f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
-                                                  if sigma_angle_deg is not None else "")))
+        tables.append(h_matrix_table(H, H_sigma, sigma_angle_deg))
     return Section(title or f"Agreement of the two magnetometers ({pair})", paras, tables,
                    [(png.name, f"{pair}: angle between the vectors before and after H. Look "
                                "for the angle after H down at the noise's level, with no trend "
                                "in time; before H it is the misalignment itself.", [0])])
+
+
+def h_matrix_table(H, H_sigma=None, sigma_angle_deg=None) -> Table:
+    """H (boom -> body) to the digits its 1-sigma supports: every entry rounded where the
+    largest entry's 1-sigma has its second significant digit (pm, the report's value-with-
+    sigma rule; one decimal place for the whole matrix, since the diagonal's own first-order
+    1-sigma vanishes: its error is second order in the rotation). The entries' 1-sigma
+    H_sigma (3x3, first order in the rotation error: pipeline.rotation_sigma, stored in the
+    coefficient set's uncertainty_1sigma), else the rotation's 1-sigma (an off-diagonal
+    entry moves by up to the rotation angle in rad); with neither, 6 decimals and the
+    caption says so."""
+    Hm = np.asarray(H, float)
+    sig = None
+    if H_sigma is not None:
+        sig = float(np.max(np.asarray(H_sigma, float)))
+    elif sigma_angle_deg is not None:
+        sig = float(np.radians(sigma_angle_deg))
+    if sig is not None and np.isfinite(sig) and sig > 0:
+        cells = [[ax] + [pm(Hm[i, j], sig).split(" ± ")[0] for j in range(3)]
+                 for i, ax in enumerate("xyz")]
+        caption = (f"H (boom -> body), to its 1-sigma (largest per entry "
+                   f"{significant(sig, 2)})")
+    else:
+        cells = [[ax] + [f"{Hm[i, j]:.6f}" for j in range(3)] for i, ax in enumerate("xyz")]
+        caption = "H (boom -> body), no 1-sigma: 6 decimals"
+    if sigma_angle_deg is not None:
+        caption += f", rotation 1-sigma {sigma_angle_deg:.2g} deg"
+    return Table(["row", "x", "y", "z"], cells, caption)
 
 
 def coil_distance_section(out_dir, distance_cm, series_nT, *, current_A=None,
@@ -712,15 +738,23 @@ def _coil_sections(cs, analysis, out_dir) -> list:
         how = ("scaled as 1/r^3 from the sensor's assumed distance to the coil (boom sensors "
                "30 cm, the boom's length; body sensors an assumed 10 cm): no coil study was "
                "given, so nothing about distance is measured")
-    from generator.report.coil_study import exponent_text, law_value_text
+    from generator.report.coil_study import exponent_text, law_value_text, undetermined_text
     table, laws = [], []
     for r in rows:
         law, r0 = r["law"], r["distance_cm"]
         if law is not None and all(w is not law for w in laws):
             laws.append(law)
+
+        def carried(p):     # a value carried by a law: undetermined at relative sigma >= 1
+            v, sig = r["at_cm"][p], r["at_cm_sigma"].get(p)
+            if law is not None and sig is not None and sig >= v:
+                return undetermined_text(law)
+            return _pm_or_why(v, sig)
         at = (["-"] * len(pts) if r0 is None else ["law row"] * len(pts)
-              if law is not None else [_pm_or_why(r["at_cm"][p], r["at_cm_sigma"].get(p))
-                                       for p in pts])
+              if law is not None else [carried(p) for p in pts])
+        r_sig = r.get("distance_sigma_cm")
+        r_loose = (law is not None and r["distance_source"] not in ("assumed", "given")
+                   and (law.undetermined() or (r_sig is not None and r_sig >= r0)))
         flags = list(r["flags"]) + (["assumed distance, dipole fall-off (the 1-sigma is "
                                      "K's alone)"]
                                     if r["distance_source"] == "assumed" else [])
@@ -730,7 +764,7 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                       pm(r["K_col_nT_per_A"], r["K_col_sigma_nT_per_A"]), pm(x, xs),
                       "-" if pct is None else pm(pct, pct * xs / x) if x > 0 else pct,
                       r["distance_source"],
-                      "-" if r0 is None else
+                      "-" if r0 is None else undetermined_text(law) if r_loose else
                       pm(r0, r["distance_sigma_cm"]) if r.get("distance_sigma_cm") else
                       f"{r0:.3g} ({r['distance_source']})"
                       if r["distance_source"] in ("assumed", "given") else
@@ -742,30 +776,45 @@ def _coil_sections(cs, analysis, out_dir) -> list:
                      + [law_value_text(w, p, 0.1) for p in pts]
                      + ["; ".join(w.flags(*pts)) or "-"])
     seed_np, seed_p = rows[0]["seed_no_panel_at_cm"], rows[0]["seed_panel_at_cm"]
-    # the seed's 30 cm figures as it quotes them (no 1-sigma given); at 5 and 15 cm they are
-    # scaled by the first row's law: its exponent's 1-sigma alone (the seed's figure has
-    # none), or, without a study, by an assumed 1/r^3 that carries none: 3 digits
-    law0 = rows[0]["law"] if rows[0]["distance_cm"] is not None else None
-    for label, seed in (("no panel", seed_np), ("with panel", seed_p)):
-        scaled = [f"{seed[30.0]:g}" if p == 30.0 else
-                  pm(seed[p], seed[p] * abs(np.log(30.0 / p)) * law0.exponent_sigma)
-                  if law0 is not None and law0.exponent_sigma else significant(seed[p])
-                  for p in pts]
+    # the seed's 30 cm figures as it quotes them (no 1-sigma given); at 5 and 15 cm each
+    # panel state is scaled by its own law of the first row's sensor and coil (the other
+    # state's where the study did not measure it, said so): its exponent's 1-sigma alone
+    # (the seed's figure has none), 'undetermined' where that spans more than a factor e;
+    # without a study by an assumed 1/r^3 that carries none: 3 digits
+    for label, seed, key, panel in (("no panel", seed_np, "seed_no_panel_law", 0),
+                                    ("with panel", seed_p, "seed_panel_law", 1)):
+        law_s = rows[0][key] if rows[0]["distance_cm"] is not None else None
+
+        def scaled(p):
+            if p == 30.0:
+                return f"{seed[30.0]:g}"
+            if law_s is None or not law_s.exponent_sigma:
+                return significant(seed[p])
+            ln_sig = abs(np.log(30.0 / p)) * law_s.exponent_sigma
+            return (undetermined_text(law_s) if ln_sig >= 1.0 or law_s.undetermined()
+                    else pm(seed[p], seed[p] * ln_sig))
+        if law_s is None:
+            how_s = ("measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled as "
+                     "1/r^3, an assumption with no 1-sigma: 3 significant digits")
+        else:
+            how_s = ("measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled by the "
+                     f"law of {law_s.sensor} {law_s.coil}, {PANEL_STATE[law_s.panel]} "
+                     "(1-sigma: its exponent's)")
+            if law_s.panel != panel:
+                how_s += (f": the {PANEL_STATE[law_s.panel]} law, the study has no "
+                          f"{PANEL_STATE[panel]} law of this sensor and coil")
         table.append(["seed 000", label, "-", f"{seed[30.0]:g}",
-                      significant(100 * seed[30.0] / 51540.0, 2),
-                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled by the "
-                      f"law of {law0.sensor} {law0.coil}, {PANEL_STATE[law0.panel]} (1-sigma: "
-                      "its exponent's)" if law0 is not None else
-                      "measured at 30 cm only (no 1-sigma given); 5 and 15 cm scaled as "
-                      "1/r^3, an assumption with no 1-sigma: 3 significant digits",
-                      "30"] + scaled + ["-"])
+                      significant(100 * seed[30.0] / 51540.0, 2), how_s,
+                      "30"] + [scaled(p) for p in pts] + ["-"])
     sec = Section("Magnetorquer interference at 0.1 A", [
         f"|K column| x 0.1 A per sensor and coil from {tel.path} (1-sigma after ±); {how}. "
         "The seed's points are 5, 15 and 30 cm; it measured 167.87 nT without and 307.57 nT "
         "with the solar panel at 30 cm and 0.1 A.",
         "Flags: a law whose points scatter beyond their errors (chi2 above its 99 % "
-        "quantile at the law's degrees of freedom) and a law used outside the distances "
-        "it was measured at (extrapolated)."],
+        "quantile at the law's degrees of freedom), a law used outside the distances "
+        "it was measured at (extrapolated), and an exponent or value the law's points do "
+        "not determine (its 1-sigma at least its magnitude, or spanning more than a factor "
+        "e: printed 'undetermined')."],
         [Table(["sensor", "coil", "|K col| nT/A", "at 0.1 A nT", "% of lab field",
                 "distance law", "r cm"] + [f"at {p:g} cm nT" for p in pts] + ["flags"],
                table, "Interference by sensor and coil")])
@@ -815,7 +864,8 @@ def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
     return [alignment_section(out_dir, angle_between_deg(B1, B2),
                               angle_between_deg(B1, B2 @ H.T), pair=f"{ref}/{boom}",
                               time_s=tel.time_s[mask], H=H,
-                              sigma_angle_deg=res.get("sigma_angle_deg")),
+                              sigma_angle_deg=res.get("sigma_angle_deg"),
+                              H_sigma=cs.uncertainty.get(boom, {}).get("H_boom_to_body")),
             projections_section(out_dir, tel.time_s[mask], B1, B2, H, pair=f"{ref}/{boom}")]
 
 

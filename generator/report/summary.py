@@ -236,6 +236,8 @@ def summary_section(cs, analysis) -> Section:
             vt + (": " + "; ".join(why) if why else "")])
         for w in (st.get("sanity") or {}).get("warnings", []):
             warn_rows.append([s.name, w])
+        for w in st.get("campaign_warnings") or []:       # pipeline._settling_warnings
+            warn_rows.append([s.name, f"campaign: {w}"])
         for pf in f.get("per_file") or []:
             if pf["n"] and pf["norm_after_nT"] > pf["norm_before_nT"]:
                 warn_rows.append([s.name, (
