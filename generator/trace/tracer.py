@@ -83,6 +83,8 @@ from generator.trace.model import (  # noqa: F401
 from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
+from generator.fit.samples import check_max_samples
+from generator.trace.subsample import MAX_TRACE_SAMPLES, all_rows_rms, subsample_files
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
@@ -403,6 +405,7 @@ class TraceResult:
     notes: list
     sources: dict
     elapsed_s: float = 0.0
+    subsample: dict | None = None     # trace.subsample's figures, above the cap only
 
     @property
     def effects(self) -> list:
@@ -418,6 +421,8 @@ class TraceResult:
                "unexplained": [{**tr.unexplained, "plot": unexplained_plot_name(n)}
                                for n, tr in self.traces.items() if tr.unexplained],
                "elapsed_s": round(self.elapsed_s, 2)}
+        if self.subsample:            # above the cap only: under it the same bytes as before
+            out["subsample"] = dict(self.subsample)
         regs = declared_regressors(self.unit)
         for n, tr in self.traces.items():
             out["baseline"][n] = {
@@ -705,11 +710,15 @@ def _read(unit, items):
 
 
 def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
-          alpha=ALPHA, min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS) -> TraceResult:
+          alpha=ALPHA, min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS,
+          max_samples=MAX_TRACE_SAMPLES) -> TraceResult:
     """Trace the residual of every sensor of the unit (see the module docstring).
 
     unit: Unit or unit-file path; data, holdout: telemetry paths or Telemetry objects;
     coeffs: baseline CoefficientSet or path (default: the core fit of the data files).
+    max_samples: above this many rows (data and holdout files) the trace works on
+    contiguous blocks drawn at random (trace.subsample; 0: every row); the baseline is
+    fitted on all the rows (the fit has its own cap).
     """
     from generator.io.unit import Unit
     from generator.io.unitfile import load_unit
@@ -719,6 +728,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         unit = load_unit(unit)
     if not data:
         raise InputError(unit.path, "trace: no telemetry files given")
+    max_samples = check_max_samples(max_samples, unit.path)
     regs = declared_regressors(unit)
     _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
@@ -749,6 +759,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                         raise InputError(t.path, f"column '{c}' is missing: the supplied "
                                                  f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
+    tels_all, hold_all = tels, hold
+    tels, hold, subsample = subsample_files(tels, hold, max_samples)
+    if subsample:
+        notes.append("subsample: " + subsample["text"])
+        say(f"trace: {subsample['text']}")
     channels, partial = candidate_channels(unit, tels, coils)
     if partial:
         notes.append("channels only some data files carry (taken as 0 elsewhere, and fitted "
@@ -766,7 +781,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
             continue
         S = samples[s.name]
         if S.n == 0 or not np.any(S.role == 0):
-            skipped[s.name] = "no usable sample: " + _why_no_samples(s, allt)
+            skipped[s.name] = "no usable sample: " + _why_no_samples(s, tels_all + hold_all)
             say(f"{s.name}: skipped ({skipped[s.name]})")
             continue
         if evaluated_on == "holdout":
@@ -801,13 +816,22 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "in_flight_chain": st.effect.in_chain}
                         for n, tr in traces.items() for st in tr.steps],
             "evaluated_on": evaluated_on}
-    _channel_units_fit(traces, tels)
+    if subsample:
+        info["subsample"] = subsample["text"]
+    _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
-    sources = {"data": [str(t.path) for t in tels], "holdout": [str(t.path) for t in hold],
+    if subsample:        # the figures of the blocks, and the apply over every row
+        subsample["all_rows"] = all_rows_rms(base, cs, tels_all, list(traces))
+        for n, v in subsample["all_rows"].items():
+            say(f"{n}: over all {v['samples']:,} usable samples of the data files (in-sample): "
+                f"RMS {v['baseline_rms_nT']:.2f} nT baseline -> {v['traced_rms_nT']:.2f} nT "
+                "traced")
+    sources = {"data": [str(t.path) for t in tels_all],
+               "holdout": [str(t.path) for t in hold_all],
                "baseline": "supplied coefficients" if coeffs is not None else
                base.fit_info.get("core", "fit")}
     return TraceResult(unit, evaluated_on, traces, skipped, base, cs, notes, sources,
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, subsample=subsample)
 
 
 __all__ = ["trace", "TraceResult", "SensorModel", "SensorSamples", "to_coefficient_set",

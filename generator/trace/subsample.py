@@ -1,0 +1,145 @@
+"""What `magcal trace` takes of long telemetry: above MAX_TRACE_SAMPLES rows, contiguous
+blocks of L consecutive rows of each file, one block drawn at random in each run of k
+(systematic cluster sampling, seed fixed), each block traced as a file of its own (the
+lag recursions restart at its first row, as at the start of a file). Under the cap the
+files are passed through unchanged (docs/fit_samples.md, "magcal trace").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from generator.fit.samples import check_max_samples, subsample_step, systematic_sample
+from generator.io.telemetry import Telemetry
+
+# The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
+# Memory: the trace keeps per-sample design columns, about 13 KiB a sample
+# (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), so 10^5 rows is ~1.3 GiB,
+# what one run may take on a machine shared with other work; 10^6 rows would be ~13 GiB.
+# Statistics: an effect whose term has rms a against a residual noise sigma is detected
+# with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
+# residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
+# samples, ~47,000 rows), the significance rule's z of ~4 (Bonferroni over ~20
+# candidates) is reached at a / sigma ~ 4 / sqrt(47,000) ~ 2 % of the noise: effects
+# the cap could hide are below what a flight-chain term is worth. And the parameters:
+# p <= ~120 (baseline ~60 plus 6 effects) from 3 x 10^5 rows add sqrt(p / n) ~ 2 % of the
+# noise rms to the prediction, 0.02 % in quadrature.
+MAX_TRACE_SAMPLES = 100_000
+SUBSAMPLE_SEED = 20          # fixed: the same input gives the same trace
+
+# The block length. The slowest time constant the catalogue's effects are meant to find
+# is a board's thermal lag: 10-20 min for these units' boards (fit.samples
+# BOARD_TAU_MIN_S documents the 5-min lower bound); TAU_MAX_S = 20 min. A block spans
+# BLOCK_TAUS = 5 of it (100 min): a lag recursion restarted at the block's first row
+# (its state set to the first temperature, the assumption trace makes at the start of
+# every file) is wrong by at most exp(-t / tau) of the block's initial disequilibrium,
+# under 1 % after 5 tau, so all but the block's first fifth is free of the restart even
+# at the slowest tau; the scan grids reach tau up to half a file's span
+# (effects.ThermalLag.scan_grid): 50 min in a block, 2.5 x TAU_MAX_S. In rows: the
+# block's duration over the files' shortest median sample period, at least
+# MIN_BLOCK_ROWS (the lag-1 statistics -- crossval._lag1, the successive-difference
+# noise of trace.residual -- lose one pair per block: under 0.1 % of the pairs), and at
+# most the cap over MIN_BLOCKS (so that the data keep at least that many blocks spread
+# over the files' time, and the 50 cross-validation blocks are not a handful of runs;
+# then the longest tau resolvable is said in the note).
+TAU_MAX_S = 1200.0
+BLOCK_TAUS = 5.0
+MIN_BLOCK_ROWS = 1000
+MIN_BLOCKS = 20
+# rows per piece of the all-rows apply (all_rows_rms): its per-sample arrays (no design
+# matrix) for this many rows at a time; long against the blocks (a restart per piece)
+ALL_ROWS_CHUNK = 200_000
+
+
+def block_rows(tels, max_samples) -> int:
+    """L, the rows of one block (see the constants above)."""
+    dts = []
+    for t in tels:
+        ts = np.asarray(t.time_s, float)
+        d = np.diff(ts)
+        d = d[np.isfinite(d) & (d > 0)]
+        if len(d):
+            dts.append(float(np.median(d)))
+    dt = min(dts) if dts else 1.0
+    L = max(MIN_BLOCK_ROWS, math.ceil(BLOCK_TAUS * TAU_MAX_S / dt))
+    return int(min(L, max(MIN_BLOCK_ROWS, max_samples // MIN_BLOCKS)))
+
+
+def _block(tel: Telemetry, a: int, z: int) -> Telemetry:
+    return Telemetry(f"{tel.path} [rows {a + 1}-{z}]",
+                     {c: v[a:z] for c, v in tel.columns.items()},
+                     tel.line_numbers[a:z], dict(tel.meta), list(tel.comments))
+
+
+def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
+    """(tels, hold, info): the files unchanged and info None at or under the cap (total
+    rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
+    consecutive blocks of L rows (block_rows), one block drawn at random in each run of k
+    consecutive blocks of a file (fit.samples.systematic_sample; numpy PCG64 seeded from
+    seed and the file's index: not its name, so a renamed file gives the same draw), each kept block a Telemetry of its own, and info the
+    figures of the note."""
+    max_samples = check_max_samples(max_samples)
+    N = sum(t.n for t in list(tels) + list(hold))
+    if not max_samples or N <= max_samples:
+        return list(tels), list(hold), None
+    L = block_rows(list(tels) + list(hold), max_samples)
+    n_blocks = sum(-(-t.n // L) for t in list(tels) + list(hold))
+    k = subsample_step(n_blocks, max(1, max_samples // L))
+    out = []
+    for fi, t in enumerate(list(tels) + list(hold)):
+        nb = -(-t.n // L)
+        rng = np.random.Generator(np.random.PCG64([seed, fi]))
+        picks = systematic_sample(nb, k, rng) if nb else np.zeros(0, int)
+        out.append([_block(t, int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks])
+    n_kept = sum(b.n for bl in out for b in bl)
+    dts = [float(np.median(np.diff(b.time_s))) for bl in out for b in bl if b.n > 1]
+    tau_max_s = 0.5 * L * (min(dts) if dts else 1.0)
+    info = {"samples": int(N), "traced": int(n_kept), "block_rows": int(L),
+            "one_block_in": int(k), "blocks": int(sum(len(bl) for bl in out)),
+            "seed": int(seed), "cap": int(max_samples),
+            "longest_scanned_tau_s": tau_max_s,
+            "text": (f"{N:,} samples; traced on {n_kept:,} in blocks of {L:,} consecutive rows "
+                     f"(one in {k} of each file, drawn at random, seed fixed; cap "
+                     f"{max_samples:,}, `--max-samples`), each block traced as a file of its "
+                     f"own (lag recursions restart at its first row; time constants scanned "
+                     f"up to ~{tau_max_s:.0f} s); the held-out figures are those of the blocks "
+                     f"(all_rows: the coefficients applied to every row, in-sample)")}
+    return ([b for bl in out[:len(tels)] for b in bl],
+            [b for bl in out[len(tels):] for b in bl], info)
+
+
+def all_rows_rms(base, traced, tels, sensors) -> dict:
+    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual (vector
+    rows per axis, magnitude rows; static-position rows, whose constants are fitted, left
+    out) over EVERY usable row of the data files, of the baseline coefficient set and of
+    the traced one (the apply of fixed coefficients: linear in the rows), in pieces of
+    ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a piece's
+    first row, as at a block's: a restart error over its first few tau only). In-sample:
+    the rows the trace fitted on are among them."""
+    from generator.trace.coefficients import model_from_coefficients
+    from generator.trace.samples import POS, gather_samples
+    unit = traced.unit
+    ch = list(dict.fromkeys(c for cs in (base, traced) for s in unit.sensors
+                            for c in cs.spec.opts(s).kernel_channels))
+    acc = {n: [0.0, 0.0, 0, 0] for n in sensors}
+    pieces = [_block(t, a, min(t.n, a + ALL_ROWS_CHUNK)) if t.n > ALL_ROWS_CHUNK else t
+              for t in tels for a in range(0, max(t.n, 1), ALL_ROWS_CHUNK)]
+    for tel in pieces:
+        S_all = gather_samples(unit, [tel], [0], coils=traced.spec.coils,
+                               H=traced.unit_values.get("H_boom_to_body"), channels=ch)
+        for n in sensors:
+            S = S_all[n]
+            S = S.subset(S.kind != POS)
+            if S.n == 0:
+                continue
+            for j, cs in enumerate((base, traced)):
+                m = model_from_coefficients(cs, n, S)
+                r = m.residual(m.theta[None], S)[0]
+                acc[n][j] += float(r @ r)
+            acc[n][2] += len(r)
+            acc[n][3] += S.n
+    return {n: {"baseline_rms_nT": float(np.sqrt(a[0] / a[2])),
+                "traced_rms_nT": float(np.sqrt(a[1] / a[2])), "samples": a[3]}
+            for n, a in acc.items() if a[2]}

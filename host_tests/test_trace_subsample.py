@@ -1,0 +1,152 @@
+"""Issue 20 item 1: `magcal trace` above its cap works on contiguous blocks of each file
+drawn at random (generator.trace.subsample, MAX_TRACE_SAMPLES, `--max-samples`) and says
+so; under the cap nothing changes.
+
+Long files: the fast thermal campaign of test_trace (432 rows, 5 s) with a planted effect
+(test_trace.make_case), repeated with fresh noise and glued in time behind a gap of an hour
+(a chamber restarted: the temperature screen accepts any change across such a gap), so a
+file is several blocks of MIN_BLOCK_ROWS rows; the cap is set below the file's rows.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from generator.io.telemetry import Telemetry
+from generator.trace import subsample as sub
+from generator.trace import tracer as tr
+
+from test_trace import found_effects, make_case, run
+
+PARTS = 12               # 12 x 432 = 5,184 rows: 6 blocks of 1,000 rows (the last shorter)
+CAP = 2_500              # L = 1,000 (MIN_BLOCK_ROWS): one block in 3 kept, 2 of 6
+
+
+def _json(res) -> dict:
+    d = json.loads(json.dumps(res.to_json(), default=tr._json_default))
+    d.pop("elapsed_s")
+    return d
+
+
+def long_file(case, out, name) -> Telemetry:
+    """PARTS runs of the case's campaign (same truth and effects, fresh noise), one file."""
+    tels = [run(case.kind, case.unit, case.truth, case.seed + i, out, case.effects,
+                name=f"{name}_{i}")[0] for i in range(PARTS)]
+    cols, t_end = {c: [] for c in tels[0].columns}, 0.0
+    for t in tels:
+        ts = np.asarray(t.time_s, float)
+        shift = t_end - ts[0]
+        for c in cols:
+            cols[c].append(np.asarray(t.columns[c], float) + (shift if c == "time_s" else 0))
+        t_end = float(ts[-1] + shift) + 3600.0
+    cols = {c: np.concatenate(v) for c, v in cols.items()}
+    n = len(cols["time_s"])
+    return Telemetry(str(out / f"{name}.csv"), cols, np.arange(2, n + 2), dict(tels[0].meta))
+
+
+@pytest.fixture(scope="module")
+def planted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sub_planted")
+    case = make_case("channel_bias", 1, out)
+    return case, long_file(case, out, "planted")
+
+
+def _rows_seen(res) -> int:
+    return max(t.S_fit.n + t.S_eval.n for t in res.traces.values())
+
+
+def test_under_the_cap_nothing_changes(planted, tmp_path):
+    case, tel = planted
+    short = run(case.kind, case.unit, case.truth, case.seed, tmp_path, case.effects)[0]
+    a = tr.trace(case.unit, [short])                      # default cap, far above 432 rows
+    b = tr.trace(case.unit, [short], max_samples=0)       # no cap
+    assert a.subsample is None and "subsample" not in _json(a)
+    assert not any(n.startswith("subsample") for n in a.notes)
+    assert _json(a) == _json(b)
+    a.coefficients.save(tmp_path / "a.json")
+    b.coefficients.save(tmp_path / "b.json")
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
+    # the same at a cap exactly at the rows
+    c = tr.trace(case.unit, [short], max_samples=short.n)
+    assert c.subsample is None and _json(c) == _json(a)
+
+
+def test_capped_trace_says_so_is_bounded_deterministic_and_finds_the_effect(planted):
+    case, tel = planted
+    assert tel.n == PARTS * 432
+    res = tr.trace(case.unit, [tel], max_samples=CAP)
+    info = res.subsample
+    L = sub.MIN_BLOCK_ROWS
+    assert info["samples"] == tel.n and info["block_rows"] == L
+    assert info["one_block_in"] == 3 and info["blocks"] == 2, info
+    assert info["traced"] <= CAP
+    # the rows trace works on are the kept blocks, not the file
+    assert _rows_seen(res) <= info["traced"]
+    d = _json(res)
+    assert d["subsample"]["traced"] == info["traced"]
+    assert any(n.startswith("subsample: ") and f"{tel.n:,} samples; traced on "
+               f"{info['traced']:,} in blocks of {L:,}" in n for n in d["notes"])
+    assert res.coefficients.fit_info["trace"]["subsample"] == info["text"]
+    found = [(n, e, c) for n, e, c, _ in found_effects(res)]
+    assert found == [(case.sensor, "channel_bias", [case.channel])], found
+    # the apply over every row: all usable rows counted, the traced coefficients below
+    # the baseline's where the effect was found, unchanged where nothing was added
+    rows = d["subsample"]["all_rows"]
+    assert set(rows) == set(res.traces)
+    assert all(v["samples"] > info["traced"] for v in rows.values())
+    assert rows[case.sensor]["traced_rms_nT"] < rows[case.sensor]["baseline_rms_nT"]
+    for n, t in res.traces.items():
+        if not t.steps:
+            assert rows[n]["traced_rms_nT"] == rows[n]["baseline_rms_nT"]
+    again = tr.trace(case.unit, [tel], max_samples=CAP)
+    assert _json(again) == d
+
+
+def test_capped_clean_long_file_invents_nothing(tmp_path):
+    case = make_case("channel_bias", 2, tmp_path)
+    case.effects = []                       # the same campaign, nothing planted
+    tel = long_file(case, tmp_path, "clean")
+    res = tr.trace(case.unit, [tel], max_samples=CAP)
+    assert res.subsample is not None
+    assert [(n, st.effect.label()) for n, st in res.effects] == []
+
+
+def test_blocks_are_contiguous_rows_and_seeded():
+    n = 10_500
+    t = Telemetry("f.csv", {"time_s": np.arange(n) * 1.0, "x": np.arange(n) * 2.0},
+                  np.arange(2, n + 2))
+    a, _, info = sub.subsample_files([t], [], 3_000)
+    b, _, _ = sub.subsample_files([t], [], 3_000)
+    assert [x.path for x in a] == [x.path for x in b]
+    renamed = Telemetry("g.csv", t.columns, t.line_numbers)       # the draw is the rows'
+    c, _, _ = sub.subsample_files([renamed], [], 3_000)
+    assert [x.line_numbers[0] for x in c] == [x.line_numbers[0] for x in a]
+    assert len(a) >= 2            # several blocks drawn: the check above is not vacuous
+    L = info["block_rows"]
+    for blk in a:
+        ts = blk.time_s
+        assert np.all(np.diff(ts) == 1.0) and int(ts[0]) % L == 0 and blk.n <= L
+        assert np.array_equal(blk.columns["x"], 2.0 * ts)
+        assert blk.line_numbers[0] == int(ts[0]) + 2
+    assert sum(x.n for x in a) <= 3_000
+    same, _, none = sub.subsample_files([t], [], 0)
+    assert none is None and same == [t]
+
+
+@pytest.mark.parametrize("value", ["-1", "x", "1.5"])
+def test_bad_max_samples_exit_2_one_line(value, capsys):
+    from generator.cli import main
+    rc = main(["trace", "u.toml", "d.csv", "-o", "out", "--max-samples", value])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "--max-samples" in err, err
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True])
+def test_bad_max_samples_in_the_api(planted, value):
+    from generator.errors import InputError
+    case, tel = planted
+    with pytest.raises(InputError, match="max_samples"):
+        tr.trace(case.unit, [tel], max_samples=value)
