@@ -114,24 +114,32 @@ def test_capped_clean_long_file_invents_nothing(tmp_path):
     assert [(n, st.effect.label()) for n, st in res.effects] == []
 
 
-def test_blocks_are_contiguous_rows_and_seeded():
+def _runs(ts):
+    """The runs of consecutive rows (time step 1) of a kept file: [(first, last)]."""
+    cut = np.nonzero(np.diff(ts) != 1.0)[0] + 1
+    return [(int(r[0]), int(r[-1])) for r in np.split(ts, cut)]
+
+
+def test_blocks_are_contiguous_rows_of_one_file_and_seeded():
     n = 10_500
     t = Telemetry("f.csv", {"time_s": np.arange(n) * 1.0, "x": np.arange(n) * 2.0},
                   np.arange(2, n + 2))
-    a, _, info = sub.subsample_files([t], [], 3_000)
-    b, _, _ = sub.subsample_files([t], [], 3_000)
-    assert [x.path for x in a] == [x.path for x in b]
+    (a,), _, info = sub.subsample_files([t], [], 3_000)
+    (b,), _, _ = sub.subsample_files([t], [], 3_000)
+    # the kept blocks stay the file: its path (one static constant, one clock per file)
+    assert a.path == t.path and np.array_equal(a.line_numbers, b.line_numbers)
     renamed = Telemetry("g.csv", t.columns, t.line_numbers)       # the draw is the rows'
-    c, _, _ = sub.subsample_files([renamed], [], 3_000)
-    assert [x.line_numbers[0] for x in c] == [x.line_numbers[0] for x in a]
-    assert len(a) >= 2            # several blocks drawn: the check above is not vacuous
+    (c,), _, _ = sub.subsample_files([renamed], [], 3_000)
+    assert np.array_equal(c.line_numbers, a.line_numbers)
     L = info["block_rows"]
-    for blk in a:
-        ts = blk.time_s
-        assert np.all(np.diff(ts) == 1.0) and int(ts[0]) % L == 0 and blk.n <= L
-        assert np.array_equal(blk.columns["x"], 2.0 * ts)
-        assert blk.line_numbers[0] == int(ts[0]) + 2
-    assert sum(x.n for x in a) <= 3_000
+    runs = _runs(a.time_s)
+    assert len(runs) == info["blocks"] >= 2   # several blocks drawn: not vacuous
+    for first, last in runs:                   # whole blocks of L rows, on the block grid
+        assert first % L == 0 and (last - first + 1 == L or last == n - 1)
+    assert np.all(np.diff(a.time_s) > 0)       # in time order
+    assert np.array_equal(a.columns["x"], 2.0 * a.time_s)
+    assert np.array_equal(a.line_numbers, a.time_s.astype(int) + 2)
+    assert a.n == info["traced"] <= 3_000
     same, _, none = sub.subsample_files([t], [], 0)
     assert none is None and same == [t]
 

@@ -1,8 +1,14 @@
 """What `magcal trace` takes of long telemetry: above MAX_TRACE_SAMPLES rows, contiguous
 blocks of L consecutive rows of each file, one block drawn at random in each run of k
-(systematic cluster sampling, seed fixed), each block traced as a file of its own (the
-lag recursions restart at its first row, as at the start of a file). Under the cap the
-files are passed through unchanged (docs/fit_samples.md, "magcal trace").
+(systematic cluster sampling, seed fixed). The kept blocks of a file stay ONE file (its
+rows in time order, with gaps where blocks were left out): a static position keeps one
+constant over the whole file, "time since the start of the file" keeps one clock, and the
+lag recursions run across a gap as the flight chain's own recursion runs across a gap in
+its telemetry. (Traced as files of their own, the blocks gave every block its own static
+constant, which absorbed any channel that is constant within a block -- the armed flag of
+the real PX4 ecl_office log -- so an effect won the cross-validation, where the constant
+is fitted from other blocks, and then changed nothing on the held-out rows.) Under the cap
+the files are passed through unchanged (docs/fit_samples.md, "magcal trace").
 """
 
 from __future__ import annotations
@@ -73,13 +79,20 @@ def _block(tel: Telemetry, a: int, z: int) -> Telemetry:
                      tel.line_numbers[a:z], dict(tel.meta), list(tel.comments))
 
 
+def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
+    """The file restricted to these rows (in order): the same path, so the same file."""
+    return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
+                     tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
+
+
 def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
     """(tels, hold, info): the files unchanged and info None at or under the cap (total
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
     consecutive blocks of L rows (block_rows), one block drawn at random in each run of k
     consecutive blocks of a file (fit.samples.systematic_sample; numpy PCG64 seeded from
-    seed and the file's index: not its name, so a renamed file gives the same draw), each kept block a Telemetry of its own, and info the
-    figures of the note."""
+    seed and the file's index: not its name, so a renamed file gives the same draw), the
+    kept blocks of a file one Telemetry (the file's path, its rows in order), and info
+    the figures of the note."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
     if not max_samples or N <= max_samples:
@@ -91,23 +104,27 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     for fi, t in enumerate(list(tels) + list(hold)):
         nb = -(-t.n // L)
         rng = np.random.Generator(np.random.PCG64([seed, fi]))
-        picks = systematic_sample(nb, k, rng) if nb else np.zeros(0, int)
-        out.append([_block(t, int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks])
-    n_kept = sum(b.n for bl in out for b in bl)
-    dts = [float(np.median(np.diff(b.time_s))) for bl in out for b in bl if b.n > 1]
+        picks = np.sort(systematic_sample(nb, k, rng)) if nb else np.zeros(0, int)
+        runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
+        out.append((_kept_rows(t, np.concatenate(runs) if runs else np.zeros(0, int)),
+                    runs))
+    n_kept = sum(t.n for t, _ in out)
+    allt = list(tels) + list(hold)
+    dts = [float(np.median(np.diff(allt[fi].time_s[r]))) for fi, (_, runs) in enumerate(out)
+           for r in runs if len(r) > 1]
     tau_max_s = 0.5 * L * (min(dts) if dts else 1.0)
     info = {"samples": int(N), "traced": int(n_kept), "block_rows": int(L),
-            "one_block_in": int(k), "blocks": int(sum(len(bl) for bl in out)),
+            "one_block_in": int(k), "blocks": int(sum(len(runs) for _, runs in out)),
             "seed": int(seed), "cap": int(max_samples),
             "longest_scanned_tau_s": tau_max_s,
             "text": (f"{N:,} samples; traced on {n_kept:,} in blocks of {L:,} consecutive rows "
                      f"(one in {k} of each file, drawn at random, seed fixed; cap "
-                     f"{max_samples:,}, `--max-samples`), each block traced as a file of its "
-                     f"own (lag recursions restart at its first row; time constants scanned "
-                     f"up to ~{tau_max_s:.0f} s); the held-out figures are those of the blocks "
-                     f"(all_rows: the coefficients applied to every row, in-sample)")}
-    return ([b for bl in out[:len(tels)] for b in bl],
-            [b for bl in out[len(tels):] for b in bl], info)
+                     f"{max_samples:,}, `--max-samples`), the kept blocks of a file traced as that "
+                     f"file (one static constant and one clock per file; lag recursions run "
+                     f"across the gaps; time constants scanned up to ~{tau_max_s:.0f} s); the "
+                     f"held-out figures are those of the blocks (all_rows: the coefficients "
+                     f"applied to every row, in-sample)")}
+    return [t for t, _ in out[:len(tels)]], [t for t, _ in out[len(tels):]], info
 
 
 def all_rows_rms(base, traced, tels, sensors) -> dict:
