@@ -158,3 +158,51 @@ def test_bad_max_samples_in_the_api(planted, value):
     case, tel = planted
     with pytest.raises(InputError, match="max_samples"):
         tr.trace(case.unit, [tel], max_samples=value)
+
+
+def test_all_rows_confirmation_vetoes_what_every_row_refutes(planted):
+    """The blocks decide, all the rows may veto: the planted effect lowers the error over
+    every row (kept), removing it again raises it (vetoed, said why)."""
+    case, tel = planted
+    res = tr.trace(case.unit, [tel], max_samples=CAP)
+    st = res.traces[case.sensor].steps[0]
+    S = res.traces[case.sensor].S_fit
+    from generator.trace.samples import candidate_channels
+    confirm = sub.all_rows_confirmation([tel], res.unit, coils=res.coefficients.spec.coils,
+                                        H=None, channels=candidate_channels(res.unit, [tel])[0])
+    assert confirm(case.sensor, st.model_before, st.model_after) == ""
+    why = confirm(case.sensor, st.model_after, st.model_before)
+    assert why.startswith(sub.CONFIRM_PREFIX) and f"{tel.n:,} usable samples" in why, why
+    assert S.n < tel.n                        # the blocks are not every row: not vacuous
+
+
+def test_an_effect_all_rows_refute_is_dropped_and_said(planted, monkeypatch):
+    """A veto reaches trace.json: the effect is refused (per sensor) and named in the
+    notes, and the coefficients carry no effect."""
+    case, tel = planted
+
+    def veto_all(*a, **k):
+        return lambda name, m0, m1: f"{sub.CONFIRM_PREFIX}: vetoed by the test"
+    monkeypatch.setattr(tr, "all_rows_confirmation", veto_all)
+    res = tr.trace(case.unit, [tel], max_samples=CAP)
+    assert res.effects == []
+    d = _json(res)
+    refused = [r for s in d["final"].values() for r in s.get("refused", [])]
+    assert any(r["why"].startswith(sub.CONFIRM_PREFIX) for r in refused), d["final"]
+    assert any(n.startswith("subsample: accepted on the blocks but dropped") and
+               "channel_bias" in n for n in d["notes"]), d["notes"]
+
+
+def test_an_effect_with_no_held_out_gain_is_refused(planted):
+    """One statistic: the held-out RMS shown must fall. A 'refit' that changes nothing
+    (the real ecl_office log's channel_bias(armed) on per-block constants: 787.86 ->
+    787.86 nT) is refused, not kept at equality."""
+    from generator.trace import residual as rv
+    case, tel = planted
+    res = tr.trace(case.unit, [tel], max_samples=CAP)
+    t = res.traces[case.sensor]
+    m = t.steps[0].model_after
+    ref_var, what = rv.reference_variation_nT(t.S_fit, m.field(t.S_fit))
+    why = tr._refusal(m, m.copy(), t.S_fit, t.S_eval, ref_var, what)
+    assert "show no gain" in why, why
+    assert tr._refusal(t.steps[0].model_before, m, t.S_fit, t.S_eval, ref_var, what) == ""

@@ -127,36 +127,91 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     return [t for t, _ in out[:len(tels)]], [t for t, _ in out[len(tels):]], info
 
 
-def all_rows_rms(base, traced, tels, sensors) -> dict:
-    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual (vector
-    rows per axis, magnitude rows; static-position rows, whose constants are fitted, left
-    out) over EVERY usable row of the data files, of the baseline coefficient set and of
-    the traced one (the apply of fixed coefficients: linear in the rows), in pieces of
-    ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a piece's
-    first row, as at a block's: a restart error over its first few tau only). In-sample:
-    the rows the trace fitted on are among them."""
-    from generator.trace.coefficients import model_from_coefficients
+def _pieces(tels):
+    """Every data file in pieces of at most ALL_ROWS_CHUNK consecutive rows (the file's
+    path kept, so that what an effect locates in a file is found in its pieces)."""
+    for t in tels:
+        if t.n <= ALL_ROWS_CHUNK:
+            yield t
+            continue
+        for a in range(0, t.n, ALL_ROWS_CHUNK):
+            yield _kept_rows(t, np.arange(a, min(t.n, a + ALL_ROWS_CHUNK)))
+
+
+# a static position of the all-rows apply is none of the traced models' positions: its
+# constant is the mean of its own rows (SensorModel._residual_rows, "an unseen position")
+_UNSEEN_GROUP = 10 ** 15
+
+
+def _sse(model, S) -> tuple:
+    """(sum of squared residual rows, rows) of a model on samples S: vector rows per axis,
+    magnitude rows, static-position rows as the deviation from their own mean (the
+    constant fitted in-sample, per piece)."""
+    r = model.residual(model.theta[None], S)[0]
+    return float(r @ r), len(r)
+
+
+def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors) -> dict:
+    """{sensor: [sse per model..., rows, samples]} over every usable row of tels;
+    models_of(sensor, S) -> the models to apply to that piece's samples."""
     from generator.trace.samples import POS, gather_samples
+    acc = {}
+    for tel in _pieces(tels):
+        S_all = gather_samples(unit, [tel], [0], coils=coils, H=H, channels=channels)
+        for n in sensors:
+            S = S_all.get(n)
+            if S is None or S.n == 0:
+                continue
+            S.group = np.where(S.kind == POS, S.group + _UNSEEN_GROUP, S.group)
+            models = models_of(n, S)
+            sse = [_sse(m, S) for m in models]
+            a = acc.setdefault(n, [0.0] * len(models) + [0, 0])
+            for j, (e, _) in enumerate(sse):
+                a[j] += e
+            a[-2] += sse[0][1]
+            a[-1] += S.n
+    return acc
+
+
+def all_rows_rms(base, traced, tels, sensors) -> dict:
+    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual over
+    EVERY usable row of the data files (vector rows per axis, magnitude rows, static-
+    position rows as deviations from their position's mean) of the baseline coefficient
+    set and of the traced one (the apply of fixed coefficients: linear in the rows), in
+    pieces of ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a
+    piece's first row, a static position's constant is its mean over the piece).
+    In-sample: the rows the trace fitted on are among them."""
+    from generator.trace.coefficients import model_from_coefficients
     unit = traced.unit
     ch = list(dict.fromkeys(c for cs in (base, traced) for s in unit.sensors
                             for c in cs.spec.opts(s).kernel_channels))
-    acc = {n: [0.0, 0.0, 0, 0] for n in sensors}
-    pieces = [_block(t, a, min(t.n, a + ALL_ROWS_CHUNK)) if t.n > ALL_ROWS_CHUNK else t
-              for t in tels for a in range(0, max(t.n, 1), ALL_ROWS_CHUNK)]
-    for tel in pieces:
-        S_all = gather_samples(unit, [tel], [0], coils=traced.spec.coils,
-                               H=traced.unit_values.get("H_boom_to_body"), channels=ch)
-        for n in sensors:
-            S = S_all[n]
-            S = S.subset(S.kind != POS)
-            if S.n == 0:
-                continue
-            for j, cs in enumerate((base, traced)):
-                m = model_from_coefficients(cs, n, S)
-                r = m.residual(m.theta[None], S)[0]
-                acc[n][j] += float(r @ r)
-            acc[n][2] += len(r)
-            acc[n][3] += S.n
+    acc = _all_rows_sse(lambda n, S: [model_from_coefficients(cs, n, S) for cs in (base, traced)],
+                        tels, unit, coils=traced.spec.coils,
+                        H=traced.unit_values.get("H_boom_to_body"), channels=ch,
+                        sensors=sensors)
     return {n: {"baseline_rms_nT": float(np.sqrt(a[0] / a[2])),
                 "traced_rms_nT": float(np.sqrt(a[1] / a[2])), "samples": a[3]}
             for n, a in acc.items() if a[2]}
+
+
+CONFIRM_PREFIX = "not confirmed on all rows"
+
+
+def all_rows_confirmation(tels, unit, *, coils, H, channels):
+    """confirm(sensor, model, m1) -> "" or why: the check an effect the blocks accepted
+    must pass above the cap. model and m1 (the traced models before and after the effect,
+    fitted on the blocks) are applied to every usable row of the data files (in pieces,
+    in-sample, as all_rows_rms); the effect is kept only if m1's all-rows error is below
+    model's. The blocks decide; all the rows may only veto: an effect that lowers the
+    blocks' held-out error and not the error over every row is a property of the draw."""
+    def confirm(name, model, m1) -> str:
+        acc = _all_rows_sse(lambda n, S: [model, m1], tels, unit, coils=coils, H=H,
+                            channels=channels, sensors=[name]).get(name)
+        if not acc or not acc[2]:
+            return ""
+        r0, r1 = math.sqrt(acc[0] / acc[2]), math.sqrt(acc[1] / acc[2])
+        if acc[1] < acc[0]:
+            return ""
+        return (f"{CONFIRM_PREFIX}: over all {acc[3]:,} usable samples of the data files "
+                f"(in-sample) the RMS does not fall ({r0:.2f} -> {r1:.2f} nT)")
+    return confirm

@@ -84,7 +84,8 @@ from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
 from generator.fit.samples import check_max_samples
-from generator.trace.subsample import MAX_TRACE_SAMPLES, all_rows_rms, subsample_files
+from generator.trace.subsample import (CONFIRM_PREFIX, MAX_TRACE_SAMPLES,
+                                       all_rows_confirmation, all_rows_rms, subsample_files)
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
@@ -188,7 +189,9 @@ def _relocate(m: SensorModel, S):
 
 def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
                  min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS, S_final=None,
-                 progress=None) -> SensorTrace:
+                 progress=None, confirm=None) -> SensorTrace:
+    """confirm(model, m1) -> "" or why: a further check an accepted effect must pass
+    (above the trace's cap: subsample.all_rows_confirmation, the error over every row)."""
     say = progress or (lambda m: None)
     blocks = np.unique(S_fit.block)
     S_fit.block = np.searchsorted(blocks, S_fit.block)       # 0 .. n_blocks - 1
@@ -241,6 +244,8 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         if not refusal and not _files_showing(S_fit, model, m1, win)["shown_in"]:
             refusal = ("no data file shows it on its own (its term is not detectable with a "
                        "held-out gain beyond chance in any one file)")
+        if not refusal and confirm is not None:
+            refusal = confirm(model, m1)
         if refusal:             # honesty: never keep an effect the evaluation refutes
             win.significant = False
             win.reasons.append(refusal)
@@ -782,6 +787,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     samples = gather_samples(unit, allt, roles, coils=coils, H=H, channels=channels,
                              notes=notes, strict={r["name"] for r in regs})
     evaluated_on = "holdout" if hold else "split"
+    checker = (all_rows_confirmation(tels_all, unit, coils=coils, H=H, channels=channels)
+               if subsample else None)
     traces, skipped = {}, {}
     for s in unit.sensors:
         if sensors is not None and s.name not in sensors:
@@ -811,7 +818,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
             f"({', '.join(KIND_NAMES[k].split(' ')[0] for k in S_fit.kinds_present())} rows)")
         traces[s.name] = trace_sensor(s.name, bf, S_fit, S_eval, initial=init, alpha=alpha,
                                       min_gain=min_gain, max_effects=max_effects,
-                                      S_final=S_final, progress=say)
+                                      S_final=S_final, progress=say,
+                                      confirm=None if checker is None else
+                                      (lambda m0, m1, n=s.name: checker(n, m0, m1)))
     if not traces:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
         raise InputError(tels[0].path if len(tels) == 1 else unit.path,
@@ -825,6 +834,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
             "evaluated_on": evaluated_on}
     if subsample:
         info["subsample"] = subsample["text"]
+        vetoed = [f"{n}: {c}" for n, t in traces.items() for c, w in t.rejected
+                  if w.startswith(CONFIRM_PREFIX)]
+        if vetoed:         # said where the user looks first, besides each sensor's refusals
+            notes.append("subsample: accepted on the blocks but dropped because the error "
+                         "over every row of the data files did not fall: " + "; ".join(vetoed))
     _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
     if subsample:        # the figures of the blocks, and the apply over every row
