@@ -38,18 +38,19 @@ SUBSAMPLE_SEED = 20          # fixed: the same input gives the same trace
 # The block length. The slowest time constant the catalogue's effects are meant to find
 # is a board's thermal lag: 10-20 min for these units' boards (fit.samples
 # BOARD_TAU_MIN_S documents the 5-min lower bound); TAU_MAX_S = 20 min. A block spans
-# BLOCK_TAUS = 5 of it (100 min): a lag recursion restarted at the block's first row
-# (its state set to the first temperature, the assumption trace makes at the start of
-# every file) is wrong by at most exp(-t / tau) of the block's initial disequilibrium,
-# under 1 % after 5 tau, so all but the block's first fifth is free of the restart even
-# at the slowest tau; the scan grids reach tau up to half a file's span
-# (effects.ThermalLag.scan_grid): 50 min in a block, 2.5 x TAU_MAX_S. In rows: the
-# block's duration over the files' shortest median sample period, at least
-# MIN_BLOCK_ROWS (the lag-1 statistics -- crossval._lag1, the successive-difference
-# noise of trace.residual -- lose one pair per block: under 0.1 % of the pairs), and at
-# most the cap over MIN_BLOCKS (so that the data keep at least that many blocks spread
-# over the files' time, and the 50 cross-validation blocks are not a handful of runs;
-# then the longest tau resolvable is said in the note).
+# BLOCK_TAUS = 5 of it (100 min). Across the gap before a block the lag recursion takes
+# one step (dt the gap: generator.flight.chain.lag_kernel's backward-Euler step, what the
+# chain itself does over a gap in its telemetry), exact if the temperature held still
+# over the gap; the error it leaves at the block's first row decays as exp(-t / tau),
+# under 1 % after 5 tau, so all but the block's first fifth is free of it even at the
+# slowest tau. The scan grids reach tau up to half a file's span, gaps included
+# (effects.ThermalLag.scan_grid), as without the cap. In rows: the block's duration over
+# the files' shortest median sample period, at least MIN_BLOCK_ROWS (the lag-1
+# statistics -- crossval._lag1, the successive-difference noise of trace.residual --
+# take one pair across each gap: under 0.1 % of the pairs), and at most the cap over
+# MIN_BLOCKS (so that the data keep at least that many blocks spread over the files'
+# time, and the 50 cross-validation blocks are not a handful of runs; a block is then
+# shorter than 5 tau of the slowest lag, and the note says how long it is).
 TAU_MAX_S = 1200.0
 BLOCK_TAUS = 5.0
 MIN_BLOCK_ROWS = 1000
@@ -109,10 +110,8 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
         out.append((_kept_rows(t, np.concatenate(runs) if runs else np.zeros(0, int)),
                     runs))
     n_kept = sum(t.n for t, _ in out)
-    allt = list(tels) + list(hold)
-    dts = [float(np.median(np.diff(allt[fi].time_s[r]))) for fi, (_, runs) in enumerate(out)
-           for r in runs if len(r) > 1]
-    tau_max_s = 0.5 * L * (min(dts) if dts else 1.0)
+    spans = [float(np.ptp(t.time_s)) for t, _ in out if t.n > 1]
+    tau_max_s = 0.5 * max(spans) if spans else 0.0      # effects.ThermalLag.scan_grid
     info = {"samples": int(N), "traced": int(n_kept), "block_rows": int(L),
             "one_block_in": int(k), "blocks": int(sum(len(runs) for _, runs in out)),
             "seed": int(seed), "cap": int(max_samples),
