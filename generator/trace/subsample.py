@@ -150,13 +150,14 @@ def _sse(model, S) -> tuple:
     return float(r @ r), len(r)
 
 
-def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors) -> dict:
+def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=()) -> dict:
     """{sensor: [sse per model..., rows, samples]} over every usable row of tels;
     models_of(sensor, S) -> the models to apply to that piece's samples."""
     from generator.trace.samples import POS, gather_samples
     acc = {}
     for tel in _pieces(tels):
-        S_all = gather_samples(unit, [tel], [0], coils=coils, H=H, channels=channels)
+        S_all = gather_samples(unit, [tel], [0], coils=coils, H=H, channels=channels,
+                               strict=strict)
         for n in sensors:
             S = S_all.get(n)
             if S is None or S.n == 0:
@@ -196,7 +197,7 @@ def all_rows_rms(base, traced, tels, sensors) -> dict:
 CONFIRM_PREFIX = "not confirmed on all rows"
 
 
-def all_rows_confirmation(tels, unit, *, coils, H, channels):
+def all_rows_confirmation(tels, unit, *, coils, H, channels, strict=()):
     """confirm(sensor, model, m1) -> "" or why: the check an effect the blocks accepted
     must pass above the cap. model and m1 (the traced models before and after the effect,
     fitted on the blocks) are applied to every usable row of the data files (in pieces,
@@ -205,7 +206,7 @@ def all_rows_confirmation(tels, unit, *, coils, H, channels):
     blocks' held-out error and not the error over every row is a property of the draw."""
     def confirm(name, model, m1) -> str:
         acc = _all_rows_sse(lambda n, S: [model, m1], tels, unit, coils=coils, H=H,
-                            channels=channels, sensors=[name]).get(name)
+                            channels=channels, sensors=[name], strict=strict).get(name)
         if not acc or not acc[2]:
             return ""
         r0, r1 = math.sqrt(acc[0] / acc[2]), math.sqrt(acc[1] / acc[2])

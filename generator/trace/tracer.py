@@ -787,7 +787,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     samples = gather_samples(unit, allt, roles, coils=coils, H=H, channels=channels,
                              notes=notes, strict={r["name"] for r in regs})
     evaluated_on = "holdout" if hold else "split"
-    checker = (all_rows_confirmation(tels_all, unit, coils=coils, H=H, channels=channels)
+    checker = (all_rows_confirmation(tels_all, unit, coils=coils, H=H, channels=channels,
+                                     strict={r["name"] for r in regs})
                if subsample else None)
     traces, skipped = {}, {}
     for s in unit.sensors:
