@@ -74,12 +74,6 @@ def block_rows(tels, max_samples) -> int:
     return int(min(L, max(MIN_BLOCK_ROWS, max_samples // MIN_BLOCKS)))
 
 
-def _block(tel: Telemetry, a: int, z: int) -> Telemetry:
-    return Telemetry(f"{tel.path} [rows {a + 1}-{z}]",
-                     {c: v[a:z] for c, v in tel.columns.items()},
-                     tel.line_numbers[a:z], dict(tel.meta), list(tel.comments))
-
-
 def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
     """The file restricted to these rows (in order): the same path, so the same file."""
     return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
