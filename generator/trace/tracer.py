@@ -83,6 +83,9 @@ from generator.trace.model import (  # noqa: F401
 from generator.trace.samples import (  # noqa: F401
     KIND_NAMES, N_BLOCKS, NORM, POS, VEC, FileSeries, SensorSamples, assign_blocks,
     candidate_channels, gather_samples)
+from generator.fit.samples import check_max_samples
+from generator.trace.subsample import (CONFIRM_PREFIX, MAX_TRACE_SAMPLES,
+                                       all_rows_confirmation, all_rows_rms, subsample_files)
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
@@ -186,7 +189,9 @@ def _relocate(m: SensorModel, S):
 
 def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
                  min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS, S_final=None,
-                 progress=None) -> SensorTrace:
+                 progress=None, confirm=None) -> SensorTrace:
+    """confirm(model, m1) -> "" or why: a further check an accepted effect must pass
+    (above the trace's cap: subsample.all_rows_confirmation, the error over every row)."""
     say = progress or (lambda m: None)
     blocks = np.unique(S_fit.block)
     S_fit.block = np.searchsorted(blocks, S_fit.block)       # 0 .. n_blocks - 1
@@ -236,9 +241,18 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
         m1 = _refine_and_fit(model, S_fit, e, win)
         before, after = model.rms(S_eval), m1.rms(S_eval)
         refusal = _refusal(model, m1, S_fit, S_eval, ref_var, ref_what)
+        if not refusal and not after < before:
+            # one statistic: an effect is kept only if the held-out error the user is
+            # shown (these very figures: Step.rms_before_nT -> rms_after_nT) falls; a
+            # cross-validation gain the evaluation rows do not show is no gain (_refusal
+            # lets a rise within chance pass: it guards against harm, this against none)
+            refusal = (f"the evaluation rows show no gain: RMS {before:.2f} -> {after:.2f} nT "
+                       "(an effect is kept only if the held-out error shown falls)")
         if not refusal and not _files_showing(S_fit, model, m1, win)["shown_in"]:
             refusal = ("no data file shows it on its own (its term is not detectable with a "
                        "held-out gain beyond chance in any one file)")
+        if not refusal and confirm is not None:
+            refusal = confirm(model, m1)
         if refusal:             # honesty: never keep an effect the evaluation refutes
             win.significant = False
             win.reasons.append(refusal)
@@ -403,6 +417,7 @@ class TraceResult:
     notes: list
     sources: dict
     elapsed_s: float = 0.0
+    subsample: dict | None = None     # trace.subsample's figures, above the cap only
 
     @property
     def effects(self) -> list:
@@ -418,6 +433,8 @@ class TraceResult:
                "unexplained": [{**tr.unexplained, "plot": unexplained_plot_name(n)}
                                for n, tr in self.traces.items() if tr.unexplained],
                "elapsed_s": round(self.elapsed_s, 2)}
+        if self.subsample:            # above the cap only: under it the same bytes as before
+            out["subsample"] = dict(self.subsample)
         regs = declared_regressors(self.unit)
         for n, tr in self.traces.items():
             out["baseline"][n] = {
@@ -705,11 +722,15 @@ def _read(unit, items):
 
 
 def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
-          alpha=ALPHA, min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS) -> TraceResult:
+          alpha=ALPHA, min_gain=MIN_REL_GAIN, max_effects=MAX_EFFECTS,
+          max_samples=MAX_TRACE_SAMPLES) -> TraceResult:
     """Trace the residual of every sensor of the unit (see the module docstring).
 
     unit: Unit or unit-file path; data, holdout: telemetry paths or Telemetry objects;
     coeffs: baseline CoefficientSet or path (default: the core fit of the data files).
+    max_samples: above this many rows (data and holdout files) the trace works on
+    contiguous blocks drawn at random (trace.subsample; 0: every row); the baseline is
+    fitted on all the rows (the fit has its own cap).
     """
     from generator.io.unit import Unit
     from generator.io.unitfile import load_unit
@@ -719,6 +740,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         unit = load_unit(unit)
     if not data:
         raise InputError(unit.path, "trace: no telemetry files given")
+    max_samples = check_max_samples(max_samples, unit.path)
     regs = declared_regressors(unit)
     _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
@@ -749,6 +771,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                         raise InputError(t.path, f"column '{c}' is missing: the supplied "
                                                  f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
+    tels_all, hold_all = tels, hold
+    tels, hold, subsample = subsample_files(tels, hold, max_samples)
+    if subsample:
+        notes.append("subsample: " + subsample["text"])
+        say(f"trace: {subsample['text']}")
     channels, partial = candidate_channels(unit, tels, coils)
     if partial:
         notes.append("channels only some data files carry (taken as 0 elsewhere, and fitted "
@@ -760,13 +787,16 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     samples = gather_samples(unit, allt, roles, coils=coils, H=H, channels=channels,
                              notes=notes, strict={r["name"] for r in regs})
     evaluated_on = "holdout" if hold else "split"
+    checker = (all_rows_confirmation(tels_all, unit, coils=coils, H=H, channels=channels,
+                                     strict={r["name"] for r in regs})
+               if subsample else None)
     traces, skipped = {}, {}
     for s in unit.sensors:
         if sensors is not None and s.name not in sensors:
             continue
         S = samples[s.name]
         if S.n == 0 or not np.any(S.role == 0):
-            skipped[s.name] = "no usable sample: " + _why_no_samples(s, allt)
+            skipped[s.name] = "no usable sample: " + _why_no_samples(s, tels_all + hold_all)
             say(f"{s.name}: skipped ({skipped[s.name]})")
             continue
         if evaluated_on == "holdout":
@@ -789,7 +819,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
             f"({', '.join(KIND_NAMES[k].split(' ')[0] for k in S_fit.kinds_present())} rows)")
         traces[s.name] = trace_sensor(s.name, bf, S_fit, S_eval, initial=init, alpha=alpha,
                                       min_gain=min_gain, max_effects=max_effects,
-                                      S_final=S_final, progress=say)
+                                      S_final=S_final, progress=say,
+                                      confirm=None if checker is None else
+                                      (lambda m0, m1, n=s.name: checker(n, m0, m1)))
     if not traces:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
         raise InputError(tels[0].path if len(tels) == 1 else unit.path,
@@ -801,13 +833,27 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "in_flight_chain": st.effect.in_chain}
                         for n, tr in traces.items() for st in tr.steps],
             "evaluated_on": evaluated_on}
-    _channel_units_fit(traces, tels)
+    if subsample:
+        info["subsample"] = subsample["text"]
+        vetoed = [f"{n}: {c}" for n, t in traces.items() for c, w in t.rejected
+                  if w.startswith(CONFIRM_PREFIX)]
+        if vetoed:         # said where the user looks first, besides each sensor's refusals
+            notes.append("subsample: accepted on the blocks but dropped because the error "
+                         "over every row of the data files did not fall: " + "; ".join(vetoed))
+    _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
-    sources = {"data": [str(t.path) for t in tels], "holdout": [str(t.path) for t in hold],
+    if subsample:        # the figures of the blocks, and the apply over every row
+        subsample["all_rows"] = all_rows_rms(base, cs, tels_all, list(traces))
+        for n, v in subsample["all_rows"].items():
+            say(f"{n}: over all {v['samples']:,} usable samples of the data files (in-sample): "
+                f"RMS {v['baseline_rms_nT']:.2f} nT baseline -> {v['traced_rms_nT']:.2f} nT "
+                "traced")
+    sources = {"data": [str(t.path) for t in tels_all],
+               "holdout": [str(t.path) for t in hold_all],
                "baseline": "supplied coefficients" if coeffs is not None else
                base.fit_info.get("core", "fit")}
     return TraceResult(unit, evaluated_on, traces, skipped, base, cs, notes, sources,
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, subsample=subsample)
 
 
 __all__ = ["trace", "TraceResult", "SensorModel", "SensorSamples", "to_coefficient_set",

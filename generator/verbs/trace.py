@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from generator.errors import InputError
+from generator.fit.samples import check_max_samples
 from generator.io.outputs import check_output_folder, output_folder
 from generator.progress import Progress
 from generator.report.trace_report import write_report
+from generator.trace.subsample import MAX_TRACE_SAMPLES
 from generator.trace.tracer import trace
 
 
@@ -17,12 +20,28 @@ def add_trace_args(p):
                         "the data is held out)")
     p.add_argument("--coeffs", default=None,
                    help="baseline coefficients.json (default: the core fit of the data)")
+    p.add_argument("--max-samples", type=_max_samples, default=MAX_TRACE_SAMPLES, metavar="N",
+                   help=f"the most telemetry rows the trace works on (default "
+                        f"{MAX_TRACE_SAMPLES}, trace.subsample.MAX_TRACE_SAMPLES; 0: all): "
+                        "above it contiguous blocks of each file, one drawn at random in "
+                        "each run of k (seed fixed), said in trace.json and the notes")
+
+
+def _max_samples(text):
+    """--max-samples: a whole number >= 0 (fit.samples.check_max_samples; 0: all rows)."""
+    import argparse
+    try:
+        return check_max_samples(int(text))
+    except (ValueError, InputError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number >= 0 (0: all "
+                                         "rows)") from None
 
 
 def cmd_trace(args) -> int:
     progress = getattr(args, "progress", None) or Progress(quiet=getattr(args, "quiet", False))
     check_output_folder(args.output)
-    res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress)
+    res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress,
+                max_samples=getattr(args, "max_samples", MAX_TRACE_SAMPLES))
     res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
                                      f"{args.data[0]} (and {len(args.data) - 1} more)")
     with output_folder(args.output) as folder:
