@@ -359,11 +359,12 @@ def _settling_warnings(unit, data_paths, tels, cals, info, progress) -> None:
     the calibration's plausibility, and the calibration is still written."""
     from generator.campaign.check import settling_warnings
 
-    static = [p for p, t in zip(data_paths, tels) if t.get("position") is not None
+    static = [(p, t) for p, t in zip(data_paths, tels) if t.get("position") is not None
               and bool(np.any(np.nan_to_num(np.asarray(t.get("position"), float)) > 0))]
     if not static:
         return
-    for name, w in settling_warnings(unit, static).items():
+    for name, w in settling_warnings(unit, [p for p, _ in static],
+                                     tels=[t for _, t in static]).items():
         if name not in cals:
             continue
         cals[name].stats.setdefault("campaign_warnings", []).append(w)

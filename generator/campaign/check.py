@@ -674,7 +674,8 @@ def _poor_message(name, pred, S, limit_b_nT, limit_m) -> str:
 
 
 def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=LIMIT_B_nT,
-                   limit_m=LIMIT_M, min_samples=None, progress=None) -> dict:
+                   limit_m=LIMIT_M, min_samples=None, progress=None, tels=None,
+                   cells_only=False) -> dict:
     """Does a recorded campaign cover the test program? Returns a JSON-able result with
     "adequate" (bool), "gaps" (list of one-line findings), "notes", and the per-position,
     per-level, per-cell, per-sensor details.
@@ -682,7 +683,10 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     profile: plan.PlanProfile (None: the default program of `magcal plan`, applied to
     static-position files only). min_samples: settled samples a (position, level) segment
     needs (default: the plan's samples_per_segment when a plan is given, else
-    MIN_SEGMENT_SAMPLES).
+    MIN_SEGMENT_SAMPLES). tels: the files already read (io.telemetry_csv.read_telemetry of
+    data_paths, as `magcal fit` has them), else read here. cells_only: stop once the
+    position/level cells and the settling are known (what settling_warnings needs; the
+    per-sensor coverage and coefficient prediction are left out).
     """
     from generator.campaign.plan import PlanProfile, make_plan
     from generator.io.telemetry_csv import preprocess, read_telemetry
@@ -693,7 +697,8 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
         profile = PlanProfile.from_plan(make_plan(unit, lab_field_nT=unit.lab_field_nT or 5e4))
     if min_samples is None:
         min_samples = profile.samples_per_segment if explicit else MIN_SEGMENT_SAMPLES
-    tels = [read_telemetry(p, unit) for p in data_paths]
+    if tels is None:
+        tels = [read_telemetry(p, unit) for p in data_paths]
     pres = [preprocess(t, unit) for t in tels]
     say(f"read {len(tels)} file(s): {sum(t.n for t in tels)} samples")
     samples = gather_samples(unit, tels, pres)
@@ -935,6 +940,8 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                          "(self-heating or the sensor's temperature offset: the midpoint of "
                          "the holds entered cooling and those entered heating); a segment is "
                          f"settled within {d['tolerance_C']:.2f} degC of set-point + offset")
+    if cells_only:
+        return result
 
     # ---- per sensor: samples, coverage, coefficient prediction ------------------------
     plan_range = (min(levels), max(levels)) if plan_applies else None
@@ -1035,14 +1042,14 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     return result
 
 
-def settling_warnings(unit, data_paths, profile=None) -> dict:
+def settling_warnings(unit, data_paths, profile=None, *, tels=None) -> dict:
     """{sensor: warning} for `magcal fit` (review #19 F): the levels of the program
     (profile, else magcal plan's default, as `magcal check` without --plan) that a sensor's
     samples reach in static positions without a settled segment in any position. Taken
     from check_campaign's own cells (a level none of whose cells is 'ok' or 'short' for the
     sensor and some is 'not settled'), so fit and check say the same; {} where the program
-    does not apply (no static-position file)."""
-    result = check_campaign(unit, data_paths, profile)
+    does not apply (no static-position file). tels: data_paths already read."""
+    result = check_campaign(unit, data_paths, profile, tels=tels, cells_only=True)
     if not result["plan"]["applied"]:
         return {}
     by = {}
