@@ -538,6 +538,8 @@ def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     M_g = np.einsum("gk,kij->gij", Pg, Mk)
     c_g = Pg @ ck
     b_g = -np.linalg.solve(M_g, c_g[:, :, None])[:, :, 0]
+    if Pg.shape == (1, 1) and Pg[0, 0] == 1.0:
+        return b_g, M_g         # one node (a constant fit): the projection is 1, exactly
     proj = np.linalg.pinv(Pg)
     return proj @ b_g, np.einsum("qg,gij->qij", proj, M_g)
 
@@ -996,9 +998,13 @@ def difference_noise_var(series) -> np.ndarray | None:
     d = np.ascontiguousarray(np.concatenate(dd).T)        # (k, n): an axis contiguous
     keep = None                                           # None: every difference
     for _ in range(5):
-        kept = list(d) if keep is None else [a[m] for a, m in zip(d, keep)]
-        mu = np.array([np.mean(a) for a in kept])
-        var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
+        if keep is None:          # every difference: one reduction per axis row (the same
+            mu = np.mean(d, axis=1)                       # pairwise sums as per row)
+            var = np.mean((d - mu[:, None]) ** 2, axis=1)
+        else:
+            kept = [a[m] for a, m in zip(d, keep)]
+            mu = np.array([np.mean(a) for a in kept])
+            var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
         new = np.abs(d - mu[:, None]) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
         if new.all() if keep is None else np.array_equal(new, keep):
             break
