@@ -299,14 +299,14 @@ def normal_matrix(mom, bp, Mp, eiv_var=0.0):
     out[:nb, nb:] = Mb.T
     # M-M: delta_aa' A_{k+m}[c,d], i.e. [k,a,c,m,a',d] zero unless a = a'
     MM = out[nb:, nb:].reshape(K, 3, 3, K, 3, 3)
-    G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
-    for a in range(3):
-        MM[:, a, :, :, a, :] = G
+    MM[:, _AX3, :, :, _AX3, :] = A[idx].transpose(0, 2, 1, 3)   # [k,c,m,d] for every a
     if eiv_var:     # - eiv_var sum w P_k P_m on the diagonal of each (k, m) block
         MMf = out[nb:, nb:].reshape(K, 9, K, 9)
-        for i in range(9):
-            MMf[:, i, :, i] -= eiv_var * W[idx]
+        MMf[:, _AX9, :, _AX9] -= eiv_var * W[idx]       # each element once, as per i
     return out
+
+
+_AX3, _AX9 = np.arange(3), np.arange(9)
 
 
 class ReadingStats:
