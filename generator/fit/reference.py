@@ -307,6 +307,7 @@ def normal_matrix(mom, bp, Mp, eiv_var=0.0):
 
 
 _AX3, _AX9 = np.arange(3), np.arange(9)
+_EYE3 = np.eye(3)
 
 
 class ReadingStats:
@@ -459,6 +460,10 @@ def _solve_M(P, Mp, v):
     where M has no temperature terms (the constant fits, a nominal prior), else per
     sample."""
     if len(Mp) == 1 or not np.any(Mp[1:]):
+        if np.array_equal(Mp[0], _EYE3):
+            # M = I (the nominal prior): the solve's values (it may flip the sign of an
+            # exact 0, which no sum with a nonzero term sees), without LAPACK per row block
+            return v.copy()
         return np.linalg.solve(Mp[0], v.T).T
     return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
 
