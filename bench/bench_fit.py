@@ -4,14 +4,14 @@ today's code against the code at --baseline-commit, measured in the same run.
 
     python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
                                [--report-baseline-commit f639afc]
-                               [--previous-commit 5335ede]
+                               [--previous-commit ce2b43f]
                                [--rows 36000,144000] [--no-memory] [--no-report]
 
 Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
 equations) and --report-baseline-commit (the report as this work found it: the same
 figures as today, drawn with constrained layout; the older commit's report has fewer
 figures, so its time is printed but is no baseline) and --previous-commit (the tree before
-the latest step: 5335ede, main before the fspeed10 work; also run with MAGCAL_WORKERS=1,
+the latest step: ce2b43f, main before the fspeed11 work; also run with MAGCAL_WORKERS=1,
 so that the ratio of the sensors' fits themselves is seen without the forks). Each baseline's generator/ is
 extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
 tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
@@ -27,6 +27,9 @@ samsat_fm1/thermal_12pos.csv:
   fit is also run with MAGCAL_WORKERS=1 (the sensors one after the other, in the
   process), so that what the children buy is seen in the same run: wall time on a free
   second core, against the CPU the forks add;
+* of it, fit.thermal.fit_unit (the sensors' fits alone, the issue's "fit itself"; wrapped
+  in the driver): pipeline.fit also reads the files and, since a695085 (review #19 F),
+  runs campaign.check.settling_warnings after the fits, in the process (~0.8 s CPU);
 * report: generator.report.report.fit_report of that fit, figures drawn serially in the
   process (the CPU time they cost), best of --repeat; today's also as `magcal fit` draws
   them (2 forked children), wall and CPU;
@@ -154,12 +157,27 @@ def timed(fn):
     return r, w1 - w0, own, own + kids
 
 
+# the sensors' fits alone (fit.thermal.fit_unit, which pipeline.fit imports when it runs):
+# pipeline.fit also reads the files and, since a695085, runs the campaign check's
+# settling analysis (campaign.check.settling_warnings) after them, in the process
+from generator.fit import thermal as _thermal
+_fit_unit, _inner = _thermal.fit_unit, []
+
+
+def _timed_fit_unit(*a, **k):
+    r, wall, own, cpu = timed(lambda: _fit_unit(*a, **k))
+    _inner.append((wall, cpu))
+    return r
+
+
+_thermal.fit_unit = _timed_fit_unit
 fits = []
 for _ in range(2):          # the first fit also pays the lazy imports inside the fit
     cs, wall, own, cpu = timed(lambda: pipeline.fit(unit, [data]))
     fits.append((wall, own, cpu))
 res = {"fit_wall_s": min(f[0] for f in fits), "fit_s": min(f[1] for f in fits),
-       "fit_cpu_s": min(f[2] for f in fits)}
+       "fit_cpu_s": min(f[2] for f in fits),
+       "fit_unit_wall_s": min(f[0] for f in _inner), "fit_unit_cpu_s": min(f[1] for f in _inner)}
 if report == "serial":      # figures drawn in this process: the CPU they cost
     F.parallel.__init__ = lambda self, workers=None: setattr(self, "workers", 1)
 if report != "none":        # "forked": as `magcal fit` draws them
@@ -211,7 +229,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
     ap.add_argument("--report-baseline-commit", default="f639afc")
-    ap.add_argument("--previous-commit", default="5335ede")
+    ap.add_argument("--previous-commit", default="ce2b43f")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
@@ -272,6 +290,16 @@ def main():
           f"{ps['fit_cpu_s']:.2f} s -> {ts['fit_cpu_s']:.2f} s (ratio "
           f"{ps['fit_cpu_s'] / ts['fit_cpu_s']:.2f}x), wall {ps['fit_wall_s']:.2f} s -> "
           f"{ts['fit_wall_s']:.2f} s (ratio {ps['fit_wall_s'] / ts['fit_wall_s']:.2f}x)")
+    pu, tu = res["previous_serial"], res["today_serial"]
+    print(f"  of it fit.thermal.fit_unit (the sensors' fits, without reading the files and "
+          f"the campaign check's settling analysis):")
+    print(f"    sensors serial (MAGCAL_WORKERS=1): CPU {pu['fit_unit_cpu_s']:.2f} s -> "
+          f"{tu['fit_unit_cpu_s']:.2f} s (ratio {pu['fit_unit_cpu_s'] / tu['fit_unit_cpu_s']:.2f}x)")
+    print(f"    forked: wall {pv['fit_unit_wall_s']:.2f} s -> {t['fit_unit_wall_s']:.2f} s "
+          f"(ratio {pv['fit_unit_wall_s'] / t['fit_unit_wall_s']:.2f}x), CPU with the "
+          f"children's {pv['fit_unit_cpu_s']:.2f} s -> {t['fit_unit_cpu_s']:.2f} s")
+    print(f"    today, serial -> forked: wall {tu['fit_unit_wall_s']:.2f} s -> "
+          f"{t['fit_unit_wall_s']:.2f} s")
     if not a.no_report:
         tf = res["today_forked_report"]
         print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "
