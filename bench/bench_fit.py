@@ -120,6 +120,54 @@ that move within the stopping tolerance instead of being identical); moments sha
 across folds (only the moment passes are additive, ~7 ms of a fold's ~30 ms, and the
 cross moments with x_hat depend on each subset's mean offset). The 1 s target is not
 reached: serially ~2x it, forked ~1.35x when the second core is free.
+
+A run after the fspeed11 steps (2026-11-24 19:54-19:59 UTC, load average 2.5-3.4 on the
+2 shared cores: other helpers' jobs held the second core, so every wall time of the run
+is the load's; --repeat 3 --no-memory --no-report; --previous-commit ce2b43f, main before
+them; f058c6a):
+  fit against ce2b43f, sensors serial (MAGCAL_WORKERS=1): CPU 2.90 s -> 2.64 s (ratio
+    1.10x)
+  of it fit.thermal.fit_unit, the sensors' fits alone, serial: CPU 2.03 s -> 1.86 s
+    (ratio 1.09x); forked (CPU with the children's): 2.12 s -> 2.05 s
+  today's fit_unit, serial -> forked: wall 2.49 s -> 3.16 s (the second core was taken)
+  fit CPU: 8.92 s (f6f3a45), 10.61 s (f639afc) -> 2.87 s (forked, with the children's)
+pipeline.fit is no longer the sensors' fits alone: since a695085 (review #19 F, merged
+before ce2b43f) it runs campaign.check.settling_warnings after them, in the process: it
+reads the files again and runs check_campaign (segments, a reference fit and the design
+covariance per sensor), ~0.8 s CPU of the 2.6-2.9 s (cProfile: poly_covariance 0.24 s,
+find_segments 0.18 s, reference_fit 0.14 s, reading 0.07 s). That is outside generator/fit.
+What made the step (each checked bit for bit on the recorded calls of the campaign: 15
+find_segments calls, the 120 held-out per-level fits and the 25 joint fits): the
+segment finder's settled windows and its settled-part search take their spans from one
+pair of max/min range tables per run (find_segments 0.331 s -> 0.264 s on the 15 calls);
+normal_matrix writes its M-M blocks and errors-in-variables diagonal in one indexed
+operation each (110-163 us -> 50 us per call at degree 0, ~10 calls per fit); M(T)^-1 v
+with M = I (the nominal prior: every fit's information point) is v itself, not a LAPACK
+solve (2.5 ms -> 0.04 ms per 27,000 rows).
+Evaluated and not taken:
+* batching the per-level constant fits: a level fit costs ~3.1 ms fixed plus ~0.7 us per
+  sample (40 recorded level fits subsampled and repeated to 552 / 2,208 / 8,832 samples
+  per fit: 3.51 / 4.69 / 7.53 ms, load ~4.5), so of the 120 held-out level fits' ~0.55 s,
+  ~0.37 s is fixed cost -- spread over ~150 small numpy calls per fit (Gauss-Newton ~40 %,
+  then the moments, the noise bound's clip iterations, the linear start, the two eigen
+  splits, ~0.3 ms each), no single one worth a special case. Only a stacked version of
+  reference_fit's whole degree-0 path (two passes, per-problem noise clipping, splits,
+  Gauss-Newton with its line search, per-file weights) would remove it: at most ~0.3 s
+  of the ~1.9 s serial fit_unit, not written in this session;
+* finer-grained hand-out of the forked work: the sensors' fits (serial CPU per part,
+  MAGCAL_WORKERS=1, load ~3.5) are preparation (gather, segments) 8 %, held-out folds
+  63 % (joint 0.65 s, per-level 0.59 s, scoring 0.06 s), final fits 16 %, checks and the
+  rest 13 %. Five equal sensors in two children bound the wall time at 3/5 of the
+  serial CPU (~1.1 s at 1.86 s); a perfect balance at 1/2 (~0.93 s). Folds handed out on
+  demand while the preparation and the final fits stay per sensor (three forked phases,
+  each sensor's samples pickled back after the first): ~(0.37 x 3/5 + 0.63 / 2) = 0.54 of
+  the serial CPU, i.e. < 0.1 s gained before the extra forks and pickling; the full
+  balance needs a dispatcher that hands each child its next item with its payload (the
+  final fit after its folds, the samples shipped once per child and sensor): ~0.15 s at
+  most. Not taken in this session.
+The 1 s target is not reached: the sensors' fits take ~1.9 s CPU serially (~1.9x), and
+forked at best ~1.1 s wall on a free second core; pipeline.fit adds ~0.8 s of the
+settling analysis, serial, in the parent.
 """
 
 from __future__ import annotations
