@@ -8,9 +8,10 @@ loop would; the calls run in up to `workers` forked children (item k in child k 
 workers; with on_demand=True each child takes the next item whenever it has finished one,
 so that calls of unequal cost keep every child busy), each child sending its results back
 through its own pipe (pickle, length prefixed) and ending with os._exit (no atexit, no
-buffered output of the parent's written twice). No multiprocessing.Pool and no concurrent.futures: a Pool runs handler threads in
-the parent and shares a queue lock with its workers, and its shutdown was seen to hang
-for good (a worker left waiting on that lock). A child shares nothing with the parent but
+buffered output of the parent's written twice). No multiprocessing.Pool and no
+concurrent.futures: a Pool runs handler threads in the parent and shares a queue lock
+with its workers, and its shutdown was seen to hang for good (a worker left waiting on
+that lock). A child shares nothing with the parent but
 the calls it was forked to do.
 
 Failures keep the serial behaviour:
