@@ -131,6 +131,18 @@ them; f058c6a):
     (ratio 1.09x); forked (CPU with the children's): 2.12 s -> 2.05 s
   today's fit_unit, serial -> forked: wall 2.49 s -> 3.16 s (the second core was taken)
   fit CPU: 8.92 s (f6f3a45), 10.61 s (f639afc) -> 2.87 s (forked, with the children's)
+A second run on the final tree (a1356ca: also the sensors handed to the children on
+demand; 20:08-20:13 UTC, load average 2.2-5.7, same options):
+  fit against ce2b43f, sensors serial: CPU 2.95 s -> 2.80 s (ratio 1.05x)
+  of it fit_unit, serial: CPU 2.09 s -> 1.97 s (ratio 1.06x); forked: wall 2.23 s ->
+    2.15 s, CPU with the children's 2.22 s -> 2.10 s
+  today's fit_unit, serial -> forked: wall 1.98 s -> 2.15 s (the second core was taken)
+  fit CPU: 9.31 s (f6f3a45), 10.98 s (f639afc) -> 2.93 s (forked, with the children's)
+So the step is 5-10 % of the sensors' fits' CPU, within what the load moves between
+runs. Alternating serial and forked in one process right after (20:13 UTC, load ~3.5,
+fit_unit, three times each): serial 2.31, 1.93, 1.87 s wall (CPU 1.86-2.23 s); forked
+2.02, 1.96, 1.25 s wall (1.25 s the one time the second core was free; pipeline.fit
+2.14 s wall then, against 2.71-3.59 s serially).
 pipeline.fit is no longer the sensors' fits alone: since a695085 (review #19 F, merged
 before ce2b43f) it runs campaign.check.settling_warnings after them, in the process: it
 reads the files again and runs check_campaign (segments, a reference fit and the design
@@ -143,7 +155,9 @@ pair of max/min range tables per run (find_segments 0.331 s -> 0.264 s on the 15
 normal_matrix writes its M-M blocks and errors-in-variables diagonal in one indexed
 operation each (110-163 us -> 50 us per call at degree 0, ~10 calls per fit); M(T)^-1 v
 with M = I (the nominal prior: every fit's information point) is v itself, not a LAPACK
-solve (2.5 ms -> 0.04 ms per 27,000 rows).
+solve (2.5 ms -> 0.04 ms per 27,000 rows). Also bit-identical, no measurable time:
+difference_noise_var's first clip pass as one reduction per axis row, the constant fit's
+one-node projection skipped.
 Evaluated and not taken:
 * batching the per-level constant fits: a level fit costs ~3.1 ms fixed plus ~0.7 us per
   sample (40 recorded level fits subsampled and repeated to 552 / 2,208 / 8,832 samples
@@ -154,8 +168,11 @@ Evaluated and not taken:
   reference_fit's whole degree-0 path (two passes, per-problem noise clipping, splits,
   Gauss-Newton with its line search, per-file weights) would remove it: at most ~0.3 s
   of the ~1.9 s serial fit_unit, not written in this session;
-* finer-grained hand-out of the forked work: the sensors' fits (serial CPU per part,
-  MAGCAL_WORKERS=1, load ~3.5) are preparation (gather, segments) 8 %, held-out folds
+* finer-grained hand-out of the forked work (generator.forked.forked_map(on_demand=True)
+  now exists and fit_unit hands the sensors out with it: a child that finished a cheap
+  sensor takes the next; the campaign's five equal sensors still split 3 + 2): the
+  sensors' fits (serial CPU per part, MAGCAL_WORKERS=1, load ~3.5) are preparation
+  (gather, segments) 8 %, held-out folds
   63 % (joint 0.65 s, per-level 0.59 s, scoring 0.06 s), final fits 16 %, checks and the
   rest 13 %. Five equal sensors in two children bound the wall time at 3/5 of the
   serial CPU (~1.1 s at 1.86 s); a perfect balance at 1/2 (~0.93 s). Folds handed out on
@@ -165,8 +182,9 @@ Evaluated and not taken:
   balance needs a dispatcher that hands each child its next item with its payload (the
   final fit after its folds, the samples shipped once per child and sensor): ~0.15 s at
   most. Not taken in this session.
-The 1 s target is not reached: the sensors' fits take ~1.9 s CPU serially (~1.9x), and
-forked at best ~1.1 s wall on a free second core; pipeline.fit adds ~0.8 s of the
+The 1 s target is not reached: the sensors' fits take ~1.9-2.0 s CPU serially (~2x),
+forked 1.25 s wall when the second core was free (its floor with five equal sensors in
+two children is 3/5 of the serial CPU, ~1.15-1.2 s); pipeline.fit adds ~0.8 s of the
 settling analysis, serial, in the parent.
 """
 
