@@ -4,14 +4,14 @@ today's code against the code at --baseline-commit, measured in the same run.
 
     python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
                                [--report-baseline-commit f639afc]
-                               [--previous-commit 5335ede]
+                               [--previous-commit ce2b43f]
                                [--rows 36000,144000] [--no-memory] [--no-report]
 
 Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
 equations) and --report-baseline-commit (the report as this work found it: the same
 figures as today, drawn with constrained layout; the older commit's report has fewer
 figures, so its time is printed but is no baseline) and --previous-commit (the tree before
-the latest step: 5335ede, main before the fspeed10 work; also run with MAGCAL_WORKERS=1,
+the latest step: ce2b43f, main before the fspeed11 work; also run with MAGCAL_WORKERS=1,
 so that the ratio of the sensors' fits themselves is seen without the forks). Each baseline's generator/ is
 extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
 tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
@@ -27,6 +27,9 @@ samsat_fm1/thermal_12pos.csv:
   fit is also run with MAGCAL_WORKERS=1 (the sensors one after the other, in the
   process), so that what the children buy is seen in the same run: wall time on a free
   second core, against the CPU the forks add;
+* of it, fit.thermal.fit_unit (the sensors' fits alone, the issue's "fit itself"; wrapped
+  in the driver): pipeline.fit also reads the files and, since a695085 (review #19 F),
+  runs campaign.check.settling_warnings after the fits, in the process (~0.8 s CPU);
 * report: generator.report.report.fit_report of that fit, figures drawn serially in the
   process (the CPU time they cost), best of --repeat; today's also as `magcal fit` draws
   them (2 forked children), wall and CPU;
@@ -117,6 +120,72 @@ that move within the stopping tolerance instead of being identical); moments sha
 across folds (only the moment passes are additive, ~7 ms of a fold's ~30 ms, and the
 cross moments with x_hat depend on each subset's mean offset). The 1 s target is not
 reached: serially ~2x it, forked ~1.35x when the second core is free.
+
+A run after the fspeed11 steps (2026-11-24 19:54-19:59 UTC, load average 2.5-3.4 on the
+2 shared cores: other helpers' jobs held the second core, so every wall time of the run
+is the load's; --repeat 3 --no-memory --no-report; --previous-commit ce2b43f, main before
+them; f058c6a):
+  fit against ce2b43f, sensors serial (MAGCAL_WORKERS=1): CPU 2.90 s -> 2.64 s (ratio
+    1.10x)
+  of it fit.thermal.fit_unit, the sensors' fits alone, serial: CPU 2.03 s -> 1.86 s
+    (ratio 1.09x); forked (CPU with the children's): 2.12 s -> 2.05 s
+  today's fit_unit, serial -> forked: wall 2.49 s -> 3.16 s (the second core was taken)
+  fit CPU: 8.92 s (f6f3a45), 10.61 s (f639afc) -> 2.87 s (forked, with the children's)
+A second run on the final tree (a1356ca: also the sensors handed to the children on
+demand; 20:08-20:13 UTC, load average 2.2-5.7, same options):
+  fit against ce2b43f, sensors serial: CPU 2.95 s -> 2.80 s (ratio 1.05x)
+  of it fit_unit, serial: CPU 2.09 s -> 1.97 s (ratio 1.06x); forked: wall 2.23 s ->
+    2.15 s, CPU with the children's 2.22 s -> 2.10 s
+  today's fit_unit, serial -> forked: wall 1.98 s -> 2.15 s (the second core was taken)
+  fit CPU: 9.31 s (f6f3a45), 10.98 s (f639afc) -> 2.93 s (forked, with the children's)
+So the step is 5-10 % of the sensors' fits' CPU, within what the load moves between
+runs. Alternating serial and forked in one process right after (20:13 UTC, load ~3.5,
+fit_unit, three times each): serial 2.31, 1.93, 1.87 s wall (CPU 1.86-2.23 s); forked
+2.02, 1.96, 1.25 s wall (1.25 s the one time the second core was free; pipeline.fit
+2.14 s wall then, against 2.71-3.59 s serially).
+pipeline.fit is no longer the sensors' fits alone: since a695085 (review #19 F, merged
+before ce2b43f) it runs campaign.check.settling_warnings after them, in the process: it
+reads the files again and runs check_campaign (segments, a reference fit and the design
+covariance per sensor), ~0.8 s CPU of the 2.6-2.9 s (cProfile: poly_covariance 0.24 s,
+find_segments 0.18 s, reference_fit 0.14 s, reading 0.07 s). That is outside generator/fit.
+What made the step (each checked bit for bit on the recorded calls of the campaign: 15
+find_segments calls, the 120 held-out per-level fits and the 25 joint fits): the
+segment finder's settled windows and its settled-part search take their spans from one
+pair of max/min range tables per run (find_segments 0.331 s -> 0.264 s on the 15 calls);
+normal_matrix writes its M-M blocks and errors-in-variables diagonal in one indexed
+operation each (110-163 us -> 50 us per call at degree 0, ~10 calls per fit); M(T)^-1 v
+with M = I (the nominal prior: every fit's information point) is v itself, not a LAPACK
+solve (2.5 ms -> 0.04 ms per 27,000 rows). Also bit-identical, no measurable time:
+difference_noise_var's first clip pass as one reduction per axis row, the constant fit's
+one-node projection skipped.
+Evaluated and not taken:
+* batching the per-level constant fits: a level fit costs ~3.1 ms fixed plus ~0.7 us per
+  sample (40 recorded level fits subsampled and repeated to 552 / 2,208 / 8,832 samples
+  per fit: 3.51 / 4.69 / 7.53 ms, load ~4.5), so of the 120 held-out level fits' ~0.55 s,
+  ~0.37 s is fixed cost -- spread over ~150 small numpy calls per fit (Gauss-Newton ~40 %,
+  then the moments, the noise bound's clip iterations, the linear start, the two eigen
+  splits, ~0.3 ms each), no single one worth a special case. Only a stacked version of
+  reference_fit's whole degree-0 path (two passes, per-problem noise clipping, splits,
+  Gauss-Newton with its line search, per-file weights) would remove it: at most ~0.3 s
+  of the ~1.9 s serial fit_unit, not written in this session;
+* finer-grained hand-out of the forked work (generator.forked.forked_map(on_demand=True)
+  now exists and fit_unit hands the sensors out with it: a child that finished a cheap
+  sensor takes the next; the campaign's five equal sensors still split 3 + 2): the
+  sensors' fits (serial CPU per part, MAGCAL_WORKERS=1, load ~3.5) are preparation
+  (gather, segments) 8 %, held-out folds
+  63 % (joint 0.65 s, per-level 0.59 s, scoring 0.06 s), final fits 16 %, checks and the
+  rest 13 %. Five equal sensors in two children bound the wall time at 3/5 of the
+  serial CPU (~1.1 s at 1.86 s); a perfect balance at 1/2 (~0.93 s). Folds handed out on
+  demand while the preparation and the final fits stay per sensor (three forked phases,
+  each sensor's samples pickled back after the first): ~(0.37 x 3/5 + 0.63 / 2) = 0.54 of
+  the serial CPU, i.e. < 0.1 s gained before the extra forks and pickling; the full
+  balance needs a dispatcher that hands each child its next item with its payload (the
+  final fit after its folds, the samples shipped once per child and sensor): ~0.15 s at
+  most. Not taken in this session.
+The 1 s target is not reached: the sensors' fits take ~1.9-2.0 s CPU serially (~2x),
+forked 1.25 s wall when the second core was free (its floor with five equal sensors in
+two children is 3/5 of the serial CPU, ~1.15-1.2 s); pipeline.fit adds ~0.8 s of the
+settling analysis, serial, in the parent.
 """
 
 from __future__ import annotations
@@ -154,12 +223,27 @@ def timed(fn):
     return r, w1 - w0, own, own + kids
 
 
+# the sensors' fits alone (fit.thermal.fit_unit, which pipeline.fit imports when it runs):
+# pipeline.fit also reads the files and, since a695085, runs the campaign check's
+# settling analysis (campaign.check.settling_warnings) after them, in the process
+from generator.fit import thermal as _thermal
+_fit_unit, _inner = _thermal.fit_unit, []
+
+
+def _timed_fit_unit(*a, **k):
+    r, wall, own, cpu = timed(lambda: _fit_unit(*a, **k))
+    _inner.append((wall, cpu))
+    return r
+
+
+_thermal.fit_unit = _timed_fit_unit
 fits = []
 for _ in range(2):          # the first fit also pays the lazy imports inside the fit
     cs, wall, own, cpu = timed(lambda: pipeline.fit(unit, [data]))
     fits.append((wall, own, cpu))
 res = {"fit_wall_s": min(f[0] for f in fits), "fit_s": min(f[1] for f in fits),
-       "fit_cpu_s": min(f[2] for f in fits)}
+       "fit_cpu_s": min(f[2] for f in fits),
+       "fit_unit_wall_s": min(f[0] for f in _inner), "fit_unit_cpu_s": min(f[1] for f in _inner)}
 if report == "serial":      # figures drawn in this process: the CPU they cost
     F.parallel.__init__ = lambda self, workers=None: setattr(self, "workers", 1)
 if report != "none":        # "forked": as `magcal fit` draws them
@@ -211,7 +295,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
     ap.add_argument("--report-baseline-commit", default="f639afc")
-    ap.add_argument("--previous-commit", default="5335ede")
+    ap.add_argument("--previous-commit", default="ce2b43f")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
@@ -272,6 +356,16 @@ def main():
           f"{ps['fit_cpu_s']:.2f} s -> {ts['fit_cpu_s']:.2f} s (ratio "
           f"{ps['fit_cpu_s'] / ts['fit_cpu_s']:.2f}x), wall {ps['fit_wall_s']:.2f} s -> "
           f"{ts['fit_wall_s']:.2f} s (ratio {ps['fit_wall_s'] / ts['fit_wall_s']:.2f}x)")
+    pu, tu = res["previous_serial"], res["today_serial"]
+    print(f"  of it fit.thermal.fit_unit (the sensors' fits, without reading the files and "
+          f"the campaign check's settling analysis):")
+    print(f"    sensors serial (MAGCAL_WORKERS=1): CPU {pu['fit_unit_cpu_s']:.2f} s -> "
+          f"{tu['fit_unit_cpu_s']:.2f} s (ratio {pu['fit_unit_cpu_s'] / tu['fit_unit_cpu_s']:.2f}x)")
+    print(f"    forked: wall {pv['fit_unit_wall_s']:.2f} s -> {t['fit_unit_wall_s']:.2f} s "
+          f"(ratio {pv['fit_unit_wall_s'] / t['fit_unit_wall_s']:.2f}x), CPU with the "
+          f"children's {pv['fit_unit_cpu_s']:.2f} s -> {t['fit_unit_cpu_s']:.2f} s")
+    print(f"    today, serial -> forked: wall {tu['fit_unit_wall_s']:.2f} s -> "
+          f"{t['fit_unit_wall_s']:.2f} s")
     if not a.no_report:
         tf = res["today_forked_report"]
         print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "

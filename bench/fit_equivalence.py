@@ -2,7 +2,7 @@
 """Does a faster fit decide the same? coefficients.json of today's tree against the tree at
 --baseline-commit, on the same inputs, fitted in the same run.
 
-    python3 bench/fit_equivalence.py [--baseline-commit 5335ede] [--keep DIR]
+    python3 bench/fit_equivalence.py [--baseline-commit ce2b43f] [--keep DIR]
 
 Cases (each fitted by generator.pipeline.fit in a fresh subprocess per tree, BLAS pinned
 to one thread, MAGCAL_WORKERS=1, run outside any checkout and checked to import the tree's
@@ -223,7 +223,7 @@ def compare(a, b, path, floats: dict, other: list):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline-commit", default="5335ede")
+    ap.add_argument("--baseline-commit", default="ce2b43f")
     ap.add_argument("--keep", help="keep the inputs and coefficients.json files here")
     a = ap.parse_args()
     td = tempfile.mkdtemp(prefix="fit_equivalence_")

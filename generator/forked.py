@@ -5,11 +5,13 @@
 
 forked_map(fn, items) yields fn(item) for every item, in the items' order, as a serial
 loop would; the calls run in up to `workers` forked children (item k in child k %
-workers), each child sending its results back through its own pipe (pickle, length
-prefixed) and ending with os._exit (no atexit, no buffered output of the parent's written
-twice). No multiprocessing.Pool and no concurrent.futures: a Pool runs handler threads in
-the parent and shares a queue lock with its workers, and its shutdown was seen to hang
-for good (a worker left waiting on that lock). A child shares nothing with the parent but
+workers; with on_demand=True each child takes the next item whenever it has finished one,
+so that calls of unequal cost keep every child busy), each child sending its results back
+through its own pipe (pickle, length prefixed) and ending with os._exit (no atexit, no
+buffered output of the parent's written twice). No multiprocessing.Pool and no
+concurrent.futures: a Pool runs handler threads in the parent and shares a queue lock
+with its workers, and its shutdown was seen to hang for good (a worker left waiting on
+that lock). A child shares nothing with the parent but
 the calls it was forked to do.
 
 Failures keep the serial behaviour:
@@ -17,7 +19,9 @@ Failures keep the serial behaviour:
   raises the same exception, rebuilt in the parent, when its turn comes in the order;
 * any other failure (another exception, a result that does not pickle, a child that died)
   re-runs that call in the parent, where it fails, or not, as it would serially (its own
-  traceback); a child that died leaves the rest of its share to the parent as well;
+  traceback); a child that died leaves the rest of its share to the parent as well
+  (on_demand: the call it had taken; the other children take the items not yet taken,
+  and the parent runs any item no child returned once every child has ended);
 * an interrupt in the parent (KeyboardInterrupt, the CLI's SIGTERM exception) kills and
   reaps every child before it goes on; a child itself never unwinds into the parent's
   code (os._exit in every case).
@@ -66,18 +70,27 @@ def can_fork(n_items: int, workers: int) -> bool:
             and threading.active_count() == 1)
 
 
-def forked_map(fn, items, workers=None, keep=(), before_fork=None):
+# on_demand hands out item numbers through a pipe filled before the children start: at
+# most this many (4 bytes each, within a pipe's 64 KiB buffer); beyond, items are dealt
+ON_DEMAND_MAX_ITEMS = 4096
+_INDEX = struct.Struct("<I")
+
+
+def forked_map(fn, items, workers=None, keep=(), before_fork=None, on_demand=False):
     """fn(item) for item in items: an iterator yielding each result in the items' order as
     soon as it is back; the calls spread over forked children (module doc). Iterate it to
     the end (or close it): the children are reaped when it finishes. before_fork(), if
     given, runs in this process just before the children are forked, and only then: the
     work every child would otherwise repeat on its own (lazy imports, loaded fonts), done
-    once and inherited."""
+    once and inherited. on_demand: each child takes the next item when it has finished
+    one (item numbers read from a shared pipe, 4 bytes each: a pipe read that small is
+    atomic), instead of items k, k + workers, ...; results the same, in the same order."""
     items = list(items)
     workers = default_workers() if workers is None else workers
     if not can_fork(len(items), workers):
         return (fn(it) for it in items)
-    return _run(fn, items, min(workers, len(items)), tuple(keep), before_fork)
+    return _run(fn, items, min(workers, len(items)), tuple(keep), before_fork,
+                bool(on_demand) and len(items) <= ON_DEMAND_MAX_ITEMS)
 
 
 # ---- the child ------------------------------------------------------------------------
@@ -111,21 +124,35 @@ def _flush_std() -> None:
             pass
 
 
-def _child(fn, items, w, workers, keep, fd) -> None:
-    """Child w: the calls w, w + workers, ... -> ("ok", value) / ("keep", exception state)
-    / ("failed", None) per call, in order; never returns (os._exit, also on an interrupt:
-    a KeyboardInterrupt or the CLI's SIGTERM exception is no Exception, so it ends the
-    child, whose remaining calls the parent, if it goes on, runs itself)."""
+def _taken(index_fd):
+    """The item numbers a child takes from the shared pipe, one at a time, until it is
+    empty (its write end closed: end of file)."""
+    while True:
+        b = os.read(index_fd, _INDEX.size)
+        if len(b) < _INDEX.size:
+            return
+        yield _INDEX.unpack(b)[0]
+
+
+def _child(fn, items, w, workers, keep, fd, index_fd=None) -> None:
+    """Child w: the calls w, w + workers, ... (index_fd: those it takes from that pipe,
+    each result preceded by its item number) -> ("ok", value) / ("keep", exception
+    state) / ("failed", None) per call, in order; never returns (os._exit, also on an
+    interrupt: a KeyboardInterrupt or the CLI's SIGTERM exception is no Exception, so it
+    ends the child, whose remaining calls the parent, if it goes on, runs itself)."""
     code = 1
     try:
         _IN_CHILD[0] = True
-        for k in range(w, len(items), workers):
+        ks = range(w, len(items), workers) if index_fd is None else _taken(index_fd)
+        for k in ks:
             try:
                 msg = ("ok", fn(items[k]))
             except keep as e:
                 msg = ("keep", _exception_state(e))
             except Exception:
                 msg = ("failed", None)
+            if index_fd is not None:
+                _send(fd, k)
             try:
                 _send(fd, msg)
             except Exception:             # a result (or exception) that does not pickle
@@ -162,14 +189,32 @@ class _Reader:
     def next(self, w):
         """Child w's next message (bytes), or None when its pipe ended without one."""
         while not self.msgs[w] and self.open[w]:
-            for i in self._ready():
-                chunk = os.read(self.fds[i], 1 << 20)
-                if chunk:
-                    self.buf[i] += chunk
-                    self._split(i)
-                else:                       # end of file: the child has exited
-                    self.open[i] = False
+            self.pump()
         return self.msgs[w].pop(0) if self.msgs[w] else None
+
+    def pump(self) -> None:
+        """Read what the open pipes have (blocks until one has data or ends)."""
+        for i in self._ready():
+            chunk = os.read(self.fds[i], 1 << 20)
+            if chunk:
+                self.buf[i] += chunk
+                self._split(i)
+            else:                           # end of file: the child has exited
+                self.open[i] = False
+
+    def item(self, k, done):
+        """on_demand: item k's message (bytes), or None when every pipe ended without it;
+        done: {item number: message} of those back before their turn (kept for it)."""
+        while k not in done:
+            for w in range(len(self.fds)):
+                msgs = self.msgs[w]
+                while len(msgs) >= 2:        # (item number, message) as the child sent them
+                    num = pickle.loads(msgs.pop(0))
+                    done[num] = msgs.pop(0)
+            if k in done or not any(self.open):
+                break
+            self.pump()
+        return done.pop(k, None)
 
     def _ready(self):
         """Indices of the open pipes with data or end of file (blocks until one has)."""
@@ -187,11 +232,12 @@ class _Reader:
 _SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM") if hasattr(signal, n))
 
 
-def _start(fn, items, workers, keep, pids, fds) -> bool:
+def _start(fn, items, workers, keep, pids, fds, index_fd=None) -> bool:
     """Fork the children (their pids and read ends appended to pids, fds); False if the
     system refused a pipe or a fork (the caller kills and reaps those already started).
     SIGINT and SIGTERM are held back from the fork until its pid is in pids: an
-    interrupt between the two would leave a child nobody kills."""
+    interrupt between the two would leave a child nobody kills. index_fd: the read end
+    of the item numbers' pipe (on_demand), its write end already closed."""
     _flush_std()
     mask = hasattr(signal, "pthread_sigmask")
     for w in range(workers):
@@ -215,7 +261,7 @@ def _start(fn, items, workers, keep, pids, fds) -> bool:
                     if mask:
                         signal.pthread_sigmask(signal.SIG_SETMASK, old)
                 finally:
-                    _child(fn, items, w, workers, keep, wfd)
+                    _child(fn, items, w, workers, keep, wfd, index_fd)
             os.close(wfd)
             pids.append(pid)
             fds.append(r)
@@ -248,21 +294,46 @@ def _stop(pids, fds, kill) -> None:
     del pids[:], fds[:]
 
 
-def _run(fn, items, workers, keep, before_fork):
+def _index_pipe(n):
+    """on_demand: a pipe holding the item numbers 0..n-1, its write end closed (the
+    children read it to its end); its read end, or None if the system refused a pipe."""
+    try:
+        r, w = os.pipe()
+    except OSError:
+        return None
+    try:
+        data = memoryview(b"".join(_INDEX.pack(k) for k in range(n)))
+        while data:                         # within the pipe's buffer: never blocks
+            data = data[os.write(w, data):]
+    finally:
+        os.close(w)
+    return r
+
+
+def _run(fn, items, workers, keep, before_fork, on_demand=False):
     pids, fds = [], []
     finished = False
+    index_fd = None
     try:
         if before_fork is not None:
             before_fork()
-        if not _start(fn, items, workers, keep, pids, fds):
+        if on_demand:
+            index_fd = _index_pipe(len(items))
+        started = (not on_demand or index_fd is not None) and _start(
+            fn, items, workers, keep, pids, fds, index_fd)
+        if index_fd is not None:            # the children hold their own read ends
+            os.close(index_fd)
+            index_fd = None
+        if not started:
             _stop(pids, fds, kill=True)     # no fork to be had: the serial loop
             for it in items:
                 yield fn(it)
             finished = True
             return
         reader = _Reader(fds)
+        done = {}
         for k in range(len(items)):
-            raw = reader.next(k % workers)
+            raw = reader.item(k, done) if on_demand else reader.next(k % workers)
             try:
                 kind, payload = pickle.loads(raw) if raw is not None else ("failed", None)
             except Exception:
@@ -278,4 +349,6 @@ def _run(fn, items, workers, keep, before_fork):
             yield payload if kind == "ok" else fn(items[k])
         finished = True
     finally:
+        if index_fd is not None:
+            os.close(index_fd)
         _stop(pids, fds, kill=not finished)

@@ -299,14 +299,15 @@ def normal_matrix(mom, bp, Mp, eiv_var=0.0):
     out[:nb, nb:] = Mb.T
     # M-M: delta_aa' A_{k+m}[c,d], i.e. [k,a,c,m,a',d] zero unless a = a'
     MM = out[nb:, nb:].reshape(K, 3, 3, K, 3, 3)
-    G = A[idx].transpose(0, 2, 1, 3)                          # [k,c,m,d]
-    for a in range(3):
-        MM[:, a, :, :, a, :] = G
+    MM[:, _AX3, :, :, _AX3, :] = A[idx].transpose(0, 2, 1, 3)   # [k,c,m,d] for every a
     if eiv_var:     # - eiv_var sum w P_k P_m on the diagonal of each (k, m) block
         MMf = out[nb:, nb:].reshape(K, 9, K, 9)
-        for i in range(9):
-            MMf[:, i, :, i] -= eiv_var * W[idx]
+        MMf[:, _AX9, :, _AX9] -= eiv_var * W[idx]       # each element once, as per i
     return out
+
+
+_AX3, _AX9 = np.arange(3), np.arange(9)
+_EYE3 = np.eye(3)
 
 
 class ReadingStats:
@@ -459,6 +460,10 @@ def _solve_M(P, Mp, v):
     where M has no temperature terms (the constant fits, a nominal prior), else per
     sample."""
     if len(Mp) == 1 or not np.any(Mp[1:]):
+        if np.array_equal(Mp[0], _EYE3):
+            # M = I (the nominal prior): the solve's values (it may flip the sign of an
+            # exact 0, which no sum with a nonzero term sees), without LAPACK per row block
+            return v.copy()
         return np.linalg.solve(Mp[0], v.T).T
     return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
 
@@ -538,6 +543,8 @@ def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
     M_g = np.einsum("gk,kij->gij", Pg, Mk)
     c_g = Pg @ ck
     b_g = -np.linalg.solve(M_g, c_g[:, :, None])[:, :, 0]
+    if Pg.shape == (1, 1) and Pg[0, 0] == 1.0:
+        return b_g, M_g         # one node (a constant fit): the projection is 1, exactly
     proj = np.linalg.pinv(Pg)
     return proj @ b_g, np.einsum("qg,gij->qij", proj, M_g)
 
@@ -996,9 +1003,13 @@ def difference_noise_var(series) -> np.ndarray | None:
     d = np.ascontiguousarray(np.concatenate(dd).T)        # (k, n): an axis contiguous
     keep = None                                           # None: every difference
     for _ in range(5):
-        kept = list(d) if keep is None else [a[m] for a, m in zip(d, keep)]
-        mu = np.array([np.mean(a) for a in kept])
-        var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
+        if keep is None:          # every difference: one reduction per axis row (the same
+            mu = np.mean(d, axis=1)                       # pairwise sums as per row)
+            var = np.mean((d - mu[:, None]) ** 2, axis=1)
+        else:
+            kept = [a[m] for a, m in zip(d, keep)]
+            mu = np.array([np.mean(a) for a in kept])
+            var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
         new = np.abs(d - mu[:, None]) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
         if new.all() if keep is None else np.array_equal(new, keep):
             break

@@ -243,7 +243,7 @@ class _RangeExtreme:
 _DURATION_BANDS = (0.99, 0.95, 0.85, 0.6)
 
 
-def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
+def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med, extremes=None):
     """(start, stop, drift_C) of the longest stretch of x (times ts) meeting lim
     (_SettleLimits), lasting min_duration_s; None if there is none. Starts and stops are
     tried on a grid of about 200 points per run (every sample in runs up to 200 long):
@@ -251,7 +251,10 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
     Of the longest pairs that pass, the first start, then the first stop (as a scan over
     starts keeping the first strictly longer one). The pairs are tested in bands of
     decreasing duration (_DURATION_BANDS), many at once, and the search stops at the first
-    band where one passes: every longer pair was tested and failed."""
+    band where one passes: every longer pair was tested and failed.
+    extremes: (hi, lo, offset): _RangeExtreme max and min tables of the whole run that x
+    is x_run[offset:offset + len(x)] of (built once per run; a max or min is exact, so
+    the same spans as tables of x itself); None: built here."""
     n = len(x)
     if n < 2 * n_block:
         return None
@@ -269,7 +272,10 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
         return None
     tc = ts - ts[0]
     P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
-    hi, lo = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum)
+    if extremes is None:
+        hi, lo, off = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum), 0
+    else:
+        hi, lo, off = extremes
     above = np.inf
     for band in (*_DURATION_BANDS, None):
         below, above = above, (-np.inf if band is None else band * longest)
@@ -287,7 +293,7 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med):
         dur = dur2[I, J]
         I, J = rows[I], cols[J]
         i, j = starts[I], stops[J]
-        span = hi.query(i, j) - lo.query(i, j)
+        span = hi.query(i + off, j + off) - lo.query(i + off, j + off)
         N = (j - i).astype(float)
         St, Sx, Stt, Stx = (p[j] - p[i] for p in P)
         den = N * Stt - St * St
@@ -319,8 +325,11 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
 
     Tf = median_filter(T[idx], size=5, mode="nearest") if len(idx) >= 5 else T[idx]
     ts = t[idx]
-    win = np.lib.stride_tricks.sliding_window_view(Tf, n_w)
-    quiet = (win.max(axis=1) - win.min(axis=1)) <= band_C * (1 + _SLACK)
+    # every window's span from range tables (exact: the same max and min as the windows'
+    # own, in O(n log n) rather than O(n n_w)); the tables serve _longest_settled too
+    hi, lo = _RangeExtreme(Tf, np.maximum), _RangeExtreme(Tf, np.minimum)
+    w0 = np.arange(len(idx) - n_w + 1)
+    quiet = (hi.query(w0, w0 + n_w) - lo.query(w0, w0 + n_w)) <= band_C * (1 + _SLACK)
     cover = np.zeros(len(idx) + 1, int)
     starts = np.nonzero(quiet)[0]
     np.add.at(cover, starts, 1)
@@ -336,7 +345,7 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
             if b0 - a0 < 2 or ts[b0 - 1] - ts[a0] < min_duration_s:
                 continue
             got = _longest_settled(ts[a0:b0], Tf[a0:b0], lim, n_block, min_duration_s,
-                                   dt_med)
+                                   dt_med, extremes=(hi, lo, a0))
             if got is None:
                 continue
             s, e, drift = got

@@ -617,8 +617,10 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
 
     out, temps = {}, {}
     # closing: children still running when this loop stops early are killed and reaped now
+    # on demand: a child that finished a cheap sensor (no held-out folds, e.g. a boom
+    # sensor without temperature) takes the next one, not the share dealt to it
     with closing(forked_map(one_sensor, unit.sensors, keep=(InputError,),
-                            before_fork=_import_for_sensor_fits)) as results:
+                            before_fork=_import_for_sensor_fits, on_demand=True)) as results:
         for s, (lines, cal, t) in zip(unit.sensors, results):
             for line in lines:
                 if progress:
