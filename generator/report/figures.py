@@ -27,12 +27,13 @@ def _figure(w_in, h_in, constrained=False):
     of a 5 x 3 grid)."""
     import matplotlib
     matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from generator.report.agg_text import canvas_class
 
     fig = Figure(figsize=(w_in, h_in), dpi=DPI,
                  layout="constrained" if constrained is True else None)
-    FigureCanvasAgg(fig)
+    canvas_class()(fig)     # Agg, its strings rasterised once per process (agg_text)
     fig._magcal_fixed = constrained == "fixed"
     return fig
 
