@@ -56,3 +56,26 @@ def test_cached_text_is_stock_text_on_whole_pixels():
     # off the pixel grid: the whole-pixel anchor's pixels (x 20.4 -> 20, y 49.6 -> 50)
     assert np.array_equal(_draw(cached, 20.4, 49.6, "-0.00128"), _draw(stock, 20.0, 50.0,
                                                                        "-0.00128"))
+
+
+def test_cached_font_height_metrics_lay_out_text_as_matplotlib():
+    """Text._get_layout takes the font's ascent, descent and line gap from the renderer's
+    _get_font_height_metrics when there is one (agg_text caches them): the same extents
+    as matplotlib's own reading of the font tables, one line or several."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    cls = agg_text.canvas_class()
+    if cls is FigureCanvasAgg:
+        pytest.skip("this matplotlib has no glyph-level API: stock text drawing")
+    extents = []
+    for canvas_cls in (FigureCanvasAgg, cls):
+        fig = Figure(figsize=(3.0, 2.0), dpi=90)
+        r = canvas_cls(fig).get_renderer()
+        texts = [fig.text(0.1, 0.5, "B/|B| 0.00128", fontsize=7),
+                 fig.text(0.3, 0.2, "first line\nsecond, °C", fontsize=9.5, rotation=90),
+                 fig.text(0.6, 0.6, "bold title", fontsize=11, fontweight="bold")]
+        extents.append([t.get_window_extent(r).bounds for t in texts])
+    assert hasattr(cls(Figure()).get_renderer(), "_get_font_height_metrics")
+    assert extents[0] == extents[1]

@@ -71,6 +71,30 @@ def _build():
                 self._renderer.draw_text_image(buf, x0 + left, h - (y0_up + top) + buf.shape[0],
                                                0, gc)
 
+        def _get_font_height_metrics(self, prop):
+            """(ascent, descent, line gap) of prop's font in pixels, which Text._get_layout
+            asks its renderer for when it has this method (else it finds the font file and
+            reads its tables on each call: ~3,000 times a report): the same arithmetic as
+            Text._get_layout's own, once per font and size."""
+            key = ("height metrics", hash(prop), prop.get_size_in_points(), self.dpi)
+            if key not in _CACHE:
+                from matplotlib.font_manager import fontManager, get_font
+                font = get_font(fontManager._find_fonts_by_props(prop))
+                out = (None, None, None)
+                for table_name, gap_key, ascent_key, descent_key in (
+                        ('OS/2', 'sTypoLineGap', 'sTypoAscender', 'sTypoDescender'),
+                        ('hhea', 'lineGap', 'ascent', 'descent')):
+                    table = font.get_sfnt_table(table_name)
+                    if table is None:
+                        continue
+                    units_per_em = font.get_sfnt_table('head')['unitsPerEm']
+                    scale = 1 / units_per_em * prop.get_size_in_points() * self.dpi / 72
+                    out = (table[ascent_key] * scale, -table[descent_key] * scale,
+                           table[gap_key] * scale)
+                    break
+                _CACHE[key] = out
+            return _CACHE[key]
+
         def _rasterise(self, s, prop, angle, aa, flags):
             """((bitmap, left, top), ...) of the glyphs of s with its anchor at (0, 0) (the
             arithmetic of RendererAgg._draw_text_glyphs_and_boxes at x = 0, y_up = 0)."""
