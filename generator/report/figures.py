@@ -163,27 +163,43 @@ def _ticks_in_view(fig):
 _DEFERRED = None
 
 
-def _lean_rc(fn):
-    """fn, a figure function, run with rcParams["patch.facecolor"] resolved to the colour
-    it names. matplotlib's default is "C0", the first colour of the colour cycle, which
-    every Patch resolves when it is made -- the four spines of each axes among them -- by
-    building the cycle's colour list anew (Cycler.by_key): 5 % of the report's figure time
-    (py-spy). Resolved once per figure here: the same colour."""
+def _lean(fn):
+    """fn, a figure function, run lean; two costs of matplotlib that are not drawing:
+
+    * rcParams["patch.facecolor"] resolved to the colour it names. matplotlib's default is
+      "C0", the first colour of the colour cycle, which every Patch resolves when it is
+      made -- the four spines of each axes among them -- by building the cycle's colour
+      list anew (Cycler.by_key): 5 % of the report's figure time (py-spy). Resolved once
+      per figure here: the same colour.
+    * Python's cyclic garbage collector paused while the figure is built and drawn (and
+      restored after). A figure makes ~10^5 small objects; each allocation threshold
+      crossed runs a collection, which walks everything the process holds (the campaign's
+      arrays and the fit besides): ~15 % of the figure time (bench/bench_figures.py). The
+      figure's own reference cycles are freed by the next collection after it; a paused
+      collector holds at most one figure's garbage."""
     import functools
 
     @functools.wraps(fn)
     def run(*args, **kwargs):
+        import gc
+
         import matplotlib
         from matplotlib.colors import to_hex, to_rgba
         face = to_hex(to_rgba(matplotlib.rcParams["patch.facecolor"]), keep_alpha=True)
-        with matplotlib.rc_context({"patch.facecolor": face}):
-            return fn(*args, **kwargs)
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with matplotlib.rc_context({"patch.facecolor": face}):
+                return fn(*args, **kwargs)
+        finally:
+            if collecting:
+                gc.enable()
     return run
 
 
 def _deferrable(paths_of):
     def deco(fn):
-        fn = _lean_rc(fn)
+        fn = _lean(fn)
 
         def wrapper(*args, **kwargs):
             if _DEFERRED is None:
@@ -393,7 +409,7 @@ def coefficient_grids(jobs) -> list:
     return [Path(j["path"]) for j in jobs]
 
 
-@_lean_rc
+@_lean
 def _coefficient_grids(jobs) -> list:
     """Several coefficient_grid figures (one per sensor) drawn on one reused figure: the
     axes and their ticks are built once, which halves the cost of every further sensor.
