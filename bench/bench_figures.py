@@ -53,49 +53,55 @@ of it). The PNGs: the same pixels as the baseline's (the twelve PNGs of the repo
 compared pixel by pixel), written as RGB instead of RGBA (~11 % fewer bytes); two runs
 give identical files.
 
-The figs11 step (today = 6fa54a2; --baseline-commit ce2b43f, main with the figs10 step):
-strings rasterised once per process and composited from then on
-(generator/report/agg_text.py: ~1,250 strings drawn, ~370 distinct; the fonts' height
-metrics kept per font and size), and the PNG rows written unfiltered with zlib level 3
-(figures._png_bytes; PIL tried five filters per row). Two runs, --repeat 3:
-  19:57-20:00 UTC, load average 3.0-3.2:
-    _coefficient_grids (5 PNG)  1.340 -> 0.817 s  1.64x
-    axis_rms_bars               0.115 -> 0.102 s  1.13x
-    error_maps (2 PNG)          0.673 -> 0.404 s  1.67x
-    positions_timeline          0.473 -> 0.435 s  1.09x
-    rms_bars                    0.594 -> 0.420 s  1.41x
-    sphere_projections          0.494 -> 0.317 s  1.56x
-    temperature_profile         0.205 -> 0.163 s  1.26x
-    all figures, serial CPU: 3.920 -> 2.658 s  ratio 1.47x
-    forked: wall 7.451 -> 3.781 s, CPU 4.800 -> 3.800 s (the load's: see above)
-  20:10-20:13 UTC, load average 2.9 rising to 5.7 (other helpers' test runs):
-    all figures, serial CPU: 3.788 -> 2.906 s  ratio 1.30x (per figure 0.83x-1.58x;
-      positions_timeline 0.438 -> 0.525 s, the one figure slower: noise at that load, it
-      was 1.09x faster in the first run)
-    forked: wall 6.792 -> 5.850 s, CPU 4.530 -> 3.830 s
-    parent before the fork + larger worker: 2.444 -> 2.063 s (1.18x; before the fork
-      0.30 -> 0.33 s, workers 2.04/2.14 -> 1.73/1.73 s, inflated by the load: their sum
-      is 0.6 s above that round's serial total)
-  A lighter-load run of the new columns alone (20:05 UTC, load 1.5-2.0, --repeat 1):
-    serial 3.787 -> 2.943 s; parent before the fork + larger worker 2.528 -> 1.937 s
-    (before the fork 0.29 s both; workers 1.71/2.23 -> 1.30/1.65 s).
-The 1 s target is NOT reached. On a free second core the figures' wall time is about
-0.3 s before the fork (importing matplotlib ~0.26 s, the warm-up draw) plus the larger
-worker's share, ~1.3-1.7 s at these loads: ~1.6-2.0 s. Reaching 1 s would take the serial
-CPU to ~1.3 s, half of today's. Where it goes now (py-spy, 500 Hz, one serial run of all
-figures, 20:06 UTC; shares of the figures' samples, nested): canvas draw 55 % (axis
-drawing 35 %: tick objects created lazily 13 %, tick drawing 11 %, tick label extents
-7 %; text 10 %, almost all first rasterisations of a string), creating the subplots 20 %
-(Axes.clear 13 %: spines, the colour cyclers, the first tick of each axis, clip paths),
-PNG encoding 3 %. That is matplotlib's per-artist Python cost (~62 axes, ~900 tick
-objects for the twelve PNGs); what is left to cut is fewer axes and ticks, or other
-drawing code than matplotlib's artists.
+The figs11 step (--baseline-commit ce2b43f, main with the figs10 step):
+* strings rasterised once per process and composited from then on
+  (generator/report/agg_text.py: ~1,250 strings drawn, ~370 distinct), the fonts' height
+  metrics kept per font and size;
+* the PNG rows written unfiltered with zlib level 3 (figures._png_bytes; PIL tried five
+  filters per row);
+* per figure (figures._lean): rcParams["patch.facecolor"] resolved once ("C0" was
+  resolved through Cycler.by_key for every spine: 5 % of the figure time, py-spy), and
+  the cyclic garbage collector paused (an A/B of that commit alone, serial, load ~5,
+  best 3 of 3: 2.90-3.22 -> 2.45-2.80 s; peak RSS 270 -> 246 MB, not higher).
+The final run (20:25-20:27 UTC, load average 1.3-1.9, --repeat 3; today = a2d6971):
+    _coefficient_grids (5 PNG)  1.202 -> 0.815 s  1.48x
+    axis_rms_bars               0.109 -> 0.097 s  1.13x
+    error_maps (2 PNG)          0.556 -> 0.294 s  1.89x
+    positions_timeline          0.418 -> 0.314 s  1.33x
+    rms_bars                    0.522 -> 0.353 s  1.48x
+    sphere_projections          0.446 -> 0.312 s  1.43x
+    temperature_profile         0.181 -> 0.162 s  1.11x
+    all figures, serial CPU: 3.434 -> 2.352 s  ratio 1.46x
+    forked (2 workers): wall 2.161 -> 1.546 s  ratio 1.40x;  CPU 4.000 -> 2.700 s  1.48x
+    parent before the fork + larger worker: 2.119 -> 1.525 s  1.39x  (before the fork
+      0.28 -> 0.27 s; workers 1.83/1.84 -> 1.15/1.25 s)
+  The measured forked wall time (1.55 s) is that estimate: the second core was mostly
+  free in that run. Earlier runs of intermediate commits, at higher loads (19:57 UTC,
+  load 3.0-3.2, text cache + PNG writer + height metrics: serial 3.920 -> 2.658 s, 1.47x;
+  20:10 UTC, load 2.9-5.7, same code: 3.788 -> 2.906 s, 1.30x) agree within the load's
+  noise; the seconds move with the load, the ratios less.
+The 1 s target is NOT reached: the figures take ~1.5 s of wall time with the second core
+free (0.27 s before the fork: importing matplotlib ~0.26 s and the warm-up draw; then
+the larger worker's ~1.15-1.3 s). A worker draws more than half the serial CPU (the two
+sum to ~2.4-2.8 s against 2.35 s serially: each process rasterises its own strings and
+pays its own first draws). Reaching 1 s would take the serial CPU to ~1.3 s, ~55 % of
+today's. Where it goes (py-spy, 500 Hz, one serial run of all figures after the text
+cache and before the collector pause, 20:06-20:19 UTC; shares of the figures' samples,
+nested): the canvas draw ~55 % (axis drawing ~35 %: tick objects created lazily ~11-13 %,
+tick drawing ~11 %, tick label extents ~7 %; text ~10 %, nearly all a string's first
+rasterisation), creating the subplots ~17-20 % (Axes.clear: spines, the first tick of
+each axis and its clip path), PNG encoding ~3 %; a garbage collection ~8 % showed inside
+whatever allocated at the time (now paused). What is left is matplotlib's per-artist
+Python cost: ~62 axes and ~900 tick objects for the twelve PNGs. Further cuts: fewer
+axes and ticks per figure (a content decision), or drawing other than with matplotlib's
+artists; and importing matplotlib while the fit's children run (outside the report).
 The PNGs: text drawn at matplotlib's position rounded to a whole pixel (at most half a
 pixel away; at a whole-pixel position the glyphs are matplotlib's own pixels,
 host_tests/test_figures_png_text.py), so 1.4-2.4 % of each PNG's pixels differ from
-ce2b43f's, all in text; nothing else changes (the PNG writer is lossless, same test).
-Looked at side by side: no difference to the eye. The twelve PNGs: 1.35 -> 1.19 MB; two
-forked runs and a serial one give identical files; the render check is clean.
+ce2b43f's, all in text; nothing else changes (the PNG writer is lossless, same test; the
+facecolor and collector steps gave byte-identical files). Looked at side by side: no
+difference to the eye. The twelve PNGs: 1.35 -> 1.19 MB; two forked runs and a serial one
+give identical files; the render check is clean.
 """
 
 from __future__ import annotations
