@@ -27,12 +27,13 @@ def _figure(w_in, h_in, constrained=False):
     of a 5 x 3 grid)."""
     import matplotlib
     matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from generator.report.agg_text import canvas_class
 
     fig = Figure(figsize=(w_in, h_in), dpi=DPI,
                  layout="constrained" if constrained is True else None)
-    FigureCanvasAgg(fig)
+    canvas_class()(fig)     # Agg, its strings rasterised once per process (agg_text)
     fig._magcal_fixed = constrained == "fixed"
     return fig
 
@@ -162,8 +163,44 @@ def _ticks_in_view(fig):
 _DEFERRED = None
 
 
+def _lean(fn):
+    """fn, a figure function, run lean; two costs of matplotlib that are not drawing:
+
+    * rcParams["patch.facecolor"] resolved to the colour it names. matplotlib's default is
+      "C0", the first colour of the colour cycle, which every Patch resolves when it is
+      made -- the four spines of each axes among them -- by building the cycle's colour
+      list anew (Cycler.by_key): 5 % of the report's figure time (py-spy). Resolved once
+      per figure here: the same colour.
+    * Python's cyclic garbage collector paused while the figure is built and drawn (and
+      restored after). A figure makes ~10^5 small objects; each allocation threshold
+      crossed runs a collection, which walks everything the process holds (the campaign's
+      arrays and the fit besides): ~15 % of the figure time (bench/bench_figures.py). The
+      figure's own reference cycles are freed by the next collection after it; a paused
+      collector holds at most one figure's garbage."""
+    import functools
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        import gc
+
+        import matplotlib
+        from matplotlib.colors import to_hex, to_rgba
+        face = to_hex(to_rgba(matplotlib.rcParams["patch.facecolor"]), keep_alpha=True)
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with matplotlib.rc_context({"patch.facecolor": face}):
+                return fn(*args, **kwargs)
+        finally:
+            if collecting:
+                gc.enable()
+    return run
+
+
 def _deferrable(paths_of):
     def deco(fn):
+        fn = _lean(fn)
+
         def wrapper(*args, **kwargs):
             if _DEFERRED is None:
                 return fn(*args, **kwargs)
@@ -290,25 +327,56 @@ def _save(fig, path) -> Path:
         _fixed_margins(fig)
     _ticks_in_view(fig)
     import matplotlib
-    from PIL import Image, PngImagePlugin
 
     # Drawn on the figure's Agg canvas at DPI (the figure's own dpi: _figure), as savefig
     # would, and written as an RGB PNG when every pixel is opaque (the figures' white
-    # background): the same pixels as savefig's RGBA PNG, with a quarter less to filter and
-    # compress (the thermal campaign's twelve PNGs: PNG encoding ~0.24 -> ~0.18 s CPU,
-    # 1.52 -> 1.35 MB). zlib level 3, not PIL's 6: the same pixels, a third less encoding
-    # time for ~7 % more bytes. Text chunks: matplotlib's "Software", EMPTY_AXES_KEY.
+    # background): the same pixels as savefig's RGBA PNG, with a quarter less to compress.
+    # Text chunks: matplotlib's "Software", EMPTY_AXES_KEY. The encoding: _png_bytes.
     fig.set_dpi(DPI)
     fig.canvas.draw()
     rgba = np.asarray(fig.canvas.buffer_rgba())
     pixels = rgba[..., :3] if (rgba[..., 3] == 255).all() else rgba
-    info = PngImagePlugin.PngInfo()
-    info.add_text("Software", f"Matplotlib version{matplotlib.__version__}, "
-                              "https://matplotlib.org/")
-    info.add_text(EMPTY_AXES_KEY, "; ".join(empty_axes(fig)))
-    Image.fromarray(np.ascontiguousarray(pixels)).save(
-        path, format="png", pnginfo=info, compress_level=3, dpi=(DPI, DPI))
+    texts = {"Software": f"Matplotlib version{matplotlib.__version__}, https://matplotlib.org/",
+             EMPTY_AXES_KEY: "; ".join(empty_axes(fig))}
+    path.write_bytes(_png_bytes(pixels, texts, DPI))
     return path
+
+
+PNG_ZLIB_LEVEL = 3
+
+
+def _png_bytes(pixels, texts, dpi) -> bytes:
+    """A PNG (8 bits per channel, RGB or RGBA by pixels' last axis) of pixels (H, W, 3|4
+    uint8), lossless: every row with PNG filter 0 (none) and zlib level PNG_ZLIB_LEVEL.
+    PIL's encoder tries the five filters on each row (adaptive): on the report's figures
+    (large flat areas, thin lines) that took 2.5-3x the time of compressing the rows as
+    they are (three of the thermal campaign's PNGs: 15-33 ms against 5-13 ms each), for
+    files from 20 % smaller to 21 % larger (bench/bench_figures.py). texts: tEXt chunks (iTXt,
+    UTF-8, when a value is not Latin-1), as PIL writes and reads them; dpi: the pHYs chunk
+    as PIL writes it."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind))))
+
+    h, w, c = pixels.shape
+    rows = np.zeros((h, 1 + w * c), np.uint8)       # column 0: filter type 0 per row
+    rows[:, 1:] = pixels.reshape(h, w * c)
+    ppm = int(dpi / 0.0254 + 0.5)
+    out = [b"\x89PNG\r\n\x1a\n",
+           chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2 if c == 3 else 6, 0, 0, 0))]
+    for key, value in texts.items():
+        try:
+            out.append(chunk(b"tEXt", key.encode("latin-1") + b"\0" + value.encode("latin-1")))
+        except UnicodeEncodeError:
+            out.append(chunk(b"iTXt", key.encode("latin-1") + b"\0\0\0\0\0"
+                             + value.encode("utf-8")))
+    out += [chunk(b"pHYs", struct.pack(">IIB", ppm, ppm, 1)),
+            chunk(b"IDAT", zlib.compress(rows.tobytes(), PNG_ZLIB_LEVEL)),
+            chunk(b"IEND", b"")]
+    return b"".join(out)
 
 
 # =======================================================================================
@@ -341,6 +409,7 @@ def coefficient_grids(jobs) -> list:
     return [Path(j["path"]) for j in jobs]
 
 
+@_lean
 def _coefficient_grids(jobs) -> list:
     """Several coefficient_grid figures (one per sensor) drawn on one reused figure: the
     axes and their ticks are built once, which halves the cost of every further sensor.
