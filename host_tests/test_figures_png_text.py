@@ -79,3 +79,27 @@ def test_cached_font_height_metrics_lay_out_text_as_matplotlib():
         extents.append([t.get_window_extent(r).bounds for t in texts])
     assert hasattr(cls(Figure()).get_renderer(), "_get_font_height_metrics")
     assert extents[0] == extents[1]
+
+
+def test_a_changed_private_api_falls_back_to_stock_text(monkeypatch):
+    """agg_text leans on private matplotlib functions (FT2Font._layout, ...): when one of
+    them fails (a matplotlib whose internals changed), the string is drawn by matplotlib's
+    own renderer -- the same pixels as stock text -- and so is every later one, never an
+    error in the report."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    cls = agg_text.canvas_class()
+    if cls is FigureCanvasAgg:
+        pytest.skip("this matplotlib has no glyph-level API: stock text drawing")
+    monkeypatch.setattr(agg_text, "_CACHE", {})
+    monkeypatch.setattr(agg_text, "_STOCK_ONLY", [False])
+    stock, cached = _renderer(FigureCanvasAgg), _renderer(cls)
+
+    def changed(*a, **k):
+        raise TypeError("changed signature")
+    monkeypatch.setattr(type(cached), "_rasterise", changed)
+    # off the pixel grid, so that only matplotlib's own drawing gives the stock pixels
+    a, b = _draw(stock, 20.4, 49.6, "-0.00128"), _draw(cached, 20.4, 49.6, "-0.00128")
+    assert (a[..., 3] > 0).any() and np.array_equal(a, b)
+    assert agg_text._STOCK_ONLY[0]
+    assert cached._get_font_height_metrics(__import__("matplotlib").font_manager
+                                           .FontProperties(size=7)) == (None, None, None)

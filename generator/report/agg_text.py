@@ -29,6 +29,9 @@ MAX_ENTRIES = 20000     # distinct strings kept per process (a report draws a fe
 
 _CANVAS = None
 _CACHE: dict = {}
+# set when a private matplotlib function this module uses fails (a matplotlib whose
+# internals changed): from then on every string is drawn by matplotlib's own renderer
+_STOCK_ONLY = [False]
 
 
 def canvas_class():
@@ -51,7 +54,7 @@ def _build():
 
     class CachedTextRenderer(RendererAgg):
         def draw_text(self, gc, x, y, s, prop, angle, ismath=False, mtext=None):
-            if ismath or (mtext is not None and (mtext.get_fontfeatures() is not None
+            if _STOCK_ONLY[0] or ismath or (mtext is not None and (mtext.get_fontfeatures() is not None
                                                   or mtext.get_language() is not None)):
                 return super().draw_text(gc, x, y, s, prop, angle, ismath, mtext)
             aa = bool(gc.get_antialiased())
@@ -62,7 +65,12 @@ def _build():
             if glyphs is None:
                 if len(_CACHE) >= MAX_ENTRIES:
                     _CACHE.clear()
-                glyphs = _CACHE[key] = self._rasterise(s, prop, angle, aa, flags)
+                try:
+                    glyphs = self._rasterise(s, prop, angle, aa, flags)
+                except Exception:       # noqa: BLE001 -- a private API that changed
+                    _STOCK_ONLY[0] = True
+                    return super().draw_text(gc, x, y, s, prop, angle, ismath, mtext)
+                _CACHE[key] = glyphs
             # the anchor on a whole pixel: x right, y_up up from the canvas's bottom edge
             x0, y0_up = round(x), round(self.height - y)
             h = int(self.height)
@@ -77,21 +85,27 @@ def _build():
             reads its tables on each call: ~3,000 times a report): the same arithmetic as
             Text._get_layout's own, once per font and size."""
             key = ("height metrics", hash(prop), prop.get_size_in_points(), self.dpi)
+            if _STOCK_ONLY[0]:
+                return (None, None, None)       # Text._get_layout then finds them itself
             if key not in _CACHE:
                 from matplotlib.font_manager import fontManager, get_font
-                font = get_font(fontManager._find_fonts_by_props(prop))
                 out = (None, None, None)
-                for table_name, gap_key, ascent_key, descent_key in (
-                        ('OS/2', 'sTypoLineGap', 'sTypoAscender', 'sTypoDescender'),
-                        ('hhea', 'lineGap', 'ascent', 'descent')):
-                    table = font.get_sfnt_table(table_name)
-                    if table is None:
-                        continue
-                    units_per_em = font.get_sfnt_table('head')['unitsPerEm']
-                    scale = 1 / units_per_em * prop.get_size_in_points() * self.dpi / 72
-                    out = (table[ascent_key] * scale, -table[descent_key] * scale,
-                           table[gap_key] * scale)
-                    break
+                try:
+                    font = get_font(fontManager._find_fonts_by_props(prop))
+                    for table_name, gap_key, ascent_key, descent_key in (
+                            ('OS/2', 'sTypoLineGap', 'sTypoAscender', 'sTypoDescender'),
+                            ('hhea', 'lineGap', 'ascent', 'descent')):
+                        table = font.get_sfnt_table(table_name)
+                        if table is None:
+                            continue
+                        units_per_em = font.get_sfnt_table('head')['unitsPerEm']
+                        scale = 1 / units_per_em * prop.get_size_in_points() * self.dpi / 72
+                        out = (table[ascent_key] * scale, -table[descent_key] * scale,
+                               table[gap_key] * scale)
+                        break
+                except Exception:       # noqa: BLE001 -- a private API that changed
+                    _STOCK_ONLY[0] = True
+                    return (None, None, None)
                 _CACHE[key] = out
             return _CACHE[key]
 
