@@ -88,7 +88,7 @@ def test_capped_trace_says_so_is_bounded_deterministic_and_finds_the_effect(plan
     d = _json(res)
     assert d["subsample"]["traced"] == info["traced"]
     assert any(n.startswith("subsample: ") and f"{tel.n:,} samples; traced on "
-               f"{info['traced']:,} in blocks of {L:,}" in n for n in d["notes"])
+               f"{info['traced']:,} in {info['blocks']} blocks of {L:,}" in n for n in d["notes"])
     assert res.coefficients.fit_info["trace"]["subsample"] == info["text"]
     found = [(n, e, c) for n, e, c, _ in found_effects(res)]
     assert found == [(case.sensor, "channel_bias", [case.channel])], found

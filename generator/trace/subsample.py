@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 
-from generator.fit.samples import check_max_samples, subsample_step, systematic_sample
+from generator.errors import InputError
+from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
 
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
@@ -80,44 +81,97 @@ def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
                      tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
 
 
+def check_cap(max_samples, n_rows, L, source=None) -> None:
+    """A cap below one block cannot be met by whole blocks (the blocks would exceed it):
+    InputError naming --max-samples and the smallest cap that works."""
+    if max_samples and n_rows > max_samples and max_samples < L:
+        raise InputError(source, f"--max-samples {max_samples:,} is below one block of "
+                                 f"{L:,} consecutive rows: give at least {L:,} (at least "
+                                 f"{MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps the {MIN_BLOCKS} "
+                                 f"blocks the trace is designed for), or 0 for every row")
+
+
+def fractional_systematic(n: int, m: int, rng) -> np.ndarray:
+    """m sorted positions of 0..n-1 (m <= n): systematic sampling with the fractional step
+    n / m, one position uniformly at random in each interval [floor(i n / m),
+    floor((i + 1) n / m)); exactly m positions, spread evenly over the n."""
+    if m <= 0 or n <= 0:
+        return np.zeros(0, int)
+    m = min(m, n)
+    edges = (np.arange(m + 1) * n) // m
+    return edges[:-1] + rng.integers(0, edges[1:] - edges[:-1])
+
+
+def _draw(files, m, rng, L):
+    """[(file index, sorted block numbers)]: m blocks drawn over ALL the files' blocks in
+    order (one systematic draw over the concatenated block list), grouped by file."""
+    nb = np.array([-(-t.n // L) for t in files], int)
+    first = np.concatenate([[0], np.cumsum(nb)])
+    picks = fractional_systematic(int(first[-1]), m, rng)
+    fi = np.searchsorted(first, picks, side="right") - 1
+    return [(int(f), picks[fi == f] - first[f]) for f in range(len(files))]
+
+
 def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
     """(tels, hold, info): the files unchanged and info None at or under the cap (total
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
-    consecutive blocks of L rows (block_rows), one block drawn at random in each run of k
-    consecutive blocks of a file (fit.samples.systematic_sample; numpy PCG64 seeded from
-    seed and the file's index: not its name, so a renamed file gives the same draw), the
-    kept blocks of a file one Telemetry (the file's path, its rows in order), and info
-    the figures of the note."""
+    consecutive blocks of L rows (block_rows) and floor(cap / L) blocks drawn over all the
+    blocks of all the files in order (fractional_systematic: one systematic draw over the
+    concatenated block list, numpy PCG64 seeded from seed alone, not from the files'
+    names), the data files' and the holdout files' blocks drawn apart in proportion to
+    their blocks (at least one each), so the kept rows are at most the cap (plus one
+    block when a holdout file is given and the cap is one block). The kept blocks of a file
+    are one Telemetry (the file's path, its rows in order); a file with no kept block is
+    left out (info counts them); info holds the figures of the note. A cap below one block
+    is an InputError (check_cap)."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
     if not max_samples or N <= max_samples:
         return list(tels), list(hold), None
-    L = block_rows(list(tels) + list(hold), max_samples)
-    n_blocks = sum(-(-t.n // L) for t in list(tels) + list(hold))
-    k = subsample_step(n_blocks, max(1, max_samples // L))
+    everything = list(tels) + list(hold)
+    L = block_rows(everything, max_samples)
+    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None)
+    nb_d = sum(-(-t.n // L) for t in tels)
+    nb_h = sum(-(-t.n // L) for t in hold)
+    n_blocks = nb_d + nb_h
+    m = min(n_blocks, max_samples // L)               # the blocks the cap holds
+    m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
+    m_d = min(nb_d, max(1, m - m_h))
     out = []
-    for fi, t in enumerate(list(tels) + list(hold)):
-        nb = -(-t.n // L)
-        rng = np.random.Generator(np.random.PCG64([seed, fi]))
-        picks = np.sort(systematic_sample(nb, k, rng)) if nb else np.zeros(0, int)
-        runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
-        out.append((_kept_rows(t, np.concatenate(runs) if runs else np.zeros(0, int)),
-                    runs))
-    n_kept = sum(t.n for t, _ in out)
-    spans = [float(np.ptp(t.time_s)) for t, _ in out if t.n > 1]
+    for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
+        rng = np.random.Generator(np.random.PCG64([seed, role]))
+        kept = []
+        for f, picks in _draw(files, mm, rng, L):
+            t = files[f]
+            runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
+            if runs:
+                kept.append((_kept_rows(t, np.concatenate(runs)), runs))
+        out.append(kept)
+    kd, kh = out
+    n_kept = sum(t.n for t, _ in kd + kh)
+    n_left = len(everything) - len(kd) - len(kh)
+    spans = [float(np.ptp(t.time_s)) for t, _ in kd + kh if t.n > 1]
     tau_max_s = 0.5 * max(spans) if spans else 0.0      # effects.ThermalLag.scan_grid
+    step = n_blocks / max(1, m_d + m_h)
+    few = (f"; only {m_d + m_h} blocks, fewer than the {MIN_BLOCKS} the trace is designed "
+           f"for (a cap of at least {MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps them)"
+           if m_d + m_h < MIN_BLOCKS else "")
+    left = (f"; {n_left} of {len(everything)} files had no block drawn and are left out of "
+            "the blocks (not of the all-rows figures)" if n_left else "")
     info = {"samples": int(N), "traced": int(n_kept), "block_rows": int(L),
-            "one_block_in": int(k), "blocks": int(sum(len(runs) for _, runs in out)),
+            "one_block_in": round(step, 3), "blocks": int(m_d + m_h),
+            "files_left_out": int(n_left),
             "seed": int(seed), "cap": int(max_samples),
             "longest_scanned_tau_s": tau_max_s,
-            "text": (f"{N:,} samples; traced on {n_kept:,} in blocks of {L:,} consecutive rows "
-                     f"(one in {k} of each file, drawn at random, seed fixed; cap "
-                     f"{max_samples:,}, `--max-samples`), the kept blocks of a file traced as that "
+            "text": (f"{N:,} samples; traced on {n_kept:,} in {m_d + m_h} blocks of {L:,} "
+                     f"consecutive rows (one in {step:.3g} of all the files' blocks in order, "
+                     f"drawn at random, seed fixed; cap {max_samples:,}, `--max-samples`)"
+                     f"{few}{left}; the kept blocks of a file traced as that "
                      f"file (one static constant and one clock per file; lag recursions run "
                      f"across the gaps; time constants scanned up to ~{tau_max_s:.0f} s); the "
                      f"held-out figures are those of the blocks (all_rows: the coefficients "
                      f"applied to every row, in-sample)")}
-    return [t for t, _ in out[:len(tels)]], [t for t, _ in out[len(tels):]], info
+    return [t for t, _ in kd], [t for t, _ in kh], info
 
 
 def _pieces(tels):

@@ -745,6 +745,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
     hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
+    # the blocks are drawn first (a cap below one block is refused before any fit)
+    kept_tels, kept_hold, subsample = subsample_files(tels, hold, max_samples)
     notes = []
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
@@ -772,7 +774,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                                  f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
     tels_all, hold_all = tels, hold
-    tels, hold, subsample = subsample_files(tels, hold, max_samples)
+    tels, hold = kept_tels, kept_hold
     if subsample:
         notes.append("subsample: " + subsample["text"])
         say(f"trace: {subsample['text']}")
