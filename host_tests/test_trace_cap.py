@@ -90,3 +90,71 @@ def test_cli_cap_below_one_block_exits_2_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and "--max-samples" in err, err
     assert not (tmp_path / "out").exists()
+
+
+# --- F1 / F5: what every row says reaches the user -------------------------------------
+
+def test_all_rows_warnings_statistics():
+    """The thresholds: a rise of the traced set over the baseline, or of the model over
+    every row above the blocks', warns only beyond Z_WARN standard errors."""
+    ne = 5_000.0                               # relative s.e. of an RMS: 1 / sqrt(10^4) = 1 %
+    same = {"m": {"baseline_rms_nT": 50.0, "traced_rms_nT": 50.0 * (1 + 2.9 / 100),
+                  "model_rms_nT": 50.0, "n_eff": ne}}
+    assert sub.all_rows_warnings(same, {"m": (50.0, 1e12)}) == {}
+    worse = {"m": dict(same["m"], traced_rms_nT=50.0 * (1 + 3.1 / 100))}
+    (w,) = sub.all_rows_warnings(worse)["m"]
+    assert w.startswith("WARNING m:") and "WORSE than the baseline" in w
+    hidden = {"m": dict(same["m"], model_rms_nT=50.0 * (1 + 3.1 / 100))}
+    (w,) = sub.all_rows_warnings(hidden, {"m": (50.0, 1e12)})["m"]
+    assert "blocks left out" in w
+    # the blocks' own uncertainty counts: with as few effective rows there, no warning
+    assert sub.all_rows_warnings(hidden, {"m": (50.0, ne)}) == {}
+
+
+def test_something_only_in_dropped_blocks_is_warned(tmp_path):
+    """A disturbance the blocks never see (a reference error in rows the draw leaves out):
+    the blocks find nothing, every row says otherwise, and the warning reaches trace.json
+    (warnings, notes first, the stop text) and coefficients.json (fit.trace.warnings)."""
+    import json
+
+    from generator.trace import tracer as tr
+    from test_trace import make_case, sigma_field
+    from test_trace_subsample import CAP, long_file
+    case = make_case("channel_bias", 2, tmp_path)
+    case.effects = []
+    tel = long_file(case, tmp_path, "hidden")
+    (kept,), _, _ = sub.subsample_files([tel], [], CAP)
+    dropped = ~np.isin(tel.line_numbers, kept.line_numbers)
+    assert 0 < dropped.sum() < tel.n
+    # 20 sigma of the noisiest sensor: far above any noise, invisible to the blocks
+    a_nT = 20 * max(sigma_field(s) for s in case.unit.sensors)
+    cols = {c: np.array(v, float) for c, v in tel.columns.items()}
+    cols["ref_x_nT"][dropped] += a_nT * np.sin(2 * np.pi * cols["time_s"][dropped] / 300.0)
+    cols["ref_norm_nT"] = np.sqrt(cols["ref_x_nT"] ** 2 + cols["ref_y_nT"] ** 2
+                                  + cols["ref_z_nT"] ** 2)
+    bad = Telemetry(tel.path, cols, tel.line_numbers, dict(tel.meta))
+    res = tr.trace(case.unit, [bad], max_samples=CAP)
+    assert res.warnings and all(w.startswith(sub.WARNING_PREFIX) for w in res.warnings)
+    assert any("blocks left out" in w for w in res.warnings), res.warnings
+    assert res.notes[:len(res.warnings)] == res.warnings
+    d = json.loads(json.dumps(res.to_json(), default=tr._json_default))
+    assert d["warnings"] == res.warnings == d["subsample"]["warnings"]
+    assert res.coefficients.fit_info["trace"]["warnings"] == res.warnings
+    warned = {w.split()[1].rstrip(":") for w in res.warnings}
+    for n in warned:
+        stop = d["final"][n]["stop"]
+        assert not stop.startswith("nothing significant left:"), stop
+
+
+def test_a_found_effect_is_not_warned(tmp_path):
+    """The planted channel bias of test_trace_subsample, found on the blocks: the traced
+    set is better over every row, nothing is warned (the warnings are not always on)."""
+
+    from generator.trace import tracer as tr
+    from test_trace import make_case
+    from test_trace_subsample import CAP, long_file
+    out = tmp_path
+    case = make_case("channel_bias", 1, out)
+    res = tr.trace(case.unit, [long_file(case, out, "planted")], max_samples=CAP)
+    assert [n for n, _ in res.effects] == [case.sensor]
+    assert res.warnings == [], res.warnings

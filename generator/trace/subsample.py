@@ -190,17 +190,13 @@ def _pieces(tels):
 _UNSEEN_GROUP = 10 ** 15
 
 
-def _sse(model, S) -> tuple:
-    """(sum of squared residual rows, rows) of a model on samples S: vector rows per axis,
-    magnitude rows, static-position rows as the deviation from their own mean (the
-    constant fitted in-sample, per piece)."""
-    r = model.residual(model.theta[None], S)[0]
-    return float(r @ r), len(r)
-
-
 def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=()) -> dict:
-    """{sensor: [sse per model..., rows, samples]} over every usable row of tels;
-    models_of(sensor, S) -> the models to apply to that piece's samples."""
+    """{sensor: {"sse": [per model...], "rows", "samples", "lag_num", "lag_den"}} over
+    every usable row of tels (vector rows per axis, magnitude rows, static-position rows
+    as the deviation from their own mean: the constant fitted in-sample, per piece);
+    models_of(sensor, S) -> the models to apply to that piece's samples; lag_num / lag_den
+    pool the lag-1 autocorrelation of the LAST model's residual (crossval.lag1_parts)."""
+    from generator.trace.crossval import lag1_parts
     from generator.trace.samples import POS, gather_samples
     acc = {}
     for tel in _pieces(tels):
@@ -212,34 +208,107 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
                 continue
             S.group = np.where(S.kind == POS, S.group + _UNSEEN_GROUP, S.group)
             models = models_of(n, S)
-            sse = [_sse(m, S) for m in models]
-            a = acc.setdefault(n, [0.0] * len(models) + [0, 0])
-            for j, (e, _) in enumerate(sse):
-                a[j] += e
-            a[-2] += sse[0][1]
-            a[-1] += S.n
+            rs = [m.residual(m.theta[None], S)[0] for m in models]
+            a = acc.setdefault(n, {"sse": [0.0] * len(models), "rows": 0, "samples": 0,
+                                   "lag_num": 0.0, "lag_den": 0.0})
+            for j, r in enumerate(rs):
+                a["sse"][j] += float(r @ r)
+            num, den = lag1_parts(rs[-1], S)
+            a["rows"] += len(rs[0])
+            a["samples"] += S.n
+            a["lag_num"] += num
+            a["lag_den"] += den
     return acc
 
 
-def all_rows_rms(base, traced, tels, sensors) -> dict:
-    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual over
+def n_eff(rows, lag_num, lag_den) -> float:
+    """The effective number of rows of a residual with pooled lag-1 autocorrelation
+    rho = lag_num / lag_den (clipped to [0, 0.99]): rows (1 - rho) / (1 + rho), as
+    trace.scoring and trace.residual deflate it."""
+    rho = min(max(lag_num / lag_den if lag_den > 0 else 0.0, 0.0), 0.99)
+    return rows * (1 - rho) / (1 + rho)
+
+
+def all_rows_rms(base, traced, tels, sensors, final_models=None, channels=(),
+                 strict=()) -> dict:
+    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples", ...}}: the RMS residual over
     EVERY usable row of the data files (vector rows per axis, magnitude rows, static-
     position rows as deviations from their position's mean) of the baseline coefficient
     set and of the traced one (the apply of fixed coefficients: linear in the rows), in
     pieces of ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a
     piece's first row, a static position's constant is its mean over the piece).
-    In-sample: the rows the trace fitted on are among them."""
+    In-sample: the rows the trace fitted on are among them. With final_models ({sensor:
+    the trace's final model}) also "model_rms_nT", that model (effects with no flight
+    stage included) over every row; "n_eff": the effective rows of the residual of that
+    model (else of the traced set); channels and strict: the trace's candidate channels and regressors those models read."""
     from generator.trace.coefficients import model_from_coefficients
     unit = traced.unit
+    final_models = final_models or {}
     ch = list(dict.fromkeys(c for cs in (base, traced) for s in unit.sensors
                             for c in cs.spec.opts(s).kernel_channels))
-    acc = _all_rows_sse(lambda n, S: [model_from_coefficients(cs, n, S) for cs in (base, traced)],
-                        tels, unit, coils=traced.spec.coils,
-                        H=traced.unit_values.get("H_boom_to_body"), channels=ch,
-                        sensors=sensors)
-    return {n: {"baseline_rms_nT": float(np.sqrt(a[0] / a[2])),
-                "traced_rms_nT": float(np.sqrt(a[1] / a[2])), "samples": a[3]}
-            for n, a in acc.items() if a[2]}
+
+    def models_of(n, S):
+        ms = [model_from_coefficients(cs, n, S) for cs in (base, traced)]
+        return ms + ([final_models[n]] if n in final_models else [])
+    chans = list(dict.fromkeys(ch + list(channels)))
+    acc = _all_rows_sse(models_of, tels, unit, coils=traced.spec.coils,
+                        H=traced.unit_values.get("H_boom_to_body"), channels=chans,
+                        sensors=sensors, strict=strict)
+    out = {}
+    for n, a in acc.items():
+        if not a["rows"]:
+            continue
+        v = {"baseline_rms_nT": float(np.sqrt(a["sse"][0] / a["rows"])),
+             "traced_rms_nT": float(np.sqrt(a["sse"][1] / a["rows"])), "samples": a["samples"],
+             "n_eff": float(n_eff(a["rows"], a["lag_num"], a["lag_den"]))}
+        if n in final_models:
+            v["model_rms_nT"] = float(np.sqrt(a["sse"][2] / a["rows"]))
+        out[n] = v
+    return out
+
+
+# the warnings' threshold: the RMS of n_eff independent rows has a relative standard
+# error 1 / sqrt(2 n_eff) (chi^2 with n_eff degrees of freedom: var(s^2) = 2 s^4 / n_eff,
+# halved for s); two RMS of independent sets differ in ratio by sqrt(1 / (2 n_a) +
+# 1 / (2 n_b)); Z_WARN = 3 (one-sided 0.13 % a sensor) is beyond chance. n_eff deflates the
+# rows by the residual's lag-1 autocorrelation as trace.scoring and trace.residual do.
+# Conservative for the two comparisons below: the sets overlap (the blocks are among every
+# row), which makes the figures correlated and their difference smaller than this.
+Z_WARN = 3.0
+WARNING_PREFIX = "WARNING"
+
+
+def all_rows_warnings(all_rows, blocks=None) -> dict:
+    """{sensor: [warning text]}: where the figures over every row contradict what the
+    trace shows. (1) the traced (flight) coefficients are worse over every row than the
+    baseline's (an effect with no flight stage -- time_drift, time_offset -- moved the
+    written coefficients: with the cap or without); (2) above the cap, blocks {sensor:
+    (held-out RMS of the blocks' final model, its n_eff)}: the trace's final model over
+    every row is above the blocks' held-out figure beyond chance (an effect in rows the
+    blocks left out)."""
+    out = {}
+    for n, v in all_rows.items():
+        ne_a = max(v["n_eff"], 1.0)
+        w = []
+        b_a, t_a = v["baseline_rms_nT"], v["traced_rms_nT"]
+        if t_a > b_a * (1 + Z_WARN / math.sqrt(2 * ne_a)):
+            w.append(f"{WARNING_PREFIX} {n}: over every row of the data files the traced "
+                     f"coefficients are WORSE than the baseline's (RMS {b_a:.2f} -> "
+                     f"{t_a:.2f} nT, beyond chance): the written coefficient set is not an "
+                     "improvement (an effect with no flight-chain stage moved it); prefer "
+                     "the baseline")
+        if blocks and n in blocks and "model_rms_nT" in v:
+            rms_b, ne_b = blocks[n]
+            ne_b, m_a = max(ne_b, 1.0), v["model_rms_nT"]
+            if m_a > rms_b * (1 + Z_WARN * math.sqrt(1 / (2 * ne_a) + 1 / (2 * ne_b))):
+                w.append(f"{WARNING_PREFIX} {n}: over every row of the data files the trace's "
+                         f"model leaves {m_a:.2f} nT RMS, above the blocks' held-out "
+                         f"{rms_b:.2f} nT beyond chance: rows the blocks left out hold "
+                         "something the blocks do not show; the blocks' verdict does not hold "
+                         "for every row (trace with a higher --max-samples, or 0 for every row)")
+        if w:
+            out[n] = w
+    return out
 
 
 CONFIRM_PREFIX = "not confirmed on all rows"
@@ -247,19 +316,23 @@ CONFIRM_PREFIX = "not confirmed on all rows"
 
 def all_rows_confirmation(tels, unit, *, coils, H, channels, strict=()):
     """confirm(sensor, model, m1) -> "" or why: the check an effect the blocks accepted
-    must pass above the cap. model and m1 (the traced models before and after the effect,
-    fitted on the blocks) are applied to every usable row of the data files (in pieces,
-    in-sample, as all_rows_rms); the effect is kept only if m1's all-rows error is below
-    model's. The blocks decide; all the rows may only veto: an effect that lowers the
-    blocks' held-out error and not the error over every row is a property of the draw."""
+    must pass above the cap. model and m1 (the trace's models before and after the
+    effect, fitted on the blocks, effects with no flight stage included: not the
+    baseline and traced coefficient sets of all_rows_rms) are applied to every usable
+    row of the data files (in pieces, in-sample, as all_rows_rms); the effect is kept
+    only if m1's all-rows error is below model's. The blocks decide; all the rows may
+    only veto: an effect that lowers the blocks' held-out error and not the error over
+    every row is a property of the draw."""
     def confirm(name, model, m1) -> str:
         acc = _all_rows_sse(lambda n, S: [model, m1], tels, unit, coils=coils, H=H,
                             channels=channels, sensors=[name], strict=strict).get(name)
-        if not acc or not acc[2]:
+        if not acc or not acc["rows"]:
             return ""
-        r0, r1 = math.sqrt(acc[0] / acc[2]), math.sqrt(acc[1] / acc[2])
-        if acc[1] < acc[0]:
+        e0, e1 = acc["sse"]
+        r0, r1 = math.sqrt(e0 / acc["rows"]), math.sqrt(e1 / acc["rows"])
+        if e1 < e0:
             return ""
-        return (f"{CONFIRM_PREFIX}: over all {acc[3]:,} usable samples of the data files "
-                f"(in-sample) the RMS does not fall ({r0:.2f} -> {r1:.2f} nT)")
+        return (f"{CONFIRM_PREFIX}: over all {acc['samples']:,} usable samples of the data "
+                f"files (in-sample) the trace's models before and after it do not lower "
+                f"the RMS ({r0:.2f} -> {r1:.2f} nT)")
     return confirm
