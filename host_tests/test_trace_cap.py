@@ -23,6 +23,15 @@ def _file(name, n, t0=0.0):
     return Telemetry(name, {"time_s": ts, "x": 2.0 * ts}, np.arange(2, n + 2))
 
 
+def _kept(t) -> int:
+    """The rows of a kept file that are samples (its drawn blocks)."""
+    return int(t.sample_rows.sum())
+
+
+def _first(t) -> float:
+    return float(t.time_s[t.sample_rows][0])
+
+
 def _passes(k, n, prefix="p"):
     """k files of n rows at 1 Hz, one after the other in time (passes of one recording)."""
     return [_file(f"{prefix}{i:03d}.csv", n, t0=i * (n + 100.0)) for i in range(k)]
@@ -34,18 +43,18 @@ def test_many_short_files_keep_the_cap():
     kept, _, info = sub.subsample_files(files, [], cap)
     L = info["block_rows"]
     assert L == 1_000 and info["samples"] == 150_000
-    assert info["traced"] == sum(t.n for t in kept) <= cap
+    assert info["traced"] == sum(_kept(t) for t in kept) <= cap
     assert info["blocks"] == cap // L                       # as close to the cap as blocks go
     assert info["files_left_out"] == 150 - len(kept) > 0    # files with no block left out
     assert f"{info['files_left_out']} of 150 files had no block drawn" in info["text"]
-    assert all(t.n > 0 for t in kept)
+    assert all(_kept(t) > 0 for t in kept)
     # one systematic draw over the blocks in order: spread over the whole recording
-    starts = np.array([t.time_s[0] for t in kept])
+    starts = np.array([_first(t) for t in kept])
     assert starts.min() < 0.1 * files[-1].time_s[-1] and starts.max() > 0.9 * files[-1].time_s[-1]
     # independent of the files' names
     renamed = [Telemetry(f"q/{i}.csv", t.columns, t.line_numbers) for i, t in enumerate(files)]
     again, _, _ = sub.subsample_files(renamed, [], cap)
-    assert [t.time_s[0] for t in again] == list(starts)
+    assert [_first(t) for t in again] == list(starts)
 
 
 def test_kept_blocks_of_a_file_stay_one_file():
@@ -60,13 +69,13 @@ def test_cap_just_under_the_data_keeps_about_the_cap():
     (kept,), _, info = sub.subsample_files([t], [], 149_999)
     L = info["block_rows"]
     # floor(cap / L) whole blocks: within one block of the cap, never above it
-    assert 149_999 - L < kept.n <= 149_999, (kept.n, L)
+    assert 149_999 - L < _kept(kept) <= 149_999, (_kept(kept), L)
 
 
 def test_holdout_blocks_are_drawn_apart_and_kept():
     data, hold = _passes(4, 30_000), _passes(1, 5_000, prefix="h")
     kd, kh, info = sub.subsample_files(data, hold, 40_000)
-    assert len(kh) == 1 and kh[0].n > 0
+    assert len(kh) == 1 and _kept(kh[0]) > 0
     assert info["traced"] <= 40_000
 
 
@@ -79,7 +88,7 @@ def test_cap_below_one_block_is_refused(cap):
 
 def test_cap_below_min_blocks_is_said():
     (kept,), _, info = sub.subsample_files([_file("a.csv", 20_000)], [], 5_000)
-    assert info["blocks"] == 5 and kept.n == 5_000
+    assert info["blocks"] == 5 and _kept(kept) == 5_000
     assert f"fewer than the {sub.MIN_BLOCKS}" in info["text"]
 
 
@@ -124,7 +133,7 @@ def test_something_only_in_dropped_blocks_is_warned(tmp_path):
     case.effects = []
     tel = long_file(case, tmp_path, "hidden")
     (kept,), _, _ = sub.subsample_files([tel], [], CAP)
-    dropped = ~np.isin(tel.line_numbers, kept.line_numbers)
+    dropped = ~kept.sample_rows
     assert 0 < dropped.sum() < tel.n
     # 20 sigma of the noisiest sensor: far above any noise, invisible to the blocks
     a_nT = 20 * max(sigma_field(s) for s in case.unit.sensors)
@@ -158,3 +167,34 @@ def test_a_found_effect_is_not_warned(tmp_path):
     res = tr.trace(case.unit, [long_file(case, out, "planted")], max_samples=CAP)
     assert [n for n, _ in res.effects] == [case.sensor]
     assert res.warnings == [], res.warnings
+
+
+# --- F2: the lag recursions run through the rows left out --------------------------------
+
+def test_lag_recursion_runs_exactly_through_the_rows_left_out(tmp_path):
+    """Above the cap a kept file is the whole file: the per-file series the lag
+    recursions run over hold every usable row (bridge rows), the samples only the drawn
+    blocks' rows; the element temperature at a sample is the one the recursion over the
+    whole file gives (not one step across the gap), for a slow tau where one step is
+    wrong."""
+    from generator.trace.effects import element_temperature, lag_filter
+    from generator.trace.samples import gather_samples
+    from test_trace import make_case
+    from test_trace_subsample import CAP, long_file
+    case = make_case("channel_bias", 2, tmp_path)
+    case.effects = []
+    tel = long_file(case, tmp_path, "lagged")
+    (kept,), _, _ = sub.subsample_files([tel], [], CAP)
+    whole = gather_samples(case.unit, [tel], [0])
+    blocks = gather_samples(case.unit, [kept], [0])
+    tau_s = 4_000.0                      # slower than a block: the gap matters
+    for s in case.unit.sensors:
+        W, B = whole[s.name], blocks[s.name]
+        assert 0 < B.n < W.n                              # samples: the blocks only
+        assert np.array_equal(B.files[0].time_s, W.files[0].time_s)   # series: every row
+        exact = lag_filter(W.files[0].time_s, W.files[0].temp_C, tau_s)
+        got = element_temperature(B.files[0], tau_s)[B.file_row]
+        assert np.array_equal(got, exact[B.file_row])
+        # what one step across each gap gives instead differs (the test can fail)
+        one_step = lag_filter(B.time_s, B.temp_C, tau_s)
+        assert np.max(np.abs(one_step - got)) > 1e-3

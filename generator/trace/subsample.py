@@ -14,6 +14,7 @@ the files are passed through unchanged (docs/fit_samples.md, "magcal trace").
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,9 +23,10 @@ from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
 
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
-# Memory: the trace keeps per-sample design columns, about 13 KiB a sample
-# (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), so 10^5 rows is ~1.3 GiB,
-# what one run may take on a machine shared with other work; 10^6 rows would be ~13 GiB.
+# Memory: the trace keeps per-sample design columns, about 13 KiB a sample on bench_io's
+# unit (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), more with more sensors
+# and channels: 2.8 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
+# traced, /usr/bin/time -v; ~28 KiB a row); 10^6 rows would be ~13-28 GiB.
 # Statistics: an effect whose term has rms a against a residual noise sigma is detected
 # with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
 # residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
@@ -39,19 +41,21 @@ SUBSAMPLE_SEED = 20          # fixed: the same input gives the same trace
 # The block length. The slowest time constant the catalogue's effects are meant to find
 # is a board's thermal lag: 10-20 min for these units' boards (fit.samples
 # BOARD_TAU_MIN_S documents the 5-min lower bound); TAU_MAX_S = 20 min. A block spans
-# BLOCK_TAUS = 5 of it (100 min). Across the gap before a block the lag recursion takes
-# one step (dt the gap: generator.flight.chain.lag_kernel's backward-Euler step, what the
-# chain itself does over a gap in its telemetry), exact if the temperature held still
-# over the gap; the error it leaves at the block's first row decays as exp(-t / tau),
-# under 1 % after 5 tau, so all but the block's first fifth is free of it even at the
-# slowest tau. The scan grids reach tau up to half a file's span, gaps included
-# (effects.ThermalLag.scan_grid), as without the cap. In rows: the block's duration over
-# the files' shortest median sample period, at least MIN_BLOCK_ROWS (the lag-1
-# statistics -- crossval._lag1, the successive-difference noise of trace.residual --
-# take one pair across each gap: under 0.1 % of the pairs), and at most the cap over
-# MIN_BLOCKS (so that the data keep at least that many blocks spread over the files'
-# time, and the 50 cross-validation blocks are not a handful of runs; a block is then
-# shorter than 5 tau of the slowest lag, and the note says how long it is).
+# BLOCK_TAUS = 5 of it (100 min), so that a lag's response to the temperature within a
+# block is seen in the block. The lag recursions themselves are exact above the cap: a
+# kept file stays the whole file (BlockedTelemetry), its rows left out feed the
+# recursions' state (bridge rows) and never become samples, so the element temperature
+# at a sample is the one the uncapped trace computes (the one step across a gap the
+# first version took was wrong when the temperature moved during the gap: 119 nT error
+# after a gap against 41 nT without, a 4000 s lag found at 1826 s). The scan grids reach
+# tau up to half a file's span (effects.ThermalLag.scan_grid), as without the cap. In
+# rows: the block's duration over the files' shortest median sample period, at least
+# MIN_BLOCK_ROWS (the lag-1 statistics -- crossval._lag1, the successive-difference
+# noise of trace.residual -- take one pair across each gap: under 0.1 % of the pairs),
+# and at most the cap over MIN_BLOCKS (so that the data keep at least that many blocks
+# spread over the files' time, and the 50 cross-validation blocks are not a handful of
+# runs; a block is then shorter than 5 tau of the slowest lag, and the note says how
+# long it is).
 TAU_MAX_S = 1200.0
 BLOCK_TAUS = 5.0
 MIN_BLOCK_ROWS = 1000
@@ -73,6 +77,16 @@ def block_rows(tels, max_samples) -> int:
     dt = min(dts) if dts else 1.0
     L = max(MIN_BLOCK_ROWS, math.ceil(BLOCK_TAUS * TAU_MAX_S / dt))
     return int(min(L, max(MIN_BLOCK_ROWS, max_samples // MIN_BLOCKS)))
+
+
+@dataclass
+class BlockedTelemetry(Telemetry):
+    """A whole file whose samples are only the rows of its drawn blocks (sample_rows):
+    every row stays for the per-file series (trace.samples.FileSeries), so the lag
+    recursions run exactly through the rows left out (bridge rows: they feed the
+    recursions' state and never become samples, design rows or residual rows); the raw
+    rows cost ~8 B a channel, the design columns of a sample ~13 KiB."""
+    sample_rows: np.ndarray | None = None      # (N,) bool: the rows of the drawn blocks
 
 
 def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
@@ -121,7 +135,8 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     names), the data files' and the holdout files' blocks drawn apart in proportion to
     their blocks (at least one each), so the kept rows are at most the cap (plus one
     block when a holdout file is given and the cap is one block). The kept blocks of a file
-    are one Telemetry (the file's path, its rows in order); a file with no kept block is
+    are one BlockedTelemetry (the whole file, its samples the blocks' rows); a file with
+    no kept block is
     left out (info counts them); info holds the figures of the note. A cap below one block
     is an InputError (check_cap)."""
     max_samples = check_max_samples(max_samples)
@@ -145,10 +160,13 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
             t = files[f]
             runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
             if runs:
-                kept.append((_kept_rows(t, np.concatenate(runs)), runs))
+                mask = np.zeros(t.n, bool)
+                mask[np.concatenate(runs)] = True
+                kept.append((BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta,
+                                              t.comments, sample_rows=mask), runs))
         out.append(kept)
     kd, kh = out
-    n_kept = sum(t.n for t, _ in kd + kh)
+    n_kept = sum(int(t.sample_rows.sum()) for t, _ in kd + kh)
     n_left = len(everything) - len(kd) - len(kh)
     spans = [float(np.ptp(t.time_s)) for t, _ in kd + kh if t.n > 1]
     tau_max_s = 0.5 * max(spans) if spans else 0.0      # effects.ThermalLag.scan_grid
@@ -167,8 +185,9 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
                      f"consecutive rows (one in {step:.3g} of all the files' blocks in order, "
                      f"drawn at random, seed fixed; cap {max_samples:,}, `--max-samples`)"
                      f"{few}{left}; the kept blocks of a file traced as that "
-                     f"file (one static constant and one clock per file; lag recursions run "
-                     f"across the gaps; time constants scanned up to ~{tau_max_s:.0f} s); the "
+                     f"file (one static constant and one clock per file; the lag recursions run "
+                     f"through every row of the file, the rows left out feeding only their "
+                     f"state; time constants scanned up to ~{tau_max_s:.0f} s); the "
                      f"held-out figures are those of the blocks (all_rows: the coefficients "
                      f"applied to every row, in-sample)")}
     return [t for t, _ in kd], [t for t, _ in kh], info
