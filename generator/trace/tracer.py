@@ -885,11 +885,25 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
 
 
 def _blocks_figure(t: SensorTrace) -> tuple:
-    """(held-out RMS of the blocks' last model, the effective rows of its residual)."""
+    """(held-out RMS of the blocks' last model, its effective rows): the fewer of the
+    rows deflated by the residual's lag-1 autocorrelation and of what the spread of the
+    mean square between the evaluation's time blocks allows (a cluster sample: a
+    non-stationary residual varies from block to block more than its lag-1 correlation
+    says; the RMS's relative s.e. is half the mean square's, 1 / sqrt(2 n_eff) =
+    sd(ms_b) / (2 mean(ms_b) sqrt(B)), so n_eff = 2 B mean^2 / sd^2)."""
+    S = t.S_eval
     model = t.steps[-1].model_after if t.steps else t.base_model
-    r = model.residual(model.theta[None], t.S_eval)[0]
-    rho = min(max(_lag1(r, t.S_eval), 0.0), 0.99)
-    return t.final_rms_nT, r.size * (1 - rho) / (1 + rho)
+    r = model.residual(model.theta[None], S)[0]
+    rho = min(max(_lag1(r, S), 0.0), 0.99)
+    n_eff = r.size * (1 - rho) / (1 + rho)
+    blk = (S.block if S.block is not None else assign_blocks(S))[S.row_sample]
+    ids = np.unique(blk)
+    if len(ids) >= 3:
+        ms = np.array([float(np.mean(r[blk == b] ** 2)) for b in ids])
+        sd = float(np.std(ms, ddof=1))
+        if sd > 0:
+            n_eff = min(n_eff, 2 * len(ids) * float(np.mean(ms)) ** 2 / sd ** 2)
+    return t.final_rms_nT, n_eff
 
 
 __all__ = ["trace", "TraceResult", "SensorModel", "SensorSamples", "to_coefficient_set",
