@@ -25,8 +25,10 @@ from generator.io.telemetry import Telemetry
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
 # Memory: the trace keeps per-sample design columns, about 13 KiB a sample on bench_io's
 # unit (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), more with more sensors
-# and channels: 2.8 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
-# traced, /usr/bin/time -v; ~28 KiB a row); 10^6 rows would be ~13-28 GiB.
+# and channels: 3.0 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
+# traced, /usr/bin/time -v; ~30 KiB a row); 10^6 rows would be ~13-30 GiB. Above the cap
+# the rows left out cost only their raw values in the per-file series (1.5 M rows, one
+# sensor: 1.24 GB peak).
 # Statistics: an effect whose term has rms a against a residual noise sigma is detected
 # with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
 # residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
