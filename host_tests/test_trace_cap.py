@@ -198,3 +198,30 @@ def test_lag_recursion_runs_exactly_through_the_rows_left_out(tmp_path):
         # what one step across each gap gives instead differs (the test can fail)
         one_step = lag_filter(B.time_s, B.temp_C, tau_s)
         assert np.max(np.abs(one_step - got)) > 1e-3
+
+
+def test_uncapped_trace_warns_when_the_written_set_is_worse(tmp_path, monkeypatch):
+    """Every row traced (no cap): the same check of the written coefficient set against
+    the baseline over every row runs for the sensors with an effect; a worse written set
+    (as time_drift's refit gave on a drifting unit: 95 -> 170 nT) reaches the notes,
+    trace.json and coefficients.json. The figures are forced here (the wiring); the
+    statistics are test_all_rows_warnings_statistics'."""
+    from generator.trace import tracer as tr
+    from test_trace import make_case
+    from test_trace_subsample import long_file
+    case = make_case("channel_bias", 1, tmp_path)
+    tel = long_file(case, tmp_path, "planted")
+    seen = []
+
+    def worse(base, cs, tels, sensors, *a, **k):
+        seen.append(list(sensors))
+        return {n: {"baseline_rms_nT": 50.0, "traced_rms_nT": 60.0, "samples": 1000,
+                    "n_eff": 1000.0} for n in sensors}
+    monkeypatch.setattr(tr, "all_rows_rms", worse)
+    res = tr.trace(case.unit, [tel], max_samples=0)
+    assert res.subsample is None and seen == [[case.sensor]]   # only sensors with an effect
+    assert res.warnings and "WORSE than the baseline" in res.warnings[0]
+    assert res.notes[0] == res.warnings[0]
+    d = res.to_json()
+    assert d["warnings"] == res.warnings and "subsample" not in d
+    assert res.coefficients.fit_info["trace"]["warnings"] == res.warnings
