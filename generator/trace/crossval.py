@@ -236,8 +236,9 @@ class CVEngine:
         return res
 
 
-def _lag1(res, S: SensorSamples) -> float:
-    """Pooled lag-1 autocorrelation of residual rows along time (per axis / kind)."""
+def lag1_parts(res, S: SensorSamples) -> tuple:
+    """(sum of products of successive residual rows, sum of squares) along time per axis /
+    kind: the pieces of _lag1, to pool it over pieces of a file."""
     rs, ax = S.row_sample, S.row_axis
     num = den = 0.0
     for a in range(4):
@@ -248,4 +249,10 @@ def _lag1(res, S: SensorSamples) -> float:
         v = res[o]
         num += float(v[1:] @ v[:-1])
         den += float(v @ v)
+    return num, den
+
+
+def _lag1(res, S: SensorSamples) -> float:
+    """Pooled lag-1 autocorrelation of residual rows along time (per axis / kind)."""
+    num, den = lag1_parts(res, S)
     return num / den if den > 0 else 0.0

@@ -231,6 +231,18 @@ def lag_filter_dtau(time_s, temp_C, tau_s, filtered=None) -> np.ndarray:
     return first_order(dt / (tau_s + dt), u, 0.0)
 
 
+# The recursions' caches on a file's series hold whole-series arrays (8 B a row each);
+# above the trace's cap a series is the whole file (trace.subsample's bridge rows), so
+# their size is bounded in bytes too, not only in entries: at most SERIES_CACHE_BYTES a
+# cache (values are the same with or without a cache; only the time to recompute).
+SERIES_CACHE_BYTES = 64 * 2 ** 20
+
+
+def _cache_full(cache, n_rows, max_entries) -> bool:
+    """The cache holds as many arrays of n_rows floats as it may (then it is cleared)."""
+    return len(cache) > min(max_entries, max(4, SERIES_CACHE_BYTES // (8 * max(n_rows, 1))))
+
+
 def element_temperature(series, tau_s) -> np.ndarray:
     """lag_filter of one file's temperature series, kept on the series (one recursion per
     time constant; the cache lives and dies with the series)."""
@@ -238,7 +250,7 @@ def element_temperature(series, tau_s) -> np.ndarray:
     key = round(float(tau_s), 12)
     v = cache.get(key)
     if v is None:
-        if len(cache) > 64:
+        if _cache_full(cache, len(series.time_s), 64):
             cache.clear()
         v = cache[key] = lag_filter(series.time_s, series.temp_C, tau_s)
     return v
@@ -922,7 +934,7 @@ class LaggedChannelBias(ChannelBias):
             key = (self.channel, round(float(self.hyper), 12))
             f = cache.get(key)
             if f is None:
-                if len(cache) > 256:
+                if _cache_full(cache, len(series.time_s), 256):
                     cache.clear()
                 f = cache[key] = lag_filter(series.time_s, v, self.hyper)
             out[sel] = f[S.file_row[sel]]

@@ -233,6 +233,8 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             temp_C = np.asarray(sd.temp_or(T_REF_C), float)
             series = sd.usable & np.isfinite(temp_C)
             ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0) & ~missing
+            if getattr(tel, "sample_rows", None) is not None:
+                ok &= tel.sample_rows      # trace.subsample's blocks: the rest bridge rows
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1

@@ -14,16 +14,21 @@ the files are passed through unchanged (docs/fit_samples.md, "magcal trace").
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from generator.fit.samples import check_max_samples, subsample_step, systematic_sample
+from generator.errors import InputError
+from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
 
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
-# Memory: the trace keeps per-sample design columns, about 13 KiB a sample
-# (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), so 10^5 rows is ~1.3 GiB,
-# what one run may take on a machine shared with other work; 10^6 rows would be ~13 GiB.
+# Memory: the trace keeps per-sample design columns, about 13 KiB a sample on bench_io's
+# unit (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), more with more sensors
+# and channels: 3.0 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
+# traced, /usr/bin/time -v; ~30 KiB a row); 10^6 rows would be ~13-30 GiB. Above the cap
+# the rows left out cost only their raw values in the per-file series (1.5 M rows, one
+# sensor: 1.24 GB peak).
 # Statistics: an effect whose term has rms a against a residual noise sigma is detected
 # with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
 # residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
@@ -38,19 +43,21 @@ SUBSAMPLE_SEED = 20          # fixed: the same input gives the same trace
 # The block length. The slowest time constant the catalogue's effects are meant to find
 # is a board's thermal lag: 10-20 min for these units' boards (fit.samples
 # BOARD_TAU_MIN_S documents the 5-min lower bound); TAU_MAX_S = 20 min. A block spans
-# BLOCK_TAUS = 5 of it (100 min). Across the gap before a block the lag recursion takes
-# one step (dt the gap: generator.flight.chain.lag_kernel's backward-Euler step, what the
-# chain itself does over a gap in its telemetry), exact if the temperature held still
-# over the gap; the error it leaves at the block's first row decays as exp(-t / tau),
-# under 1 % after 5 tau, so all but the block's first fifth is free of it even at the
-# slowest tau. The scan grids reach tau up to half a file's span, gaps included
-# (effects.ThermalLag.scan_grid), as without the cap. In rows: the block's duration over
-# the files' shortest median sample period, at least MIN_BLOCK_ROWS (the lag-1
-# statistics -- crossval._lag1, the successive-difference noise of trace.residual --
-# take one pair across each gap: under 0.1 % of the pairs), and at most the cap over
-# MIN_BLOCKS (so that the data keep at least that many blocks spread over the files'
-# time, and the 50 cross-validation blocks are not a handful of runs; a block is then
-# shorter than 5 tau of the slowest lag, and the note says how long it is).
+# BLOCK_TAUS = 5 of it (100 min), so that a lag's response to the temperature within a
+# block is seen in the block. The lag recursions themselves are exact above the cap: a
+# kept file stays the whole file (BlockedTelemetry), its rows left out feed the
+# recursions' state (bridge rows) and never become samples, so the element temperature
+# at a sample is the one the uncapped trace computes (the one step across a gap the
+# first version took was wrong when the temperature moved during the gap: 119 nT error
+# after a gap against 41 nT without, a 4000 s lag found at 1826 s). The scan grids reach
+# tau up to half a file's span (effects.ThermalLag.scan_grid), as without the cap. In
+# rows: the block's duration over the files' shortest median sample period, at least
+# MIN_BLOCK_ROWS (the lag-1 statistics -- crossval._lag1, the successive-difference
+# noise of trace.residual -- take one pair across each gap: under 0.1 % of the pairs),
+# and at most the cap over MIN_BLOCKS (so that the data keep at least that many blocks
+# spread over the files' time, and the 50 cross-validation blocks are not a handful of
+# runs; a block is then shorter than 5 tau of the slowest lag, and the note says how
+# long it is).
 TAU_MAX_S = 1200.0
 BLOCK_TAUS = 5.0
 MIN_BLOCK_ROWS = 1000
@@ -74,50 +81,118 @@ def block_rows(tels, max_samples) -> int:
     return int(min(L, max(MIN_BLOCK_ROWS, max_samples // MIN_BLOCKS)))
 
 
+@dataclass
+class BlockedTelemetry(Telemetry):
+    """A whole file whose samples are only the rows of its drawn blocks (sample_rows):
+    every row stays for the per-file series (trace.samples.FileSeries), so the lag
+    recursions run exactly through the rows left out (bridge rows: they feed the
+    recursions' state and never become samples, design rows or residual rows); the raw
+    rows cost ~8 B a channel, the design columns of a sample ~13 KiB."""
+    sample_rows: np.ndarray | None = None      # (N,) bool: the rows of the drawn blocks
+
+
 def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
     """The file restricted to these rows (in order): the same path, so the same file."""
     return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
                      tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
 
 
+def check_cap(max_samples, n_rows, L, source=None) -> None:
+    """A cap below one block cannot be met by whole blocks (the blocks would exceed it):
+    InputError naming --max-samples and the smallest cap that works."""
+    if max_samples and n_rows > max_samples and max_samples < L:
+        raise InputError(source, f"--max-samples {max_samples:,} is below one block of "
+                                 f"{L:,} consecutive rows: give at least {L:,} (at least "
+                                 f"{MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps the {MIN_BLOCKS} "
+                                 f"blocks the trace is designed for), or 0 for every row")
+
+
+def fractional_systematic(n: int, m: int, rng) -> np.ndarray:
+    """m sorted positions of 0..n-1 (m <= n): systematic sampling with the fractional step
+    n / m, one position uniformly at random in each interval [floor(i n / m),
+    floor((i + 1) n / m)); exactly m positions, spread evenly over the n."""
+    if m <= 0 or n <= 0:
+        return np.zeros(0, int)
+    m = min(m, n)
+    edges = (np.arange(m + 1) * n) // m
+    return edges[:-1] + rng.integers(0, edges[1:] - edges[:-1])
+
+
+def _draw(files, m, rng, L):
+    """[(file index, sorted block numbers)]: m blocks drawn over ALL the files' blocks in
+    order (one systematic draw over the concatenated block list), grouped by file."""
+    nb = np.array([-(-t.n // L) for t in files], int)
+    first = np.concatenate([[0], np.cumsum(nb)])
+    picks = fractional_systematic(int(first[-1]), m, rng)
+    fi = np.searchsorted(first, picks, side="right") - 1
+    return [(int(f), picks[fi == f] - first[f]) for f in range(len(files))]
+
+
 def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
     """(tels, hold, info): the files unchanged and info None at or under the cap (total
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
-    consecutive blocks of L rows (block_rows), one block drawn at random in each run of k
-    consecutive blocks of a file (fit.samples.systematic_sample; numpy PCG64 seeded from
-    seed and the file's index: not its name, so a renamed file gives the same draw), the
-    kept blocks of a file one Telemetry (the file's path, its rows in order), and info
-    the figures of the note."""
+    consecutive blocks of L rows (block_rows) and floor(cap / L) blocks drawn over all the
+    blocks of all the files in order (fractional_systematic: one systematic draw over the
+    concatenated block list, numpy PCG64 seeded from seed alone, not from the files'
+    names), the data files' and the holdout files' blocks drawn apart in proportion to
+    their blocks (at least one each), so the kept rows are at most the cap (plus one
+    block when a holdout file is given and the cap is one block). The kept blocks of a file
+    are one BlockedTelemetry (the whole file, its samples the blocks' rows); a file with
+    no kept block is
+    left out (info counts them); info holds the figures of the note. A cap below one block
+    is an InputError (check_cap)."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
     if not max_samples or N <= max_samples:
         return list(tels), list(hold), None
-    L = block_rows(list(tels) + list(hold), max_samples)
-    n_blocks = sum(-(-t.n // L) for t in list(tels) + list(hold))
-    k = subsample_step(n_blocks, max(1, max_samples // L))
+    everything = list(tels) + list(hold)
+    L = block_rows(everything, max_samples)
+    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None)
+    nb_d = sum(-(-t.n // L) for t in tels)
+    nb_h = sum(-(-t.n // L) for t in hold)
+    n_blocks = nb_d + nb_h
+    m = min(n_blocks, max_samples // L)               # the blocks the cap holds
+    m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
+    m_d = min(nb_d, max(1, m - m_h))
     out = []
-    for fi, t in enumerate(list(tels) + list(hold)):
-        nb = -(-t.n // L)
-        rng = np.random.Generator(np.random.PCG64([seed, fi]))
-        picks = np.sort(systematic_sample(nb, k, rng)) if nb else np.zeros(0, int)
-        runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
-        out.append((_kept_rows(t, np.concatenate(runs) if runs else np.zeros(0, int)),
-                    runs))
-    n_kept = sum(t.n for t, _ in out)
-    spans = [float(np.ptp(t.time_s)) for t, _ in out if t.n > 1]
+    for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
+        rng = np.random.Generator(np.random.PCG64([seed, role]))
+        kept = []
+        for f, picks in _draw(files, mm, rng, L):
+            t = files[f]
+            runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
+            if runs:
+                mask = np.zeros(t.n, bool)
+                mask[np.concatenate(runs)] = True
+                kept.append((BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta,
+                                              t.comments, sample_rows=mask), runs))
+        out.append(kept)
+    kd, kh = out
+    n_kept = sum(int(t.sample_rows.sum()) for t, _ in kd + kh)
+    n_left = len(everything) - len(kd) - len(kh)
+    spans = [float(np.ptp(t.time_s)) for t, _ in kd + kh if t.n > 1]
     tau_max_s = 0.5 * max(spans) if spans else 0.0      # effects.ThermalLag.scan_grid
+    step = n_blocks / max(1, m_d + m_h)
+    few = (f"; only {m_d + m_h} blocks, fewer than the {MIN_BLOCKS} the trace is designed "
+           f"for (a cap of at least {MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps them)"
+           if m_d + m_h < MIN_BLOCKS else "")
+    left = (f"; {n_left} of {len(everything)} files had no block drawn and are left out of "
+            "the blocks (not of the all-rows figures)" if n_left else "")
     info = {"samples": int(N), "traced": int(n_kept), "block_rows": int(L),
-            "one_block_in": int(k), "blocks": int(sum(len(runs) for _, runs in out)),
+            "one_block_in": round(step, 3), "blocks": int(m_d + m_h),
+            "files_left_out": int(n_left),
             "seed": int(seed), "cap": int(max_samples),
             "longest_scanned_tau_s": tau_max_s,
-            "text": (f"{N:,} samples; traced on {n_kept:,} in blocks of {L:,} consecutive rows "
-                     f"(one in {k} of each file, drawn at random, seed fixed; cap "
-                     f"{max_samples:,}, `--max-samples`), the kept blocks of a file traced as that "
-                     f"file (one static constant and one clock per file; lag recursions run "
-                     f"across the gaps; time constants scanned up to ~{tau_max_s:.0f} s); the "
+            "text": (f"{N:,} samples; traced on {n_kept:,} in {m_d + m_h} blocks of {L:,} "
+                     f"consecutive rows (one in {step:.3g} of all the files' blocks in order, "
+                     f"drawn at random, seed fixed; cap {max_samples:,}, `--max-samples`)"
+                     f"{few}{left}; the kept blocks of a file traced as that "
+                     f"file (one static constant and one clock per file; the lag recursions run "
+                     f"through every row of the file, the rows left out feeding only their "
+                     f"state; time constants scanned up to ~{tau_max_s:.0f} s); the "
                      f"held-out figures are those of the blocks (all_rows: the coefficients "
                      f"applied to every row, in-sample)")}
-    return [t for t, _ in out[:len(tels)]], [t for t, _ in out[len(tels):]], info
+    return [t for t, _ in kd], [t for t, _ in kh], info
 
 
 def _pieces(tels):
@@ -136,17 +211,13 @@ def _pieces(tels):
 _UNSEEN_GROUP = 10 ** 15
 
 
-def _sse(model, S) -> tuple:
-    """(sum of squared residual rows, rows) of a model on samples S: vector rows per axis,
-    magnitude rows, static-position rows as the deviation from their own mean (the
-    constant fitted in-sample, per piece)."""
-    r = model.residual(model.theta[None], S)[0]
-    return float(r @ r), len(r)
-
-
 def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=()) -> dict:
-    """{sensor: [sse per model..., rows, samples]} over every usable row of tels;
-    models_of(sensor, S) -> the models to apply to that piece's samples."""
+    """{sensor: {"sse": [per model...], "rows", "samples", "lag_num", "lag_den"}} over
+    every usable row of tels (vector rows per axis, magnitude rows, static-position rows
+    as the deviation from their own mean: the constant fitted in-sample, per piece);
+    models_of(sensor, S) -> the models to apply to that piece's samples; lag_num / lag_den
+    pool the lag-1 autocorrelation of the LAST model's residual (crossval.lag1_parts)."""
+    from generator.trace.crossval import lag1_parts
     from generator.trace.samples import POS, gather_samples
     acc = {}
     for tel in _pieces(tels):
@@ -158,34 +229,107 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
                 continue
             S.group = np.where(S.kind == POS, S.group + _UNSEEN_GROUP, S.group)
             models = models_of(n, S)
-            sse = [_sse(m, S) for m in models]
-            a = acc.setdefault(n, [0.0] * len(models) + [0, 0])
-            for j, (e, _) in enumerate(sse):
-                a[j] += e
-            a[-2] += sse[0][1]
-            a[-1] += S.n
+            rs = [m.residual(m.theta[None], S)[0] for m in models]
+            a = acc.setdefault(n, {"sse": [0.0] * len(models), "rows": 0, "samples": 0,
+                                   "lag_num": 0.0, "lag_den": 0.0})
+            for j, r in enumerate(rs):
+                a["sse"][j] += float(r @ r)
+            num, den = lag1_parts(rs[-1], S)
+            a["rows"] += len(rs[0])
+            a["samples"] += S.n
+            a["lag_num"] += num
+            a["lag_den"] += den
     return acc
 
 
-def all_rows_rms(base, traced, tels, sensors) -> dict:
-    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples"}}: the RMS residual over
+def n_eff(rows, lag_num, lag_den) -> float:
+    """The effective number of rows of a residual with pooled lag-1 autocorrelation
+    rho = lag_num / lag_den (clipped to [0, 0.99]): rows (1 - rho) / (1 + rho), as
+    trace.scoring and trace.residual deflate it."""
+    rho = min(max(lag_num / lag_den if lag_den > 0 else 0.0, 0.0), 0.99)
+    return rows * (1 - rho) / (1 + rho)
+
+
+def all_rows_rms(base, traced, tels, sensors, final_models=None, channels=(),
+                 strict=()) -> dict:
+    """{sensor: {"baseline_rms_nT", "traced_rms_nT", "samples", ...}}: the RMS residual over
     EVERY usable row of the data files (vector rows per axis, magnitude rows, static-
     position rows as deviations from their position's mean) of the baseline coefficient
     set and of the traced one (the apply of fixed coefficients: linear in the rows), in
     pieces of ALL_ROWS_CHUNK consecutive rows of a file (the lag recursions restart at a
     piece's first row, a static position's constant is its mean over the piece).
-    In-sample: the rows the trace fitted on are among them."""
+    In-sample: the rows the trace fitted on are among them. With final_models ({sensor:
+    the trace's final model}) also "model_rms_nT", that model (effects with no flight
+    stage included) over every row; "n_eff": the effective rows of the residual of that
+    model (else of the traced set); channels and strict: the trace's candidate channels and regressors those models read."""
     from generator.trace.coefficients import model_from_coefficients
     unit = traced.unit
+    final_models = final_models or {}
     ch = list(dict.fromkeys(c for cs in (base, traced) for s in unit.sensors
                             for c in cs.spec.opts(s).kernel_channels))
-    acc = _all_rows_sse(lambda n, S: [model_from_coefficients(cs, n, S) for cs in (base, traced)],
-                        tels, unit, coils=traced.spec.coils,
-                        H=traced.unit_values.get("H_boom_to_body"), channels=ch,
-                        sensors=sensors)
-    return {n: {"baseline_rms_nT": float(np.sqrt(a[0] / a[2])),
-                "traced_rms_nT": float(np.sqrt(a[1] / a[2])), "samples": a[3]}
-            for n, a in acc.items() if a[2]}
+
+    def models_of(n, S):
+        ms = [model_from_coefficients(cs, n, S) for cs in (base, traced)]
+        return ms + ([final_models[n]] if n in final_models else [])
+    chans = list(dict.fromkeys(ch + list(channels)))
+    acc = _all_rows_sse(models_of, tels, unit, coils=traced.spec.coils,
+                        H=traced.unit_values.get("H_boom_to_body"), channels=chans,
+                        sensors=sensors, strict=strict)
+    out = {}
+    for n, a in acc.items():
+        if not a["rows"]:
+            continue
+        v = {"baseline_rms_nT": float(np.sqrt(a["sse"][0] / a["rows"])),
+             "traced_rms_nT": float(np.sqrt(a["sse"][1] / a["rows"])), "samples": a["samples"],
+             "n_eff": float(n_eff(a["rows"], a["lag_num"], a["lag_den"]))}
+        if n in final_models:
+            v["model_rms_nT"] = float(np.sqrt(a["sse"][2] / a["rows"]))
+        out[n] = v
+    return out
+
+
+# the warnings' threshold: the RMS of n_eff independent rows has a relative standard
+# error 1 / sqrt(2 n_eff) (chi^2 with n_eff degrees of freedom: var(s^2) = 2 s^4 / n_eff,
+# halved for s); two RMS of independent sets differ in ratio by sqrt(1 / (2 n_a) +
+# 1 / (2 n_b)); Z_WARN = 3 (one-sided 0.13 % a sensor) is beyond chance. n_eff deflates the
+# rows by the residual's lag-1 autocorrelation as trace.scoring and trace.residual do.
+# Conservative for the two comparisons below: the sets overlap (the blocks are among every
+# row), which makes the figures correlated and their difference smaller than this.
+Z_WARN = 3.0
+WARNING_PREFIX = "WARNING"
+
+
+def all_rows_warnings(all_rows, blocks=None) -> dict:
+    """{sensor: [warning text]}: where the figures over every row contradict what the
+    trace shows. (1) the traced (flight) coefficients are worse over every row than the
+    baseline's (an effect with no flight stage -- time_drift, time_offset -- moved the
+    written coefficients: with the cap or without); (2) above the cap, blocks {sensor:
+    (held-out RMS of the blocks' final model, its n_eff)}: the trace's final model over
+    every row is above the blocks' held-out figure beyond chance (an effect in rows the
+    blocks left out)."""
+    out = {}
+    for n, v in all_rows.items():
+        ne_a = max(v["n_eff"], 1.0)
+        w = []
+        b_a, t_a = v["baseline_rms_nT"], v["traced_rms_nT"]
+        if t_a > b_a * (1 + Z_WARN / math.sqrt(2 * ne_a)):
+            w.append(f"{WARNING_PREFIX} {n}: over every row of the data files the traced "
+                     f"coefficients are WORSE than the baseline's (RMS {b_a:.2f} -> "
+                     f"{t_a:.2f} nT, beyond chance): the written coefficient set is not an "
+                     "improvement (an effect with no flight-chain stage moved it); prefer "
+                     "the baseline")
+        if blocks and n in blocks and "model_rms_nT" in v:
+            rms_b, ne_b = blocks[n]
+            ne_b, m_a = max(ne_b, 1.0), v["model_rms_nT"]
+            if m_a > rms_b * (1 + Z_WARN * math.sqrt(1 / (2 * ne_a) + 1 / (2 * ne_b))):
+                w.append(f"{WARNING_PREFIX} {n}: over every row of the data files the trace's "
+                         f"model leaves {m_a:.2f} nT RMS, above the blocks' held-out "
+                         f"{rms_b:.2f} nT beyond chance: rows the blocks left out hold "
+                         "something the blocks do not show; the blocks' verdict does not hold "
+                         "for every row (trace with a higher --max-samples, or 0 for every row)")
+        if w:
+            out[n] = w
+    return out
 
 
 CONFIRM_PREFIX = "not confirmed on all rows"
@@ -193,19 +337,23 @@ CONFIRM_PREFIX = "not confirmed on all rows"
 
 def all_rows_confirmation(tels, unit, *, coils, H, channels, strict=()):
     """confirm(sensor, model, m1) -> "" or why: the check an effect the blocks accepted
-    must pass above the cap. model and m1 (the traced models before and after the effect,
-    fitted on the blocks) are applied to every usable row of the data files (in pieces,
-    in-sample, as all_rows_rms); the effect is kept only if m1's all-rows error is below
-    model's. The blocks decide; all the rows may only veto: an effect that lowers the
-    blocks' held-out error and not the error over every row is a property of the draw."""
+    must pass above the cap. model and m1 (the trace's models before and after the
+    effect, fitted on the blocks, effects with no flight stage included: not the
+    baseline and traced coefficient sets of all_rows_rms) are applied to every usable
+    row of the data files (in pieces, in-sample, as all_rows_rms); the effect is kept
+    only if m1's all-rows error is below model's. The blocks decide; all the rows may
+    only veto: an effect that lowers the blocks' held-out error and not the error over
+    every row is a property of the draw."""
     def confirm(name, model, m1) -> str:
         acc = _all_rows_sse(lambda n, S: [model, m1], tels, unit, coils=coils, H=H,
                             channels=channels, sensors=[name], strict=strict).get(name)
-        if not acc or not acc[2]:
+        if not acc or not acc["rows"]:
             return ""
-        r0, r1 = math.sqrt(acc[0] / acc[2]), math.sqrt(acc[1] / acc[2])
-        if acc[1] < acc[0]:
+        e0, e1 = acc["sse"]
+        r0, r1 = math.sqrt(e0 / acc["rows"]), math.sqrt(e1 / acc["rows"])
+        if e1 < e0:
             return ""
-        return (f"{CONFIRM_PREFIX}: over all {acc[3]:,} usable samples of the data files "
-                f"(in-sample) the RMS does not fall ({r0:.2f} -> {r1:.2f} nT)")
+        return (f"{CONFIRM_PREFIX}: over all {acc['samples']:,} usable samples of the data "
+                f"files (in-sample) the trace's models before and after it do not lower "
+                f"the RMS ({r0:.2f} -> {r1:.2f} nT)")
     return confirm

@@ -85,7 +85,8 @@ from generator.trace.samples import (  # noqa: F401
     candidate_channels, gather_samples)
 from generator.fit.samples import check_max_samples
 from generator.trace.subsample import (CONFIRM_PREFIX, MAX_TRACE_SAMPLES,
-                                       all_rows_confirmation, all_rows_rms, subsample_files)
+                                       all_rows_confirmation, all_rows_rms, all_rows_warnings,
+                                       subsample_files)
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
@@ -418,6 +419,7 @@ class TraceResult:
     sources: dict
     elapsed_s: float = 0.0
     subsample: dict | None = None     # trace.subsample's figures, above the cap only
+    warnings: list = field(default_factory=list)   # subsample.all_rows_warnings, if any
 
     @property
     def effects(self) -> list:
@@ -435,6 +437,8 @@ class TraceResult:
                "elapsed_s": round(self.elapsed_s, 2)}
         if self.subsample:            # above the cap only: under it the same bytes as before
             out["subsample"] = dict(self.subsample)
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
         regs = declared_regressors(self.unit)
         for n, tr in self.traces.items():
             out["baseline"][n] = {
@@ -745,6 +749,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     _holdout_not_data(data, holdout)
     tels = [add_regressors(regs, t) for t in _read(unit, data)]
     hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
+    # the blocks are drawn first (a cap below one block is refused before any fit)
+    kept_tels, kept_hold, subsample = subsample_files(tels, hold, max_samples)
     notes = []
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
@@ -772,7 +778,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                                  f"coefficients read it (sensor {s.name})")
     coils = base.spec.coils
     tels_all, hold_all = tels, hold
-    tels, hold, subsample = subsample_files(tels, hold, max_samples)
+    tels, hold = kept_tels, kept_hold
     if subsample:
         notes.append("subsample: " + subsample["text"])
         say(f"trace: {subsample['text']}")
@@ -842,18 +848,62 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "over every row of the data files did not fall: " + "; ".join(vetoed))
     _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
+    warnings = []
     if subsample:        # the figures of the blocks, and the apply over every row
-        subsample["all_rows"] = all_rows_rms(base, cs, tels_all, list(traces))
+        subsample["all_rows"] = all_rows_rms(
+            base, cs, tels_all, list(traces), {n: t.final_model for n, t in traces.items()},
+            channels=channels, strict={r["name"] for r in regs})
         for n, v in subsample["all_rows"].items():
             say(f"{n}: over all {v['samples']:,} usable samples of the data files (in-sample): "
                 f"RMS {v['baseline_rms_nT']:.2f} nT baseline -> {v['traced_rms_nT']:.2f} nT "
-                "traced")
+                f"traced ({v['model_rms_nT']:.2f} nT the trace's model)")
+        warned = all_rows_warnings(subsample["all_rows"],
+                                   {n: _blocks_figure(t) for n, t in traces.items()})
+        for n, ws in warned.items():
+            warnings += ws
+            t = traces[n]
+            if t.stop.startswith("nothing significant left"):
+                t.stop = ("nothing significant left in the blocks, but NOT over every row "
+                          "(see the WARNING notes): " + t.stop)
+    elif any(t.steps for t in traces.values()):   # every row traced: the flight set's check
+        rows = all_rows_rms(base, cs, tels_all, [n for n, t in traces.items() if t.steps])
+        for ws in all_rows_warnings(rows).values():
+            warnings += ws
+    if warnings:          # first: the report shows the notes at its top
+        notes[:0] = warnings
+        if subsample:
+            subsample["warnings"] = list(warnings)
+        cs.fit_info["trace"]["warnings"] = list(warnings)
+        for w in warnings:
+            say(w)
     sources = {"data": [str(t.path) for t in tels_all],
                "holdout": [str(t.path) for t in hold_all],
                "baseline": "supplied coefficients" if coeffs is not None else
                base.fit_info.get("core", "fit")}
     return TraceResult(unit, evaluated_on, traces, skipped, base, cs, notes, sources,
-                       time.perf_counter() - t0, subsample=subsample)
+                       time.perf_counter() - t0, subsample=subsample, warnings=warnings)
+
+
+def _blocks_figure(t: SensorTrace) -> tuple:
+    """(held-out RMS of the blocks' last model, its effective rows): the fewer of the
+    rows deflated by the residual's lag-1 autocorrelation and of what the spread of the
+    mean square between the evaluation's time blocks allows (a cluster sample: a
+    non-stationary residual varies from block to block more than its lag-1 correlation
+    says; the RMS's relative s.e. is half the mean square's, 1 / sqrt(2 n_eff) =
+    sd(ms_b) / (2 mean(ms_b) sqrt(B)), so n_eff = 2 B mean^2 / sd^2)."""
+    S = t.S_eval
+    model = t.steps[-1].model_after if t.steps else t.base_model
+    r = model.residual(model.theta[None], S)[0]
+    rho = min(max(_lag1(r, S), 0.0), 0.99)
+    n_eff = r.size * (1 - rho) / (1 + rho)
+    blk = (S.block if S.block is not None else assign_blocks(S))[S.row_sample]
+    ids = np.unique(blk)
+    if len(ids) >= 3:
+        ms = np.array([float(np.mean(r[blk == b] ** 2)) for b in ids])
+        sd = float(np.std(ms, ddof=1))
+        if sd > 0:
+            n_eff = min(n_eff, 2 * len(ids) * float(np.mean(ms)) ** 2 / sd ** 2)
+    return t.final_rms_nT, n_eff
 
 
 __all__ = ["trace", "TraceResult", "SensorModel", "SensorSamples", "to_coefficient_set",

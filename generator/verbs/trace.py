@@ -56,6 +56,8 @@ def cmd_trace(args) -> int:
                       "noise floor")
         progress(f"{n}: {tr.baseline_rms_nT:.2f} -> {tr.final_rms_nT:.2f} nT held-out RMS; "
                  f"{found}")
+    for w in res.warnings:            # again last, where the user looks
+        progress(w)
     progress(f"wrote {paths['trace']}, {paths['coefficients']} and {paths['report']}")
     return 0
 
