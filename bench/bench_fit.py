@@ -186,6 +186,19 @@ The 1 s target is not reached: the sensors' fits take ~1.9-2.0 s CPU serially (~
 forked 1.25 s wall when the second core was free (its floor with five equal sensors in
 two children is 3/5 of the serial CPU, ~1.15-1.2 s); pipeline.fit adds ~0.8 s of the
 settling analysis, serial, in the parent.
+
+After that (a7be45f: the settling warnings from the telemetry the fit has read and the
+campaign check's cells only, 0.82 -> 0.30 s CPU) and the figs11 figure cuts, one run on
+main 3a8fdab (2026-11-24 ~20:48-20:52 UTC, --repeat 2 --no-memory --previous-commit
+5335ede, main at the start of this day's last session; the full test suite ran on the
+other core, so the forked wall times are the load's):
+  fit against 5335ede, sensors serial: CPU 4.30 s -> 2.20 s (1.95x), of it fit_unit
+    4.20 s -> 1.87 s (2.25x)
+  fit against 5335ede, forked: wall 3.55 s -> 1.89 s (1.88x), CPU 4.48 s -> 2.31 s
+  fit CPU against f6f3a45 (before issue 20): 8.73 s -> 2.31 s (3.78x)
+  report (figures drawn serially, with the report's own analysis), CPU: 6.51 s (5335ede)
+    -> 3.31 s (1.97x); 7.05 s (f639afc) -> 3.31 s (2.13x)
+Still not the issue's 1 s for the fit or for the figures.
 """
 
 from __future__ import annotations
