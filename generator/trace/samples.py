@@ -161,13 +161,26 @@ def _ref_rate(time_s, ref, position):
     return out
 
 
+def _held(v):
+    """v with every non-finite cell replaced by the last finite value before it (0 before
+    the first): a channel that stops being logged for a while (a telemetry dropout, a
+    blank cell) keeps its value, as an importer holds a channel between its log entries
+    (io.px4_ulog). Taken as 0 instead, a bus voltage at 8 V read 0 V through the dropout,
+    and the lag recursions carried that into the rows after it (review #20c N1: 300 blank
+    cells in rows a capped trace left out turned the right lagged bias into a wrong one,
+    2x the truth's error)."""
+    fin = np.isfinite(v)
+    last = np.maximum.accumulate(np.where(fin, np.arange(len(v)), -1))
+    return np.where(last >= 0, v[np.maximum(last, 0)], 0.0)
+
+
 def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None,
                    strict=()) -> dict:
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
     boom -> body rotation (the rate in a boom sensor's frame is H^T w). strict: channels
     whose non-finite rows are missing (the samples left out: a user regressor's division
-    by zero); other channels' empty cells are taken as 0."""
+    by zero); other channels' empty cells are held at the channel's last value (_held)."""
     from generator.io.telemetry_csv import preprocess
     notes = notes if notes is not None else []
     H = np.eye(3) if H is None else np.asarray(H, float)
@@ -218,10 +231,12 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                     missing |= bad
                     notes.append(f"{tel.path}: channel {c} is not finite in "
                                  f"{int(bad.sum())} rows: those samples are missing")
+                    v = np.nan_to_num(v)
                 else:
                     notes.append(f"{tel.path}: channel {c} has {int(bad.sum())} "
-                                 "empty cells, taken as 0")
-                v = np.nan_to_num(v)
+                                 "empty cells, held at the channel's last value (0 before "
+                                 "its first)")
+                    v = _held(v)
             ch[c] = v
         temps = board_temperatures(unit)
         for s in unit.sensors:

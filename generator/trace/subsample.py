@@ -1,6 +1,6 @@
 """What `magcal trace` takes of long telemetry: above MAX_TRACE_SAMPLES rows, contiguous
-blocks of L consecutive rows of each file, one block drawn at random in each run of k
-(systematic cluster sampling, seed fixed). The kept blocks of a file stay ONE file (its
+blocks of L consecutive rows drawn over all the files' blocks in order (systematic
+cluster sampling, seed fixed; subsample_files). The kept blocks of a file stay ONE file (its
 rows in time order, with gaps where blocks were left out): a static position keeps one
 constant over the whole file, "time since the start of the file" keeps one clock, and the
 lag recursions run across a gap as the flight chain's own recursion runs across a gap in
@@ -151,14 +151,37 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     nb_d = sum(-(-t.n // L) for t in tels)
     nb_h = sum(-(-t.n // L) for t in hold)
     n_blocks = nb_d + nb_h
+    def plan(m):
+        """The draws of m blocks (data and holdout apart, in proportion) and their rows."""
+        m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
+        m_d = min(nb_d, max(1, m - m_h))
+        draws = []
+        for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
+            rng = np.random.Generator(np.random.PCG64([seed, role]))
+            draws.append(_draw(files, mm, rng, L))
+        rows = sum(min(files[f].n, (int(b) + 1) * L) - int(b) * L
+                   for files, d in zip((list(tels), list(hold)), draws)
+                   for f, picks in d for b in picks)
+        return m_d, m_h, draws, rows
+
     m = min(n_blocks, max_samples // L)               # the blocks the cap holds
-    m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
-    m_d = min(nb_d, max(1, m - m_h))
+    m_d, m_h, draws, rows = plan(m)
+    # files shorter than a block give blocks of fewer than L rows (review #20c N2: 200
+    # files of 200 rows beside a long file used a fifth of the cap): more blocks, as many
+    # as keep the drawn rows within the cap (bisection over the count; every count tried
+    # is drawn and measured, so the one taken holds the cap)
+    lo, hi = m, n_blocks
+    while rows < max_samples - L and lo < hi:
+        mid = (lo + hi + 1) // 2
+        cand = plan(mid)
+        if cand[3] <= max_samples:
+            lo, (m_d, m_h, draws, rows) = mid, cand
+        else:
+            hi = mid - 1
     out = []
-    for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
-        rng = np.random.Generator(np.random.PCG64([seed, role]))
+    for role, files in enumerate((list(tels), list(hold))):
         kept = []
-        for f, picks in _draw(files, mm, rng, L):
+        for f, picks in draws[role]:
             t = files[f]
             runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
             if runs:
@@ -184,12 +207,14 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
             "seed": int(seed), "cap": int(max_samples),
             "longest_scanned_tau_s": tau_max_s,
             "text": (f"{N:,} samples; traced on {n_kept:,} in {m_d + m_h} blocks of {L:,} "
-                     f"consecutive rows (one in {step:.3g} of all the files' blocks in order, "
+                     f"consecutive rows{' (fewer at the end of a file)' if n_kept < (m_d + m_h) * L else ''} (one in {step:.3g} of all the files' blocks in order, "
                      f"drawn at random, seed fixed; cap {max_samples:,}, `--max-samples`)"
                      f"{few}{left}; the kept blocks of a file traced as that "
                      f"file (one static constant and one clock per file; the lag recursions run "
                      f"through every row of the file, the rows left out feeding only their "
-                     f"state; time constants scanned up to ~{tau_max_s:.0f} s); the "
+                     f"state; time constants scanned up to ~{tau_max_s:.0f} s, those longer than a few "
+                     f"blocks ({L:,} rows each) seen only through the blocks' slow drift, and "
+                     f"missed where the blocks are too few); the "
                      f"held-out figures are those of the blocks (all_rows: the coefficients "
                      f"applied to every row, in-sample)")}
     return [t for t, _ in kd], [t for t, _ in kh], info

@@ -23,8 +23,10 @@ def add_trace_args(p):
     p.add_argument("--max-samples", type=_max_samples, default=MAX_TRACE_SAMPLES, metavar="N",
                    help=f"the most telemetry rows the trace works on (default "
                         f"{MAX_TRACE_SAMPLES}, trace.subsample.MAX_TRACE_SAMPLES; 0: all): "
-                        "above it contiguous blocks of each file, one drawn at random in "
-                        "each run of k (seed fixed), said in trace.json and the notes")
+                        "above it blocks of consecutive rows drawn at random (seed fixed) over "
+                        "all the files' blocks in order, as many as the cap holds; the "
+                        "error over every row is checked; said in trace.json and the notes "
+                        "(docs/fit_samples.md)")
 
 
 def _max_samples(text):
