@@ -108,6 +108,8 @@ def cmd_fit(args):
         report = None if args.no_report else write_fit_report(
             cs, folder.tmp, data_paths=args.data, progress=progress, extra_sections=extra)
     out = folder.target
+    if folder.stale_note():
+        progress(folder.stale_note())
     from generator.report.report import fit_summary
     if report is None:
         progress(f"wrote {out / 'coefficients.json'} (no report: --no-report)")

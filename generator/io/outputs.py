@@ -163,6 +163,19 @@ class OutputFolder:
 
     def __init__(self, target: Path, tmp: Path):
         self.target, self.tmp = target, tmp
+        # after the commit: the files the target folder already held that this run did
+        # not write (outputs of an earlier run, e.g. a figure this report no longer has);
+        # kept, never deleted, and named by stale_note
+        self.earlier: list = []
+
+    def stale_note(self) -> str:
+        """'' or one line naming the files of an earlier run the folder still holds."""
+        if not self.earlier:
+            return ""
+        names = [str(p.relative_to(self.target)) for p in self.earlier]
+        shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+        return (f"note: {self.target} also holds {len(names)} file(s) this run did not write "
+                f"(from an earlier run, kept): {shown}")
 
     def final(self, p) -> Path:
         p = Path(p)
@@ -185,15 +198,17 @@ def output_folder(path):
         _remove_made(made)
         raise InputError(path, f"cannot create the output folder: {e.strerror or e}") from None
     try:
-        yield OutputFolder(target, tmp)
-        _commit(tmp, target)
+        folder = OutputFolder(target, tmp)
+        yield folder
+        folder.earlier = _commit(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_made(made)
         raise
 
 
-def _commit(tmp: Path, target: Path) -> None:
+def _commit(tmp: Path, target: Path) -> list:
+    """Move the built folder into place; the target's files this run did not write."""
     os.chmod(tmp, 0o777 & ~_umask())
     for f in tmp.rglob("*"):
         if f.is_file():
@@ -203,11 +218,15 @@ def _commit(tmp: Path, target: Path) -> None:
         try:
             os.rename(tmp, target)
             _fsync_dir(target.parent)
-            return
+            return []
         except OSError:
             pass           # created meanwhile: merge below
+    written = {f.relative_to(tmp) for f in tmp.rglob("*") if f.is_file()}
     _merge(tmp, target)
     shutil.rmtree(tmp, ignore_errors=True)
+    return sorted(f for f in target.rglob("*")
+                  if f.is_file() and f.relative_to(target) not in written
+                  and not f.name.startswith("."))
 
 
 def _merge(src: Path, dst: Path) -> None:

@@ -60,6 +60,8 @@ def cmd_trace(args) -> int:
                  f"{found}")
     for w in res.warnings:            # again last, where the user looks
         progress(w)
+    if folder.stale_note():
+        progress(folder.stale_note())
     progress(f"wrote {paths['trace']}, {paths['coefficients']} and {paths['report']}")
     return 0
 
