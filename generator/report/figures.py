@@ -7,8 +7,6 @@ Figures are kept few and cheap: one figure per sensor with a grid of subplots, m
 
 from __future__ import annotations
 
-import os
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -224,25 +222,14 @@ def _run_deferred(k):
     return k
 
 
-_INDEX = struct.Struct("<I")
-
-
-def _draw_claimed(fd):
-    """Draw deferred figures, each time the next one whose index (_INDEX) this process
-    takes from the pipe fd, until the pipe is empty (its write end is closed: end of file).
-    Returns (indices drawn, indices whose drawing raised)."""
-    drawn, failed = [], []
-    while True:
-        raw = os.read(fd, _INDEX.size)
-        if len(raw) < _INDEX.size:
-            return drawn, failed
-        k = _INDEX.unpack(raw)[0]
-        try:
-            _run_deferred(k)
-        except Exception:          # drawn again by the parent, which raises it (parallel)
-            failed.append(k)
-        else:
-            drawn.append(k)
+def _draw_or_report(k) -> bool:
+    """Draw deferred figure k; False if its drawing raised (the parent draws it again and
+    raises the error there: parallel.__exit__)."""
+    try:
+        _run_deferred(k)
+    except Exception:
+        return False
+    return True
 
 
 class parallel:
@@ -251,11 +238,9 @@ class parallel:
     in this process, where its error is raised as usual; an interrupt kills the
     children).
 
-    The figures are handed out as the children ask for them, not dealt in advance: the
-    indices wait in a pipe, and each child reads the next one (a read of 4 bytes from a
-    pipe is atomic) whenever it has finished a figure, so a child that drew an expensive
-    figure draws fewer of the rest. A figure no child reports as drawn (its child failed
-    or died) is drawn here."""
+    The figures are handed out as the children ask for them, not dealt in advance
+    (forked_map's on_demand), so a child that drew an expensive figure draws fewer of the
+    rest. A figure no child reports as drawn (its child failed or died) is drawn here."""
 
     def __init__(self, workers=None):
         from generator.forked import default_workers
@@ -272,41 +257,21 @@ class parallel:
         try:
             if exc_type is not None or not calls:
                 return False
-            from generator.forked import can_fork
-            drawn = set()
-            # the pipe holds every index before the children start (a pipe's buffer is
-            # at least 4096 bytes: 1024 indices; a longer list is drawn serially)
-            if can_fork(len(calls), self.workers) and len(calls) <= 1024:
-                drawn = self._forked(len(calls))
-            for k in range(len(calls)):
-                if k not in drawn:
-                    _run_deferred(k)
+            from contextlib import closing
+
+            from generator.forked import forked_map
+            # on demand: each child takes the next figure when it has finished one; a
+            # figure whose child died is drawn here by forked_map, one that raised in a
+            # child is drawn here again after the others, where its error is raised;
+            # _warm_up: matplotlib and its fonts loaded once, before the children fork
+            with closing(forked_map(_draw_or_report, range(len(calls)), self.workers,
+                                    before_fork=_warm_up, on_demand=True)) as done:
+                failed = [k for k, ok in enumerate(done) if not ok]
+            for k in failed:
+                _run_deferred(k)
         finally:
             _DEFERRED = None
         return False
-
-    def _forked(self, n) -> set:
-        """Indices of the figures the forked children drew (the rest: see __exit__)."""
-        from contextlib import closing
-
-        from generator.forked import forked_map
-
-        r, w = os.pipe()
-        try:
-            os.write(w, b"".join(_INDEX.pack(k) for k in range(n)))
-            os.close(w)
-            w = None
-            drawn = set()
-            # _warm_up: matplotlib and its fonts loaded once, before the workers fork
-            with closing(forked_map(lambda _: _draw_claimed(r), range(self.workers),
-                                    self.workers, before_fork=_warm_up)) as done:
-                for ok, _failed in done:
-                    drawn.update(ok)
-            return drawn
-        finally:
-            for fd in (r, w):
-                if fd is not None:
-                    os.close(fd)
 
 
 EMPTY_AXES_KEY = "magcal-empty-axes"   # PNG text chunk: visible axes with nothing drawn
