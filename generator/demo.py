@@ -159,7 +159,9 @@ def run_demo_atomic(out: Path, seed: int = 1, progress=None) -> int:
     import sys
 
     from generator.io.outputs import output_folder
+    from generator.progress import Progress
 
+    progress = progress or Progress()
     buf = io.StringIO()
     with output_folder(out) as folder:
         with contextlib.redirect_stdout(buf):
@@ -171,6 +173,8 @@ def run_demo_atomic(out: Path, seed: int = 1, progress=None) -> int:
                 if tmp in text:
                     f.write_text(text.replace(tmp, target), encoding="utf-8")
     sys.stdout.write(buf.getvalue().replace(tmp, target))
+    if folder.stale_note():
+        progress(folder.stale_note())
     return rc
 
 

@@ -40,6 +40,8 @@ def run_plan(args, progress) -> tuple:
     paths = {k: ([folder.final(p) for p in v] if isinstance(v, list) else folder.final(v))
              for k, v in paths.items()}
     progress(f"wrote {paths['html']}, {paths['markdown']} and {paths['json']}")
+    if folder.stale_note():
+        progress(folder.stale_note())
     result = plan.to_json_dict()
     result["files"] = {k: ([str(p) for p in v] if isinstance(v, list) else str(v))
                        for k, v in paths.items()}
