@@ -1,8 +1,9 @@
 """What is left after a trace, against the noise floor (issue 17, honesty).
 
 The noise floor of a sensor's residual is the data's own sample-to-sample noise: the
-robust spread of first differences of the residual rows along time (per axis / kind,
-within each file, 1.4826 MAD / sqrt(2): a slow structure or a few jumps hardly move it),
+robust spread of first differences of the residual rows along time (per axis / kind
+and per file, 1.4826 MAD / sqrt(2): a slow structure or a few jumps hardly move it; the
+files' variances pooled by their rows),
 reported beside the part's noise (the unit's `noise_nT`, divided by sqrt(2) for a
 SET/RESET part, which averages two readings). The floor used is the data's where it can
 be measured (it includes the reference's noise), else the part's.
@@ -34,6 +35,9 @@ NOISE_ALPHA = 1e-3        # upper-tail probability of the at-the-noise test (mod
 MAD_EFFICIENCY = 0.37     # asymptotic efficiency of the MAD against the standard deviation
 N_BINS = 10               # quantile bins of a quantity (correlation ratio)
 MAD_TO_SIGMA = 1.4826     # MAD of a normal variable -> its standard deviation
+# a file's own noise estimate needs enough differences: the MAD's relative standard error
+# is ~sqrt(1 / (0.37 n)), 15 % at 120 differences; smaller files are pooled together
+MIN_FILE_DIFFS = 120
 
 
 def per_sample(S: SensorSamples, r) -> np.ndarray:
@@ -53,7 +57,14 @@ def per_sample(S: SensorSamples, r) -> np.ndarray:
 def data_noise_nT(S: SensorSamples, r, n_diff=None) -> float | None:
     """The residual's own sample-to-sample noise (RMS over rows), from robust first
     differences along time within each file; None with too few samples. n_diff: a list
-    that receives the number of differences used."""
+    that receives the number of differences used.
+
+    The spread is estimated per (axis / kind, file) and the variances pooled weighted by
+    the rows: files recorded at different noise levels (another sensor mode, another
+    vehicle) have a mean square that is the rows' mean of their variances, which one MAD
+    over the pooled differences would put near the majority's (review #20c N9: a 10 nT and
+    a 100 nT file gave a floor near 10 nT and tens of nT "unexplained"). A file with fewer
+    than MIN_FILE_DIFFS differences on an axis joins the pool of such small files."""
     rs, ax = S.row_sample, S.row_axis
     var, cnt = 0.0, 0
     nd = 0
@@ -63,14 +74,27 @@ def data_noise_nT(S: SensorSamples, r, n_diff=None) -> float | None:
             continue
         o = sel[np.argsort(S.order[rs[sel]], kind="stable")]
         f = S.file_index[rs[o]]
-        d = np.diff(r[o])[f[1:] == f[:-1]]
+        same = f[1:] == f[:-1]
+        d = np.diff(r[o])[same]
         if len(d) < 2:
             continue
-        mad = float(np.median(np.abs(d - np.median(d))))
-        s = MAD_TO_SIGMA * mad / math.sqrt(2.0)
-        var += s * s * len(sel)
-        cnt += len(sel)
-        nd += len(d)
+        fd = f[1:][same]                              # the file of each difference
+        files, n_d = np.unique(fd, return_counts=True)
+        rows = np.bincount(f, minlength=int(f.max()) + 1)
+        small = files[n_d < MIN_FILE_DIFFS]
+        groups = [fd == k for k in files[n_d >= MIN_FILE_DIFFS]]
+        if len(small):
+            groups.append(np.isin(fd, small))
+        for g in groups:
+            dg = d[g]
+            if len(dg) < 2:
+                continue
+            mad = float(np.median(np.abs(dg - np.median(dg))))
+            s = MAD_TO_SIGMA * mad / math.sqrt(2.0)
+            n_rows = int(rows[np.unique(fd[g])].sum())
+            var += s * s * n_rows
+            cnt += n_rows
+            nd += len(dg)
     if n_diff is not None:
         n_diff.append(nd)
     return math.sqrt(var / cnt) if cnt else None
