@@ -121,6 +121,15 @@ class Effect:
     def reference_shift(self, p, S):
         return 0.0
 
+    def noise_terms(self, S, side):
+        """None, or for an effect whose parameters change how much NOISE the residual
+        carries (TimeOffset: the interpolated reference averages two noisy samples),
+        per residual row (c1 (R,), c2 (R,)): the residual's expected square on noise alone
+        falls by c1 p + c2 p^2 (one parameter p, on side +1 / -1 of 0: the form the
+        effect takes there). The fit and the scoring add that back (the SSE CORRECTED
+        for it), so that a parameter is not fitted to the noise it removes."""
+        return None
+
     # ---- output -----------------------------------------------------------------------
     def describe(self, p, model=None) -> dict:
         """Physical parameters (JSON-able, names with units)."""
@@ -864,6 +873,34 @@ class TimeOffset(Effect):
         slope = np.where((dt >= 0)[:, None, None, None], S.ref_rate[None, :, 0:1, :],
                          S.ref_rate[None, :, 1:2, :])[:, :, 0, :]
         return dt[:, None, None] * slope
+
+    def noise_terms(self, S, side):
+        """The interpolation's averaging of the reference's white noise (review #20b F6;
+        generator.trace.reference_noise): on side +1 (dt >= 0) the reference dt later is
+        (1 - a) ref_k + a ref_k+1, a = dt / h (h the step to the next sample), whose noise
+        variance (1 - a)^2 + a^2 of one sample's sigma^2 is less by 2 sigma^2 (a - a^2);
+        on side -1 the same with the step from the previous sample and a = -dt / h. Per
+        vector row where the shift acts (the slope of that side is known), with sigma^2
+        the upper confidence limit for the row's file and axis: c1 = 2 sigma^2 side
+        scale / h, c2 = -2 sigma^2 scale^2 / h^2 (p the internal parameter, dt = p scale).
+        A noise-free reference gives zeros: the offset is fitted as before."""
+        from generator.trace.reference_noise import reference_noise_var, reference_steps
+        iv = S.idx[0]
+        c1, c2 = np.zeros(S.n_rows), np.zeros(S.n_rows)
+        if len(iv) == 0:
+            return c1, c2
+        k = 0 if side >= 0 else 1
+        var = reference_noise_var(S)
+        sig2 = np.zeros((S.n, 3))
+        for fi, v in var.items():
+            sig2[S.file_index == fi] = v
+        h = reference_steps(S)[:, k]
+        acts = np.any(S.ref_rate[:, k, :] != 0, axis=1) & np.isfinite(h) & (h > 0)
+        w = np.where(acts, self.scale / np.where(acts, h, 1.0), 0.0)      # 1 / step, internal
+        s2 = sig2[iv]                                                     # (nv, 3)
+        c1[:3 * len(iv)] = (2.0 * s2 * (1.0 if side >= 0 else -1.0) * w[iv, None]).reshape(-1)
+        c2[:3 * len(iv)] = (-2.0 * s2 * (w[iv] ** 2)[:, None]).reshape(-1)
+        return c1, c2
 
     def dt_s(self, p):
         return float(np.asarray(p).reshape(-1)[0] * self.scale)

@@ -134,12 +134,13 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     H = len(grid)
     best_train = np.full(len(cv.folds), np.inf)
     test1 = np.empty(len(cv.r0))
+    extra1 = np.zeros(len(cv.r0))     # the candidate's noise correction per held-out row
     fulls = np.empty(H)
     masked = hasattr(e, "mask") and e.fd_in_scoring
     if masked:   # a linear effect switched on by a row mask: columns once, masked per value
         e.set_hyper(None)
         d0_all, G_all = candidate_columns(model, S, e, cv.r0)
-    def keep(j, train, _block, full, test):
+    def keep(j, train, _block, full, test, extra=None):
         # per fold: the grid value with the least training error (the first of equals);
         # the held-out rows only of the folds it improves
         fulls[j] = full
@@ -147,6 +148,7 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
             if train[f] < best_train[f]:
                 best_train[f] = train[f]
                 test1[te] = test[te]
+                extra1[te] = 0.0 if extra is None else extra[te]
         return best_train
 
     stepped = masked and d0_all is None and G_all is not None and hasattr(e, "step_key") \
@@ -159,7 +161,7 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
             d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
         else:
             d0, G = candidate_columns(model, S, e, cv.r0)
-        keep(j, *cv.evaluate(d0, G, bound=best_train))
+        keep(j, *cv.evaluate_corrected(d0, G, bound=best_train, quad=noise_quad(e, S, G)))
     jbest = int(np.argmin(fulls))
     if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
         return _rescore_refitted(model, S, cv, e, [grid[j] for j in np.argsort(fulls)[:2]],
@@ -170,15 +172,34 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
         d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
     else:
         d0, G = candidate_columns(model, S, e, cv.r0)
-    res_full = cv.full_residual(d0, G)
-    return _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]))
+    res_full = cv.full_residual(d0, G, quad=noise_quad(e, S, G))
+    return _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]),
+                       extra1)
 
 
-def heldout_z(test0, test1, row_block, n_blocks, kappa) -> float:
+def noise_quad(e, S, G):
+    """(q0, q1, q2) per row: the candidate's noise correction (Effect.noise_terms) as a
+    quadratic in beta = p - p0, its one parameter's step from the point of linearisation
+    p0 = init_params (on p0's side of 0: the form the columns G are taken in); None for
+    an effect without one, or a correction of zero (a noise-free reference)."""
+    if G is None or G.shape[1] != 1 or e.n_params != 1:
+        return None
+    p0 = float(e.init_params()[0])
+    terms = e.noise_terms(S, 1.0 if p0 >= 0 else -1.0)
+    if terms is None or not (np.any(terms[0]) or np.any(terms[1])):
+        return None
+    c1, c2 = terms
+    return c1 * p0 + c2 * p0 * p0, c1 + 2.0 * c2 * p0, c2
+
+
+def heldout_z(test0, test1, row_block, n_blocks, kappa, extra1=None) -> float:
     """The held-out score statistic of rule 2 (module docstring): the held-out SSE gain
-    over its standard deviation for a useless candidate, with each block's own noise."""
+    over its standard deviation for a useless candidate, with each block's own noise
+    (extra1: the candidate's noise correction per row, added to its squared residual)."""
     u = test0 - test1
     gain = float(test0 @ test0 - test1 @ test1)
+    if extra1 is not None:
+        gain -= float(np.sum(extra1))
     cnt = np.bincount(row_block, minlength=n_blocks)
     s2 = np.bincount(row_block, weights=test1 * test1, minlength=n_blocks) / np.maximum(cnt, 1)
     uu = np.bincount(row_block, weights=u * u, minlength=n_blocks)
@@ -188,26 +209,32 @@ def heldout_z(test0, test1, row_block, n_blocks, kappa) -> float:
     return gain / math.sqrt(var)
 
 
-def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Score:
+def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full,
+                extra1=None) -> Score:
     """The statistics of the significance rule from the held-out residuals without
-    (test0) and with (test1) the candidate, and its fit-data residual."""
+    (test0) and with (test1) the candidate, and its fit-data residual (extra1: the
+    candidate's noise correction per held-out row, counted with its squared residual)."""
     from scipy import stats as sps
     r0 = cv.r0
     rb, nb = cv.row_block, cv.n_blocks
+    if extra1 is not None and not np.any(extra1):
+        extra1 = None
     base_block = np.bincount(rb, weights=test0 * test0, minlength=nb)
-    block1 = np.bincount(rb, weights=test1 * test1, minlength=nb)
+    sq1 = test1 * test1 if extra1 is None else test1 * test1 + extra1
+    block1 = np.bincount(rb, weights=sq1, minlength=nb)
     gain = base_block - block1
     sse0_full = float(r0 @ r0)
     rho = min(max(_lag1(res_full, S), 0.0), 0.99)
     n_eff = len(r0) * (1 - rho) / (1 + rho)
     kappa = (1 + rho) / (1 - rho)
-    z = heldout_z(test0, test1, rb, nb, kappa)
+    z = heldout_z(test0, test1, rb, nb, kappa, extra1)
     p_z = float(sps.norm.sf(z))
     file_z = {}
     row_file = S.file_index[S.row_sample]
     for fi in np.unique(row_file):
         sel = row_file == fi
-        file_z[S.file_names[fi]] = heldout_z(test0[sel], test1[sel], rb[sel], nb, kappa)
+        file_z[S.file_names[fi]] = heldout_z(test0[sel], test1[sel], rb[sel], nb, kappa,
+                                             None if extra1 is None else extra1[sel])
     lr_fit = n_eff * math.log(sse0_full / sse1_full) if sse1_full > 0 and sse0_full > 0 \
         else 0.0
     sse0_cv, sse1_cv = float(base_block.sum()), float(block1.sum())
