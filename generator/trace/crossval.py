@@ -134,14 +134,6 @@ class CVEngine:
         return yp, pieces
 
     def evaluate(self, d0=None, G=None, bound=None):
-        return self.evaluate_corrected(d0, G, bound)[:4]
-
-    def evaluate_corrected(self, d0=None, G=None, bound=None, quad=None):
-        """evaluate(), with quad = (q0, q1, q2) per row (a candidate of ONE column): the
-        term q0 + q1 beta + q2 beta^2 added to each row's squared residual (an effect's
-        noise correction, generator.trace.effects.Effect.noise_terms) in the training
-        fits and the SSEs, and returned as a fifth result: that term per held-out row at
-        its fold's beta (0 without quad)."""
         """Train SSE per fold (K,), held-out SSE per block (B,), full-data SSE and the
         held-out residual of every row (R,: each row is held out in exactly one fold),
         for the model with offset d0 (R,) and columns G (R, k). The normal-equation
@@ -152,20 +144,15 @@ class CVEngine:
         y = self.r0 if d0 is None else self.r0 + d0
         yp, ypieces = self._y_pieces(y)
         Gp = None if G is None else np.ascontiguousarray(G[self.perm])
-        qp = None if quad is None else [np.asarray(q, float)[self.perm] for q in quad]
         pieces = []
         for sl, (_, Jte, _, _), yc in zip(self.slices, self.folds, ypieces):
             pc = list(yc)
             if Gp is not None:
                 Gf = Gp[sl]
                 pc += [Jte.T @ Gf, Gf.T @ Gf, Gf.T @ yp[sl]]
-                if qp is not None:      # sum (q0 + q1 b + q2 b^2): y.y, G^T G, G^T y
-                    pc[0] = pc[0] + float(qp[0][sl].sum())
-                    pc[3] = pc[3] + float(qp[2][sl].sum())
-                    pc[4] = pc[4] + 0.5 * float(qp[1][sl].sum())
             pieces.append(pc)
         return self._finish(y, yp, pieces, (lambda sl: Gp[sl]) if Gp is not None else None,
-                            G, bound, qp)
+                            G, bound)
 
     def step_scan(self, G, key, thresholds, bound_update):
         """evaluate(None, G * (key >= t)) for every t of the ascending thresholds, from
@@ -207,21 +194,18 @@ class CVEngine:
             def cols(sl, j=j):
                 return Gp[sl] * (qp[sl] > j)[:, None]
 
-            out = self._finish(self.r0, yp, pieces, cols, None, bound)[:4]
+            out = self._finish(self.r0, yp, pieces, cols, None, bound)
             bound = bound_update(j, *out)
 
-    def _finish(self, y, yp, pieces, cols, G, bound, qp=None):
-        """evaluate_corrected() from the per-fold pieces [y.y, J^T y(, J^T G, G^T G,
-        G^T y)] (with the noise correction summed in); cols(slice): the candidate's
-        columns of those permuted rows (None: none); qp: the correction's per-row
-        coefficients, permuted (None: none)."""
+    def _finish(self, y, yp, pieces, cols, G, bound):
+        """evaluate() from the per-fold pieces [y.y, J^T y(, J^T G, G^T G, G^T y)];
+        cols(slice): the candidate's columns of those permuted rows (None: none)."""
         tot = [sum(pc[i] for pc in pieces) for i in range(len(pieces[0]))] if pieces else \
             [float(y @ y), self.J.T @ y] + ([] if G is None else
                                             [self.J.T @ G, G.T @ G, G.T @ y])
         train = np.empty(len(self.folds))
         block = np.zeros(self.n_blocks)
         heldout = np.zeros(len(y)) if bound is None else np.full(len(y), np.nan)
-        extra = np.zeros(len(y)) if bound is None else np.full(len(y), np.nan)
         for f, (sl, (te, Jte, bte, Ainv)) in enumerate(zip(self.slices, self.folds)):
             pc = pieces[f]
             parts = None
@@ -235,27 +219,16 @@ class CVEngine:
             if beta is not None:
                 test = test + cols(sl) @ beta
             heldout[te] = test
-            ex = 0.0
-            if qp is not None and beta is not None:
-                b = float(beta[0])
-                ex = qp[0][sl] + qp[1][sl] * b + qp[2][sl] * b * b
-            extra[te] = ex
-            block += np.bincount(bte, weights=test * test + ex, minlength=self.n_blocks)
+            block += np.bincount(bte, weights=test * test, minlength=self.n_blocks)
         full_G = None if cols is None else (tot[2], tot[3], tot[4])
         sse_full, _, _ = self._solve(self.Ainv_full, tot[0], tot[1], full_G)
-        return train, block, float(sse_full), heldout, extra
+        return train, block, float(sse_full), heldout
 
-    def full_residual(self, d0=None, G=None, quad=None):
-        """The fit-data residual of the model with offset d0 and columns G (quad: the
-        noise correction of evaluate_corrected, which moves beta, not the residual's
-        form)."""
+    def full_residual(self, d0=None, G=None):
         y = self.r0 if d0 is None else self.r0 + d0
         J = self.J
         Jy = J.T @ y
         parts = None if G is None else (J.T @ G, G.T @ G, G.T @ y)
-        if parts is not None and quad is not None:
-            parts = (parts[0], parts[1] + float(np.sum(quad[2])),
-                     parts[2] + 0.5 * float(np.sum(quad[1])))
         _, d, beta = self._solve(self.Ainv_full, float(y @ y), Jy, parts)
         res = y + J @ d
         if beta is not None:

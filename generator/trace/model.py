@@ -550,17 +550,10 @@ class SensorModel:
             return self
         th = self.theta.copy()
         r, J = self.jacobian(S, th)
-        noisy = self._noise_effects(S)
-        c, cg, ch = self._noise_correction(th, S, noisy)
-        sse = float(r @ r) + c
+        sse = float(r @ r)
         lam, nfev = 1e-6, 1
         while nfev < max_nfev:
             A, g = J.T @ J, J.T @ r
-            if noisy:       # the SSE corrected for the noise an effect removes: its
-                g = g + 0.5 * cg     # gradient always, its curvature where A stays positive
-                A2 = A + 0.5 * ch
-                if np.all(np.diag(A2) > 0):
-                    A = A2
             d = np.sqrt(np.maximum(np.diag(A), 0.0))
             d[d == 0] = 1.0
             As, gs = A / np.outer(d, d), g / d
@@ -569,7 +562,7 @@ class SensorModel:
                 step = -_solve_psd(As + lam * np.eye(len(d)), gs) / d
                 r_new = self.residual((th + step)[None], S)[0]
                 nfev += 1
-                sse_new = float(r_new @ r_new) + self._noise_correction(th + step, S, noisy)[0]
+                sse_new = float(r_new @ r_new)
                 if sse_new <= sse:
                     accepted = True
                     break
@@ -585,34 +578,8 @@ class SensorModel:
                     1.0 + np.max(np.abs(th * d))):
                 break
             r, J = self.jacobian(S, th)
-            c, cg, ch = self._noise_correction(th, S, noisy)
         self.theta = th
         return self
-
-    def _noise_effects(self, S) -> list:
-        """(index, effect) of the one-parameter effects whose parameter changes the noise
-        the residual carries (Effect.noise_terms; a time offset on a noisy reference)."""
-        out = []
-        for i, e in enumerate(self.effects):
-            if e.n_params == 1 and e.noise_terms(S, 1.0) is not None:
-                out.append((i, e))
-        return out
-
-    def _noise_correction(self, th, S, noisy) -> tuple:
-        """(value, gradient (P,), Hessian (P, P)) at th of the noise correction the fit
-        adds to the SSE: sum over the rows of c1 p + c2 p^2 (Effect.noise_terms, on the
-        side of 0 that p is on), for the effects of _noise_effects."""
-        P = len(th)
-        val, grad, hess = 0.0, np.zeros(P), np.zeros((P, P))
-        for i, e in noisy:
-            k = self.sl[f"e{i}"].start
-            p = float(th[k])
-            c1, c2 = e.noise_terms(S, 1.0 if p >= 0 else -1.0)
-            s1, s2 = float(np.sum(c1)), float(np.sum(c2))
-            val += s1 * p + s2 * p * p
-            grad[k] += s1 + 2.0 * s2 * p
-            hess[k, k] += 2.0 * s2
-        return val, grad, hess
 
     def sse(self, S) -> float:
         r = self.residual(self.theta[None], S)[0]

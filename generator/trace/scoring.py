@@ -72,6 +72,7 @@ class Score:
     significant: bool = False
     reasons: list = field(default_factory=list)
     explained: np.ndarray | None = None      # r0 - full-data residual (rows of the fit set)
+    null: "Score | None" = None     # against the candidate's noise-matched null (_null_score)
 
     @property
     def rel_rms_gain(self) -> float:
@@ -104,6 +105,10 @@ class Score:
                 f" in the {self.act_blocks} blocks where it acts"
             self.reasons.append(f"held-out RMS gain {100 * gain:.2f} %{where} "
                                 f"< {100 * min_gain:g} %")
+        if self.null is not None and not self.null.judge(m, alpha, min_gain):
+            self.reasons.append("not beyond its noise-matched null (the reference's slope "
+                                "change alone, which averages the reference's noise as the "
+                                "interpolation does): " + "; ".join(self.null.reasons))
         self.significant = not self.reasons
         return self.significant
 
@@ -118,7 +123,11 @@ class Score:
                 "heldout_z_per_file": {k: _f(v) for k, v in self.file_z.items()},
                 "cv_rms_gain_where_it_acts_pct": None if self.act_gain is None else
                 _f(100 * self.act_gain), "blocks_where_it_acts": self.act_blocks,
-                "significant": self.significant, "why_not": list(self.reasons)}
+                "significant": self.significant, "why_not": list(self.reasons),
+                **({} if self.null is None else {"against_noise_matched_null": {
+                    "cv_rms_gain_pct": 100 * self.null.rel_rms_gain, "z": _f(self.null.z),
+                    "heldout_likelihood_ratio": _f(self.null.lr),
+                    "significant": self.null.significant}})}
 
 
 def _f(v):
@@ -134,13 +143,23 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     H = len(grid)
     best_train = np.full(len(cv.folds), np.inf)
     test1 = np.empty(len(cv.r0))
-    extra1 = np.zeros(len(cv.r0))     # the candidate's noise correction per held-out row
     fulls = np.empty(H)
     masked = hasattr(e, "mask") and e.fd_in_scoring
     if masked:   # a linear effect switched on by a row mask: columns once, masked per value
         e.set_hyper(None)
         d0_all, G_all = candidate_columns(model, S, e, cv.r0)
-    def keep(j, train, _block, full, test, extra=None):
+    directed = hasattr(e, "score_directions")
+    if directed:  # scored along directions in its parameters: columns once, mapped per value
+        d0_p, G_p = candidate_columns(model, S, e, cv.r0)
+
+    def columns():
+        if masked:
+            return None, G_all * e.mask(S)[S.row_sample][:, None]
+        if directed:
+            return d0_p, G_p @ e.score_directions()
+        return candidate_columns(model, S, e, cv.r0)
+
+    def keep(j, train, _block, full, test):
         # per fold: the grid value with the least training error (the first of equals);
         # the held-out rows only of the folds it improves
         fulls[j] = full
@@ -148,7 +167,6 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
             if train[f] < best_train[f]:
                 best_train[f] = train[f]
                 test1[te] = test[te]
-                extra1[te] = 0.0 if extra is None else extra[te]
         return best_train
 
     stepped = masked and d0_all is None and G_all is not None and hasattr(e, "step_key") \
@@ -157,49 +175,47 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
         cv.step_scan(G_all, e.step_key(S)[S.row_sample], grid, keep)
     for j, h in enumerate([] if stepped else grid):
         e.set_hyper(h)
-        if masked:
-            d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
-        else:
-            d0, G = candidate_columns(model, S, e, cv.r0)
-        keep(j, *cv.evaluate_corrected(d0, G, bound=best_train, quad=noise_quad(e, S, G)))
+        d0, G = columns()
+        keep(j, *cv.evaluate(d0, G, bound=best_train))
     jbest = int(np.argmin(fulls))
     if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
         return _rescore_refitted(model, S, cv, e, [grid[j] for j in np.argsort(fulls)[:2]],
                                  base_test)
     h = grid[jbest]
     e.set_hyper(h)
-    if masked:
-        d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
-    else:
-        d0, G = candidate_columns(model, S, e, cv.r0)
-    res_full = cv.full_residual(d0, G, quad=noise_quad(e, S, G))
-    return _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]),
-                       extra1)
+    d0, G = columns()
+    res_full = cv.full_residual(d0, G)
+    sc = _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]))
+    if getattr(e, "null_params", ()) and directed and G_p is not None:
+        sc.null = _null_score(S, cv, e, h, d0_p, G_p)
+    return sc
 
 
-def noise_quad(e, S, G):
-    """(q0, q1, q2) per row: the candidate's noise correction (Effect.noise_terms) as a
-    quadratic in beta = p - p0, its one parameter's step from the point of linearisation
-    p0 = init_params (on p0's side of 0: the form the columns G are taken in); None for
-    an effect without one, or a correction of zero (a noise-free reference)."""
-    if G is None or G.shape[1] != 1 or e.n_params != 1:
-        return None
-    p0 = float(e.init_params()[0])
-    terms = e.noise_terms(S, 1.0 if p0 >= 0 else -1.0)
-    if terms is None or not (np.any(terms[0]) or np.any(terms[1])):
-        return None
-    c1, c2 = terms
-    return c1 * p0 + c2 * p0 * p0, c1 + 2.0 * c2 * p0, c2
+def _null_score(S, cv: CVEngine, e, h, d0, G) -> "Score":
+    """The candidate with all its parameters free (columns G) against its NOISE-MATCHED
+    NULL, the model with only e.null_params free (TimeOffset: the reference's slope
+    change g, whose fit averages the reference's white noise as well as any
+    interpolation can): the held-out score of what the rest (the offset) adds beyond
+    that, judged by the same rule (Score.judge)."""
+    null = list(e.null_params)
+    _, _, _, test0 = cv.evaluate(d0, G[:, null])
+    _, _, full1, test1 = cv.evaluate(d0, G)
+    ns = _make_score(e, h, S, cv, test0, test1, cv.full_residual(d0, G), full1)
+    ns.dof = e.n_params - len(null)
+    ns.p_lr = _chi2_sf(ns.lr, ns.dof)
+    return ns
 
 
-def heldout_z(test0, test1, row_block, n_blocks, kappa, extra1=None) -> float:
+def _chi2_sf(lr, dof) -> float:
+    from scipy import stats as sps
+    return float(sps.chi2.sf(max(lr, 0.0), dof))
+
+
+def heldout_z(test0, test1, row_block, n_blocks, kappa) -> float:
     """The held-out score statistic of rule 2 (module docstring): the held-out SSE gain
-    over its standard deviation for a useless candidate, with each block's own noise
-    (extra1: the candidate's noise correction per row, added to its squared residual)."""
+    over its standard deviation for a useless candidate, with each block's own noise."""
     u = test0 - test1
     gain = float(test0 @ test0 - test1 @ test1)
-    if extra1 is not None:
-        gain -= float(np.sum(extra1))
     cnt = np.bincount(row_block, minlength=n_blocks)
     s2 = np.bincount(row_block, weights=test1 * test1, minlength=n_blocks) / np.maximum(cnt, 1)
     uu = np.bincount(row_block, weights=u * u, minlength=n_blocks)
@@ -209,38 +225,32 @@ def heldout_z(test0, test1, row_block, n_blocks, kappa, extra1=None) -> float:
     return gain / math.sqrt(var)
 
 
-def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full,
-                extra1=None) -> Score:
+def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Score:
     """The statistics of the significance rule from the held-out residuals without
-    (test0) and with (test1) the candidate, and its fit-data residual (extra1: the
-    candidate's noise correction per held-out row, counted with its squared residual)."""
+    (test0) and with (test1) the candidate, and its fit-data residual."""
     from scipy import stats as sps
     r0 = cv.r0
     rb, nb = cv.row_block, cv.n_blocks
-    if extra1 is not None and not np.any(extra1):
-        extra1 = None
     base_block = np.bincount(rb, weights=test0 * test0, minlength=nb)
-    sq1 = test1 * test1 if extra1 is None else test1 * test1 + extra1
-    block1 = np.bincount(rb, weights=sq1, minlength=nb)
+    block1 = np.bincount(rb, weights=test1 * test1, minlength=nb)
     gain = base_block - block1
     sse0_full = float(r0 @ r0)
     rho = min(max(_lag1(res_full, S), 0.0), 0.99)
     n_eff = len(r0) * (1 - rho) / (1 + rho)
     kappa = (1 + rho) / (1 - rho)
-    z = heldout_z(test0, test1, rb, nb, kappa, extra1)
+    z = heldout_z(test0, test1, rb, nb, kappa)
     p_z = float(sps.norm.sf(z))
     file_z = {}
     row_file = S.file_index[S.row_sample]
     for fi in np.unique(row_file):
         sel = row_file == fi
-        file_z[S.file_names[fi]] = heldout_z(test0[sel], test1[sel], rb[sel], nb, kappa,
-                                             None if extra1 is None else extra1[sel])
+        file_z[S.file_names[fi]] = heldout_z(test0[sel], test1[sel], rb[sel], nb, kappa)
     lr_fit = n_eff * math.log(sse0_full / sse1_full) if sse1_full > 0 and sse0_full > 0 \
         else 0.0
     sse0_cv, sse1_cv = float(base_block.sum()), float(block1.sum())
     lr = n_eff * math.log(sse0_cv / sse1_cv) if sse1_cv > 0 and sse0_cv > 0 else 0.0
     dof = e.n_dof
-    p_lr = float(sps.chi2.sf(max(lr, 0.0), dof))
+    p_lr = _chi2_sf(lr, dof)
     act_gain, act_blocks = _gain_where_it_acts(test0 - test1, rb, nb, base_block, block1)
     return Score(e, h, dof, sse0_cv, sse1_cv, gain, z, p_z, sse0_full, sse1_full, n_eff, lr,
                  p_lr, lr_fit, file_z=file_z, explained=r0 - res_full, act_gain=act_gain,
