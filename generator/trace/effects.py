@@ -121,6 +121,13 @@ class Effect:
     def reference_shift(self, p, S):
         return 0.0
 
+    def regressor_noise(self, S):
+        """None, or (n_params,): the expected share of white noise in the sum over the
+        rows of each parameter's squared residual column, where the regressor is a noisy
+        measurement (errors in variables, independent of the residual's own noise): the
+        fit takes it out (generator.trace.model.SensorModel.fit)."""
+        return None
+
     # ---- output -----------------------------------------------------------------------
     def describe(self, p, model=None) -> dict:
         """Physical parameters (JSON-able, names with units)."""
@@ -903,6 +910,28 @@ class TimeOffset(Effect):
         r, c = self.rate_and_change(S)
         dt, g = p[:, 0] * self.scale, p[:, 1] * self.scale
         return dt[:, None, None] * r[None] + g[:, None, None] * c[None]
+
+    def regressor_noise(self, S):
+        """The reference's white noise in r (errors in variables, the class docstring):
+        per vector sample with both slopes and axis, sigma_ref^2 (1 / h_f^2 + 1 / h_b^2)
+        / 4 in (nT/s)^2 (sigma_ref^2 / 2 h^2 for equal steps), times scale^2; uncorrelated
+        with the residual's noise and with c's for equal steps (so g has none to take
+        out: its noise is the averaging the null matches). At the ends of runs (one
+        slope) none is counted."""
+        from generator.trace.reference_noise import reference_noise_var, reference_steps
+        var = reference_noise_var(S)
+        iv = S.idx[0]
+        if len(iv) == 0:
+            return np.zeros(self.n_params)
+        both = np.all(np.any(S.ref_rate[iv] != 0, axis=2), axis=1)
+        h = reference_steps(S)[iv]
+        sig2 = np.zeros((len(iv), 3))
+        for fi, v in var.items():
+            sig2[S.file_index[iv] == fi] = v
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(both & np.all(np.isfinite(h) & (h > 0), axis=1),
+                         0.25 * (1.0 / h[:, 0] ** 2 + 1.0 / h[:, 1] ** 2), 0.0)
+        return np.array([float(np.sum(sig2.sum(axis=1) * w)) * self.scale ** 2, 0.0])
 
     def dt_s(self, p):
         return float(np.asarray(p).reshape(-1)[0] * self.scale)
