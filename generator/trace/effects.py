@@ -19,7 +19,7 @@ in the order of generator.flight.chain.sensor_kernel:
     x  = hook "transform" (order)   (CubicNonlinearity x_i -= n_i x_i^3, then
                                      SetResetRotation B += c (w_f x B))
     B = M(T) x
-    reference <- hook "reference"   (TimeOffset: B_ref + dt dB_ref/dt)
+    reference <- hook "reference"   (TimeOffset: B_ref + dt r + g c, r the rate)
 
 Hooks are batched: p has shape (Bt, n_params) (a batch of parameter vectors, used for the
 finite-difference Jacobian), the samples S are shared, arrays returned are (Bt, n, ...).

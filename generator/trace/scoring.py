@@ -156,7 +156,7 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
         if masked:
             return None, G_all * e.mask(S)[S.row_sample][:, None]
         if directed:
-            return d0_p, G_p @ e.score_directions()
+            return d0_p, None if G_p is None else G_p @ e.score_directions()
         return candidate_columns(model, S, e, cv.r0)
 
     def keep(j, train, _block, full, test):
