@@ -558,7 +558,7 @@ class SensorModel:
             if np.any(eiv):   # SSE - sum_k N_k p_k^2: its gradient, and its curvature
                 g = g - eiv * th                 # where J^T J stays positive
                 A2 = A - np.diag(eiv)
-                if np.all(np.diag(A2) > 0):
+                if np.all(np.diag(A2)[eiv > 0] > 0):
                     A = A2
             d = np.sqrt(np.maximum(np.diag(A), 0.0))
             d[d == 0] = 1.0
