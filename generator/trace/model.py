@@ -550,10 +550,16 @@ class SensorModel:
             return self
         th = self.theta.copy()
         r, J = self.jacobian(S, th)
-        sse = float(r @ r)
+        eiv = self._regressor_noise(S)    # (P,) errors in variables taken out (TimeOffset)
+        sse = float(r @ r) - float(eiv @ (th * th))
         lam, nfev = 1e-6, 1
         while nfev < max_nfev:
             A, g = J.T @ J, J.T @ r
+            if np.any(eiv):   # SSE - sum_k N_k p_k^2: its gradient, and its curvature
+                g = g - eiv * th                 # where J^T J stays positive
+                A2 = A - np.diag(eiv)
+                if np.all(np.diag(A2)[eiv > 0] > 0):
+                    A = A2
             d = np.sqrt(np.maximum(np.diag(A), 0.0))
             d[d == 0] = 1.0
             As, gs = A / np.outer(d, d), g / d
@@ -562,7 +568,7 @@ class SensorModel:
                 step = -_solve_psd(As + lam * np.eye(len(d)), gs) / d
                 r_new = self.residual((th + step)[None], S)[0]
                 nfev += 1
-                sse_new = float(r_new @ r_new)
+                sse_new = float(r_new @ r_new) - float(eiv @ ((th + step) ** 2))
                 if sse_new <= sse:
                     accepted = True
                     break
@@ -580,6 +586,19 @@ class SensorModel:
             r, J = self.jacobian(S, th)
         self.theta = th
         return self
+
+    def _regressor_noise(self, S) -> np.ndarray:
+        """(P,): N_k, the white noise's expected share of sum_rows (dr/dtheta_k)^2 for the
+        parameters of effects whose regressor is a noisy measurement
+        (Effect.regressor_noise); the fit minimises SSE - sum_k N_k theta_k^2, whose
+        expectation is the SSE of a noise-free regressor (no attenuation of theta_k).
+        Zeros for the rest."""
+        out = np.zeros(self.P)
+        for i, e in enumerate(self.effects):
+            v = e.regressor_noise(S)
+            if v is not None:
+                out[self.sl[f"e{i}"]] = v
+        return out
 
     def sse(self, S) -> float:
         r = self.residual(self.theta[None], S)[0]

@@ -72,6 +72,7 @@ class Score:
     significant: bool = False
     reasons: list = field(default_factory=list)
     explained: np.ndarray | None = None      # r0 - full-data residual (rows of the fit set)
+    null: "Score | None" = None     # against the candidate's noise-matched null (_null_score)
 
     @property
     def rel_rms_gain(self) -> float:
@@ -104,6 +105,10 @@ class Score:
                 f" in the {self.act_blocks} blocks where it acts"
             self.reasons.append(f"held-out RMS gain {100 * gain:.2f} %{where} "
                                 f"< {100 * min_gain:g} %")
+        if self.null is not None and not self.null.judge(m, alpha, min_gain):
+            self.reasons.append("not beyond its noise-matched null (the reference's slope "
+                                "change alone, which averages the reference's noise as the "
+                                "interpolation does): " + "; ".join(self.null.reasons))
         self.significant = not self.reasons
         return self.significant
 
@@ -118,7 +123,11 @@ class Score:
                 "heldout_z_per_file": {k: _f(v) for k, v in self.file_z.items()},
                 "cv_rms_gain_where_it_acts_pct": None if self.act_gain is None else
                 _f(100 * self.act_gain), "blocks_where_it_acts": self.act_blocks,
-                "significant": self.significant, "why_not": list(self.reasons)}
+                "significant": self.significant, "why_not": list(self.reasons),
+                **({} if self.null is None else {"against_noise_matched_null": {
+                    "cv_rms_gain_pct": 100 * self.null.rel_rms_gain, "z": _f(self.null.z),
+                    "heldout_likelihood_ratio": _f(self.null.lr),
+                    "significant": self.null.significant}})}
 
 
 def _f(v):
@@ -139,6 +148,17 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     if masked:   # a linear effect switched on by a row mask: columns once, masked per value
         e.set_hyper(None)
         d0_all, G_all = candidate_columns(model, S, e, cv.r0)
+    directed = hasattr(e, "score_directions")
+    if directed:  # scored along directions in its parameters: columns once, mapped per value
+        d0_p, G_p = candidate_columns(model, S, e, cv.r0)
+
+    def columns():
+        if masked:
+            return None, G_all * e.mask(S)[S.row_sample][:, None]
+        if directed:
+            return d0_p, None if G_p is None else G_p @ e.score_directions()
+        return candidate_columns(model, S, e, cv.r0)
+
     def keep(j, train, _block, full, test):
         # per fold: the grid value with the least training error (the first of equals);
         # the held-out rows only of the folds it improves
@@ -155,10 +175,7 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
         cv.step_scan(G_all, e.step_key(S)[S.row_sample], grid, keep)
     for j, h in enumerate([] if stepped else grid):
         e.set_hyper(h)
-        if masked:
-            d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
-        else:
-            d0, G = candidate_columns(model, S, e, cv.r0)
+        d0, G = columns()
         keep(j, *cv.evaluate(d0, G, bound=best_train))
     jbest = int(np.argmin(fulls))
     if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
@@ -166,12 +183,32 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
                                  base_test)
     h = grid[jbest]
     e.set_hyper(h)
-    if masked:
-        d0, G = None, G_all * e.mask(S)[S.row_sample][:, None]
-    else:
-        d0, G = candidate_columns(model, S, e, cv.r0)
+    d0, G = columns()
     res_full = cv.full_residual(d0, G)
-    return _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]))
+    sc = _make_score(e, h, S, cv, base_test, test1, res_full, float(fulls[jbest]))
+    if getattr(e, "null_params", ()) and directed and G_p is not None:
+        sc.null = _null_score(S, cv, e, h, d0_p, G_p)
+    return sc
+
+
+def _null_score(S, cv: CVEngine, e, h, d0, G) -> "Score":
+    """The candidate with all its parameters free (columns G) against its NOISE-MATCHED
+    NULL, the model with only e.null_params free (TimeOffset: the reference's slope
+    change g, whose fit averages the reference's white noise as well as any
+    interpolation can): the held-out score of what the rest (the offset) adds beyond
+    that, judged by the same rule (Score.judge)."""
+    null = list(e.null_params)
+    _, _, _, test0 = cv.evaluate(d0, G[:, null])
+    _, _, full1, test1 = cv.evaluate(d0, G)
+    ns = _make_score(e, h, S, cv, test0, test1, cv.full_residual(d0, G), full1)
+    ns.dof = e.n_params - len(null)
+    ns.p_lr = _chi2_sf(ns.lr, ns.dof)
+    return ns
+
+
+def _chi2_sf(lr, dof) -> float:
+    from scipy import stats as sps
+    return float(sps.chi2.sf(max(lr, 0.0), dof))
 
 
 def heldout_z(test0, test1, row_block, n_blocks, kappa) -> float:
@@ -213,7 +250,7 @@ def _make_score(e, h, S, cv: CVEngine, test0, test1, res_full, sse1_full) -> Sco
     sse0_cv, sse1_cv = float(base_block.sum()), float(block1.sum())
     lr = n_eff * math.log(sse0_cv / sse1_cv) if sse1_cv > 0 and sse0_cv > 0 else 0.0
     dof = e.n_dof
-    p_lr = float(sps.chi2.sf(max(lr, 0.0), dof))
+    p_lr = _chi2_sf(lr, dof)
     act_gain, act_blocks = _gain_where_it_acts(test0 - test1, rb, nb, base_block, block1)
     return Score(e, h, dof, sse0_cv, sse1_cv, gain, z, p_z, sse0_full, sse1_full, n_eff, lr,
                  p_lr, lr_fit, file_z=file_z, explained=r0 - res_full, act_gain=act_gain,
