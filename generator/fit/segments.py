@@ -321,9 +321,9 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
     n_w = max(3, int(round(window_s / dt_med)))
     if len(idx) < n_w:
         return []
-    from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
+    from generator.fit.special import running_median
 
-    Tf = median_filter(T[idx], size=5, mode="nearest") if len(idx) >= 5 else T[idx]
+    Tf = running_median(T[idx], 5) if len(idx) >= 5 else T[idx]
     ts = t[idx]
     # every window's span from range tables (exact: the same max and min as the windows'
     # own, in O(n log n) rather than O(n n_w)); the tables serve _longest_settled too

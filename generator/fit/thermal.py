@@ -518,11 +518,10 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
 
 
 def _import_for_sensor_fits() -> None:
-    """The modules a sensor's fit imports lazily (the misfit and noise checks' chi2, the
-    temperature screen's median filter: ~0.4 s of CPU), imported once before the sensor
-    fits are forked rather than once in every child."""
-    import scipy.ndimage  # noqa: F401
-    import scipy.stats  # noqa: F401
+    """The module a sensor's fit imports lazily (scipy.special: the misfit and noise
+    checks' chi2 quantile, fit.special), imported once before the sensor fits are forked
+    rather than once in every child."""
+    import scipy.special  # noqa: F401
 
 
 def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
