@@ -552,7 +552,31 @@ def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
 def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
                   t_ref_C=T_REF_C, t_range_C=None, source=None, prior: Prior | None = None,
                   group=None, noise_nT=None, uncertainty=True):
-    """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
+    """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring;
+    the arguments and the result: reference_fit_steps). reference_fit_steps holds the
+    fit; its Gauss-Newton runs are done here, one after the other (_gauss_newton);
+    fit.reference_batch runs those of many constant fits together."""
+    steps = reference_fit_steps(field_frame_nT, ref_body_nT, temp_C, degree,
+                                t_ref_C=t_ref_C, t_range_C=t_range_C, source=source,
+                                prior=prior, group=group, noise_nT=noise_nT,
+                                uncertainty=uncertainty)
+    try:
+        run = next(steps)
+        while True:
+            run = steps.send(_gauss_newton(*run))
+    except StopIteration as done:
+        return done.value
+
+
+def reference_fit_steps(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
+                        t_ref_C=T_REF_C, t_range_C=None, source=None,
+                        prior: Prior | None = None, group=None, noise_nT=None,
+                        uncertainty=True):
+    """reference_fit as a generator: it yields the arguments of each Gauss-Newton run
+    (a tuple for _gauss_newton), is sent that run's (theta, JTJ, cost, r), and returns
+    reference_fit's result (StopIteration.value). Raises InputError as reference_fit.
+
+    Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
 
     field_frame_nT: (N, 3) uncalibrated readings in frame axes; ref_body_nT: (N, 3)
     reference field (body frame); temp_C: (N,) reported temperature, or None for a
@@ -677,8 +701,8 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             mirrored = _mirror_is_determined(theta, theta0, S, split, unpack)
         if mirrored:
             split = _eig_split(F_split, S, everything=True, systematic=D_sys)
-        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
-                                            eiv_var, split, stats)
+        theta, JTJ, cost, r = yield (P, x, B, w, theta, theta0, S, unpack, free, eiv_var,
+                                     split, stats)
         ev, EV, fitted = split
         if _pass == 1:
             break
@@ -1255,8 +1279,11 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         z = z_new
         if done:
             break
-    theta = at(z)
-    # the result's cost and residuals per sample (what the fit reports), and J^T W J; the
-    # gradient is not needed
+    return gauss_newton_result(P, x, B, w, at(z), unpack, eiv_var, mom)
+
+
+def gauss_newton_result(P, x, B, w, theta, unpack, eiv_var, mom):
+    """A Gauss-Newton run's result at its last iterate theta: (theta, J^T W J, cost, r),
+    the cost and residuals per sample (what the fit reports); the gradient is not needed."""
     cost, _, _, r = vector_normal(P, x, B, *unpack(theta), False, w, eiv_var, mom)
     return theta, normal_matrix(mom, *unpack(theta), eiv_var), cost, r
