@@ -192,8 +192,8 @@ def _powers(dT_scaled, degree):
     """[1, d, d^2, ...] per sample, (N, degree+1)."""
     P = np.empty((len(dT_scaled), degree + 1))
     P[:, 0] = 1.0
-    for k in range(1, degree + 1):
-        P[:, k] = P[:, k - 1] * dT_scaled
+    for k in range(1, degree + 1):          # in place: no temporary column per power
+        np.multiply(P[:, k - 1], dT_scaled, out=P[:, k])
     return P
 
 
