@@ -4,15 +4,16 @@ today's code against the code at --baseline-commit, measured in the same run.
 
     python3 bench/bench_fit.py [--repeat 3] [--baseline-commit f6f3a45]
                                [--report-baseline-commit f639afc]
-                               [--previous-commit ce2b43f]
+                               [--previous-commit 8248fa4]
                                [--rows 36000,144000] [--no-memory] [--no-report]
 
 Baselines: --baseline-commit (the fit before this work: per-sample einsum normal
 equations) and --report-baseline-commit (the report as this work found it: the same
 figures as today, drawn with constrained layout; the older commit's report has fewer
 figures, so its time is printed but is no baseline) and --previous-commit (the tree before
-the latest step: ce2b43f, main before the fspeed11 work; also run with MAGCAL_WORKERS=1,
-so that the ratio of the sensors' fits themselves is seen without the forks). Each baseline's generator/ is
+the latest step: 8248fa4, main before the fspeed12 work; also run with MAGCAL_WORKERS=1,
+so that the ratio of the sensors' fits themselves is seen without the forks; and its
+`magcal fit --no-report` end to end against today's, imports included). Each baseline's generator/ is
 extracted from git (`git archive`) into a temporary directory; every measurement runs in a fresh subprocess with PYTHONPATH pointing at one
 tree or the other, BLAS pinned to one thread (on a shared machine a threaded BLAS is
 slowed by contention, which would blur the ratio). On the shared campaign
@@ -29,7 +30,14 @@ samsat_fm1/thermal_12pos.csv:
   second core, against the CPU the forks add;
 * of it, fit.thermal.fit_unit (the sensors' fits alone, the issue's "fit itself"; wrapped
   in the driver): pipeline.fit also reads the files and, since a695085 (review #19 F),
-  runs campaign.check.settling_warnings after the fits, in the process (~0.8 s CPU);
+  runs campaign.check.settling_warnings after the fits, in the process (~0.8 s CPU, then
+  ~0.3 s); since fspeed12 that analysis runs inside fit_unit, beside the sensors' fits
+  (fit_unit(beside=): one more item of the forked hand-out), so today's fit_unit holds
+  it too; with the sensors serial it is timed on its own and taken off ("the sensors'
+  fits alone");
+* `magcal fit --no-report` end to end (python -m generator.cli in a fresh process, start-up
+  and imports included, sensors forked as a user runs it) of today's tree and
+  --previous-commit's, best wall and CPU (wait4, with the children's) of --repeat;
 * report: generator.report.report.fit_report of that fit, figures drawn serially in the
   process (the CPU time they cost), best of --repeat; today's also as `magcal fit` draws
   them (2 forked children), wall and CPU;
@@ -250,13 +258,29 @@ def _timed_fit_unit(*a, **k):
 
 
 _thermal.fit_unit = _timed_fit_unit
+# since fspeed12, pipeline.fit runs the settling analysis inside fit_unit (beside the
+# sensors' fits, as one more item of the forked hand-out): timed on its own where it runs
+# in this process (sensors serial), so that the sensors' fits alone are seen as well
+_settle = []
+if hasattr(pipeline, "_settling_analysis"):
+    _analysis = pipeline._settling_analysis
+
+    def _timed_analysis(*a, **k):
+        r, wall, own, cpu = timed(lambda: _analysis(*a, **k))
+        _settle.append((wall, own))
+        return r
+
+    pipeline._settling_analysis = _timed_analysis
 fits = []
 for _ in range(2):          # the first fit also pays the lazy imports inside the fit
     cs, wall, own, cpu = timed(lambda: pipeline.fit(unit, [data]))
     fits.append((wall, own, cpu))
 res = {"fit_wall_s": min(f[0] for f in fits), "fit_s": min(f[1] for f in fits),
        "fit_cpu_s": min(f[2] for f in fits),
-       "fit_unit_wall_s": min(f[0] for f in _inner), "fit_unit_cpu_s": min(f[1] for f in _inner)}
+       "fit_unit_wall_s": min(f[0] for f in _inner), "fit_unit_cpu_s": min(f[1] for f in _inner),
+       # the sensors' fits alone: fit_unit less the settling analysis run inside it
+       "sensors_cpu_s": min(f[1] - (s[1] if s else 0.0)
+                            for f, s in zip(_inner, _settle or [None] * len(_inner)))}
 if report == "serial":      # figures drawn in this process: the CPU they cost
     F.parallel.__init__ = lambda self, workers=None: setattr(self, "workers", 1)
 if report != "none":        # "forked": as `magcal fit` draws them
@@ -293,6 +317,25 @@ def timings(tree: Path, out: Path, report: str, **env) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def cli_timing(tree: Path, out: Path, **env) -> dict:
+    """`magcal fit UNIT DATA -o OUT --no-report -q` of a tree end to end, as a user runs it
+    (python -m generator.cli: start-up and imports included): wall (perf_counter around
+    the process) and CPU (wait4: the process's and its reaped children's, the forked
+    sensor fits)."""
+    import time
+
+    t0 = time.perf_counter()
+    p = subprocess.Popen([sys.executable, "-m", "generator.cli", "fit", str(FM1 / "unit.toml"),
+                          str(FM1 / "thermal_12pos.csv"), "-o", str(out), "--no-report",
+                          "-q"], env=_env(tree, **env), stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, cwd=out.parent)
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+    if status:
+        raise SystemExit(f"{tree}: magcal fit --no-report failed: {p.stderr.read().decode()[-300:]}")
+    return {"cli_wall_s": wall, "cli_cpu_s": ru.ru_utime + ru.ru_stime}
+
+
 def peak_rss_mib(tree: Path, data: Path, out: Path) -> float:
     p = subprocess.Popen([sys.executable, "-c", FIT_ONLY, str(FM1 / "unit.toml"), str(data)],
                          env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -308,7 +351,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
     ap.add_argument("--report-baseline-commit", default="f639afc")
-    ap.add_argument("--previous-commit", default="ce2b43f")
+    ap.add_argument("--previous-commit", default="8248fa4")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
@@ -332,10 +375,14 @@ def main():
         if not a.no_report:
             runs["today_forked_report"] = (REPO, "forked", {})
         res = {}
+        cli = {}
         for _ in range(a.repeat):
             for k, (tree, report, env) in runs.items():
                 r = timings(tree, tmp / f"rep_{k}", report, **env)
                 res[k] = {m: (v if k not in res else min(v, res[k][m])) for m, v in r.items()}
+            for k in ("previous", "today"):        # `magcal fit --no-report`, forked
+                r = cli_timing(trees[k], tmp / f"cli_{k}")
+                cli[k] = {m: (v if k not in cli else min(v, cli[k][m])) for m, v in r.items()}
         if not a.no_memory:
             n1, n2 = (int(v) for v in a.rows.split(","))
             files = {}
@@ -370,8 +417,9 @@ def main():
           f"{ps['fit_cpu_s'] / ts['fit_cpu_s']:.2f}x), wall {ps['fit_wall_s']:.2f} s -> "
           f"{ts['fit_wall_s']:.2f} s (ratio {ps['fit_wall_s'] / ts['fit_wall_s']:.2f}x)")
     pu, tu = res["previous_serial"], res["today_serial"]
-    print(f"  of it fit.thermal.fit_unit (the sensors' fits, without reading the files and "
-          f"the campaign check's settling analysis):")
+    print(f"  of it fit.thermal.fit_unit (the sensors' fits, without reading the files; "
+          f"today's also runs the settling analysis, beside the fits, which "
+          f"{a.previous_commit}'s pipeline.fit ran after it):")
     print(f"    sensors serial (MAGCAL_WORKERS=1): CPU {pu['fit_unit_cpu_s']:.2f} s -> "
           f"{tu['fit_unit_cpu_s']:.2f} s (ratio {pu['fit_unit_cpu_s'] / tu['fit_unit_cpu_s']:.2f}x)")
     print(f"    forked: wall {pv['fit_unit_wall_s']:.2f} s -> {t['fit_unit_wall_s']:.2f} s "
@@ -379,6 +427,15 @@ def main():
           f"children's {pv['fit_unit_cpu_s']:.2f} s -> {t['fit_unit_cpu_s']:.2f} s")
     print(f"    today, serial -> forked: wall {tu['fit_unit_wall_s']:.2f} s -> "
           f"{t['fit_unit_wall_s']:.2f} s")
+    print(f"    the sensors' fits alone (today's fit_unit less the settling analysis), "
+          f"serial: CPU {pu['sensors_cpu_s']:.2f} s -> {tu['sensors_cpu_s']:.2f} s (ratio "
+          f"{pu['sensors_cpu_s'] / tu['sensors_cpu_s']:.2f}x)")
+    cp, ct = cli["previous"], cli["today"]
+    print(f"  magcal fit --no-report end to end (imports included, forked): wall "
+          f"{cp['cli_wall_s']:.2f} s -> {ct['cli_wall_s']:.2f} s (ratio "
+          f"{cp['cli_wall_s'] / ct['cli_wall_s']:.2f}x), CPU {cp['cli_cpu_s']:.2f} s -> "
+          f"{ct['cli_cpu_s']:.2f} s (ratio {cp['cli_cpu_s'] / ct['cli_cpu_s']:.2f}x)")
+    res["cli"] = cli
     if not a.no_report:
         tf = res["today_forked_report"]
         print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "
