@@ -76,7 +76,12 @@ Passes over the samples per fit: a fixed number (moments, the linear start's sum
 Gauss-Newton run's start and result, the per-file variances), none per iterate; the
 held-out comparison's fits skip the temperature-error covariance (uncertainty=False).
 
-Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
+The fit is written once, as a generator (reference_fit_steps) that hands out its
+Gauss-Newton runs: reference_fit does them one by one (_gauss_newton); fit.reference_batch
+stacks those of many constant fits (the held-out comparison's per-level fits).
+
+Public: reference_fit, reference_fit_steps, gauss_newton_result, Prior, nominal_prior,
+PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
 
 from __future__ import annotations
