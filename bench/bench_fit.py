@@ -207,6 +207,71 @@ other core, so the forked wall times are the load's):
   report (figures drawn serially, with the report's own analysis), CPU: 6.51 s (5335ede)
     -> 3.31 s (1.97x); 7.05 s (f639afc) -> 3.31 s (2.13x)
 Still not the issue's 1 s for the fit or for the figures.
+
+A run after the fspeed12 steps (2026-11-24 22:58-23:07 UTC, load average 5.4-7.1 on the
+2 shared cores: other helpers' jobs held both cores for the whole session, so every wall
+time of the run is the load's and even the CPU times are inflated by the contention
+(the same tree's CPU moved by 10-20 % between runs); --repeat 3 --no-memory --no-report;
+--previous-commit 8248fa4, main before them; 61fb0e7):
+  the sensors' fits alone (fit_unit less the settling analysis), serial: CPU 2.01 s ->
+    1.92 s (ratio 1.05x)
+  pipeline.fit, sensors serial: CPU 2.38 s -> 2.29 s (1.04x); forked, CPU with the
+    children's: 2.67 s -> 2.60 s (1.03x)
+  magcal fit --no-report end to end (imports included, forked): CPU 3.86 s -> 3.34 s
+    (ratio 1.16x); wall 7.74 s -> 6.73 s (the load's)
+  fit CPU against f6f3a45 (before issue 20): 9.63 s -> 2.60 s (3.70x)
+An earlier run (22:42-22:50 UTC, load 4.5-7.0, same options, tree at 172d19b): the
+sensors' fits alone 1.92 s -> 1.85 s (1.04x); magcal fit --no-report CPU 3.60 s -> 3.32 s
+(1.09x). Forked wall times could be taken only once in the session with the load below
+3 (22:35 UTC, load ~2.4, tree at 172d19b, one process, fits after a first one): fit_unit
+1.13, 1.17, 1.13, 1.18 s wall (it now includes the settling analysis) and pipeline.fit
+1.22-1.28 s; main's 8248fa4 three minutes before (load ~1-2, not interleaved) 1.25 s at
+best for fit_unit and 1.63 s for pipeline.fit (1.71-4.59 s in its other runs). More
+children than cores (MAGCAL_WORKERS=3 and 5, alternated with 2 in that minute) did not
+help: 1.15-2.01 s and 1.28-2.44 s.
+What made the step:
+* the held-out per-level constant fits of a fold run side by side (fit.reference_batch):
+  reference_fit is now a driver of reference_fit_steps, the one definition of the fit, a
+  generator that yields its Gauss-Newton runs; reference_fits runs many such generators
+  and does the constant fits' runs together, one stacked iterate for all (K = 1, masks
+  over the eigenbasis for the fitted directions; each run stops on its own rule). The
+  120 recorded level fits of the campaign: 0.51 s -> 0.39 s CPU (one process, 22:31 UTC,
+  load ~1, alternated twice). The stacked iterates are the scalar ones' arithmetic in
+  another order: coefficients within 5e-14 relative on those 120 calls
+  (host_tests/test_reference_batch.py bounds them at 1e-5 of a 1-sigma, the stopping
+  rule's reach). What remains per level fit (~3.2 ms) is its passes over the samples
+  (moments, residual statistics, second-difference noise bounds, ~40 %) and the
+  per-fit logic between the runs (splits, linear start, weights, covariance: ~1.5 ms),
+  still run fit by fit;
+* the settling analysis (campaign.check.settling_warnings, ~0.3 s CPU, reads only the
+  files) runs as one more item of fit_unit's forked hand-out (fit_unit(beside=)), in the
+  child that has two sensors, instead of after the fits in the parent: pipeline.fit's
+  wall is fit_unit's plus reading, where it was fit_unit's plus ~0.3-0.4 s. With five
+  equal sensors the two children are then balanced (3 sensors against 2 plus the
+  analysis), so a finer hand-out of the sensors' phases has nothing left to gain;
+* magcal fit no longer imports scipy.stats and scipy.ndimage (fit.special: the chi-square
+  quantile via scipy.special.gammaincinv, the 3- and 5-sample running median by a min/max
+  network; bit for bit the values of chi2.ppf and median_filter, host_tests/
+  test_fit_special.py): magcal fit --no-report 3.39-3.54 s -> 3.10-3.13 s user+sys
+  (22:27 UTC, load ~3.5, alternated three times);
+* reference._powers in place (the joint fits' degree-12 moment powers 1.5 -> 0.4 ms per
+  call), find_segments' band from the step and noise it computes anyway.
+bench/fit_equivalence.py against 8248fa4 (22:51-22:54 UTC, tree at 61fb0e7): all seven
+cases' coefficients.json identical bit for bit but for the held-out comparison's
+"segments" scores (stats.holdout.segments.rms_vector_nT / rms_norm_nT, the per-level fits
+now stacked): at most 4.3e-14 relative (demo), 9.7e-15 on the thermal campaign;
+fm1_orbit_on_prior identical in every value. Coefficients, sigmas, degrees, choices,
+flags, warnings and texts identical.
+The 1 s target is NOT reached (not demonstrably, and by the estimate not quite): the
+sensors' fits take ~1.85-1.9 s CPU serially under this session's load (~1.75 s estimated
+on a quiet machine: last session's 1.87 s less the level batch's ~0.12 s), and five equal
+sensors in two children bound fit_unit's wall at 3/5 of that, ~1.05 s plus the forks'
+cost on a free second core (1.13 s measured at load ~2.4). What is left is per-sample work
+that no rearrangement removes without changing bits: of the serial fit (py-spy, 22:38
+UTC) the joint fits 42 % (20 held-out folds of 27,000 samples and the five final fits,
+~40 ms each: moments 10 %, LAPACK's per-sample 3x3 solves of M(T)^-1 r 7 %, residual
+statistics 6 %), the per-level fits 23 %, the noise and misfit checks 9 %, gathering and
+segments 7 %.
 """
 
 from __future__ import annotations
