@@ -240,9 +240,9 @@ What made the step:
   another order: coefficients within 5e-14 relative on those 120 calls
   (host_tests/test_reference_batch.py bounds them at 1e-5 of a 1-sigma, the stopping
   rule's reach). What remains per level fit (~3.2 ms) is its passes over the samples
-  (moments, residual statistics, second-difference noise bounds, ~40 %) and the
-  per-fit logic between the runs (splits, linear start, weights, covariance: ~1.5 ms),
-  still run fit by fit;
+  (moments, residual statistics, second-difference noise bounds: ~40 % by cProfile) and
+  the per-fit logic between the runs (splits, linear start, weights, covariance: about
+  as much), still run fit by fit;
 * the settling analysis (campaign.check.settling_warnings, ~0.3 s CPU, reads only the
   files) runs as one more item of fit_unit's forked hand-out (fit_unit(beside=)), in the
   child that has two sensors, instead of after the fits in the parent: pipeline.fit's
@@ -252,8 +252,8 @@ What made the step:
 * magcal fit no longer imports scipy.stats and scipy.ndimage (fit.special: the chi-square
   quantile via scipy.special.gammaincinv, the 3- and 5-sample running median by a min/max
   network; bit for bit the values of chi2.ppf and median_filter, host_tests/
-  test_fit_special.py): magcal fit --no-report 3.39-3.54 s -> 3.10-3.13 s user+sys
-  (22:27 UTC, load ~3.5, alternated three times);
+  test_fit_special.py): magcal fit --no-report, user CPU 3.41-3.54 s -> 3.10-3.13 s,
+  user+sys 3.64-3.77 s -> 3.29-3.44 s (22:27 UTC, load ~3.5, alternated three times);
 * reference._powers in place (the joint fits' degree-12 moment powers 1.5 -> 0.4 ms per
   call), find_segments' band from the step and noise it computes anyway.
 bench/fit_equivalence.py against 8248fa4 (22:51-22:54 UTC, tree at 61fb0e7): all seven
