@@ -24,25 +24,23 @@ def _level_fits(S: _Samples, levels, body_frame, source, mask=None, uncertainty=
     side by side (fit.reference_batch: their Gauss-Newton iterates stacked; the same
     coefficients to float64 rounding)."""
     out, dropped = [], []
+    idxs = []
+    for lev in levels:
+        idx = np.concatenate([s.index for s in lev])
+        idxs.append(idx if mask is None else idx[mask[idx]])
     batched = {}
     if body_frame and not uncertainty:
         from generator.fit.reference_batch import reference_fits
 
         calls = {}
-        for j, lev in enumerate(levels):
-            idx = np.concatenate([s.index for s in lev])
-            if mask is not None:
-                idx = idx[mask[idx]]
+        for j, idx in enumerate(idxs):
             iv = idx[S.is_vec[idx]]
             if len(iv):
                 calls[j] = ((S.x[iv], S.ref[iv], None),
                             dict(source=source, uncertainty=False,
                                  **reference_options(S, iv, with_prior=False)))
         batched = dict(zip(calls, reference_fits(list(calls.values()))))
-    for j, lev in enumerate(levels):
-        idx = np.concatenate([s.index for s in lev])
-        if mask is not None:
-            idx = idx[mask[idx]]
+    for j, idx in enumerate(idxs):
         if len(idx) == 0:
             continue
         temp = float(np.mean(S.T[idx]))
