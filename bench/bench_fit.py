@@ -220,7 +220,7 @@ time of the run is the load's and even the CPU times are inflated by the content
   magcal fit --no-report end to end (imports included, forked): CPU 3.86 s -> 3.34 s
     (ratio 1.16x); wall 7.74 s -> 6.73 s (the load's)
   fit CPU against f6f3a45 (before issue 20): 9.63 s -> 2.60 s (3.70x)
-An earlier run (22:42-22:50 UTC, load 4.5-7.0, same options, tree at 172d19b): the
+An earlier run (22:42-22:50 UTC, load 4.5-7.0, same options, tree at efe91bc): the
 sensors' fits alone 1.92 s -> 1.85 s (1.04x); magcal fit --no-report CPU 3.60 s -> 3.32 s
 (1.09x). Forked wall times could be taken only once in the session with the load below
 3 (22:35 UTC, load ~2.4, tree at 172d19b, one process, fits after a first one): fit_unit
