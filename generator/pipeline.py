@@ -183,8 +183,13 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                 raise InputError(t.path, f"header: coil column {fault}")
     check_full_scale(unit, tels)      # every sample beyond full scale: a wrong input unit
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
-    cals = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
-                    accept_misfit=accept_misfit, max_samples=max_samples)
+    # the settling analysis reads only the files: it runs beside the sensors' fits (in
+    # the forked child that finishes its sensors first), its warnings added below; its
+    # module imported here, once, not in that child
+    import generator.campaign.check  # noqa: F401
+    cals, settling = fit_unit(unit, tels, progress=progress, method=method, prior=priors,
+                              accept_misfit=accept_misfit, max_samples=max_samples,
+                              beside=lambda: _settling_analysis(data_paths, tels, unit))
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
             "method": method, "notes": [],
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "
@@ -192,7 +197,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
                                        for n, c in cals.items()}}
     _orbit_notes(unit, tels, cals, info, progress)
-    _settling_warnings(unit, data_paths, tels, cals, info, progress)
+    _settling_warnings(settling, cals, info, progress)
     from generator.trace.coefficients import sr_chain_options
     sr_opts, sr_values = sr_chain_options(cals)
     for n in sr_opts:
@@ -351,20 +356,26 @@ def _orbit_notes(unit, tels, cals, info, progress) -> None:
                            duration_s, cals[s.name], info, progress)
 
 
-def _settling_warnings(unit, data_paths, tels, cals, info, progress) -> None:
+def _settling_analysis(data_paths, tels, unit) -> dict:
     """campaign.check.settling_warnings on the static-position files (magcal check's own
-    analysis, default program): a sensor that reaches a level without ever settling there
-    gets a warning in the output, the report's summary and the fit's notes. Kept apart
-    from the sanity warnings (stats["campaign_warnings"]): it is about the campaign, not
-    the calibration's plausibility, and the calibration is still written."""
+    analysis, default program): {sensor: warning} for a sensor that reaches a level without
+    ever settling there ({} without static-position files). It reads only the files, not
+    the fit: fit_unit runs it beside the sensors' fits."""
     from generator.campaign.check import settling_warnings
 
     static = [(p, t) for p, t in zip(data_paths, tels) if t.get("position") is not None
               and bool(np.any(np.nan_to_num(np.asarray(t.get("position"), float)) > 0))]
     if not static:
-        return
-    for name, w in settling_warnings(unit, [p for p, _ in static],
-                                     tels=[t for _, t in static]).items():
+        return {}
+    return settling_warnings(unit, [p for p, _ in static], tels=[t for _, t in static])
+
+
+def _settling_warnings(settling, cals, info, progress) -> None:
+    """The warnings of _settling_analysis: each in the output, the report's summary and the
+    fit's notes. Kept apart from the sanity warnings (stats["campaign_warnings"]): it is
+    about the campaign, not the calibration's plausibility, and the calibration is still
+    written."""
+    for name, w in settling.items():
         if name not in cals:
             continue
         cals[name].stats.setdefault("campaign_warnings", []).append(w)

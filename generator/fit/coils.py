@@ -604,8 +604,8 @@ class DistanceLaw:
         """CHI2_QUANTILE quantile of chi2 at the law's dof, per dof (None: no dof)."""
         if self.dof <= 0:
             return None
-        from scipy.stats import chi2
-        return float(chi2.ppf(CHI2_QUANTILE, self.dof) / self.dof)
+        from generator.fit.special import chi2_quantile
+        return chi2_quantile(CHI2_QUANTILE, self.dof) / self.dof
 
     def misfit(self) -> str | None:
         """The flag when the points scatter about the law more than their 1-sigma allows:

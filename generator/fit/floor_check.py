@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 
-from scipy.stats import chi2
+from generator.fit.special import chi2_quantile
 
 # One-sided quantile of the test: a quiet, correct campaign is flagged 1 time in 1000.
 QUANTILE = 0.999
@@ -43,7 +43,7 @@ def floor_check(rms_nT: float, n: int, noise_nT: float, model_nT: float,
     var = 2.0 * noise_nT ** 4 / n + 2.0 * model_nT ** 4 / n_model
     nu = 2.0 * E ** 2 / var if var > 0 else float(n)
     ratio = float(rms_nT) ** 2 / E if E > 0 else math.inf
-    limit = float(chi2.ppf(quantile, nu) / nu)
+    limit = chi2_quantile(quantile, nu) / nu
     return {"ratio": ratio, "limit": limit, "nu": nu, "n_model": n_model,
             "quantile": quantile, "flagged": bool(ratio > limit)}
 

@@ -75,7 +75,7 @@ NO_TEMPERATURE_NOTE = "temperature = false"
 def vector_misfit(cal, S) -> dict | None:
     """The test above on the samples S (fit.samples._Samples) of a fitted calibration;
     None without vector rows or for a magnitude-only (symmetric M) calibration. JSON-able: chi2_per_dof, limit, n_eff, refuse, figures."""
-    from scipy.stats import chi2 as _chi2
+    from generator.fit.special import chi2_quantile
 
     from generator.fit.reference import _correlation_inflation
 
@@ -99,7 +99,7 @@ def vector_misfit(cal, S) -> dict | None:
         m = fid == f
         n_eff += m.sum() / _correlation_inflation(rv[m] / np.sqrt(var[m])[:, None])
     dof = max(3.0 * n_eff, 1.0)
-    limit = float(_chi2.ppf(1.0 - MISFIT_ALPHA, dof) / dof)
+    limit = chi2_quantile(1.0 - MISFIT_ALPHA, dof) / dof
     per_dof = chi2 / (3.0 * int(v.sum()))
     rms = float(np.sqrt(np.mean(rv ** 2)))
     return {"chi2_per_dof": per_dof, "limit": limit, "n_eff": float(n_eff),
@@ -137,7 +137,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     vector rows, of |B| for magnitude rows), excess_field_error_nT (the vector error the
     noise does not explain, sqrt(3 (rms^2 - explained^2)) for vector rows, rms^2 -
     explained^2 of |B| for magnitude-only fits)."""
-    from scipy.stats import chi2 as _chi2
+    from generator.fit.special import chi2_quantile
 
     from generator.fit.reference import (_correlation_inflation, noise_source,
                                          noise_var_uncertainty)
@@ -192,7 +192,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     if n_rows == 0:
         return None
     dof = max(n_eff, 1.0)
-    quant = float(_chi2.ppf(1.0 - NOISE_ALPHA, dof) / dof)
+    quant = chi2_quantile(1.0 - NOISE_ALPHA, dof) / dof
     unc = noise_var_uncertainty(S.noise_nT if has_figure else None)
     limit = (1.0 + unc) * quant
     per_row = chi2 / n_rows

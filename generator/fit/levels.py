@@ -20,12 +20,27 @@ from generator.fit.segments import Segment, group_levels, temperature_quantum
 def _level_fits(S: _Samples, levels, body_frame, source, mask=None, uncertainty=True):
     """Constant calibration per temperature level -> list of (temp, b, M, b_sig, M_sig).
     uncertainty=False (the held-out comparison): reference_fit's coefficients and 1-sigma
-    without its diagnostics (residual_sigma_nT, cond)."""
+    without its diagnostics (residual_sigma_nT, cond), the levels' reference fits run
+    side by side (fit.reference_batch: their Gauss-Newton iterates stacked; the same
+    coefficients to float64 rounding)."""
     out, dropped = [], []
+    idxs = []
     for lev in levels:
         idx = np.concatenate([s.index for s in lev])
-        if mask is not None:
-            idx = idx[mask[idx]]
+        idxs.append(idx if mask is None else idx[mask[idx]])
+    batched = {}
+    if body_frame and not uncertainty:
+        from generator.fit.reference_batch import reference_fits
+
+        calls = {}
+        for j, idx in enumerate(idxs):
+            iv = idx[S.is_vec[idx]]
+            if len(iv):
+                calls[j] = ((S.x[iv], S.ref[iv], None),
+                            dict(source=source, uncertainty=False,
+                                 **reference_options(S, iv, with_prior=False)))
+        batched = dict(zip(calls, reference_fits(list(calls.values()))))
+    for j, idx in enumerate(idxs):
         if len(idx) == 0:
             continue
         temp = float(np.mean(S.T[idx]))
@@ -34,9 +49,14 @@ def _level_fits(S: _Samples, levels, body_frame, source, mask=None, uncertainty=
                 iv = idx[S.is_vec[idx]]
                 if len(iv) == 0:
                     raise InputError(source, "no reference vectors at this level")
-                b, M, info = reference_fit(S.x[iv], S.ref[iv], None, source=source,
-                                           uncertainty=uncertainty,
-                                           **reference_options(S, iv, with_prior=False))
+                if j in batched:
+                    if isinstance(batched[j], InputError):
+                        raise batched[j]
+                    b, M, info = batched[j]
+                else:
+                    b, M, info = reference_fit(S.x[iv], S.ref[iv], None, source=source,
+                                               uncertainty=uncertainty,
+                                               **reference_options(S, iv, with_prior=False))
                 out.append((temp, b[0], M[0], info["b_poly_sigma_nT"][0],
                             info["M_poly_sigma"][0], len(iv)))
             else:

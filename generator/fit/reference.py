@@ -76,7 +76,12 @@ Passes over the samples per fit: a fixed number (moments, the linear start's sum
 Gauss-Newton run's start and result, the per-file variances), none per iterate; the
 held-out comparison's fits skip the temperature-error covariance (uncertainty=False).
 
-Public: reference_fit, Prior, nominal_prior, PART_PRIOR_SIGMA, parameter_names, min_abs_det.
+The fit is written once, as a generator (reference_fit_steps) that hands out its
+Gauss-Newton runs: reference_fit does them one by one (_gauss_newton); fit.reference_batch
+stacks those of many constant fits (the held-out comparison's per-level fits).
+
+Public: reference_fit, reference_fit_steps, gauss_newton_result, Prior, nominal_prior,
+PART_PRIOR_SIGMA, parameter_names, min_abs_det.
 """
 
 from __future__ import annotations
@@ -192,8 +197,8 @@ def _powers(dT_scaled, degree):
     """[1, d, d^2, ...] per sample, (N, degree+1)."""
     P = np.empty((len(dT_scaled), degree + 1))
     P[:, 0] = 1.0
-    for k in range(1, degree + 1):
-        P[:, k] = P[:, k - 1] * dT_scaled
+    for k in range(1, degree + 1):          # in place: no temporary column per power
+        np.multiply(P[:, k - 1], dT_scaled, out=P[:, k])
     return P
 
 
@@ -552,7 +557,31 @@ def _linear_start(sums, w, prior_s, degree, lo_s, hi_s, eiv_var=0.0):
 def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
                   t_ref_C=T_REF_C, t_range_C=None, source=None, prior: Prior | None = None,
                   group=None, noise_nT=None, uncertainty=True):
-    """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
+    """Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring;
+    the arguments and the result: reference_fit_steps). reference_fit_steps holds the
+    fit; its Gauss-Newton runs are done here, one after the other (_gauss_newton);
+    fit.reference_batch runs those of many constant fits together."""
+    steps = reference_fit_steps(field_frame_nT, ref_body_nT, temp_C, degree,
+                                t_ref_C=t_ref_C, t_range_C=t_range_C, source=source,
+                                prior=prior, group=group, noise_nT=noise_nT,
+                                uncertainty=uncertainty)
+    try:
+        run = next(steps)
+        while True:
+            run = steps.send(_gauss_newton(*run))
+    except StopIteration as done:
+        return done.value
+
+
+def reference_fit_steps(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, *,
+                        t_ref_C=T_REF_C, t_range_C=None, source=None,
+                        prior: Prior | None = None, group=None, noise_nT=None,
+                        uncertainty=True):
+    """reference_fit as a generator: it yields the arguments of each Gauss-Newton run
+    (a tuple for _gauss_newton), is sent that run's (theta, JTJ, cost, r), and returns
+    reference_fit's result (StopIteration.value). Raises InputError as reference_fit.
+
+    Calibration from known field vectors: B_ref = M(T) (B~ - b(T)) (module docstring).
 
     field_frame_nT: (N, 3) uncalibrated readings in frame axes; ref_body_nT: (N, 3)
     reference field (body frame); temp_C: (N,) reported temperature, or None for a
@@ -677,8 +706,8 @@ def reference_fit(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DEGREE, 
             mirrored = _mirror_is_determined(theta, theta0, S, split, unpack)
         if mirrored:
             split = _eig_split(F_split, S, everything=True, systematic=D_sys)
-        theta, JTJ, cost, r = _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free,
-                                            eiv_var, split, stats)
+        theta, JTJ, cost, r = yield (P, x, B, w, theta, theta0, S, unpack, free, eiv_var,
+                                     split, stats)
         ev, EV, fitted = split
         if _pass == 1:
             break
@@ -1255,8 +1284,11 @@ def _gauss_newton(P, x, B, w, theta, theta0, S, unpack, free, eiv_var=0.0, split
         z = z_new
         if done:
             break
-    theta = at(z)
-    # the result's cost and residuals per sample (what the fit reports), and J^T W J; the
-    # gradient is not needed
+    return gauss_newton_result(P, x, B, w, at(z), unpack, eiv_var, mom)
+
+
+def gauss_newton_result(P, x, B, w, theta, unpack, eiv_var, mom):
+    """A Gauss-Newton run's result at its last iterate theta: (theta, J^T W J, cost, r),
+    the cost and residuals per sample (what the fit reports); the gradient is not needed."""
     cost, _, _, r = vector_normal(P, x, B, *unpack(theta), False, w, eiv_var, mom)
     return theta, normal_matrix(mom, *unpack(theta), eiv_var), cost, r

@@ -77,9 +77,8 @@ def screen_temperatures(temp_C, usable=None, time_s=None,
     "outlying"}). Non-finite values are left to the usable mask (not counted here).
     time_s (the samples' times): also rejects excursions (TEMP_SPAN_C, BOARD_TAU_MIN_S);
     temp_lsb_C: the part's temperature step (parts.toml), where known."""
-    from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
-
     from generator.fit.segments import temperature_quantum
+    from generator.fit.special import running_median
 
     T = np.asarray(temp_C, float)
     fin = np.isfinite(T) if usable is None else np.isfinite(T) & np.asarray(usable, bool)
@@ -89,7 +88,7 @@ def screen_temperatures(temp_C, usable=None, time_s=None,
     n_out = 0
     if len(idx) >= 3:
         t = T[idx]
-        med = median_filter(t, size=min(SPIKE_WINDOW, len(t) | 1), mode="nearest")
+        med = running_median(t, min(SPIKE_WINDOW, len(t) | 1))
         dev = t - med
         s = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
         # the reporting step from the filtered series (a spike would pass for a step)

@@ -82,7 +82,11 @@ def segment_band_C(temp_C, *, temp_lsb_C=None, min_band_C=0.5) -> float:
     to spare. sigma_n: temperature_noise measures the raw reading, quantisation included
     (sigma_tot^2 = sigma_n^2 + q^2/12 where the dither exceeds about q/2; below, the
     quantisation error is not white and the floor q/sqrt(12) holds)."""
-    q, sigma_w = step_and_white_noise_C(temp_C, temp_lsb_C)
+    return _band_C(*step_and_white_noise_C(temp_C, temp_lsb_C), min_band_C)
+
+
+def _band_C(q, sigma_w, min_band_C) -> float:
+    """segment_band_C from the step and white noise (step_and_white_noise_C)."""
     sigma_f = np.sqrt(sigma_w ** 2 + q * q / 12.0)
     return float(max(min_band_C, 6.0 * sigma_f))
 
@@ -148,9 +152,9 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
         np.asarray(position, float), nan=0).astype(int)
     if position is None:
         pos[:] = 1
-    if band_C is None:
-        band_C = segment_band_C(T[ok], temp_lsb_C=temp_lsb_C, min_band_C=min_band_C)
     q, sigma_w = step_and_white_noise_C(T[ok], temp_lsb_C)
+    if band_C is None:          # segment_band_C of the same samples, from the same figures
+        band_C = _band_C(q, sigma_w, min_band_C)
     limits = _SettleLimits(width_C=max(band_C, 2.0 * q), q_C=q, sigma_w_C=sigma_w,
                            min_band_C=min_band_C)
     dt = np.diff(t[ok])
@@ -321,9 +325,9 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
     n_w = max(3, int(round(window_s / dt_med)))
     if len(idx) < n_w:
         return []
-    from scipy.ndimage import median_filter    # here: scipy.ndimage costs 0.2 s to import
+    from generator.fit.special import running_median
 
-    Tf = median_filter(T[idx], size=5, mode="nearest") if len(idx) >= 5 else T[idx]
+    Tf = running_median(T[idx], 5) if len(idx) >= 5 else T[idx]
     ts = t[idx]
     # every window's span from range tables (exact: the same max and min as the windows'
     # own, in O(n log n) rather than O(n n_w)); the tables serve _longest_settled too

@@ -518,15 +518,14 @@ def _fit_on_prior(name, S, deg, t_lo, t_hi, source, stats, say):
 
 
 def _import_for_sensor_fits() -> None:
-    """The modules a sensor's fit imports lazily (the misfit and noise checks' chi2, the
-    temperature screen's median filter: ~0.4 s of CPU), imported once before the sensor
-    fits are forked rather than once in every child."""
-    import scipy.ndimage  # noqa: F401
-    import scipy.stats  # noqa: F401
+    """The module a sensor's fit imports lazily (scipy.special: the misfit and noise
+    checks' chi2 quantile, fit.special), imported once before the sensor fits are forked
+    rather than once in every child."""
+    import scipy.special  # noqa: F401
 
 
 def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
-             accept_misfit=False, max_samples=MAX_FIT_SAMPLES) -> dict:
+             accept_misfit=False, max_samples=MAX_FIT_SAMPLES, beside=None):
     """Fit every sensor of the unit from all telemetry files jointly.
 
     Each file contributes what it carries: reference vectors -> reference-vector rows,
@@ -541,6 +540,13 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
     Returns {sensor name: SensorCalibration}.
     Raises InputError when a sensor cannot be fitted, a calibration is not physical, or
     the method is unknown.
+
+    beside: a callable of no argument, independent of the fits (the caller's own analysis
+    of the same files, e.g. pipeline.fit's settling warnings), run as one more item after
+    the sensors in the forked hand-out: a child that has finished its sensors takes it
+    while the other still fits (five sensors over two children leave one idle for a
+    sensor's time). Returns ({sensor name: SensorCalibration}, beside()) then; beside's
+    InputError comes after the sensors', as if it ran after fit_unit.
     """
     from generator.fit.sanity import check_calibration
     from generator.fit.setreset import DEFAULT_FIELD_NT, compensation_decision
@@ -616,12 +622,21 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
                             if s.temperature else None)
 
     out, temps = {}, {}
+    items = list(unit.sensors) + ([None] if beside is not None else [])
+
+    def one_item(s):
+        return beside() if s is None else one_sensor(s)
+
     # closing: children still running when this loop stops early are killed and reaped now
     # on demand: a child that finished a cheap sensor (no held-out folds, e.g. a boom
     # sensor without temperature) takes the next one, not the share dealt to it
-    with closing(forked_map(one_sensor, unit.sensors, keep=(InputError,),
+    with closing(forked_map(one_item, items, keep=(InputError,),
                             before_fork=_import_for_sensor_fits, on_demand=True)) as results:
-        for s, (lines, cal, t) in zip(unit.sensors, results):
+        for s, r in zip(items, results):
+            if s is None:
+                beside_result = r
+                continue
+            lines, cal, t = r
             for line in lines:
                 if progress:
                     progress(line)
@@ -632,7 +647,7 @@ def fit_unit(unit, telemetries, progress=None, method="auto", prior=None,
         out[n].stats["sanity"]["warnings"].append(w)
         out[n].stats.setdefault("notes", []).append(w)
         (progress or (lambda m: None))(f"WARNING: {w}")
-    return out
+    return out if beside is None else (out, beside_result)
 
 
 # The names other stages import from here (the public API and the shared helpers of the
