@@ -222,7 +222,7 @@ def worker(kind: str, args: list) -> None:
         import generator.flight.host  # noqa: F401
         import generator.pipeline  # noqa: F401
 
-        generator.cli._parser()      # the verbs' argument definitions import their modules
+        generator.cli._parser(["apply"])   # the verb's argument definitions import its modules
     else:
         raise SystemExit(f"unknown worker {kind}")
 

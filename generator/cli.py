@@ -395,7 +395,11 @@ class _Parser(argparse.ArgumentParser):
         raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only=None, verbs_args=True) -> argparse.ArgumentParser:
+    """The command line's parser. Every verb is listed; its arguments are defined for
+    every verb (verbs_args), or for the verb `only` alone: a verb's argument definitions
+    import its modules (trace, tables, campaigns: ~1 s together on a loaded 2-core
+    machine), which `magcal fit` would otherwise pay before it starts."""
     parser = _Parser(
         prog="magcal", description="Magnetometer calibration toolchain: fit, flight C, tables.")
     parser.add_argument("--version", action="version", version=f"magcal {__version__}")
@@ -404,28 +408,34 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     for name, (fn, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        ARGS[name](p)
-        if name != "import":           # its sub-commands carry them
-            p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-            p.add_argument("--json", action="store_true",
-                           help="print a JSON result on stdout (for scripts)")
+        if verbs_args or name == only:
+            ARGS[name](p)
+            if name != "import":           # its sub-commands carry them
+                p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+                p.add_argument("--json", action="store_true",
+                               help="print a JSON result on stdout (for scripts)")
         p.set_defaults(func=fn)
     return parser
 
 
-_PARSER = []
+_PARSERS: dict = {}
 
 
-def _parser() -> argparse.ArgumentParser:
-    """The parser, built once per process (main may be called many times in-process)."""
-    if not _PARSER:
-        _PARSER.append(build_parser())
-    return _PARSER[0]
+def _parser(argv=()) -> argparse.ArgumentParser:
+    """The parser for this command line, built once per process and verb (main may be
+    called many times in-process): the arguments of the verb it names only (the first
+    word that is a verb; none for `magcal --help` or a misspelt verb, whose messages do
+    not show any verb's arguments)."""
+    verb = next((a for a in argv if not a.startswith("-")), None)
+    verb = verb if verb in VERBS else None
+    if verb not in _PARSERS:
+        _PARSERS[verb] = build_parser(only=verb, verbs_args=False)
+    return _PARSERS[verb]
 
 
 def main(argv=None) -> int:
-    parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _parser(argv)
     # --debug is global; accepted anywhere on the line so `magcal fit ... --debug` works too
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
