@@ -35,19 +35,74 @@
 #pragma GCC diagnostic pop
 #endif
 
-uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
+void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
+    samsat_fm1_table_prepared_t *prepared)
+{
+    const samsat_fm1_real_t *arg[2];
+    samsat_fm1_real_t *res[1];
+    int i;
+    /* mmc1 */
+    for (i = 0; i < SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
+        prepared->mmc1[i] = coeffs->mmc1[i];
+    }
+    arg[0] = coeffs->mmc1;
+    arg[1] = coeffs->unit;
+    res[0] = prepared->mmc1_folded;
+    (void)samsat_fm1_mmc1_prepare_kernel(arg, res, 0, 0, 0);
+    res[0] = prepared->mmc1_set_folded;
+    (void)samsat_fm1_mmc1_set_prepare_kernel(arg, res, 0, 0, 0);
+    /* mpu1 */
+    for (i = 0; i < SAMSAT_FM1_MPU1_N_COEFFS; ++i) {
+        prepared->mpu1[i] = coeffs->mpu1[i];
+    }
+    arg[0] = coeffs->mpu1;
+    arg[1] = coeffs->unit;
+    res[0] = prepared->mpu1_folded;
+    (void)samsat_fm1_mpu1_prepare_kernel(arg, res, 0, 0, 0);
+    /* mpu2 */
+    for (i = 0; i < SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
+        prepared->mpu2[i] = coeffs->mpu2[i];
+    }
+    arg[0] = coeffs->mpu2;
+    arg[1] = coeffs->unit;
+    res[0] = prepared->mpu2_folded;
+    (void)samsat_fm1_mpu2_prepare_kernel(arg, res, 0, 0, 0);
+    /* mmc2 */
+    for (i = 0; i < SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
+        prepared->mmc2[i] = coeffs->mmc2[i];
+    }
+    arg[0] = coeffs->mmc2;
+    arg[1] = coeffs->unit;
+    res[0] = prepared->mmc2_folded;
+    (void)samsat_fm1_mmc2_prepare_kernel(arg, res, 0, 0, 0);
+    res[0] = prepared->mmc2_set_folded;
+    (void)samsat_fm1_mmc2_set_prepare_kernel(arg, res, 0, 0, 0);
+    /* mpu3 */
+    for (i = 0; i < SAMSAT_FM1_MPU3_N_COEFFS; ++i) {
+        prepared->mpu3[i] = coeffs->mpu3[i];
+    }
+    arg[0] = coeffs->mpu3;
+    arg[1] = coeffs->unit;
+    res[0] = prepared->mpu3_folded;
+    (void)samsat_fm1_mpu3_prepare_kernel(arg, res, 0, 0, 0);
+}
+
+uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     const samsat_fm1_real_t *c = coeffs->mmc1;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = coeffs->mmc1_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
     unsigned int status = 0u;
 
@@ -127,8 +182,7 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -159,19 +213,22 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     const samsat_fm1_real_t *c = coeffs->mmc1;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = coeffs->mmc1_set_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -243,8 +300,7 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -265,18 +321,22 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     const samsat_fm1_real_t *c = coeffs->mpu1;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *volatile p_base = coeffs->mpu1_folded;
+    const samsat_fm1_real_t *p = p_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -332,8 +392,7 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -354,18 +413,25 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu2;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_real_t *volatile c_base = coeffs->mpu2;
+    const samsat_fm1_real_t *c = c_base;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *volatile p_base = coeffs->mpu2_folded;
+    const samsat_fm1_real_t *p = p_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -421,8 +487,7 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -443,22 +508,26 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
     const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
     const samsat_fm1_real_t *c = c_base;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *volatile p_base = coeffs->mmc2_folded;
+    const samsat_fm1_real_t *p = p_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
     unsigned int status = 0u;
 
@@ -538,8 +607,7 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -570,22 +638,26 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
     const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
     const samsat_fm1_real_t *c = c_base;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *volatile p_base = coeffs->mmc2_set_folded;
+    const samsat_fm1_real_t *p = p_base;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -657,8 +729,7 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -679,21 +750,25 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu3_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu3_out_t *out)
 {
+    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
     const samsat_fm1_real_t *volatile c_base = coeffs->mpu3;
     const samsat_fm1_real_t *c = c_base;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *volatile p_base = coeffs->mpu3_folded;
+    const samsat_fm1_real_t *p = p_base;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -749,8 +824,7 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -771,7 +845,7 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
+uint8_t samsat_fm1_select(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_real_t field_body_nT[SAMSAT_FM1_N_SENSORS][3],
     uint16_t status[SAMSAT_FM1_N_SENSORS], samsat_fm1_selection_t *sel)
 {

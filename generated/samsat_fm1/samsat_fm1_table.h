@@ -106,6 +106,7 @@ typedef enum {
 /* Table manager: the double buffer and the reassembly of the next table. */
 typedef struct {
     samsat_fm1_coeffs_t buffer[2];      /* buffer[active] is in use, the other is written */
+    samsat_fm1_table_prepared_t prepared[2];  /* prepared[k]: buffer[k] prepared */
     uint32_t serial[2];                 /* table serial of each buffer (0: compiled-in) */
     uint8_t active;                     /* 0 or 1, switched by one assignment */
     uint8_t transfer_open;              /* 1 while the parts of a table are collected */
@@ -180,6 +181,10 @@ void samsat_fm1_table_abort(samsat_fm1_table_mgr_t *mgr);
 
 /* The coefficients in use. */
 const samsat_fm1_coeffs_t *samsat_fm1_table_active(const samsat_fm1_table_mgr_t *mgr);
+
+/* The coefficients in use, prepared (computed when they were activated): what the
+ * correction and select take. */
+const samsat_fm1_table_prepared_t *samsat_fm1_table_prepared(const samsat_fm1_table_mgr_t *mgr);
 
 void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_info_t *info);
 

@@ -756,6 +756,72 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     return f
 
 
+# ---- the prepared coefficients: the fold as a flat vector ------------------------------
+#
+# The flight code runs the folded chain: `<unit>_table_prepare` computes each kernel's
+# folded coefficients once (when a table is activated, at init, or for the compiled-in
+# defaults at generate time) and the kernels read them. The flat order is the order of
+# fold_sensor_coeffs' entries, each row-major (prepared_leaves); prepared_view turns a flat
+# vector back into fold_sensor_coeffs' structure.
+
+
+def prepared_leaves(f) -> list:
+    """The scalars of a fold (fold_sensor_coeffs), in the prepared vector's order."""
+    if isinstance(f, dict):
+        return [x for k in f for x in prepared_leaves(f[k])]
+    if isinstance(f, (list, tuple)):
+        return [x for e in f for x in prepared_leaves(e)]
+    return [f]
+
+
+def _fold_shape(spec: ChainSpec, sensor: SensorSpec, set_only=False):
+    """fold_sensor_coeffs' structure (entries and nesting) of one kernel, values None."""
+    c = CoeffView([np.float64(1.0)] * spec.n_sensor_coeffs(sensor), spec.sensor_blocks(sensor))
+    u = CoeffView([np.float64(1.0)] * spec.n_unit_coeffs(), spec.unit_blocks())
+    f = fold_sensor_coeffs(spec, sensor, c, u, np.float64(0.5), set_only=set_only)
+
+    def strip(v):
+        if isinstance(v, dict):
+            return {k: strip(e) for k, e in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [strip(e) for e in v]
+        return None
+    return strip(f)
+
+
+def n_prepared(spec: ChainSpec, sensor: SensorSpec, set_only=False) -> int:
+    """Size of one kernel's prepared coefficient vector."""
+    return len(prepared_leaves(_fold_shape(spec, sensor, set_only)))
+
+
+def prepared_view(spec: ChainSpec, sensor: SensorSpec, flat, set_only=False) -> dict:
+    """A flat prepared vector (values or symbols) in fold_sensor_coeffs' structure."""
+    it = iter(flat)
+
+    def fill(v):
+        if isinstance(v, dict):
+            return {k: fill(e) for k, e in v.items()}
+        if isinstance(v, list):
+            return [fill(e) for e in v]
+        return next(it)
+    return fill(_fold_shape(spec, sensor, set_only))
+
+
+def prepare_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
+                   set_only=False) -> np.ndarray:
+    """The prepared vector of one kernel from the table's coefficients, in the unit's float
+    type, one scalar IEEE operation at a time in fold_sensor_coeffs' order: what
+    `<unit>_table_prepare` computes (CasADi emits it from the same function)."""
+    ft = np_dtype(spec.unit)
+    cs_ = np.asarray(coeffs_sensor, dtype=ft)
+    cu = np.asarray(coeffs_unit, dtype=ft)
+    c = CoeffView([cs_[k] for k in range(cs_.size)], spec.sensor_blocks(sensor))
+    u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
+    with np.errstate(all="ignore"):   # a poisoned (NaN) or zero-lsb table folds to NaN/inf
+        f = fold_sensor_coeffs(spec, sensor, c, u, ft(0.5), set_only=set_only)
+    return np.array([ft(x) for x in prepared_leaves(f)], dtype=ft)
+
+
 def folded_sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, f: dict,
                          half, set_only=False, channels=(), rate_dps=()):
     """sensor_kernel's outputs from the folded coefficients f (fold_sensor_coeffs): the
@@ -1023,10 +1089,13 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         status[(below | above) & ~zeroed] |= STATUS_TEMP_EXTRAPOLATED
         status[far & ~zeroed] |= STATUS_TEMP_CLAMPED
 
+    # the kernel: the folded chain on the prepared coefficients (what the C kernels read)
+    prep = prepare_sensor(spec, sensor, coeffs_sensor, coeffs_unit, set_only=set_only)
+    f = prepared_view(spec, sensor, [prep[k] for k in range(prep.size)], set_only=set_only)
     with np.errstate(all="ignore"):
-        out = sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), c, u, ft(0.5),
-                            set_only=set_only, channels=cols.get("channels", ()),
-                            rate_dps=cols.get("rate_dps", ()))
+        out = folded_sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), f, ft(0.5),
+                                   set_only=set_only, channels=cols.get("channels", ()),
+                                   rate_dps=cols.get("rate_dps", ()))
     result = {}
     for name, vals in out.items():
         arr = np.stack([np.broadcast_to(np.asarray(v, dtype=ft), (n,)) for v in vals], axis=1)

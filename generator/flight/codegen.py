@@ -18,10 +18,14 @@ from pathlib import Path
 
 import casadi as ca
 import jinja2
+import numpy as np
 
 from generator import __version__
-from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec, CoeffView, agreement_kernel,
-                    is_physical, lag_kernel, range_nT, saturation_limit, sensor_kernel)
+from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec,
+                                    CoeffView, agreement_kernel, fold_sensor_coeffs,
+                                    folded_sensor_kernel, is_physical, lag_kernel, n_prepared,
+                                    prepare_sensor, prepared_leaves, prepared_view, range_nT,
+                                    saturation_limit)
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
@@ -59,27 +63,45 @@ def kernel_name(spec: ChainSpec, sensor, set_only=False) -> str:
 
 
 def build_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
-    """The CasADi Function of one sensor's chain, from `chain.sensor_kernel`.
+    """The CasADi Function of one sensor's chain: `chain.folded_sensor_kernel` on the
+    kernel's prepared coefficients (`chain.prepared_view`).
 
-    Arguments: the chain inputs, then the sensor's coefficients, then the unit's."""
+    Arguments: the chain inputs, then the prepared vector (`<unit>_table_prepare`)."""
     ins = spec.sensor_inputs(sensor, set_only)
     sym = {i.name: ca.SX.sym(i.name, i.size) for i in ins}
-    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
-    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
-    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
-    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
+    p_sym = ca.SX.sym("prepared", n_prepared(spec, sensor, set_only))
+    f = prepared_view(spec, sensor, [p_sym[k] for k in range(p_sym.numel())], set_only)
+
     def elems(name):
         return [sym[name][k] for k in range(sym[name].numel())] if name in sym else []
 
     temp = sym["temp_C"][0] if "temp_C" in sym else None   # None: a sensor with no temperature
-    out = sensor_kernel(spec, sensor, elems("raw_counts"), temp, elems("coil_A"),
-                        c, u, ca.SX(0.5), set_only=set_only, channels=elems("channels"),
-                        rate_dps=elems("rate_dps"))
+    out = folded_sensor_kernel(spec, sensor, elems("raw_counts"), temp, elems("coil_A"),
+                               f, ca.SX(0.5), set_only=set_only, channels=elems("channels"),
+                               rate_dps=elems("rate_dps"))
     outs = spec.sensor_outputs(sensor, set_only)
     return ca.Function(kernel_name(spec, sensor, set_only),
-                       [sym[i.name] for i in ins] + [c_sym, u_sym],
+                       [sym[i.name] for i in ins] + [p_sym],
                        [ca.vertcat(*out[o.name]) for o in outs],
-                       [i.name for i in ins] + ["coeffs", "unit_coeffs"], [o.name for o in outs])
+                       [i.name for i in ins] + ["prepared"], [o.name for o in outs])
+
+
+def prepare_kernel_name(spec: ChainSpec, sensor, set_only=False) -> str:
+    return f"{spec.unit.id}_{sensor.name}_{'set_' if set_only else ''}prepare_kernel"
+
+
+def build_prepare_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
+    """The prepare step of one kernel, from `chain.fold_sensor_coeffs`: the table's sensor
+    and unit coefficients in, the kernel's prepared vector out (`chain.prepare_sensor` is
+    the same function on float32 values)."""
+    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
+    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
+    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
+    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
+    f = fold_sensor_coeffs(spec, sensor, c, u, ca.SX(0.5), set_only=set_only)
+    return ca.Function(prepare_kernel_name(spec, sensor, set_only), [c_sym, u_sym],
+                       [ca.vertcat(*prepared_leaves(f))], ["coeffs", "unit_coeffs"],
+                       ["prepared"])
 
 
 def build_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
@@ -131,9 +153,13 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
     for s in spec.unit.sensors:
         funcs[s.name] = build_kernel(spec, s)
         cg.add(funcs[s.name])
+        funcs[s.name + ":prepare"] = build_prepare_kernel(spec, s)
+        cg.add(funcs[s.name + ":prepare"])
         if s.set_reset:
             funcs[s.name + ":set"] = build_kernel(spec, s, set_only=True)
             cg.add(funcs[s.name + ":set"])
+            funcs[s.name + ":set_prepare"] = build_prepare_kernel(spec, s, set_only=True)
+            cg.add(funcs[s.name + ":set_prepare"])
         if spec.opts(s).thermal_lag:
             funcs[s.name + ":lag"] = build_lag_kernel(spec, s)
             cg.add(funcs[s.name + ":lag"])
@@ -180,8 +206,7 @@ _ARG_EXPR = {
 
 def _kernel_args(spec: ChainSpec, sensor, set_only) -> list:
     """The wrapper's argument expressions of a kernel, in the kernel's input order."""
-    return [_ARG_EXPR[i.name] for i in spec.sensor_inputs(sensor, set_only)] + \
-        ["c", "coeffs->unit"]
+    return [_ARG_EXPR[i.name] for i in spec.sensor_inputs(sensor, set_only)] + ["p"]
 
 
 def _raw_fields(sensor) -> dict:
@@ -207,6 +232,19 @@ def _literals(values, float_type, where, unit) -> list:
     except ValueError as e:
         raise InputError(unit.path, f"{where}: {e}: it cannot be written into the flight "
                                     "C") from None
+
+
+def _prepared_block(cs: CoefficientSet, sensor, set_only) -> dict:
+    """The compiled-in defaults' prepared vector of one kernel (chain.prepare_sensor, the
+    values `<unit>_table_prepare` computes from `<unit>_coeffs_default`): size and
+    initializer rows. A default that folds to a non-finite value (a broken default that
+    `<unit>_table_init` refuses) is written as NAN / INFINITY (math.h)."""
+    spec = cs.spec
+    vals = prepare_sensor(spec, sensor, cs.flat_sensor(sensor.name), cs.flat_unit(),
+                          set_only=set_only)
+    lits = [c_literal(float(v), spec.unit.float_type) if np.isfinite(v) else
+            "NAN" if np.isnan(v) else ("INFINITY" if v > 0 else "-INFINITY") for v in vals]
+    return {"size": len(lits), "lines": _lines(lits)}
 
 
 def _lines(literals, per_line=6) -> list:
@@ -277,14 +315,26 @@ def template_context(cs: CoefficientSet) -> dict:
             "channel_idx": [spec.aux_channels.index(ch)
                             for ch in spec.opts(s).kernel_channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
+            "prepare_kernel": prepare_kernel_name(spec, s),
+            "set_prepare_kernel": prepare_kernel_name(spec, s, set_only=True),
+            # the kernels' prepared coefficients (chain.prepare_sensor) of the defaults
+            "folded": _prepared_block(cs, s, False),
+            "set_folded": _prepared_block(cs, s, True) if s.set_reset else None,
         })
-    # A sensor block that ends more than 1020 bytes into the coefficient struct is read
-    # through its own base pointer (Cortex-M VLDR offsets reach +-1020 bytes).
+    # An array that ends more than 1020 bytes into its struct is read through its own base
+    # pointer (Cortex-M VLDR offsets reach +-1020 bytes). The prepared struct holds each
+    # sensor's table coefficients (clamp limits, time constants, agreement tolerance) and
+    # then its kernels' prepared vectors.
     real_size = 4 if ft == "float32" else 8
     start = 0
     for s_ctx in sensors:
-        s_ctx["own_base"] = (start + s_ctx["n_coeffs"]) * real_size > 1020
         start += s_ctx["n_coeffs"]
+        s_ctx["own_base"] = start * real_size > 1020
+        start += s_ctx["folded"]["size"]
+        s_ctx["own_prep_base"] = start * real_size > 1020
+        if s_ctx["set_folded"]:
+            start += s_ctx["set_folded"]["size"]
+            s_ctx["own_set_prep_base"] = start * real_size > 1020
     ublocks, k = [], 0
     flat_u = cs.flat_unit()
     for b in spec.unit_blocks():
