@@ -25,7 +25,12 @@
 /* The CasADi kernels, in this translation unit and static: the compiler sees that their
  * arguments are never null and inlines them; nothing of them is exported. CasADi's
  * signature has work-array parameters the kernels do not use. */
-#define CASADI_SYMBOL_EXPORT static inline
+#if defined(__GNUC__)
+#define CASADI_KERNEL_INLINE inline __attribute__((always_inline))
+#else
+#define CASADI_KERNEL_INLINE inline
+#endif
+#define CASADI_SYMBOL_EXPORT static CASADI_KERNEL_INLINE
 #if defined(__GNUC__)
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wunused-parameter"
@@ -35,56 +40,195 @@
 #pragma GCC diagnostic pop
 #endif
 
+/* b / sig and M sig of n polynomial terms; h non-null: H (M sig), a boom sensor's
+ * rotation folded into every term (chain.fold_sensor_coeffs) */
+static void prepare_terms(const samsat_fm1_real_t *b, const samsat_fm1_real_t *M,
+    const samsat_fm1_real_t *sig, const samsat_fm1_real_t *h, int n, samsat_fm1_real_t *pb,
+    samsat_fm1_real_t *pM)
+{
+    int i, j, k;
+    for (k = 0; k < n; ++k) {
+        samsat_fm1_real_t m[9];
+        for (i = 0; i < 3; ++i) {
+            pb[3 * k + i] = b[3 * k + i] / sig[i];
+            for (j = 0; j < 3; ++j) {
+                m[3 * i + j] = M[9 * k + 3 * i + j] * sig[j];
+            }
+        }
+        for (i = 0; i < 3; ++i) {
+            for (j = 0; j < 3; ++j) {
+                pM[9 * k + 3 * i + j] = h != 0 ?
+                    h[3 * i] * m[j] + h[3 * i + 1] * m[3 + j] + h[3 * i + 2] * m[6 + j] :
+                    m[3 * i + j];
+            }
+        }
+    }
+}
+
+/* The rows of a 3 x n coupling divided by the axis scale. */
+static void prepare_rows(const samsat_fm1_real_t *src, const samsat_fm1_real_t *sig, int n,
+    samsat_fm1_real_t *dst)
+{
+    int i, j;
+    for (i = 0; i < 3; ++i) {
+        for (j = 0; j < n; ++j) {
+            dst[n * i + j] = src[n * i + j] / sig[i];
+        }
+    }
+}
+
+/* The prepared coefficients: chain.fold_sensor_coeffs, operation for operation in its
+ * order (the Python reference, chain.prepare_sensor, runs that function on float
+ * values; host_tests/test_prepare.py compares the bits). */
 void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     samsat_fm1_table_prepared_t *prepared)
 {
-    const samsat_fm1_real_t *arg[2];
-    samsat_fm1_real_t *res[1];
+    const samsat_fm1_real_t *u = coeffs->unit;
+    const samsat_fm1_real_t *h = coeffs->unit + SAMSAT_FM1_UNIT_H_BOOM_TO_BODY;
     int i;
-    /* mmc1 */
     for (i = 0; i < SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
         prepared->mmc1[i] = coeffs->mmc1[i];
     }
-    arg[0] = coeffs->mmc1;
-    arg[1] = coeffs->unit;
-    res[0] = prepared->mmc1_folded;
-    (void)samsat_fm1_mmc1_prepare_kernel(arg, res, 0, 0, 0);
-    res[0] = prepared->mmc1_set_folded;
-    (void)samsat_fm1_mmc1_set_prepare_kernel(arg, res, 0, 0, 0);
-    /* mpu1 */
+    { /* mmc1_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc1;
+        samsat_fm1_real_t *p = prepared->mmc1_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[1] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[2] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        prepare_terms(c + SAMSAT_FM1_MMC1_B_POLY_NT, c + SAMSAT_FM1_MMC1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC1_SR_COMP_S_PER_DEG];
+        p[58] = c[SAMSAT_FM1_MMC1_T_REF_C];
+        p[59] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        p[60] = c[SAMSAT_FM1_MMC1_ZERO_COUNT];
+        p[61] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[62] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    { /* mmc1_set_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc1;
+        samsat_fm1_real_t *p = prepared->mmc1_set_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        sig[1] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MMC1_B_POLY_NT, c + SAMSAT_FM1_MMC1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC1_SR_COMP_S_PER_DEG];
+        p[58] = c[SAMSAT_FM1_MMC1_T_REF_C];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[60] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
     for (i = 0; i < SAMSAT_FM1_MPU1_N_COEFFS; ++i) {
         prepared->mpu1[i] = coeffs->mpu1[i];
     }
-    arg[0] = coeffs->mpu1;
-    arg[1] = coeffs->unit;
-    res[0] = prepared->mpu1_folded;
-    (void)samsat_fm1_mpu1_prepare_kernel(arg, res, 0, 0, 0);
-    /* mpu2 */
+    { /* mpu1_folded */
+        const samsat_fm1_real_t *c = coeffs->mpu1;
+        samsat_fm1_real_t *p = prepared->mpu1_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        sig[2] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU1_B_POLY_NT, c + SAMSAT_FM1_MPU1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU1_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU1_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
     for (i = 0; i < SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
         prepared->mpu2[i] = coeffs->mpu2[i];
     }
-    arg[0] = coeffs->mpu2;
-    arg[1] = coeffs->unit;
-    res[0] = prepared->mpu2_folded;
-    (void)samsat_fm1_mpu2_prepare_kernel(arg, res, 0, 0, 0);
-    /* mmc2 */
+    { /* mpu2_folded */
+        const samsat_fm1_real_t *c = coeffs->mpu2;
+        samsat_fm1_real_t *p = prepared->mpu2_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU2_LSB_NT];
+        sig[1] = c[SAMSAT_FM1_MPU2_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MPU2_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU2_B_POLY_NT, c + SAMSAT_FM1_MPU2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU2_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU2_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
     for (i = 0; i < SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
         prepared->mmc2[i] = coeffs->mmc2[i];
     }
-    arg[0] = coeffs->mmc2;
-    arg[1] = coeffs->unit;
-    res[0] = prepared->mmc2_folded;
-    (void)samsat_fm1_mmc2_prepare_kernel(arg, res, 0, 0, 0);
-    res[0] = prepared->mmc2_set_folded;
-    (void)samsat_fm1_mmc2_set_prepare_kernel(arg, res, 0, 0, 0);
-    /* mpu3 */
+    { /* mmc2_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc2;
+        samsat_fm1_real_t *p = prepared->mmc2_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[1] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[2] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        prepare_terms(c + SAMSAT_FM1_MMC2_B_POLY_NT, c + SAMSAT_FM1_MMC2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC2_SR_COMP_S_PER_DEG];
+        for (i = 0; i < 9; ++i) {
+            p[58 + i] = h[i];
+        }
+        p[67] = c[SAMSAT_FM1_MMC2_T_REF_C];
+        p[68] = c[SAMSAT_FM1_MMC2_LSB_NT];
+        p[69] = c[SAMSAT_FM1_MMC2_ZERO_COUNT];
+        p[70] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[71] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    { /* mmc2_set_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc2;
+        samsat_fm1_real_t *p = prepared->mmc2_set_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        sig[2] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MMC2_B_POLY_NT, c + SAMSAT_FM1_MMC2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC2_SR_COMP_S_PER_DEG];
+        for (i = 0; i < 9; ++i) {
+            p[58 + i] = h[i];
+        }
+        p[67] = c[SAMSAT_FM1_MMC2_T_REF_C];
+        p[68] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[69] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
     for (i = 0; i < SAMSAT_FM1_MPU3_N_COEFFS; ++i) {
         prepared->mpu3[i] = coeffs->mpu3[i];
     }
-    arg[0] = coeffs->mpu3;
-    arg[1] = coeffs->unit;
-    res[0] = prepared->mpu3_folded;
-    (void)samsat_fm1_mpu3_prepare_kernel(arg, res, 0, 0, 0);
+    { /* mpu3_folded */
+        const samsat_fm1_real_t *c = coeffs->mpu3;
+        samsat_fm1_real_t *p = prepared->mpu3_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU3_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MPU3_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MPU3_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU3_B_POLY_NT, c + SAMSAT_FM1_MPU3_M_POLY, sig, h, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU3_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU3_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU3_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
 }
 
 uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_table_prepared_t *coeffs,

@@ -793,12 +793,6 @@ TARGET_UNIT_CODE = 16 * 1024
 TARGET_STACK = 512
 
 
-def _fold_gain(e: EntryMeasure) -> int:
-    """The most instructions folding could save on a call: the generated kernel's
-    per-call operations beyond the flop bound."""
-    return e.bound["kernel_per_call"] - e.bound["flops"]
-
-
 def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
                   with_variant: bool = True, with_checks: bool = True) -> dict:
     """Measure the unit on the emulated Cortex-M4F and write the Markdown report.
@@ -836,16 +830,10 @@ def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
         "cal": m["calibration"], "unitsz": unitsz, "max_dev": max_dev,
         "bratio_min": min(r["e"].bound_ratio for r in sensor_rows),
         "bratio_max": max(r["e"].bound_ratio for r in sensor_rows),
-        "fold_gain_min": min(_fold_gain(r["e"]) for r in sensor_rows),
-        "fold_gain_max": max(_fold_gain(r["e"]) for r in sensor_rows),
         "bfloor_min": min(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
                           for r in sensor_rows),
         "bfloor_max": max(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
                           for r in sensor_rows),
-        "bratio_fold_min": min((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]
-                               for r in sensor_rows),
-        "bratio_fold_max": max((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]
-                               for r in sensor_rows),
         "targets": {"ratio": TARGET_RATIO, "bound": TARGET_BOUND_RATIO,
                     "code": TARGET_UNIT_CODE, "stack": TARGET_STACK},
         "qemu_trace": " ".join(map(str, qemu_command(Path("runner.elf"),

@@ -2,11 +2,21 @@
 
 Everything that knows the chain's structure reads it from here:
 
-* the CasADi SX expressions (``codegen.py`` builds one CasADi Function per sensor from
-  :func:`sensor_kernel` and emits C with CasADi's CodeGenerator);
+* :func:`sensor_kernel`, the chain as the equations below write it, and its folded form:
+  :func:`fold_sensor_coeffs` (every constant folded once per table: the count scale and
+  axis signs into b, K, M, H M for boom sensors, the squared band limits) and
+  :func:`folded_sensor_kernel` (the chain on those); test_flight_bound.py checks that
+  both give the same outputs;
+* the CasADi SX expressions (``codegen.py`` emits C with CasADi's CodeGenerator from
+  :func:`folded_sensor_kernel` on the prepared vector, one kernel per sensor); the
+  prepare step ``<unit>_table_prepare`` (templates/magcal.c.j2) is
+  :func:`fold_sensor_coeffs` written as C loops, operation for operation (the same
+  scalar operations in the same order; test_prepare.py compares its bits with
+  :func:`prepare_sensor` on every kind of sensor and option);
 * the Python reference (:func:`reference_sensor`), which runs the very same
-  :func:`sensor_kernel` on numpy float32 values, so every + - * is the same IEEE
-  operation, in the same order, as in the generated C;
+  :func:`prepare_sensor` (the fold) and :func:`folded_sensor_kernel` on numpy float32
+  values, so every + - * / is the same IEEE operation, in the same order, as in the
+  generated C;
 * the coefficient layout (:class:`ChainSpec` blocks, in order): the C coefficient
   arrays, the uplink table payload and the docs are all made from it.
 
@@ -555,7 +565,10 @@ def lag_kernel(temp_C, temp_el_C, dt_s, tau_s):
 
 def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: CoeffView,
                   u: CoeffView, half, set_only=False, channels=(), rate_dps=()):
-    """The arithmetic of the chain for one sensor and one sample.
+    """The arithmetic of the chain for one sensor and one sample, as the equations write
+    it (the flight code and the reference run its folded form, fold_sensor_coeffs +
+    folded_sensor_kernel, which gives the same outputs up to the rounding of the folded
+    constants; test_flight_bound.py).
 
     raw, coil_A: lists of scalars; temp_C: scalar (already clamped; unused by a sensor with
     no temperature); c, u: coefficient
@@ -702,7 +715,9 @@ def _axis_scales(sensor: SensorSpec, c: CoeffView, half, set_only):
 
 def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: CoeffView, half,
                        set_only=False) -> dict:
-    """The folded coefficients of one sensor's chain from its table blocks (any scalar
+    """(The flight code's `<unit>_table_prepare`, templates/magcal.c.j2, is this function in
+    C, operation for operation: change both; host_tests/test_prepare.py compares the bits.)
+    The folded coefficients of one sensor's chain from its table blocks (any scalar
     type): {name: value or nested lists}. b_poly, K, C are divided by sigma (a plain
     count's zero added to the constant term of b), the cubic multiplied by sigma^2, M's
     columns by sigma and, for a boom sensor without rate compensation, M premultiplied by
@@ -774,7 +789,7 @@ def prepared_leaves(f) -> list:
     return [f]
 
 
-def _fold_shape(spec: ChainSpec, sensor: SensorSpec, set_only=False):
+def fold_shape(spec: ChainSpec, sensor: SensorSpec, set_only=False):
     """fold_sensor_coeffs' structure (entries and nesting) of one kernel, values None."""
     c = CoeffView([np.float64(1.0)] * spec.n_sensor_coeffs(sensor), spec.sensor_blocks(sensor))
     u = CoeffView([np.float64(1.0)] * spec.n_unit_coeffs(), spec.unit_blocks())
@@ -791,7 +806,7 @@ def _fold_shape(spec: ChainSpec, sensor: SensorSpec, set_only=False):
 
 def n_prepared(spec: ChainSpec, sensor: SensorSpec, set_only=False) -> int:
     """Size of one kernel's prepared coefficient vector."""
-    return len(prepared_leaves(_fold_shape(spec, sensor, set_only)))
+    return len(prepared_leaves(fold_shape(spec, sensor, set_only)))
 
 
 def prepared_view(spec: ChainSpec, sensor: SensorSpec, flat, set_only=False) -> dict:
@@ -804,7 +819,7 @@ def prepared_view(spec: ChainSpec, sensor: SensorSpec, flat, set_only=False) -> 
         if isinstance(v, list):
             return [fill(e) for e in v]
         return next(it)
-    return fill(_fold_shape(spec, sensor, set_only))
+    return fill(fold_shape(spec, sensor, set_only))
 
 
 def prepare_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
@@ -952,8 +967,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     a sequence of samples, as successive calls on one sensor state (empty at the start).
 
     Each chain scalar is a numpy array over samples of the unit's float type, and every
-    operation is an elementwise IEEE operation in the order of `sensor_kernel`: no BLAS,
-    no reductions. Only the thermal-lag filter, a recursion, runs sample by sample.
+    operation is an elementwise IEEE operation in the order of the C: the coefficients
+    prepared once (`prepare_sensor`, the C's `<unit>_table_prepare`), then
+    `folded_sensor_kernel` on them; no BLAS, no reductions. Only the thermal-lag
+    filter, a recursion, runs sample by sample.
     raw_counts: int (N, 6|3), for set_only (N, 3) SET counts; a physical-input sensor's
     readings in its input unit (converted to the float type first, as its C API takes
     them); temp_C: (N,) (converted to the float type first, as the C API takes it;

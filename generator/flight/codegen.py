@@ -22,10 +22,10 @@ import numpy as np
 
 from generator import __version__
 from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec,
-                                    CoeffView, agreement_kernel, fold_sensor_coeffs,
-                                    folded_sensor_kernel, is_physical, lag_kernel, n_prepared,
-                                    prepare_sensor, prepared_leaves, prepared_view, range_nT,
-                                    saturation_limit)
+                                    CoeffView, agreement_kernel,
+                                    folded_sensor_kernel, input_scale_nT, is_physical,
+                                    lag_kernel, n_prepared, prepare_sensor, prepared_leaves,
+                                    prepared_view, range_nT, saturation_limit, fold_shape)
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
@@ -86,24 +86,6 @@ def build_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
                        [i.name for i in ins] + ["prepared"], [o.name for o in outs])
 
 
-def prepare_kernel_name(spec: ChainSpec, sensor, set_only=False) -> str:
-    return f"{spec.unit.id}_{sensor.name}_{'set_' if set_only else ''}prepare_kernel"
-
-
-def build_prepare_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
-    """The prepare step of one kernel, from `chain.fold_sensor_coeffs`: the table's sensor
-    and unit coefficients in, the kernel's prepared vector out (`chain.prepare_sensor` is
-    the same function on float32 values)."""
-    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
-    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
-    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
-    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
-    f = fold_sensor_coeffs(spec, sensor, c, u, ca.SX(0.5), set_only=set_only)
-    return ca.Function(prepare_kernel_name(spec, sensor, set_only), [c_sym, u_sym],
-                       [ca.vertcat(*prepared_leaves(f))], ["coeffs", "unit_coeffs"],
-                       ["prepared"])
-
-
 def build_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
     """The element-temperature update of a sensor with thermal lag, from `chain.lag_kernel`."""
     temp, el, dt = ca.SX.sym("temp_C"), ca.SX.sym("temp_el_C"), ca.SX.sym("dt_s")
@@ -153,13 +135,9 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
     for s in spec.unit.sensors:
         funcs[s.name] = build_kernel(spec, s)
         cg.add(funcs[s.name])
-        funcs[s.name + ":prepare"] = build_prepare_kernel(spec, s)
-        cg.add(funcs[s.name + ":prepare"])
         if s.set_reset:
             funcs[s.name + ":set"] = build_kernel(spec, s, set_only=True)
             cg.add(funcs[s.name + ":set"])
-            funcs[s.name + ":set_prepare"] = build_prepare_kernel(spec, s, set_only=True)
-            cg.add(funcs[s.name + ":set_prepare"])
         if spec.opts(s).thermal_lag:
             funcs[s.name + ":lag"] = build_lag_kernel(spec, s)
             cg.add(funcs[s.name + ":lag"])
@@ -187,7 +165,13 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
 def _internal_helpers_static(c_text: str) -> str:
     """CasADi defines its small helpers (casadi_sq, casadi_fabs, ...) with external linkage;
     in the wrapper's translation unit they must be static like everything else of it."""
-    return re.sub(r"^(casadi_real casadi_\w+\()", r"static \1", c_text, flags=re.M)
+    c_text = re.sub(r"^(casadi_real casadi_\w+\()", r"static \1", c_text, flags=re.M)
+    # every kernel body is inlined into its one caller (CASADI_KERNEL_INLINE, magcal.c):
+    # once the axis signs are data, kernels of sensors that differ only in their signs are
+    # the same code, and GCC's identical-code folding would merge them into one function
+    # called with its arguments in memory (measured: 40+ instructions more per call)
+    return re.sub(r"^static int (casadi_f\d+)\(", r"static CASADI_KERNEL_INLINE int \1(",
+                  c_text, flags=re.M)
 
 
 def _macro(name: str) -> str:
@@ -244,7 +228,32 @@ def _prepared_block(cs: CoefficientSet, sensor, set_only) -> dict:
                           set_only=set_only)
     lits = [c_literal(float(v), spec.unit.float_type) if np.isfinite(v) else
             "NAN" if np.isnan(v) else ("INFINITY" if v > 0 else "-INFINITY") for v in vals]
-    return {"size": len(lits), "lines": _lines(lits)}
+    return {"size": len(lits), "lines": _lines(lits), **_fold_layout(spec, sensor, set_only)}
+
+
+def _fold_layout(spec: ChainSpec, sensor, set_only) -> dict:
+    """What `<unit>_table_prepare` (templates/magcal.c.j2) needs to compute one kernel's
+    prepared vector in chain.fold_sensor_coeffs' order: the offset of each of its entries
+    ('at'), the number of polynomial terms, the axis scale (a literal for physical inputs,
+    else lsb [x 0.5 for a SET/RESET pair]) and signs, the plain count's zero, H."""
+    shape = fold_shape(spec, sensor, set_only)
+    at, k = {}, 0
+    for key, v in shape.items():
+        at[key] = k
+        k += len(prepared_leaves(v))
+    _, sign = sensor.axis_map()
+    pair = sensor.set_reset and not set_only
+    ft = spec.unit.float_type
+    scale = (c_literal(input_scale_nT(sensor) * (0.5 if pair else 1.0), ft)
+             if is_physical(sensor) else None)
+    return {"at": at, "n_terms": spec.degree(sensor) + 1, "sign": list(sign),
+            "scale_literal": scale, "pair": pair,
+            "offset_literal": c_literal(input_scale_nT(sensor), ft)
+            if is_physical(sensor) and pair else None,
+            "plain_zero": not is_physical(sensor) and not (sensor.set_reset or set_only),
+            "fold_H": sensor.frame == "boom" and not spec.opts(sensor).sr_compensation,
+            "n_coils": len(spec.coils), "n_chan": len(spec.opts(sensor).channels),
+            "n_chlag": len(spec.opts(sensor).lagged_channels)}
 
 
 def _lines(literals, per_line=6) -> list:
@@ -315,9 +324,8 @@ def template_context(cs: CoefficientSet) -> dict:
             "channel_idx": [spec.aux_channels.index(ch)
                             for ch in spec.opts(s).kernel_channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
-            "prepare_kernel": prepare_kernel_name(spec, s),
-            "set_prepare_kernel": prepare_kernel_name(spec, s, set_only=True),
-            # the kernels' prepared coefficients (chain.prepare_sensor) of the defaults
+            # the kernels' prepared coefficients: their layout for <unit>_table_prepare
+            # and the defaults' values (chain.prepare_sensor)
             "folded": _prepared_block(cs, s, False),
             "set_folded": _prepared_block(cs, s, True) if s.set_reset else None,
         })
@@ -369,6 +377,10 @@ def template_context(cs: CoefficientSet) -> dict:
         "select_reasons": sorted(SELECT_REASONS.items(), key=lambda kv: kv[1]),
         "fallback_order": list(spec.fallback_order()),
         "boom_note": boom_alignment_note(cs) if spec.has_boom else None,
+        "has_boom": spec.has_boom,
+        # whether some sensor folds a coupling (coils, channels) in the prepare step
+        "prepare_rows": bool(spec.coils) or any(
+            spec.opts(s).channels or spec.opts(s).lagged_channels for s in unit.sensors),
         "pairs": [(i, j) for i in range(len(sensors)) for j in range(i + 1, len(sensors))],
     }
     return ctx
