@@ -87,11 +87,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     const samsat_fm1_real_t *h = coeffs->unit + SAMSAT_FM1_UNIT_H_BOOM_TO_BODY;
     int i;
     for (i = 0; i < SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
-        prepared->mmc1[i] = coeffs->mmc1[i];
+        prepared->mmc1.coeffs[i] = coeffs->mmc1[i];
     }
-    { /* mmc1_folded */
+    { /* mmc1.folded */
         const samsat_fm1_real_t *c = coeffs->mmc1;
-        samsat_fm1_real_t *p = prepared->mmc1_folded;
+        samsat_fm1_real_t *p = prepared->mmc1.folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
         sig[1] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
@@ -107,9 +107,9 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
         p[62] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
     }
 
-    { /* mmc1_set_folded */
+    { /* mmc1.set_folded */
         const samsat_fm1_real_t *c = coeffs->mmc1;
-        samsat_fm1_real_t *p = prepared->mmc1_set_folded;
+        samsat_fm1_real_t *p = prepared->mmc1.set_folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = c[SAMSAT_FM1_MMC1_LSB_NT];
         sig[1] = c[SAMSAT_FM1_MMC1_LSB_NT];
@@ -124,11 +124,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     }
 
     for (i = 0; i < SAMSAT_FM1_MPU1_N_COEFFS; ++i) {
-        prepared->mpu1[i] = coeffs->mpu1[i];
+        prepared->mpu1.coeffs[i] = coeffs->mpu1[i];
     }
-    { /* mpu1_folded */
+    { /* mpu1.folded */
         const samsat_fm1_real_t *c = coeffs->mpu1;
-        samsat_fm1_real_t *p = prepared->mpu1_folded;
+        samsat_fm1_real_t *p = prepared->mpu1.folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = -c[SAMSAT_FM1_MPU1_LSB_NT];
         sig[1] = -c[SAMSAT_FM1_MPU1_LSB_NT];
@@ -145,11 +145,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     }
 
     for (i = 0; i < SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
-        prepared->mpu2[i] = coeffs->mpu2[i];
+        prepared->mpu2.coeffs[i] = coeffs->mpu2[i];
     }
-    { /* mpu2_folded */
+    { /* mpu2.folded */
         const samsat_fm1_real_t *c = coeffs->mpu2;
-        samsat_fm1_real_t *p = prepared->mpu2_folded;
+        samsat_fm1_real_t *p = prepared->mpu2.folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = -c[SAMSAT_FM1_MPU2_LSB_NT];
         sig[1] = c[SAMSAT_FM1_MPU2_LSB_NT];
@@ -166,11 +166,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     }
 
     for (i = 0; i < SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
-        prepared->mmc2[i] = coeffs->mmc2[i];
+        prepared->mmc2.coeffs[i] = coeffs->mmc2[i];
     }
-    { /* mmc2_folded */
+    { /* mmc2.folded */
         const samsat_fm1_real_t *c = coeffs->mmc2;
-        samsat_fm1_real_t *p = prepared->mmc2_folded;
+        samsat_fm1_real_t *p = prepared->mmc2.folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
         sig[1] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
@@ -189,9 +189,9 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
         p[71] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
     }
 
-    { /* mmc2_set_folded */
+    { /* mmc2.set_folded */
         const samsat_fm1_real_t *c = coeffs->mmc2;
-        samsat_fm1_real_t *p = prepared->mmc2_set_folded;
+        samsat_fm1_real_t *p = prepared->mmc2.set_folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = -c[SAMSAT_FM1_MMC2_LSB_NT];
         sig[1] = -c[SAMSAT_FM1_MMC2_LSB_NT];
@@ -209,11 +209,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
     }
 
     for (i = 0; i < SAMSAT_FM1_MPU3_N_COEFFS; ++i) {
-        prepared->mpu3[i] = coeffs->mpu3[i];
+        prepared->mpu3.coeffs[i] = coeffs->mpu3[i];
     }
-    { /* mpu3_folded */
+    { /* mpu3.folded */
         const samsat_fm1_real_t *c = coeffs->mpu3;
-        samsat_fm1_real_t *p = prepared->mpu3_folded;
+        samsat_fm1_real_t *p = prepared->mpu3.folded;
         samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
         sig[0] = -c[SAMSAT_FM1_MPU3_LSB_NT];
         sig[1] = -c[SAMSAT_FM1_MPU3_LSB_NT];
@@ -237,10 +237,11 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_table_prepared_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
+    const samsat_fm1_mmc1_prepared_t *sp = &coeffs->mmc1;
     /* the table's coefficients: the clamp limits, the filters' time constants */
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *p = coeffs->mmc1_folded;
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -363,10 +364,11 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
+    const samsat_fm1_mmc1_prepared_t *sp = &coeffs->mmc1;
     /* the table's coefficients: the clamp limits, the filters' time constants */
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *p = coeffs->mmc1_set_folded;
+    const samsat_fm1_real_t *p = sp->set_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -470,11 +472,14 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out)
 {
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_mpu1_prepared_t *volatile sp_base = &coeffs->mpu1;
+    const samsat_fm1_mpu1_prepared_t *sp = sp_base;
     /* the table's coefficients: the clamp limits, the filters' time constants */
-    const samsat_fm1_real_t *c = coeffs->mpu1;
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *volatile p_base = coeffs->mpu1_folded;
-    const samsat_fm1_real_t *p = p_base;
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -562,14 +567,14 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out)
 {
-    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mpu2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mpu2_prepared_t *volatile sp_base = &coeffs->mpu2;
+    const samsat_fm1_mpu2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *volatile p_base = coeffs->mpu2_folded;
-    const samsat_fm1_real_t *p = p_base;
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -658,14 +663,14 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_table_prepared_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mmc2_prepared_t *volatile sp_base = &coeffs->mmc2;
+    const samsat_fm1_mmc2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *volatile p_base = coeffs->mmc2_folded;
-    const samsat_fm1_real_t *p = p_base;
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -788,14 +793,14 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     samsat_fm1_mmc2_state_t *state,
     samsat_fm1_mmc2_out_t *out)
 {
-    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mmc2_prepared_t *volatile sp_base = &coeffs->mmc2;
+    const samsat_fm1_mmc2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *volatile p_base = coeffs->mmc2_set_folded;
-    const samsat_fm1_real_t *p = p_base;
+    const samsat_fm1_real_t *p = sp->set_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -899,14 +904,14 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu3_out_t *out)
 {
-    /* the table's coefficients: the clamp limits, the filters' time constants */
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mpu3;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mpu3_prepared_t *volatile sp_base = &coeffs->mpu3;
+    const samsat_fm1_mpu3_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
     /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
-    const samsat_fm1_real_t *volatile p_base = coeffs->mpu3_folded;
-    const samsat_fm1_real_t *p = p_base;
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
@@ -1015,11 +1020,11 @@ uint8_t samsat_fm1_select(const samsat_fm1_table_prepared_t *coeffs,
             fields[3 * i + k] = field_body_nT[i][k];
         }
     }
-    agree_nT[0] = coeffs->mmc1[SAMSAT_FM1_MMC1_AGREE_NT];
-    agree_nT[1] = coeffs->mpu1[SAMSAT_FM1_MPU1_AGREE_NT];
-    agree_nT[2] = coeffs->mpu2[SAMSAT_FM1_MPU2_AGREE_NT];
-    agree_nT[3] = coeffs->mmc2[SAMSAT_FM1_MMC2_AGREE_NT];
-    agree_nT[4] = coeffs->mpu3[SAMSAT_FM1_MPU3_AGREE_NT];
+    agree_nT[0] = coeffs->mmc1.coeffs[SAMSAT_FM1_MMC1_AGREE_NT];
+    agree_nT[1] = coeffs->mpu1.coeffs[SAMSAT_FM1_MPU1_AGREE_NT];
+    agree_nT[2] = coeffs->mpu2.coeffs[SAMSAT_FM1_MPU2_AGREE_NT];
+    agree_nT[3] = coeffs->mmc2.coeffs[SAMSAT_FM1_MMC2_AGREE_NT];
+    agree_nT[4] = coeffs->mpu3.coeffs[SAMSAT_FM1_MPU3_AGREE_NT];
     arg[0] = fields;
     arg[1] = agree_nT;
     res[0] = margin_nT2;

@@ -155,19 +155,50 @@ extern const samsat_fm1_coeffs_t samsat_fm1_coeffs_default;
 #define SAMSAT_FM1_MMC2_SET_N_FOLDED 70
 #define SAMSAT_FM1_MPU3_N_FOLDED 60
 
+
+/* mmc1: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
 typedef struct {
-    samsat_fm1_real_t mmc1[SAMSAT_FM1_MMC1_N_COEFFS];   /* the set's own */
-    samsat_fm1_real_t mmc1_folded[SAMSAT_FM1_MMC1_N_FOLDED];
-    samsat_fm1_real_t mmc1_set_folded[SAMSAT_FM1_MMC1_SET_N_FOLDED];
-    samsat_fm1_real_t mpu1[SAMSAT_FM1_MPU1_N_COEFFS];   /* the set's own */
-    samsat_fm1_real_t mpu1_folded[SAMSAT_FM1_MPU1_N_FOLDED];
-    samsat_fm1_real_t mpu2[SAMSAT_FM1_MPU2_N_COEFFS];   /* the set's own */
-    samsat_fm1_real_t mpu2_folded[SAMSAT_FM1_MPU2_N_FOLDED];
-    samsat_fm1_real_t mmc2[SAMSAT_FM1_MMC2_N_COEFFS];   /* the set's own */
-    samsat_fm1_real_t mmc2_folded[SAMSAT_FM1_MMC2_N_FOLDED];
-    samsat_fm1_real_t mmc2_set_folded[SAMSAT_FM1_MMC2_SET_N_FOLDED];
-    samsat_fm1_real_t mpu3[SAMSAT_FM1_MPU3_N_COEFFS];   /* the set's own */
-    samsat_fm1_real_t mpu3_folded[SAMSAT_FM1_MPU3_N_FOLDED];
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MMC1_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MMC1_N_FOLDED];
+    samsat_fm1_real_t set_folded[SAMSAT_FM1_MMC1_SET_N_FOLDED];   /* SET-only calls */
+} samsat_fm1_mmc1_prepared_t;
+
+/* mpu1: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU1_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU1_N_FOLDED];
+} samsat_fm1_mpu1_prepared_t;
+
+/* mpu2: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU2_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU2_N_FOLDED];
+} samsat_fm1_mpu2_prepared_t;
+
+/* mmc2: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MMC2_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MMC2_N_FOLDED];
+    samsat_fm1_real_t set_folded[SAMSAT_FM1_MMC2_SET_N_FOLDED];   /* SET-only calls */
+} samsat_fm1_mmc2_prepared_t;
+
+/* mpu3: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU3_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU3_N_FOLDED];
+} samsat_fm1_mpu3_prepared_t;
+
+typedef struct {
+    samsat_fm1_mmc1_prepared_t mmc1;
+    samsat_fm1_mpu1_prepared_t mpu1;
+    samsat_fm1_mpu2_prepared_t mpu2;
+    samsat_fm1_mmc2_prepared_t mmc2;
+    samsat_fm1_mpu3_prepared_t mpu3;
 } samsat_fm1_table_prepared_t;
 
 /* The prepared coefficients of a coefficient set: only + - * / in float, no heap. */

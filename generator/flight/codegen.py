@@ -336,13 +336,9 @@ def template_context(cs: CoefficientSet) -> dict:
     real_size = 4 if ft == "float32" else 8
     start = 0
     for s_ctx in sensors:
-        start += s_ctx["n_coeffs"]
+        start += s_ctx["n_coeffs"] + s_ctx["folded"]["size"] + (
+            s_ctx["set_folded"]["size"] if s_ctx["set_folded"] else 0)
         s_ctx["own_base"] = start * real_size > 1020
-        start += s_ctx["folded"]["size"]
-        s_ctx["own_prep_base"] = start * real_size > 1020
-        if s_ctx["set_folded"]:
-            start += s_ctx["set_folded"]["size"]
-            s_ctx["own_set_prep_base"] = start * real_size > 1020
     ublocks, k = [], 0
     flat_u = cs.flat_unit()
     for b in spec.unit_blocks():
