@@ -19,14 +19,12 @@ whose kernels fold nothing. In the same run, with each tree's own code:
     python3 bench/bench_fold.py [--base COMMIT] [--coeffs COEFFS.json] [--csv DATA.csv]
 
 Run of 2026-11-24 on the example unit (branch fold13, against 8248fa4, same run):
-instructions per call saved 8 (mmc1), 8 (mmc1 SET-only), 3 (mpu1), 0 (mpu2), 15 (mmc2),
-1 (mmc2 SET-only), 30 (mpu3, the boom sensor: H folded into M); ratio to the flop bound
-2.09-2.47 -> 2.09-2.34. Outputs over the 36,000 samples of thermal_12pos.csv per sensor:
-2.9-18.4 % bit-identical, at most 6-9 ulps of the field, at most 0.0156 nT, rms 0.0018-0.0031
-nT; no sample changes validity. The prototype's estimate (mpu1 257 -> 245) read the prepared
-values from a file-scope array; the generated code reads them through the prepared struct
-(for the later sensors, past VLDR's reach, through a second base pointer, as the table
-coefficients already were).
+instructions per call saved 8 (mmc1), 8 (mmc1 SET-only), 7 (mpu1), 7 (mpu2), 24 (mmc2),
+8 (mmc2 SET-only), 38 (mpu3, the boom sensor: H folded into M); select +1 (its agreement
+tolerances now sit in the per-sensor prepared struct); ratio to the flop bound 2.09-2.47 ->
+2.04-2.34; code per entry point 1068-1616 B (was 1120-1776). Outputs over the 36,000
+samples of thermal_12pos.csv per sensor: 2.9-18.4 % bit-identical, at most 6-9 ulps of the
+field, at most 0.0156 nT, rms 0.0018-0.0031 nT; no sample changes validity.
 
 Needs git, gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm (exit status 2
 without the ARM tools).

@@ -382,7 +382,7 @@ def test_stack_and_code_size_targets(measured):
 
 
 @pytest.mark.xfail(strict=True, reason="issue 7 target not met yet: instructions per call "
-                   "are 2.09-2.34 x the kernel's own flops on this unit (measured "
+                   "are 2.04-2.34 x the kernel's own flops on this unit (measured "
                    "2026-11-24, with the prepare step: the kernels are the folded chain, so "
                    "their flops are the flop bound); measurements and proposals in "
                    "docs/flight_target.md")
@@ -394,9 +394,9 @@ def test_instructions_within_twice_the_minimum_flops(measured):
 
 
 @pytest.mark.xfail(strict=True, reason="issue 20 goal not met: instructions per call are "
-                   "2.09-2.34 x the flop bound on this unit (measured 2026-11-24, with the "
+                   "2.04-2.34 x the flop bound on this unit (measured 2026-11-24, with the "
                    "prepare step: the generated kernels run the folded chain, bench_fold.py "
-                   "measures 1-30 instructions per call saved against the unfolded code); "
+                   "measures 7-38 instructions per call saved against the unfolded code); "
                    "the rest is loads, stores and the wrapper's checks: the folded chain's "
                    "own loads and stores put the floor at 1.54-1.62 x the bound without "
                    "multi-register loads; docs/flight_target.md, 'The flop bound'")
