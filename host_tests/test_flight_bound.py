@@ -20,7 +20,7 @@ import pytest
 
 from chain_fixtures import random_coeffs, samsat_unit, with_options
 from generator.flight import arm_measure as am
-from generator.flight.arm_build import Entry, entry_points
+from generator.flight.arm_build import entry_points
 from generator.flight.chain import (CoeffView, SensorOptions, fold_sensor_coeffs,
                                     folded_sensor_kernel, is_physical, sensor_kernel)
 from generator.io.unit import SensorSpec, Unit

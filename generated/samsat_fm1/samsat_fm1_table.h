@@ -153,7 +153,8 @@ samsat_fm1_table_status_t samsat_fm1_table_validate_detail(const uint8_t *buf, u
 /* Meaning of a status code (any int; unknown codes get a text too). */
 const char *samsat_fm1_table_strerror(int status);
 
-/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, serial 0, after the
+/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, prepared
+ * (samsat_fm1_table_prepare), serial 0, after the
  * content checks of a table (finite, plausible ranges, ordered limits, det M, H a
  * rotation; no header). If they fail, init returns the failing check's status (also in
  * last_status / last_bad_value) and falls back to NaN coefficients: every correction
@@ -166,7 +167,8 @@ samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
 samsat_fm1_table_status_t samsat_fm1_table_receive_part(samsat_fm1_table_mgr_t *mgr,
     const uint8_t *part, uint32_t len);
 
-/* Validate the reassembled table and, only if it is accepted, switch to it. Accepted
+/* Validate the reassembled table and, only if it is accepted, prepare it into the inactive
+ * buffer and switch to it (table and prepared copy in one assignment). Accepted
  * means every check passes and its serial is above the active table's: a lower serial
  * is SERIAL_ROLLBACK, an equal one SERIAL_REPLAY (other coefficients) or ALREADY_ACTIVE
  * (the same); the manager starts at serial 0, the compiled-in defaults. */

@@ -1000,8 +1000,6 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     coeffs_sensor = np.asarray(coeffs_sensor, dtype=ft)
     c = CoeffView([coeffs_sensor[k] for k in range(coeffs_sensor.size)],
                   spec.sensor_blocks(sensor))
-    cu = np.asarray(coeffs_unit, dtype=ft)
-    u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
     status = np.zeros(n, dtype=np.uint16)
 
     def aux(values, width):
