@@ -169,7 +169,11 @@ _HOSTS: dict = {}
 
 
 def test_the_comparison_catches_a_perturbed_coefficient(built):
-    """One ulp on one matrix coefficient in the reference only: the suite must notice."""
+    """The smallest change of one matrix coefficient that reaches the kernel, in the
+    reference only: the suite must notice. The kernel reads M folded with the count scale
+    (chain.prepare_sensor, rounded once), so one ulp of the table's M can round to the
+    same prepared value; the coefficient is stepped ulp by ulp until its prepared value
+    changes (a few steps: the scale is at most a binade away)."""
     label, cs, host = built
     rng = np.random.default_rng(7)
     s = cs.unit.sensors[0]
@@ -178,7 +182,13 @@ def test_the_comparison_catches_a_perturbed_coefficient(built):
     c_out = host.correct(s.name, raw, temp, coil)
     flat = cs.flat_sensor(s.name).astype(host.dtype)
     k = cs.spec.offsets(cs.spec.sensor_blocks(s))["M_poly"]  # m0_00
-    flat[k] = np.nextafter(flat[k], host.dtype(np.inf))
+    before = chain.prepare_sensor(cs.spec, s, flat, cs.flat_unit())
+    for _ in range(4):
+        flat[k] = np.nextafter(flat[k], host.dtype(np.inf))
+        if not np.array_equal(chain.prepare_sensor(cs.spec, s, flat, cs.flat_unit()), before):
+            break
+    else:
+        raise AssertionError("four ulps of M did not reach the prepared coefficients")
     py_out = reference_sensor(cs.spec, s, flat, cs.flat_unit(), raw, temp, coil)
     with pytest.raises(AssertionError, match="samples differ"):
         assert_bit_identical(c_out, py_out)

@@ -25,7 +25,12 @@
 /* The CasADi kernels, in this translation unit and static: the compiler sees that their
  * arguments are never null and inlines them; nothing of them is exported. CasADi's
  * signature has work-array parameters the kernels do not use. */
-#define CASADI_SYMBOL_EXPORT static inline
+#if defined(__GNUC__)
+#define CASADI_KERNEL_INLINE inline __attribute__((always_inline))
+#else
+#define CASADI_KERNEL_INLINE inline
+#endif
+#define CASADI_SYMBOL_EXPORT static CASADI_KERNEL_INLINE
 #if defined(__GNUC__)
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wunused-parameter"
@@ -35,19 +40,214 @@
 #pragma GCC diagnostic pop
 #endif
 
-uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
+/* b / sig and M sig of n polynomial terms; h non-null: H (M sig), a boom sensor's
+ * rotation folded into every term (chain.fold_sensor_coeffs) */
+static void prepare_terms(const samsat_fm1_real_t *b, const samsat_fm1_real_t *M,
+    const samsat_fm1_real_t *sig, const samsat_fm1_real_t *h, int n, samsat_fm1_real_t *pb,
+    samsat_fm1_real_t *pM)
+{
+    int i, j, k;
+    for (k = 0; k < n; ++k) {
+        samsat_fm1_real_t m[9];
+        for (i = 0; i < 3; ++i) {
+            pb[3 * k + i] = b[3 * k + i] / sig[i];
+            for (j = 0; j < 3; ++j) {
+                m[3 * i + j] = M[9 * k + 3 * i + j] * sig[j];
+            }
+        }
+        for (i = 0; i < 3; ++i) {
+            for (j = 0; j < 3; ++j) {
+                pM[9 * k + 3 * i + j] = h != 0 ?
+                    h[3 * i] * m[j] + h[3 * i + 1] * m[3 + j] + h[3 * i + 2] * m[6 + j] :
+                    m[3 * i + j];
+            }
+        }
+    }
+}
+
+/* The rows of a 3 x n coupling divided by the axis scale. */
+static void prepare_rows(const samsat_fm1_real_t *src, const samsat_fm1_real_t *sig, int n,
+    samsat_fm1_real_t *dst)
+{
+    int i, j;
+    for (i = 0; i < 3; ++i) {
+        for (j = 0; j < n; ++j) {
+            dst[n * i + j] = src[n * i + j] / sig[i];
+        }
+    }
+}
+
+/* The prepared coefficients: chain.fold_sensor_coeffs, operation for operation in its
+ * order (the Python reference, chain.prepare_sensor, runs that function on float
+ * values; host_tests/test_prepare.py compares the bits). */
+void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
+    samsat_fm1_table_prepared_t *prepared)
+{
+    const samsat_fm1_real_t *u = coeffs->unit;
+    const samsat_fm1_real_t *h = coeffs->unit + SAMSAT_FM1_UNIT_H_BOOM_TO_BODY;
+    int i;
+    for (i = 0; i < SAMSAT_FM1_MMC1_N_COEFFS; ++i) {
+        prepared->mmc1.coeffs[i] = coeffs->mmc1[i];
+    }
+    { /* mmc1.folded */
+        const samsat_fm1_real_t *c = coeffs->mmc1;
+        samsat_fm1_real_t *p = prepared->mmc1.folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[1] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[2] = (c[SAMSAT_FM1_MMC1_LSB_NT] * (samsat_fm1_real_t)0.5);
+        prepare_terms(c + SAMSAT_FM1_MMC1_B_POLY_NT, c + SAMSAT_FM1_MMC1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC1_SR_COMP_S_PER_DEG];
+        p[58] = c[SAMSAT_FM1_MMC1_T_REF_C];
+        p[59] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        p[60] = c[SAMSAT_FM1_MMC1_ZERO_COUNT];
+        p[61] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[62] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    { /* mmc1.set_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc1;
+        samsat_fm1_real_t *p = prepared->mmc1.set_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        sig[1] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MMC1_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MMC1_B_POLY_NT, c + SAMSAT_FM1_MMC1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC1_SR_COMP_S_PER_DEG];
+        p[58] = c[SAMSAT_FM1_MMC1_T_REF_C];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[60] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    for (i = 0; i < SAMSAT_FM1_MPU1_N_COEFFS; ++i) {
+        prepared->mpu1.coeffs[i] = coeffs->mpu1[i];
+    }
+    { /* mpu1.folded */
+        const samsat_fm1_real_t *c = coeffs->mpu1;
+        samsat_fm1_real_t *p = prepared->mpu1.folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        sig[2] = -c[SAMSAT_FM1_MPU1_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU1_B_POLY_NT, c + SAMSAT_FM1_MPU1_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU1_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU1_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU1_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    for (i = 0; i < SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
+        prepared->mpu2.coeffs[i] = coeffs->mpu2[i];
+    }
+    { /* mpu2.folded */
+        const samsat_fm1_real_t *c = coeffs->mpu2;
+        samsat_fm1_real_t *p = prepared->mpu2.folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU2_LSB_NT];
+        sig[1] = c[SAMSAT_FM1_MPU2_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MPU2_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU2_B_POLY_NT, c + SAMSAT_FM1_MPU2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU2_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU2_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    for (i = 0; i < SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
+        prepared->mmc2.coeffs[i] = coeffs->mmc2[i];
+    }
+    { /* mmc2.folded */
+        const samsat_fm1_real_t *c = coeffs->mmc2;
+        samsat_fm1_real_t *p = prepared->mmc2.folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[1] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        sig[2] = -(c[SAMSAT_FM1_MMC2_LSB_NT] * (samsat_fm1_real_t)0.5);
+        prepare_terms(c + SAMSAT_FM1_MMC2_B_POLY_NT, c + SAMSAT_FM1_MMC2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC2_SR_COMP_S_PER_DEG];
+        for (i = 0; i < 9; ++i) {
+            p[58 + i] = h[i];
+        }
+        p[67] = c[SAMSAT_FM1_MMC2_T_REF_C];
+        p[68] = c[SAMSAT_FM1_MMC2_LSB_NT];
+        p[69] = c[SAMSAT_FM1_MMC2_ZERO_COUNT];
+        p[70] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[71] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    { /* mmc2.set_folded */
+        const samsat_fm1_real_t *c = coeffs->mmc2;
+        samsat_fm1_real_t *p = prepared->mmc2.set_folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        sig[2] = -c[SAMSAT_FM1_MMC2_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MMC2_B_POLY_NT, c + SAMSAT_FM1_MMC2_M_POLY, sig, 0, 4,
+                      p + 0, p + 12);
+        prepare_rows(c + SAMSAT_FM1_MMC2_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MMC2_SR_COMP_S_PER_DEG];
+        for (i = 0; i < 9; ++i) {
+            p[58 + i] = h[i];
+        }
+        p[67] = c[SAMSAT_FM1_MMC2_T_REF_C];
+        p[68] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[69] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+    for (i = 0; i < SAMSAT_FM1_MPU3_N_COEFFS; ++i) {
+        prepared->mpu3.coeffs[i] = coeffs->mpu3[i];
+    }
+    { /* mpu3.folded */
+        const samsat_fm1_real_t *c = coeffs->mpu3;
+        samsat_fm1_real_t *p = prepared->mpu3.folded;
+        samsat_fm1_real_t sig[3];   /* frame axis k of the field = sig[k] x the call's difference */
+        sig[0] = -c[SAMSAT_FM1_MPU3_LSB_NT];
+        sig[1] = -c[SAMSAT_FM1_MPU3_LSB_NT];
+        sig[2] = c[SAMSAT_FM1_MPU3_LSB_NT];
+        prepare_terms(c + SAMSAT_FM1_MPU3_B_POLY_NT, c + SAMSAT_FM1_MPU3_M_POLY, sig, h, 4,
+                      p + 0, p + 12);
+        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
+            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU3_ZERO_COUNT];
+        }
+        prepare_rows(c + SAMSAT_FM1_MPU3_K_NT_PER_A, sig, 3, p + 48);
+        p[57] = c[SAMSAT_FM1_MPU3_T_REF_C];
+        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+    }
+
+}
+
+uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    const samsat_fm1_mmc1_prepared_t *sp = &coeffs->mmc1;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
     unsigned int status = 0u;
 
@@ -127,8 +327,7 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -159,19 +358,23 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
     samsat_fm1_mmc1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mmc1;
+    const samsat_fm1_mmc1_prepared_t *sp = &coeffs->mmc1;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->set_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -243,8 +446,7 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -265,18 +467,25 @@ uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu1;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_mpu1_prepared_t *volatile sp_base = &coeffs->mpu1;
+    const samsat_fm1_mpu1_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -332,8 +541,7 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -354,18 +562,25 @@ uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out)
 {
-    const samsat_fm1_real_t *c = coeffs->mpu2;
+    /* read through a volatile so the compiler addresses the sensor's block from its own
+     * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
+    const samsat_fm1_mpu2_prepared_t *volatile sp_base = &coeffs->mpu2;
+    const samsat_fm1_mpu2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -421,8 +636,7 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -443,7 +657,7 @@ uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
@@ -451,14 +665,18 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
 {
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mmc2_prepared_t *volatile sp_base = &coeffs->mmc2;
+    const samsat_fm1_mmc2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[4];
     unsigned int status = 0u;
 
@@ -538,8 +756,7 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -570,7 +787,7 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
@@ -578,14 +795,18 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
 {
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mmc2;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mmc2_prepared_t *volatile sp_base = &coeffs->mmc2;
+    const samsat_fm1_mmc2_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->set_folded;
     samsat_fm1_real_t counts[6];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[6];
+    const samsat_fm1_real_t *arg[5];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -657,8 +878,7 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
     arg[3] = (aux != 0) ? aux->rate_dps : 0;
-    arg[4] = c;
-    arg[5] = coeffs->unit;
+    arg[4] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -679,21 +899,25 @@ uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu3_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu3_out_t *out)
 {
     /* read through a volatile so the compiler addresses the sensor's block from its own
      * base (a VLDR reaches +-1020 bytes) instead of folding it into the struct's */
-    const samsat_fm1_real_t *volatile c_base = coeffs->mpu3;
-    const samsat_fm1_real_t *c = c_base;
+    const samsat_fm1_mpu3_prepared_t *volatile sp_base = &coeffs->mpu3;
+    const samsat_fm1_mpu3_prepared_t *sp = sp_base;
+    /* the table's coefficients: the clamp limits, the filters' time constants */
+    const samsat_fm1_real_t *c = sp->coeffs;
+    /* the kernel's prepared coefficients (samsat_fm1_table_prepare) */
+    const samsat_fm1_real_t *p = sp->folded;
     samsat_fm1_real_t counts[3];
     samsat_fm1_real_t temp_C = raw->temp_C;
     samsat_fm1_real_t finite_probe;
     samsat_fm1_real_t band_margin_nT2[2];
     samsat_fm1_real_t field_body_nT[3];
-    const samsat_fm1_real_t *arg[5];
+    const samsat_fm1_real_t *arg[4];
     samsat_fm1_real_t *res[2];
     unsigned int status = 0u;
 
@@ -749,8 +973,7 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     arg[0] = counts;
     arg[1] = &temp_C;
     arg[2] = (aux != 0) ? aux->coil_A : 0;
-    arg[3] = c;
-    arg[4] = coeffs->unit;
+    arg[3] = p;
     /* the vector outputs go through locals: CasADi tests every res[k] against null, and
      * the compiler drops those tests only for pointers it knows (measured on the
      * Cortex-M4F: 1 to 5 instructions less on the nominal path, 0 to 4 more on the
@@ -771,7 +994,7 @@ uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
     return (uint16_t)status;
 }
 
-uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
+uint8_t samsat_fm1_select(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_real_t field_body_nT[SAMSAT_FM1_N_SENSORS][3],
     uint16_t status[SAMSAT_FM1_N_SENSORS], samsat_fm1_selection_t *sel)
 {
@@ -797,11 +1020,11 @@ uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
             fields[3 * i + k] = field_body_nT[i][k];
         }
     }
-    agree_nT[0] = coeffs->mmc1[SAMSAT_FM1_MMC1_AGREE_NT];
-    agree_nT[1] = coeffs->mpu1[SAMSAT_FM1_MPU1_AGREE_NT];
-    agree_nT[2] = coeffs->mpu2[SAMSAT_FM1_MPU2_AGREE_NT];
-    agree_nT[3] = coeffs->mmc2[SAMSAT_FM1_MMC2_AGREE_NT];
-    agree_nT[4] = coeffs->mpu3[SAMSAT_FM1_MPU3_AGREE_NT];
+    agree_nT[0] = coeffs->mmc1.coeffs[SAMSAT_FM1_MMC1_AGREE_NT];
+    agree_nT[1] = coeffs->mpu1.coeffs[SAMSAT_FM1_MPU1_AGREE_NT];
+    agree_nT[2] = coeffs->mpu2.coeffs[SAMSAT_FM1_MPU2_AGREE_NT];
+    agree_nT[3] = coeffs->mmc2.coeffs[SAMSAT_FM1_MMC2_AGREE_NT];
+    agree_nT[4] = coeffs->mpu3.coeffs[SAMSAT_FM1_MPU3_AGREE_NT];
     arg[0] = fields;
     arg[1] = agree_nT;
     res[0] = margin_nT2;

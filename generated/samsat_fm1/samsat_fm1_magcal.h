@@ -139,7 +139,78 @@ typedef struct {
 /* Compiled-in default coefficient set (from the ground calibration). */
 extern const samsat_fm1_coeffs_t samsat_fm1_coeffs_default;
 
-/* ---- One sample in, one sample out ---- */
+/* ---- Prepared coefficients: what the correction reads ----
+ * The kernels read constants folded once from a coefficient set (generator/flight/chain.py
+ * fold_sensor_coeffs): the count-to-nT scale and the axis signs folded into b, K and M,
+ * H M for boom sensors, the squared band limits. samsat_fm1_table_prepare computes them;
+ * the table manager does so when it activates a table (samsat_fm1_table_prepared), and
+ * samsat_fm1_table_prepared_default holds those of the compiled-in defaults (computed at
+ * generate time, bit-identical to samsat_fm1_table_prepare(&samsat_fm1_coeffs_default)).
+ * Fill one only through samsat_fm1_table_prepare. */
+#define SAMSAT_FM1_MMC1_N_FOLDED 63
+#define SAMSAT_FM1_MMC1_SET_N_FOLDED 61
+#define SAMSAT_FM1_MPU1_N_FOLDED 60
+#define SAMSAT_FM1_MPU2_N_FOLDED 60
+#define SAMSAT_FM1_MMC2_N_FOLDED 72
+#define SAMSAT_FM1_MMC2_SET_N_FOLDED 70
+#define SAMSAT_FM1_MPU3_N_FOLDED 60
+
+
+/* mmc1: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MMC1_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MMC1_N_FOLDED];
+    samsat_fm1_real_t set_folded[SAMSAT_FM1_MMC1_SET_N_FOLDED];   /* SET-only calls */
+} samsat_fm1_mmc1_prepared_t;
+
+/* mpu1: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU1_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU1_N_FOLDED];
+} samsat_fm1_mpu1_prepared_t;
+
+/* mpu2: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU2_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU2_N_FOLDED];
+} samsat_fm1_mpu2_prepared_t;
+
+/* mmc2: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MMC2_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MMC2_N_FOLDED];
+    samsat_fm1_real_t set_folded[SAMSAT_FM1_MMC2_SET_N_FOLDED];   /* SET-only calls */
+} samsat_fm1_mmc2_prepared_t;
+
+/* mpu3: its coefficients (clamp limits, time constants, agreement tolerance) and
+ * its kernels' prepared vectors, read from one base */
+typedef struct {
+    samsat_fm1_real_t coeffs[SAMSAT_FM1_MPU3_N_COEFFS];   /* as in samsat_fm1_coeffs_t */
+    samsat_fm1_real_t folded[SAMSAT_FM1_MPU3_N_FOLDED];
+} samsat_fm1_mpu3_prepared_t;
+
+typedef struct {
+    samsat_fm1_mmc1_prepared_t mmc1;
+    samsat_fm1_mpu1_prepared_t mpu1;
+    samsat_fm1_mpu2_prepared_t mpu2;
+    samsat_fm1_mmc2_prepared_t mmc2;
+    samsat_fm1_mpu3_prepared_t mpu3;
+} samsat_fm1_table_prepared_t;
+
+/* The prepared coefficients of a coefficient set: only + - * / in float, no heap. */
+void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
+    samsat_fm1_table_prepared_t *prepared);
+
+/* The compiled-in defaults, prepared. */
+extern const samsat_fm1_table_prepared_t samsat_fm1_table_prepared_default;
+
+/* ---- One sample in, one sample out ----
+ * coeffs: the prepared coefficients in use (samsat_fm1_table_prepared(&mgr), or
+ * &samsat_fm1_table_prepared_default). */
 
 /* Shared inputs of a sample; pass NULL when none are known (all taken as zero). */
 typedef struct {
@@ -172,7 +243,7 @@ typedef struct {
 
 /* Correct one mmc1 sample. Returns out->status. * state may be NULL (no stored offset, no temperature filter); when given it is
  * updated: an unsaturated pair stores its bridge offset. */
-uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
@@ -180,7 +251,7 @@ uint16_t samsat_fm1_mmc1_correct(const samsat_fm1_coeffs_t *coeffs,
 
 /* Correct a SET-only mmc1 reading with the stored offset (STATUS_NO_OFFSET and a
  * zero vector when none is stored). out->chip_offset_nT is not written. */
-uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc1_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc1_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc1_state_t *state,
@@ -197,7 +268,7 @@ typedef struct {
 } samsat_fm1_mpu1_out_t;
 
 /* Correct one mpu1 sample. Returns out->status. */
-uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu1_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu1_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu1_out_t *out);
@@ -213,7 +284,7 @@ typedef struct {
 } samsat_fm1_mpu2_out_t;
 
 /* Correct one mpu2 sample. Returns out->status. */
-uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu2_out_t *out);
@@ -243,7 +314,7 @@ typedef struct {
 
 /* Correct one mmc2 sample. Returns out->status. * state may be NULL (no stored offset, no temperature filter); when given it is
  * updated: an unsaturated pair stores its bridge offset. */
-uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
@@ -251,7 +322,7 @@ uint16_t samsat_fm1_mmc2_correct(const samsat_fm1_coeffs_t *coeffs,
 
 /* Correct a SET-only mmc2 reading with the stored offset (STATUS_NO_OFFSET and a
  * zero vector when none is stored). out->chip_offset_nT is not written. */
-uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mmc2_correct_set(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mmc2_set_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mmc2_state_t *state,
@@ -268,7 +339,7 @@ typedef struct {
 } samsat_fm1_mpu3_out_t;
 
 /* Correct one mpu3 sample. Returns out->status. */
-uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_coeffs_t *coeffs,
+uint16_t samsat_fm1_mpu3_correct(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_mpu3_raw_t *raw,
     const samsat_fm1_aux_t *aux,
     samsat_fm1_mpu3_out_t *out);
@@ -287,7 +358,7 @@ typedef struct {
  * cycle passes a non-zero status. A valid sensor that disagrees with most (and at least
  * two) other valid sensors gets SAMSAT_FM1_STATUS_DISAGREE in status[i]. The selection is
  * the first sensor of SAMSAT_FM1_FALLBACK_ORDER whose status is 0. Returns sel->reason. */
-uint8_t samsat_fm1_select(const samsat_fm1_coeffs_t *coeffs,
+uint8_t samsat_fm1_select(const samsat_fm1_table_prepared_t *coeffs,
     const samsat_fm1_real_t field_body_nT[SAMSAT_FM1_N_SENSORS][3],
     uint16_t status[SAMSAT_FM1_N_SENSORS], samsat_fm1_selection_t *sel);
 

@@ -724,9 +724,10 @@ static samsat_fm1_table_status_t install(samsat_fm1_table_mgr_t *mgr, const uint
         return memcmp(&mgr->buffer[next], &mgr->buffer[now], sizeof mgr->buffer[now]) == 0 ?
             SAMSAT_FM1_TABLE_ALREADY_ACTIVE : SAMSAT_FM1_TABLE_SERIAL_REPLAY;
     }
+    samsat_fm1_table_prepare(&mgr->buffer[next], &mgr->prepared[next]);
     mgr->serial[next] = serial;
     mgr->coeffs_valid = 1u;
-    mgr->active = next;   /* the switch: one assignment, after the buffer is complete */
+    mgr->active = next;   /* the switch: one assignment, after both buffers are complete */
     return SAMSAT_FM1_TABLE_OK;
 }
 
@@ -756,11 +757,15 @@ samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
         decode(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, &mgr->buffer[0]);
         memset(mgr->staging, 0, sizeof mgr->staging);
         mgr->buffer[1] = mgr->buffer[0];
+        samsat_fm1_table_prepare(&mgr->buffer[0], &mgr->prepared[0]);
+        mgr->prepared[1] = mgr->prepared[0];
         mgr->coeffs_valid = 0u;
         return status;
     }
     mgr->buffer[0] = *defaults;
     mgr->buffer[1] = *defaults;
+    samsat_fm1_table_prepare(&mgr->buffer[0], &mgr->prepared[0]);
+    mgr->prepared[1] = mgr->prepared[0];
     mgr->coeffs_valid = 1u;
     return SAMSAT_FM1_TABLE_OK;
 }
@@ -888,6 +893,11 @@ void samsat_fm1_table_abort(samsat_fm1_table_mgr_t *mgr)
 const samsat_fm1_coeffs_t *samsat_fm1_table_active(const samsat_fm1_table_mgr_t *mgr)
 {
     return mgr != 0 ? &mgr->buffer[mgr->active & 1u] : 0;
+}
+
+const samsat_fm1_table_prepared_t *samsat_fm1_table_prepared(const samsat_fm1_table_mgr_t *mgr)
+{
+    return mgr != 0 ? &mgr->prepared[mgr->active & 1u] : 0;
 }
 
 void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_info_t *info)

@@ -106,6 +106,7 @@ typedef enum {
 /* Table manager: the double buffer and the reassembly of the next table. */
 typedef struct {
     samsat_fm1_coeffs_t buffer[2];      /* buffer[active] is in use, the other is written */
+    samsat_fm1_table_prepared_t prepared[2];  /* prepared[k]: buffer[k] prepared */
     uint32_t serial[2];                 /* table serial of each buffer (0: compiled-in) */
     uint8_t active;                     /* 0 or 1, switched by one assignment */
     uint8_t transfer_open;              /* 1 while the parts of a table are collected */
@@ -152,7 +153,8 @@ samsat_fm1_table_status_t samsat_fm1_table_validate_detail(const uint8_t *buf, u
 /* Meaning of a status code (any int; unknown codes get a text too). */
 const char *samsat_fm1_table_strerror(int status);
 
-/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, serial 0, after the
+/* Start with `defaults` (usually &samsat_fm1_coeffs_default) in use, prepared
+ * (samsat_fm1_table_prepare), serial 0, after the
  * content checks of a table (finite, plausible ranges, ordered limits, det M, H a
  * rotation; no header). If they fail, init returns the failing check's status (also in
  * last_status / last_bad_value) and falls back to NaN coefficients: every correction
@@ -165,7 +167,8 @@ samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
 samsat_fm1_table_status_t samsat_fm1_table_receive_part(samsat_fm1_table_mgr_t *mgr,
     const uint8_t *part, uint32_t len);
 
-/* Validate the reassembled table and, only if it is accepted, switch to it. Accepted
+/* Validate the reassembled table and, only if it is accepted, prepare it into the inactive
+ * buffer and switch to it (table and prepared copy in one assignment). Accepted
  * means every check passes and its serial is above the active table's: a lower serial
  * is SERIAL_ROLLBACK, an equal one SERIAL_REPLAY (other coefficients) or ALREADY_ACTIVE
  * (the same); the manager starts at serial 0, the compiled-in defaults. */
@@ -180,6 +183,10 @@ void samsat_fm1_table_abort(samsat_fm1_table_mgr_t *mgr);
 
 /* The coefficients in use. */
 const samsat_fm1_coeffs_t *samsat_fm1_table_active(const samsat_fm1_table_mgr_t *mgr);
+
+/* The coefficients in use, prepared (computed when they were activated): what the
+ * correction and select take. */
+const samsat_fm1_table_prepared_t *samsat_fm1_table_prepared(const samsat_fm1_table_mgr_t *mgr);
 
 void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_info_t *info);
 

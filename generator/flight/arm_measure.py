@@ -243,49 +243,22 @@ def per_call_flops(f: ca.Function, n_call_inputs: int) -> dict:
 
 
 def folded_kernel(spec: ChainSpec, sensor, set_only=False) -> tuple:
-    """The chain of one sensor with every constant folded (chain.fold_sensor_coeffs,
-    chain.folded_sensor_kernel) as a CasADi Function of the same arguments as the
-    generated kernel (codegen.build_kernel): per-call inputs, then the sensor's and the
-    unit's table coefficients; the folding is part of the Function, and per_call_flops
-    leaves it out. Returns (Function, number of folded coefficients a call reads)."""
-    from generator.flight.chain import CoeffView, fold_sensor_coeffs, folded_sensor_kernel
+    """The chain of one sensor with every constant folded: the generated kernel itself
+    (codegen.build_kernel: chain.folded_sensor_kernel on the prepared coefficients that
+    `<unit>_table_prepare` computes once per table, chain.fold_sensor_coeffs). Returns
+    (Function, number of prepared coefficients a call reads)."""
+    from generator.flight.chain import n_prepared
+    from generator.flight.codegen import build_kernel
     s = spec.unit.sensor(sensor) if isinstance(sensor, str) else sensor
-    ins = spec.sensor_inputs(s, set_only)
-    sym = {i.name: ca.SX.sym(i.name, i.size) for i in ins}
-    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(s))
-    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
-    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(s))
-    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
-
-    def elems(name):
-        return [sym[name][k] for k in range(sym[name].numel())] if name in sym else []
-
-    half = ca.SX(0.5)
-    folded = fold_sensor_coeffs(spec, s, c, u, half, set_only=set_only)
-    temp = sym["temp_C"][0] if "temp_C" in sym else None
-    out = folded_sensor_kernel(spec, s, elems("raw_counts"), temp, elems("coil_A"), folded,
-                               half, set_only=set_only, channels=elems("channels"),
-                               rate_dps=elems("rate_dps"))
-    outs = spec.sensor_outputs(s, set_only)
-    return (ca.Function(f"{spec.unit.id}_{s.name}_{'set_' if set_only else ''}folded",
-                        [sym[i.name] for i in ins] + [c_sym, u_sym],
-                        [ca.vertcat(*out[o.name]) for o in outs]),
-            len(_leaves(folded)))
-
-
-def _leaves(v) -> list:
-    if isinstance(v, dict):
-        return [x for k in v for x in _leaves(v[k])]
-    if isinstance(v, (list, tuple)):
-        return [x for e in v for x in _leaves(e)]
-    return [v]
+    return build_kernel(spec, s, set_only=set_only), n_prepared(spec, s, set_only)
 
 
 def flop_bound(spec: ChainSpec, sensor, set_only=False) -> dict:
     """The lower bound of one sensor call's floating-point operations: the per-call
     operations of the folded chain (folded_kernel); with, for comparison, the per-call
-    operations of the generated kernel itself ('kernel_per_call': what it does per call
-    that a table load could do once, the squares of the band limits and lsb/2, counted)."""
+    operations of the generated kernel itself ('kernel_per_call'; since the kernels read
+    prepared coefficients it is the folded chain, so the two are equal: nothing a table
+    load could do once is left in a call)."""
     s = spec.unit.sensor(sensor) if isinstance(sensor, str) else sensor
     ins = spec.sensor_inputs(s, set_only)
     f, n_folded = folded_kernel(spec, s, set_only)
@@ -820,12 +793,6 @@ TARGET_UNIT_CODE = 16 * 1024
 TARGET_STACK = 512
 
 
-def _fold_gain(e: EntryMeasure) -> int:
-    """The most instructions folding could save on a call: the generated kernel's
-    per-call operations beyond the flop bound."""
-    return e.bound["kernel_per_call"] - e.bound["flops"]
-
-
 def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
                   with_variant: bool = True, with_checks: bool = True) -> dict:
     """Measure the unit on the emulated Cortex-M4F and write the Markdown report.
@@ -863,16 +830,10 @@ def flight_report(cs: CoefficientSet, out_md, source: str | None = None,
         "cal": m["calibration"], "unitsz": unitsz, "max_dev": max_dev,
         "bratio_min": min(r["e"].bound_ratio for r in sensor_rows),
         "bratio_max": max(r["e"].bound_ratio for r in sensor_rows),
-        "fold_gain_min": min(_fold_gain(r["e"]) for r in sensor_rows),
-        "fold_gain_max": max(_fold_gain(r["e"]) for r in sensor_rows),
         "bfloor_min": min(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
                           for r in sensor_rows),
         "bfloor_max": max(1 + r["e"].bound["moves"] / r["e"].bound["flops"]
                           for r in sensor_rows),
-        "bratio_fold_min": min((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]
-                               for r in sensor_rows),
-        "bratio_fold_max": max((r["e"].nominal - _fold_gain(r["e"])) / r["e"].bound["flops"]
-                               for r in sensor_rows),
         "targets": {"ratio": TARGET_RATIO, "bound": TARGET_BOUND_RATIO,
                     "code": TARGET_UNIT_CODE, "stack": TARGET_STACK},
         "qemu_trace": " ".join(map(str, qemu_command(Path("runner.elf"),

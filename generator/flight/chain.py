@@ -2,11 +2,21 @@
 
 Everything that knows the chain's structure reads it from here:
 
-* the CasADi SX expressions (``codegen.py`` builds one CasADi Function per sensor from
-  :func:`sensor_kernel` and emits C with CasADi's CodeGenerator);
+* :func:`sensor_kernel`, the chain as the equations below write it, and its folded form:
+  :func:`fold_sensor_coeffs` (every constant folded once per table: the count scale and
+  axis signs into b, K, M, H M for boom sensors, the squared band limits) and
+  :func:`folded_sensor_kernel` (the chain on those); test_flight_bound.py checks that
+  both give the same outputs;
+* the CasADi SX expressions (``codegen.py`` emits C with CasADi's CodeGenerator from
+  :func:`folded_sensor_kernel` on the prepared vector, one kernel per sensor); the
+  prepare step ``<unit>_table_prepare`` (templates/magcal.c.j2) is
+  :func:`fold_sensor_coeffs` written as C loops, operation for operation (the same
+  scalar operations in the same order; test_prepare.py compares its bits with
+  :func:`prepare_sensor` on every kind of sensor and option);
 * the Python reference (:func:`reference_sensor`), which runs the very same
-  :func:`sensor_kernel` on numpy float32 values, so every + - * is the same IEEE
-  operation, in the same order, as in the generated C;
+  :func:`prepare_sensor` (the fold) and :func:`folded_sensor_kernel` on numpy float32
+  values, so every + - * / is the same IEEE operation, in the same order, as in the
+  generated C;
 * the coefficient layout (:class:`ChainSpec` blocks, in order): the C coefficient
   arrays, the uplink table payload and the docs are all made from it.
 
@@ -555,7 +565,10 @@ def lag_kernel(temp_C, temp_el_C, dt_s, tau_s):
 
 def sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, c: CoeffView,
                   u: CoeffView, half, set_only=False, channels=(), rate_dps=()):
-    """The arithmetic of the chain for one sensor and one sample.
+    """The arithmetic of the chain for one sensor and one sample, as the equations write
+    it (the flight code and the reference run its folded form, fold_sensor_coeffs +
+    folded_sensor_kernel, which gives the same outputs up to the rounding of the folded
+    constants; test_flight_bound.py).
 
     raw, coil_A: lists of scalars; temp_C: scalar (already clamped; unused by a sensor with
     no temperature); c, u: coefficient
@@ -702,7 +715,9 @@ def _axis_scales(sensor: SensorSpec, c: CoeffView, half, set_only):
 
 def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: CoeffView, half,
                        set_only=False) -> dict:
-    """The folded coefficients of one sensor's chain from its table blocks (any scalar
+    """(The flight code's `<unit>_table_prepare`, templates/magcal.c.j2, is this function in
+    C, operation for operation: change both; host_tests/test_prepare.py compares the bits.)
+    The folded coefficients of one sensor's chain from its table blocks (any scalar
     type): {name: value or nested lists}. b_poly, K, C are divided by sigma (a plain
     count's zero added to the constant term of b), the cubic multiplied by sigma^2, M's
     columns by sigma and, for a boom sensor without rate compensation, M premultiplied by
@@ -754,6 +769,72 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     f_min, f_max = u.scalar("field_min_nT"), u.scalar("field_max_nT")
     f["field_min2"], f["field_max2"] = f_min * f_min, f_max * f_max
     return f
+
+
+# ---- the prepared coefficients: the fold as a flat vector ------------------------------
+#
+# The flight code runs the folded chain: `<unit>_table_prepare` computes each kernel's
+# folded coefficients once (when a table is activated, at init, or for the compiled-in
+# defaults at generate time) and the kernels read them. The flat order is the order of
+# fold_sensor_coeffs' entries, each row-major (prepared_leaves); prepared_view turns a flat
+# vector back into fold_sensor_coeffs' structure.
+
+
+def prepared_leaves(f) -> list:
+    """The scalars of a fold (fold_sensor_coeffs), in the prepared vector's order."""
+    if isinstance(f, dict):
+        return [x for k in f for x in prepared_leaves(f[k])]
+    if isinstance(f, (list, tuple)):
+        return [x for e in f for x in prepared_leaves(e)]
+    return [f]
+
+
+def fold_shape(spec: ChainSpec, sensor: SensorSpec, set_only=False):
+    """fold_sensor_coeffs' structure (entries and nesting) of one kernel, values None."""
+    c = CoeffView([np.float64(1.0)] * spec.n_sensor_coeffs(sensor), spec.sensor_blocks(sensor))
+    u = CoeffView([np.float64(1.0)] * spec.n_unit_coeffs(), spec.unit_blocks())
+    f = fold_sensor_coeffs(spec, sensor, c, u, np.float64(0.5), set_only=set_only)
+
+    def strip(v):
+        if isinstance(v, dict):
+            return {k: strip(e) for k, e in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [strip(e) for e in v]
+        return None
+    return strip(f)
+
+
+def n_prepared(spec: ChainSpec, sensor: SensorSpec, set_only=False) -> int:
+    """Size of one kernel's prepared coefficient vector."""
+    return len(prepared_leaves(fold_shape(spec, sensor, set_only)))
+
+
+def prepared_view(spec: ChainSpec, sensor: SensorSpec, flat, set_only=False) -> dict:
+    """A flat prepared vector (values or symbols) in fold_sensor_coeffs' structure."""
+    it = iter(flat)
+
+    def fill(v):
+        if isinstance(v, dict):
+            return {k: fill(e) for k, e in v.items()}
+        if isinstance(v, list):
+            return [fill(e) for e in v]
+        return next(it)
+    return fill(fold_shape(spec, sensor, set_only))
+
+
+def prepare_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_unit,
+                   set_only=False) -> np.ndarray:
+    """The prepared vector of one kernel from the table's coefficients, in the unit's float
+    type, one scalar IEEE operation at a time in fold_sensor_coeffs' order: what
+    `<unit>_table_prepare` computes (CasADi emits it from the same function)."""
+    ft = np_dtype(spec.unit)
+    cs_ = np.asarray(coeffs_sensor, dtype=ft)
+    cu = np.asarray(coeffs_unit, dtype=ft)
+    c = CoeffView([cs_[k] for k in range(cs_.size)], spec.sensor_blocks(sensor))
+    u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
+    with np.errstate(all="ignore"):   # a poisoned (NaN) or zero-lsb table folds to NaN/inf
+        f = fold_sensor_coeffs(spec, sensor, c, u, ft(0.5), set_only=set_only)
+    return np.array([ft(x) for x in prepared_leaves(f)], dtype=ft)
 
 
 def folded_sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_A, f: dict,
@@ -886,8 +967,10 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     a sequence of samples, as successive calls on one sensor state (empty at the start).
 
     Each chain scalar is a numpy array over samples of the unit's float type, and every
-    operation is an elementwise IEEE operation in the order of `sensor_kernel`: no BLAS,
-    no reductions. Only the thermal-lag filter, a recursion, runs sample by sample.
+    operation is an elementwise IEEE operation in the order of the C: the coefficients
+    prepared once (`prepare_sensor`, the C's `<unit>_table_prepare`), then
+    `folded_sensor_kernel` on them; no BLAS, no reductions. Only the thermal-lag
+    filter, a recursion, runs sample by sample.
     raw_counts: int (N, 6|3), for set_only (N, 3) SET counts; a physical-input sensor's
     readings in its input unit (converted to the float type first, as its C API takes
     them); temp_C: (N,) (converted to the float type first, as the C API takes it;
@@ -917,8 +1000,6 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
     coeffs_sensor = np.asarray(coeffs_sensor, dtype=ft)
     c = CoeffView([coeffs_sensor[k] for k in range(coeffs_sensor.size)],
                   spec.sensor_blocks(sensor))
-    cu = np.asarray(coeffs_unit, dtype=ft)
-    u = CoeffView([cu[k] for k in range(cu.size)], spec.unit_blocks())
     status = np.zeros(n, dtype=np.uint16)
 
     def aux(values, width):
@@ -1023,10 +1104,13 @@ def reference_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_
         status[(below | above) & ~zeroed] |= STATUS_TEMP_EXTRAPOLATED
         status[far & ~zeroed] |= STATUS_TEMP_CLAMPED
 
+    # the kernel: the folded chain on the prepared coefficients (what the C kernels read)
+    prep = prepare_sensor(spec, sensor, coeffs_sensor, coeffs_unit, set_only=set_only)
+    f = prepared_view(spec, sensor, [prep[k] for k in range(prep.size)], set_only=set_only)
     with np.errstate(all="ignore"):
-        out = sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), c, u, ft(0.5),
-                            set_only=set_only, channels=cols.get("channels", ()),
-                            rate_dps=cols.get("rate_dps", ()))
+        out = folded_sensor_kernel(spec, sensor, raw, t, cols.get("coil_A", []), f, ft(0.5),
+                                   set_only=set_only, channels=cols.get("channels", ()),
+                                   rate_dps=cols.get("rate_dps", ()))
     result = {}
     for name, vals in out.items():
         arr = np.stack([np.broadcast_to(np.asarray(v, dtype=ft), (n,)) for v in vals], axis=1)

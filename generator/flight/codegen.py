@@ -18,10 +18,14 @@ from pathlib import Path
 
 import casadi as ca
 import jinja2
+import numpy as np
 
 from generator import __version__
-from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec, CoeffView, agreement_kernel,
-                    is_physical, lag_kernel, range_nT, saturation_limit, sensor_kernel)
+from generator.flight.chain import (SELECT_REASONS, STATUS_BITS, STATUS_INFO_MASK, ChainSpec,
+                                    CoeffView, agreement_kernel,
+                                    folded_sensor_kernel, input_scale_nT, is_physical,
+                                    lag_kernel, n_prepared, prepare_sensor, prepared_leaves,
+                                    prepared_view, range_nT, saturation_limit, fold_shape)
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
 from generator.flight.coeffs import CoefficientSet
@@ -59,27 +63,27 @@ def kernel_name(spec: ChainSpec, sensor, set_only=False) -> str:
 
 
 def build_kernel(spec: ChainSpec, sensor, set_only=False) -> ca.Function:
-    """The CasADi Function of one sensor's chain, from `chain.sensor_kernel`.
+    """The CasADi Function of one sensor's chain: `chain.folded_sensor_kernel` on the
+    kernel's prepared coefficients (`chain.prepared_view`).
 
-    Arguments: the chain inputs, then the sensor's coefficients, then the unit's."""
+    Arguments: the chain inputs, then the prepared vector (`<unit>_table_prepare`)."""
     ins = spec.sensor_inputs(sensor, set_only)
     sym = {i.name: ca.SX.sym(i.name, i.size) for i in ins}
-    c_sym = ca.SX.sym("coeffs", spec.n_sensor_coeffs(sensor))
-    u_sym = ca.SX.sym("unit_coeffs", spec.n_unit_coeffs())
-    c = CoeffView([c_sym[k] for k in range(c_sym.numel())], spec.sensor_blocks(sensor))
-    u = CoeffView([u_sym[k] for k in range(u_sym.numel())], spec.unit_blocks())
+    p_sym = ca.SX.sym("prepared", n_prepared(spec, sensor, set_only))
+    f = prepared_view(spec, sensor, [p_sym[k] for k in range(p_sym.numel())], set_only)
+
     def elems(name):
         return [sym[name][k] for k in range(sym[name].numel())] if name in sym else []
 
     temp = sym["temp_C"][0] if "temp_C" in sym else None   # None: a sensor with no temperature
-    out = sensor_kernel(spec, sensor, elems("raw_counts"), temp, elems("coil_A"),
-                        c, u, ca.SX(0.5), set_only=set_only, channels=elems("channels"),
-                        rate_dps=elems("rate_dps"))
+    out = folded_sensor_kernel(spec, sensor, elems("raw_counts"), temp, elems("coil_A"),
+                               f, ca.SX(0.5), set_only=set_only, channels=elems("channels"),
+                               rate_dps=elems("rate_dps"))
     outs = spec.sensor_outputs(sensor, set_only)
     return ca.Function(kernel_name(spec, sensor, set_only),
-                       [sym[i.name] for i in ins] + [c_sym, u_sym],
+                       [sym[i.name] for i in ins] + [p_sym],
                        [ca.vertcat(*out[o.name]) for o in outs],
-                       [i.name for i in ins] + ["coeffs", "unit_coeffs"], [o.name for o in outs])
+                       [i.name for i in ins] + ["prepared"], [o.name for o in outs])
 
 
 def build_lag_kernel(spec: ChainSpec, sensor) -> ca.Function:
@@ -161,7 +165,13 @@ def casadi_sources(spec: ChainSpec) -> tuple[str, dict, dict]:
 def _internal_helpers_static(c_text: str) -> str:
     """CasADi defines its small helpers (casadi_sq, casadi_fabs, ...) with external linkage;
     in the wrapper's translation unit they must be static like everything else of it."""
-    return re.sub(r"^(casadi_real casadi_\w+\()", r"static \1", c_text, flags=re.M)
+    c_text = re.sub(r"^(casadi_real casadi_\w+\()", r"static \1", c_text, flags=re.M)
+    # every kernel body is inlined into its one caller (CASADI_KERNEL_INLINE, magcal.c):
+    # once the axis signs are data, kernels of sensors that differ only in their signs are
+    # the same code, and GCC's identical-code folding would merge them into one function
+    # called with its arguments in memory (measured: 40+ instructions more per call)
+    return re.sub(r"^static int (casadi_f\d+)\(", r"static CASADI_KERNEL_INLINE int \1(",
+                  c_text, flags=re.M)
 
 
 def _macro(name: str) -> str:
@@ -180,8 +190,7 @@ _ARG_EXPR = {
 
 def _kernel_args(spec: ChainSpec, sensor, set_only) -> list:
     """The wrapper's argument expressions of a kernel, in the kernel's input order."""
-    return [_ARG_EXPR[i.name] for i in spec.sensor_inputs(sensor, set_only)] + \
-        ["c", "coeffs->unit"]
+    return [_ARG_EXPR[i.name] for i in spec.sensor_inputs(sensor, set_only)] + ["p"]
 
 
 def _raw_fields(sensor) -> dict:
@@ -207,6 +216,44 @@ def _literals(values, float_type, where, unit) -> list:
     except ValueError as e:
         raise InputError(unit.path, f"{where}: {e}: it cannot be written into the flight "
                                     "C") from None
+
+
+def _prepared_block(cs: CoefficientSet, sensor, set_only) -> dict:
+    """The compiled-in defaults' prepared vector of one kernel (chain.prepare_sensor, the
+    values `<unit>_table_prepare` computes from `<unit>_coeffs_default`): size and
+    initializer rows. A default that folds to a non-finite value (a broken default that
+    `<unit>_table_init` refuses) is written as NAN / INFINITY (math.h)."""
+    spec = cs.spec
+    vals = prepare_sensor(spec, sensor, cs.flat_sensor(sensor.name), cs.flat_unit(),
+                          set_only=set_only)
+    lits = [c_literal(float(v), spec.unit.float_type) if np.isfinite(v) else
+            "NAN" if np.isnan(v) else ("INFINITY" if v > 0 else "-INFINITY") for v in vals]
+    return {"size": len(lits), "lines": _lines(lits), **_fold_layout(spec, sensor, set_only)}
+
+
+def _fold_layout(spec: ChainSpec, sensor, set_only) -> dict:
+    """What `<unit>_table_prepare` (templates/magcal.c.j2) needs to compute one kernel's
+    prepared vector in chain.fold_sensor_coeffs' order: the offset of each of its entries
+    ('at'), the number of polynomial terms, the axis scale (a literal for physical inputs,
+    else lsb [x 0.5 for a SET/RESET pair]) and signs, the plain count's zero, H."""
+    shape = fold_shape(spec, sensor, set_only)
+    at, k = {}, 0
+    for key, v in shape.items():
+        at[key] = k
+        k += len(prepared_leaves(v))
+    _, sign = sensor.axis_map()
+    pair = sensor.set_reset and not set_only
+    ft = spec.unit.float_type
+    scale = (c_literal(input_scale_nT(sensor) * (0.5 if pair else 1.0), ft)
+             if is_physical(sensor) else None)
+    return {"at": at, "n_terms": spec.degree(sensor) + 1, "sign": list(sign),
+            "scale_literal": scale, "pair": pair,
+            "offset_literal": c_literal(input_scale_nT(sensor), ft)
+            if is_physical(sensor) and pair else None,
+            "plain_zero": not is_physical(sensor) and not (sensor.set_reset or set_only),
+            "fold_H": sensor.frame == "boom" and not spec.opts(sensor).sr_compensation,
+            "n_coils": len(spec.coils), "n_chan": len(spec.opts(sensor).channels),
+            "n_chlag": len(spec.opts(sensor).lagged_channels)}
 
 
 def _lines(literals, per_line=6) -> list:
@@ -277,14 +324,21 @@ def template_context(cs: CoefficientSet) -> dict:
             "channel_idx": [spec.aux_channels.index(ch)
                             for ch in spec.opts(s).kernel_channels],
             "outputs": [o.name for o in spec.sensor_outputs(s)],
+            # the kernels' prepared coefficients: their layout for <unit>_table_prepare
+            # and the defaults' values (chain.prepare_sensor)
+            "folded": _prepared_block(cs, s, False),
+            "set_folded": _prepared_block(cs, s, True) if s.set_reset else None,
         })
-    # A sensor block that ends more than 1020 bytes into the coefficient struct is read
-    # through its own base pointer (Cortex-M VLDR offsets reach +-1020 bytes).
+    # An array that ends more than 1020 bytes into its struct is read through its own base
+    # pointer (Cortex-M VLDR offsets reach +-1020 bytes). The prepared struct holds each
+    # sensor's table coefficients (clamp limits, time constants, agreement tolerance) and
+    # then its kernels' prepared vectors.
     real_size = 4 if ft == "float32" else 8
     start = 0
     for s_ctx in sensors:
-        s_ctx["own_base"] = (start + s_ctx["n_coeffs"]) * real_size > 1020
-        start += s_ctx["n_coeffs"]
+        start += s_ctx["n_coeffs"] + s_ctx["folded"]["size"] + (
+            s_ctx["set_folded"]["size"] if s_ctx["set_folded"] else 0)
+        s_ctx["own_base"] = start * real_size > 1020
     ublocks, k = [], 0
     flat_u = cs.flat_unit()
     for b in spec.unit_blocks():
@@ -319,6 +373,10 @@ def template_context(cs: CoefficientSet) -> dict:
         "select_reasons": sorted(SELECT_REASONS.items(), key=lambda kv: kv[1]),
         "fallback_order": list(spec.fallback_order()),
         "boom_note": boom_alignment_note(cs) if spec.has_boom else None,
+        "has_boom": spec.has_boom,
+        # whether some sensor folds a coupling (coils, channels) in the prepare step
+        "prepare_rows": bool(spec.coils) or any(
+            spec.opts(s).channels or spec.opts(s).lagged_channels for s in unit.sensors),
         "pairs": [(i, j) for i in range(len(sensors)) for j in range(i + 1, len(sensors))],
     }
     return ctx

@@ -13,7 +13,7 @@ import numpy as np
 
 from generator.flight import host
 from generator.flight.chain import np_dtype
-from generator.flight.codegen import TABLE_TEMPLATES, TEMPLATES, _env, render, template_context
+from generator.flight.codegen import TABLE_TEMPLATES, _env, render, template_context
 from generator.flight.coeffs import CoefficientSet
 from generator.flight.tables import TableStatus, n_values, table_context
 
@@ -70,6 +70,8 @@ const {{ unit }}_coeffs_t *{{ unit }}_table_active(const {{ unit }}_table_mgr_t 
 void {{ unit }}_table_info(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_table_info_t *info);
 const {{ unit }}_coeffs_t *host_table_defaults(void);
 void host_table_flat(const {{ unit }}_coeffs_t *co, {{ real }} *flat);
+long host_table_prepared_size(void);
+void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ real }} *flat);
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets, const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
 """
 
@@ -81,6 +83,8 @@ HOST_HELPER_H = """\
 
 const {{ unit }}_coeffs_t *host_table_defaults(void);
 void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat);
+long host_table_prepared_size(void);
+void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_real_t *flat);
 #define HOST_ABORT_BEFORE 1u   /* actions: {{ unit }}_table_abort before the input */
 #define HOST_COMMIT_AFTER 2u   /* actions: {{ unit }}_table_commit after the input */
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
@@ -95,6 +99,17 @@ HOST_HELPER_C = """\
 const {{ unit }}_coeffs_t *host_table_defaults(void)
 {
     return &{{ unit }}_coeffs_default;
+}
+
+long host_table_prepared_size(void)
+{
+    return (long)(sizeof({{ unit }}_table_prepared_t) / sizeof({{ unit }}_real_t));
+}
+
+/* The prepared coefficients in use, as flat values (reals only: no padding). */
+void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_real_t *flat)
+{
+    memcpy(flat, {{ unit }}_table_prepared(mgr), sizeof({{ unit }}_table_prepared_t));
 }
 
 void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
@@ -121,6 +136,7 @@ long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uin
     const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes)
 {
     {{ unit }}_coeffs_t before;
+    {{ unit }}_table_prepared_t prepared_before;
     {{ unit }}_table_info_t info;
     uint32_t serial_before;
     const int32_t n_status = (int32_t){{ UNIT }}_TABLE_N_STATUS;
@@ -130,6 +146,7 @@ long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uin
         uint32_t bad = 0u;
         int32_t v, l, r, c = -1;
         memcpy(&before, {{ unit }}_table_active(mgr), sizeof before);
+        memcpy(&prepared_before, {{ unit }}_table_prepared(mgr), sizeof prepared_before);
         {{ unit }}_table_info(mgr, &info);
         serial_before = info.active_serial;
         if ((actions[i] & HOST_ABORT_BEFORE) != 0u) {
@@ -155,6 +172,8 @@ long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uin
         if (l != 0 && c != 0) {
             {{ unit }}_table_info(mgr, &info);
             if (memcmp(&before, {{ unit }}_table_active(mgr), sizeof before) != 0 ||
+                memcmp(&prepared_before, {{ unit }}_table_prepared(mgr),
+                       sizeof prepared_before) != 0 ||
                 info.active_serial != serial_before) {
                 return -(i + 1);
             }
@@ -261,18 +280,16 @@ def _table_ctx(cs: CoefficientSet) -> dict:
 
 
 def host_sources(cs: CoefficientSet) -> dict:
-    """What the table code needs (no CasADi kernels): the unit's magcal.h and compiled-in
-    defaults, the table files, and the host helper table_host.c/.h; plus the cffi cdef
-    as "table_host.cdef"."""
+    """What the table code needs: the unit's flight sources (the manager prepares a table
+    when it activates it: `<unit>_table_prepare` in magcal.c and its CasADi kernels), the
+    table files, and the host helper table_host.c/.h; plus the cffi cdef as
+    "table_host.cdef"."""
     ctx = _table_ctx(cs)
     env = _env()
     unit = cs.unit.id
-    wanted = {f"{unit}_magcal.h", f"{unit}_coeffs_default.c"}
-    files = {}
-    for tpl, pattern in tuple(TEMPLATES) + TABLE_TEMPLATES:
-        name = pattern.format(unit=unit)
-        if name in wanted or (tpl, pattern) in TABLE_TEMPLATES:
-            files[name] = env.get_template(tpl).render(**ctx)
+    files = render(cs, tables=False)
+    for tpl, pattern in TABLE_TEMPLATES:
+        files[pattern.format(unit=unit)] = env.get_template(tpl).render(**ctx)
     files["table_host.h"] = env.from_string(HOST_HELPER_H).render(**ctx)
     files["table_host.c"] = env.from_string(HOST_HELPER_C).render(**ctx)
     files["table_host.cdef"] = env.from_string(HOST_CDEF).render(**ctx)
@@ -390,6 +407,13 @@ class TableHost:
     def active_flat(self, mgr) -> np.ndarray:
         """The active coefficients, flat in layout order (HostUnit.correct's coeffs_flat)."""
         return self._flat(self._fn("active")(mgr))
+
+    def prepared_flat(self, mgr) -> np.ndarray:
+        """The prepared coefficients in use (`<unit>_table_prepared`), flat in struct order."""
+        out = np.zeros(int(self.lib.host_table_prepared_size()), dtype=self.dtype)
+        ct = "float" if self.dtype == np.float32 else "double"
+        self.lib.host_table_prepared_flat(mgr, self.ffi.cast(f"{ct} *", out.ctypes.data))
+        return out
 
     def default_flat(self) -> np.ndarray:
         return self._flat(self.lib.host_table_defaults())
