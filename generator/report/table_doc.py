@@ -189,6 +189,25 @@ def format_doc() -> str:
       "from a broken default reaches attitude control. `info.coeffs_valid` is 0 in "
       "that state and becomes 1 when a valid table (serial >= 1) is loaded.")
     a("")
+    a("## Prepared coefficients")
+    a("")
+    a("The corrections (`<unit>_<sensor>_correct`, `_correct_set`) and `<unit>_select` "
+      "take a `<unit>_table_prepared_t`, not the table's coefficients: what the chain "
+      "needs once every constant is folded that can be folded when a table is loaded "
+      "(the count-to-nT scale and the axis signs into b(T) and M(T), H M(T) for a boom "
+      "sensor, the band limits squared; docs/flight_target.md, *The flop bound*). "
+      "`<unit>_table_prepare(coeffs, prepared)` computes them (+ - * / in the unit's "
+      "float type, fixed size). The manager runs it when a table is activated, into the "
+      "prepared copy of the inactive buffer, so a refused table keeps both the old table "
+      "and its prepared copy; `<unit>_table_prepared(mgr)` returns the prepared copy of "
+      "the table in use (`<unit>_table_active(mgr)` its coefficients). "
+      "`<unit>_table_prepared_default` is the compiled-in default, prepared at generate "
+      "time. Flight software that fills a coefficient struct itself calls "
+      "`<unit>_table_prepare` before the corrections: a coefficient struct cannot be "
+      "passed to them (a compile error, not a silently wrong field). The Python "
+      "reference prepares in the same order (`generator.flight.chain.prepare_sensor`); "
+      "host_tests/test_prepare.py compares the two bit for bit.")
+    a("")
     a("## Checks, in order")
     a("")
     a("`<unit>_table_validate` runs these checks in this order and returns the status of "
