@@ -192,6 +192,31 @@ MUTATIONS = [
       (H_FOLD_C, H_FOLD_PY, H_KERNEL), tuple(FLIGHT)),
     M("band_max_not_squared", "plausibility band: field_max not squared",
       (BAND_MAX_C, BAND_MAX_PY), tuple(FLIGHT)),
+    # the kernel's own boom rotation (a boom sensor with the SET/RESET rate compensation,
+    # which sits between M and H: H is not folded into M)
+    M("boom_H_transposed_sr", "boom rotation applied transposed by the kernel (a boom "
+      "sensor with SET/RESET rate compensation)", (H_KERNEL,), tuple(FLIGHT)),
+    # ---- the fold's bugs in one implementation only: the C prepare or the Python fold ---
+    # (the reference and the compiled-in prepared defaults follow the Python fold; the host
+    # build's calls, the table manager and the target follow the C prepare)
+    M("axis_sign_ignored_C", "axis signs ignored in the C prepare only",
+      AXIS_SIGN_C, tuple(FLIGHT)),
+    M("axis_sign_ignored_py", "axis signs ignored in the Python fold only",
+      (AXIS_SIGN_PY,), tuple(FLIGHT)),
+    M("setreset_not_halved_C", "SET/RESET difference not halved in the C prepare only",
+      (SR_HALF_C,), tuple(FLIGHT)),
+    M("setreset_not_halved_py", "SET/RESET difference not halved in the Python fold only",
+      (SR_HALF_PY,), tuple(FLIGHT)),
+    M("dT_from_t_min_C", "T - t_min in the C prepare only", (T_REF_C,), tuple(FLIGHT)),
+    M("dT_from_t_min_py", "T - t_min in the Python fold only", (T_REF_PY,), tuple(FLIGHT)),
+    M("boom_H_transposed_C", "H folded into M transposed in the C prepare only",
+      (H_FOLD_C,), tuple(FLIGHT)),
+    M("boom_H_transposed_py", "H folded into M transposed in the Python fold only",
+      (H_FOLD_PY,), tuple(FLIGHT)),
+    M("band_max_not_squared_C", "field_max not squared in the C prepare only",
+      (BAND_MAX_C,), tuple(FLIGHT)),
+    M("band_max_not_squared_py", "field_max not squared in the Python fold only",
+      (BAND_MAX_PY,), tuple(FLIGHT)),
     M("agree_one_sided", "agreement tolerance uses one sensor's scatter only",
       ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
       tuple(EXPECT)),
