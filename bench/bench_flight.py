@@ -8,10 +8,13 @@ The bound (issue 20): the per-call operations of the chain with every constant f
 that can be folded when a table is loaded (scale and axis signs into b and M, H M for boom
 sensors, constants squared once), built from the chain definition
 (chain.fold_sensor_coeffs / folded_sensor_kernel, arm_measure.flop_bound). Also shown: the
-generated kernel's own operations ("kernel flops", issue 7's "min flops", which counts
-what the kernel happens to do, so it is no lower bound) and how many of them are per call,
-and floor/bound: (bound + one load per folded coefficient and input element + one store
-per output element) / bound, what a machine moving one value per instruction needs.
+generated kernel's own operations ("kernel flops", issue 7's "min flops") and how many of
+them are per call. The kernels are CasADi's code of folded_sensor_kernel on the prepared
+coefficients (`<unit>_table_prepare` folds once per table), so for a sensor entry point
+the kernel flops equal the bound (docs/flight_target.md: 116-176 both, the example unit);
+only select's agreement kernel differs (110 kernel flops, bound 90). And floor/bound:
+(bound + one load per folded coefficient and input element + one store per output
+element) / bound, what a machine moving one value per instruction needs.
 
 Targets: instructions <= 1.5 x the bound per sensor call (issue 20); <= 2 x the kernel's
 flops (issue 7); < 16 KiB code for a whole unit, < 512 B stack per call.

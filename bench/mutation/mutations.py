@@ -23,7 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 EXPECT = ["host_tests/test_expectations.py"]
-FLIGHT = EXPECT + ["host_tests/test_flight_chain.py"]
+FLIGHT = EXPECT + ["host_tests/test_flight_chain.py", "host_tests/test_flight_bound.py",
+                   "host_tests/test_prepare.py"]
 CHI2 = ["host_tests/test_truth_chi2.py"]
 FIT = ["host_tests/test_fit_accuracy.py"] + CHI2    # the tightened ratio test first
 TRACE = ["host_tests/test_trace_decoys.py"]
@@ -33,7 +34,7 @@ TPL = "templates/magcal.c.j2"
 REF = "generator/fit/reference.py"        # reference_fit: chamber (reference-vector) fits
 JOINT = "generator/fit/joint.py"          # _joint_nonlinear: vectors + magnitudes
 SCORING = "generator/trace/scoring.py"    # Score.judge, score_round
-PRE = "generator/io/telemetry_csv.py"     # preprocess: counts -> nT, ICD axis mapping
+PRE = "generator/io/telemetry_csv.py"     # _sensor_data: counts -> nT, ICD axis mapping
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,44 @@ LAG_C = (TPL, "dt_s = 0;   /* time going backwards (a clock step): hold the filt
          "dt_s = -dt_s;   /* time going backwards (a clock step): hold the filter */")
 LAG_PY = (CHAIN, "dts = np.where(dts >= 0, dts, ft(0)).astype(ft)",
           "dts = np.abs(dts).astype(ft)")
+
+# the chain's maths. The kernels (CasADi's C and the reference alike) are
+# chain.folded_sensor_kernel: one edit there changes both. The constants folded once per
+# table are chain.fold_sensor_coeffs (the reference's prepare_sensor, and the compiled-in
+# prepared defaults) and, written a second time, `<unit>_table_prepare` in the C template:
+# a bug in the fold is planted in both.
+KERNEL_OFFSET_ADDED = (CHAIN, "x = [v[i] - b[i] for i in range(3)]",
+                       "x = [v[i] + b[i] for i in range(3)]")
+KERNEL_COIL_ADDED = (CHAIN, "x = [x[i] - coil[i] for i in range(3)]",
+                     "x = [x[i] + coil[i] for i in range(3)]")
+# the axis signs live in the fold's per-axis scale sig[k] (a negative sign negates it)
+_SIG = 'sig[{{ k }}] = {{ "-" if f.sign[k] < 0 else "" }}'
+AXIS_SIGN_C = tuple((TPL, _SIG + rest, "sig[{{ k }}] = " + rest) for rest in (
+    "{{ f.scale_literal }};", "(c[{{ C }}LSB_NT] * ({{ R }})0.5);", "c[{{ C }}LSB_NT];"))
+AXIS_SIGN_PY = (CHAIN, "return [scale if sign[k] > 0 else -scale for k in range(3)]",
+                "return [scale for k in range(3)]")
+# a counting SET/RESET pair's scale: lsb x 0.5 (the difference of the pair halved)
+SR_HALF_C = (TPL, "(c[{{ C }}LSB_NT] * ({{ R }})0.5);", "(c[{{ C }}LSB_NT]);")
+SR_HALF_PY = (CHAIN, 'scale = c.scalar("lsb_nT") * half if pair else c.scalar("lsb_nT")',
+              'scale = c.scalar("lsb_nT") if pair else c.scalar("lsb_nT")')
+# the kernel's dT = T - p[t_ref_C]: the prepared t_ref_C taken from the table's t_min_C
+T_REF_C = (TPL, "p[{{ f.at.t_ref_C }}] = c[{{ C }}T_REF_C];",
+           "p[{{ f.at.t_ref_C }}] = c[{{ C }}T_MIN_C];")
+T_REF_PY = (CHAIN, 'f["t_ref_C"] = c.scalar("t_ref_C")', 'f["t_ref_C"] = c.scalar("t_min_C")')
+# the boom rotation: folded into M (H M) by the prepare, or, for a boom sensor with the
+# SET/RESET rate compensation (between M and H), applied by the kernel
+H_FOLD_C = (TPL, "h[3 * i] * m[j] + h[3 * i + 1] * m[3 + j] + h[3 * i + 2] * m[6 + j]",
+            "h[i] * m[j] + h[3 + i] * m[3 + j] + h[6 + i] * m[6 + j]")
+H_FOLD_PY = (CHAIN, "M = [[[_dot3(H[i], [M[k][0][j], M[k][1][j], M[k][2][j]]) for j in range(3)]",
+             "M = [[[_dot3([H[0][i], H[1][i], H[2][i]], [M[k][0][j], M[k][1][j], M[k][2][j]])"
+             " for j in range(3)]")
+H_KERNEL = (CHAIN, 'B = [_dot3(f["H"][i], B) for i in range(3)]',
+            'B = [_dot3([f["H"][0][i], f["H"][1][i], f["H"][2][i]], B) for i in range(3)]')
+# the band's field_max^2, squared once by the prepare
+BAND_MAX_C = (TPL, "u[{{ UNIT }}_UNIT_FIELD_MAX_NT] * u[{{ UNIT }}_UNIT_FIELD_MAX_NT];",
+              "u[{{ UNIT }}_UNIT_FIELD_MAX_NT] * 1000;")
+BAND_MAX_PY = (CHAIN, 'f["field_min2"], f["field_max2"] = f_min * f_min, f_max * f_max',
+               'f["field_min2"], f["field_max2"] = f_min * f_min, f_max * 1000')
 
 M = Mutation
 MUTATIONS = [
@@ -137,30 +176,47 @@ MUTATIONS = [
         "return temp_el_C + (dt_s + 1) / (tau_s + dt_s + 2) * (temp_C - temp_el_C)"),),
       tuple(EXPECT)),
     # ---- the chain's maths (one definition: C and Python change together) -------------
+    # the kernels (CasADi C and the reference) are folded_sensor_kernel; the constants
+    # folded once per table are fold_sensor_coeffs in Python and <unit>_table_prepare in C
     M("offset_added", "offset added instead of subtracted",
-      ((CHAIN, "x = [field_f[i] - b[i] for i in range(3)]",
-        "x = [field_f[i] + b[i] for i in range(3)]"),),
-      tuple(FLIGHT)),
+      (KERNEL_OFFSET_ADDED,), tuple(FLIGHT)),
     M("coil_sign", "coil coupling added instead of subtracted",
-      ((CHAIN, "x = [x[i] - coil_nT[i] for i in range(3)]",
-        "x = [x[i] + coil_nT[i] for i in range(3)]"),),
-      tuple(FLIGHT)),
+      (KERNEL_COIL_ADDED,), tuple(FLIGHT)),
     M("axis_sign_ignored", "axis signs of the ICD mapping ignored",
-      ((CHAIN, "return a - b if sign[k] > 0 else b - a", "return a - b"),),
-      tuple(FLIGHT)),
+      AXIS_SIGN_C + (AXIS_SIGN_PY,), tuple(FLIGHT)),
     M("setreset_not_halved", "SET/RESET difference not halved",
-      ((CHAIN, "half_lsb = lsb * half", "half_lsb = lsb"),),
-      tuple(FLIGHT)),
+      (SR_HALF_C, SR_HALF_PY), tuple(FLIGHT)),
     M("dT_from_t_min", "polynomials evaluated at T - t_min instead of T - t_ref",
-      ((CHAIN, 'dT = temp_C - c.scalar("t_ref_C")', 'dT = temp_C - c.scalar("t_min_C")'),),
-      tuple(FLIGHT)),
+      (T_REF_C, T_REF_PY), tuple(FLIGHT)),
     M("boom_H_transposed", "boom rotation applied transposed",
-      ((CHAIN, "        B = [_dot3(H[i], B) for i in range(3)]",
-        "        B = [_dot3([H[0][i], H[1][i], H[2][i]], B) for i in range(3)]"),),
-      tuple(FLIGHT)),
+      (H_FOLD_C, H_FOLD_PY, H_KERNEL), tuple(FLIGHT)),
     M("band_max_not_squared", "plausibility band: field_max not squared",
-      ((CHAIN, "f_max * f_max - norm2", "f_max * 1000 - norm2"),),
-      tuple(FLIGHT)),
+      (BAND_MAX_C, BAND_MAX_PY), tuple(FLIGHT)),
+    # the kernel's own boom rotation (a boom sensor with the SET/RESET rate compensation,
+    # which sits between M and H: H is not folded into M)
+    M("boom_H_transposed_sr", "boom rotation applied transposed by the kernel (a boom "
+      "sensor with SET/RESET rate compensation)", (H_KERNEL,), tuple(FLIGHT)),
+    # ---- the fold's bugs in one implementation only: the C prepare or the Python fold ---
+    # (the reference and the compiled-in prepared defaults follow the Python fold; the host
+    # build's calls, the table manager and the target follow the C prepare)
+    M("axis_sign_ignored_C", "axis signs ignored in the C prepare only",
+      AXIS_SIGN_C, tuple(FLIGHT)),
+    M("axis_sign_ignored_py", "axis signs ignored in the Python fold only",
+      (AXIS_SIGN_PY,), tuple(FLIGHT)),
+    M("setreset_not_halved_C", "SET/RESET difference not halved in the C prepare only",
+      (SR_HALF_C,), tuple(FLIGHT)),
+    M("setreset_not_halved_py", "SET/RESET difference not halved in the Python fold only",
+      (SR_HALF_PY,), tuple(FLIGHT)),
+    M("dT_from_t_min_C", "T - t_min in the C prepare only", (T_REF_C,), tuple(FLIGHT)),
+    M("dT_from_t_min_py", "T - t_min in the Python fold only", (T_REF_PY,), tuple(FLIGHT)),
+    M("boom_H_transposed_C", "H folded into M transposed in the C prepare only",
+      (H_FOLD_C,), tuple(FLIGHT)),
+    M("boom_H_transposed_py", "H folded into M transposed in the Python fold only",
+      (H_FOLD_PY,), tuple(FLIGHT)),
+    M("band_max_not_squared_C", "field_max not squared in the C prepare only",
+      (BAND_MAX_C,), tuple(FLIGHT)),
+    M("band_max_not_squared_py", "field_max not squared in the Python fold only",
+      (BAND_MAX_PY,), tuple(FLIGHT)),
     M("agree_one_sided", "agreement tolerance uses one sensor's scatter only",
       ((CHAIN, "tol = agree[i] + agree[j]", "tol = agree[i] + agree[i] * 0.5"),),
       tuple(EXPECT)),
@@ -170,20 +226,20 @@ MUTATIONS = [
     # preprocessing sees it (a reflection would also meet the fit's mirror check)
     M("preprocess_axes_rotated", "preprocessing: the ICD's frame axes cyclically shifted "
       "(X <- the sensor axis meant for Y, ...)",
-      ((PRE, "field_sensor_nT[:, list(idx)]",
-        "field_sensor_nT[:, list(idx)[1:] + list(idx)[:1]]"),),
+      ((PRE, "    idx, sign = spec.axis_map()\n",
+        "    idx, sign = spec.axis_map()\n    idx = list(idx)[1:] + list(idx)[:1]\n"),),
       ("host_tests/test_fit_accuracy.py",)),
     M("preprocess_two_signs_flipped", "preprocessing: the ICD's signs of frame X and Y "
       "inverted (a 180 deg turn about Z)",
-      ((PRE, "* np.asarray(sign, dtype=np.float64)",
-        "* np.asarray(sign, dtype=np.float64) * np.array([-1.0, -1.0, 1.0])"),),
+      ((PRE, "    idx, sign = spec.axis_map()\n",
+        "    idx, sign = spec.axis_map()\n    sign = [-sign[0], -sign[1], sign[2]]\n"),),
       ("host_tests/test_fit_accuracy.py",)),
     # a scale error the fit absorbs into M (2 %, inside the part's prior): the fit is at the
     # floor on its own (wrong) nT, the flight chain (its own counts -> nT) is 2 % off; a
     # baseline from the project's preprocessing would be 2 % off too and hide it
     M("preprocess_setreset_scale", "preprocessing: SET/RESET counts -> nT 2 % too large",
-      ((PRE, "(set_counts - reset_counts) / 2.0 * spec.lsb_nT",
-        "(set_counts - reset_counts) / 2.0 * spec.lsb_nT * 1.02"),),
+      ((PRE, "(raw[j] - raw[3 + j]) / 2.0 * spec.lsb_nT",
+        "(raw[j] - raw[3 + j]) / 2.0 * spec.lsb_nT * 1.02"),),
       ("host_tests/test_fit_accuracy.py",)),
     # ---- fits -------------------------------------------------------------------------
     M("fit_offset_biased", "chamber (reference-vector) fit: offsets b0 biased by 0.3 x "
