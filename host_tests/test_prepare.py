@@ -1,7 +1,9 @@
 """The prepare step (issue 20 item 5): the kernels read coefficients folded once per table.
 
-`<unit>_table_prepare` (C, emitted by CasADi from chain.fold_sensor_coeffs) and
-chain.prepare_sensor (the same function on float32/float64 values) must give the same bits;
+`<unit>_table_prepare` (C loops in templates/magcal.c.j2: a second writing of
+chain.fold_sensor_coeffs, since CasADi's straight-line emission of it took ~8 kB of code)
+and chain.prepare_sensor (fold_sensor_coeffs on float32/float64 values) must give the
+same bits;
 the compiled-in `<unit>_table_prepared_default` (written at generate time) must be what
 the C computes from `<unit>_coeffs_default`; the table manager prepares a table when it
 activates it and keeps the old table AND its prepared copy when a table is refused.

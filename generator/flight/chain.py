@@ -826,7 +826,8 @@ def prepare_sensor(spec: ChainSpec, sensor: SensorSpec, coeffs_sensor, coeffs_un
                    set_only=False) -> np.ndarray:
     """The prepared vector of one kernel from the table's coefficients, in the unit's float
     type, one scalar IEEE operation at a time in fold_sensor_coeffs' order: what
-    `<unit>_table_prepare` computes (CasADi emits it from the same function)."""
+    `<unit>_table_prepare` computes (C loops in templates/magcal.c.j2, a second writing of
+    this order that host_tests/test_prepare.py holds to the same bits)."""
     ft = np_dtype(spec.unit)
     cs_ = np.asarray(coeffs_sensor, dtype=ft)
     cu = np.asarray(coeffs_unit, dtype=ft)
