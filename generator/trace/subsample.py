@@ -21,6 +21,8 @@ import numpy as np
 from generator.errors import InputError
 from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
+from generator.trace.filerows import FileRows
+from generator.trace.filerows import kept_rows as _kept_rows
 
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
 # Memory: the trace keeps per-sample design columns, about 13 KiB a sample on bench_io's
@@ -90,11 +92,9 @@ class BlockedTelemetry(Telemetry):
     rows cost ~8 B a channel, the design columns of a sample ~13 KiB."""
     sample_rows: np.ndarray | None = None      # (N,) bool: the rows of the drawn blocks
 
-
-def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
-    """The file restricted to these rows (in order): the same path, so the same file."""
-    return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
-                     tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
+    def sample_view(self) -> Telemetry:
+        """The rows of the drawn blocks, every column (what becomes samples)."""
+        return _kept_rows(self, np.flatnonzero(self.sample_rows))
 
 
 def check_cap(max_samples, n_rows, L, source=None) -> None:
@@ -128,7 +128,14 @@ def _draw(files, m, rng, L):
     return [(int(f), picks[fi == f] - first[f]) for f in range(len(files))]
 
 
-def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
+def _blocked_telemetry(t, mask):
+    """The kept file of an in-memory Telemetry: the whole file, its samples the mask."""
+    return BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta, t.comments,
+                            sample_rows=mask)
+
+
+def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED,
+                    keep=_blocked_telemetry):
     """(tels, hold, info): the files unchanged and info None at or under the cap (total
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
     consecutive blocks of L rows (block_rows) and floor(cap / L) blocks drawn over all the
@@ -140,7 +147,9 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     are one BlockedTelemetry (the whole file, its samples the blocks' rows); a file with
     no kept block is
     left out (info counts them); info holds the figures of the note. A cap below one block
-    is an InputError (check_cap)."""
+    is an InputError (check_cap). The files need only n, time_s and path to be drawn;
+    keep(file, mask) makes the kept file of the drawn rows (default: BlockedTelemetry;
+    FileRows.blocked reads only those rows again)."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
     if not max_samples or N <= max_samples:
@@ -187,8 +196,7 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
             if runs:
                 mask = np.zeros(t.n, bool)
                 mask[np.concatenate(runs)] = True
-                kept.append((BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta,
-                                              t.comments, sample_rows=mask), runs))
+                kept.append((keep(t, mask), runs))
         out.append(kept)
     kd, kh = out
     n_kept = sum(int(t.sample_rows.sum()) for t, _ in kd + kh)
@@ -222,8 +230,12 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
 
 def _pieces(tels):
     """Every data file in pieces of at most ALL_ROWS_CHUNK consecutive rows (the file's
-    path kept, so that what an effect locates in a file is found in its pieces)."""
+    path kept, so that what an effect locates in a file is found in its pieces); a
+    FileRows is read again from its file, piece by piece (the same pieces)."""
     for t in tels:
+        if isinstance(t, FileRows):
+            yield from t.pieces(ALL_ROWS_CHUNK)
+            continue
         if t.n <= ALL_ROWS_CHUNK:
             yield t
             continue

@@ -477,7 +477,8 @@ def _why_no_samples(spec, tels) -> str:
     why = []
     for t in tels:
         col = getattr(spec, "temp_column", None)
-        if col and col in t.columns and not np.isfinite(np.asarray(t.columns[col], float)).any():
+        v = t.columns.get(col) if col else None
+        if v is not None and not np.isfinite(np.asarray(v, float)).any():
             why.append(f"{t.path}: column {col} is empty")
     return "; ".join(why) if why else ("no reading with a temperature and a field reference "
                                        "or a static position in the data files")
@@ -695,7 +696,11 @@ def _holdout_not_data(data, holdout):
         p = getattr(it, "path", it)
         try:
             p = Path(p)
-            return p.resolve(), hashlib.sha256(p.read_bytes()).hexdigest()
+            h = hashlib.sha256()
+            with open(p, "rb") as f:          # in blocks: not the whole file at once
+                for b in iter(lambda: f.read(1 << 20), b""):
+                    h.update(b)
+            return p.resolve(), h.hexdigest()
         except OSError:
             return None, None
     keys = {}
@@ -712,6 +717,28 @@ def _holdout_not_data(data, holdout):
                                  f"--holdout: the same {'file' if k == r else 'content'} as "
                                  f"the data file {getattr(keys[k], 'path', keys[k])}: the "
                                  "held-out figures would be in-sample")
+
+
+def _held_files(unit, data, holdout, regs, max_samples, need_whole):
+    """(data, holdout, whole) as trace.filerows.FileRows when every item is a file on
+    disk that can be held so (filerows.stream_ok) and their rows exceed the cap; whole:
+    the files read whole for the baseline fit (need_whole, else None). None otherwise
+    (the files are read whole, as under the cap)."""
+    from generator.trace.filerows import FileRows, stream_ok
+    items = list(data) + list(holdout)
+    if not max_samples or not all(isinstance(it, (str, Path)) for it in items) \
+            or not all(stream_ok(it, unit) for it in items):
+        return None
+    whole = None
+    if need_whole:                   # the baseline fit reads every column of every row
+        whole = [add_regressors(regs, t) for t in _read(unit, data)]
+        wh = [add_regressors(regs, t) for t in _read(unit, holdout)]
+        files = [FileRows(t.path, unit, regs, tel=t) for t in whole + wh]
+    else:
+        files = [FileRows(it, unit, regs) for it in items]
+    if sum(f.n for f in files) <= max_samples:
+        return None
+    return files[:len(data)], files[len(data):], whole
 
 
 def _read(unit, items):
@@ -747,10 +774,19 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     max_samples = check_max_samples(max_samples, unit.path)
     regs = declared_regressors(unit)
     _holdout_not_data(data, holdout)
-    tels = [add_regressors(regs, t) for t in _read(unit, data)]
-    hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
+    # above the cap, files on disk are held by what the trace needs of every row
+    # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
+    held = _held_files(unit, data, holdout, regs, max_samples, need_whole=coeffs is None)
+    if held is None:
+        tels = [add_regressors(regs, t) for t in _read(unit, data)]
+        hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
+        whole = None
+    else:
+        tels, hold, whole = held
     # the blocks are drawn first (a cap below one block is refused before any fit)
-    kept_tels, kept_hold, subsample = subsample_files(tels, hold, max_samples)
+    kept_tels, kept_hold, subsample = subsample_files(
+        tels, hold, max_samples,
+        **({} if held is None else {"keep": lambda f, mask: f.blocked(mask)}))
     notes = []
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
@@ -760,8 +796,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                         f"{', '.join(r['inputs'])}: not a candidate; ")
                      + REGRESSOR_FLIGHT)
     if coeffs is None:
-        base, degrees, bnotes = baseline_coefficients(unit, tels, say)
+        base, degrees, bnotes = baseline_coefficients(unit, whole or tels, say)
         notes += bnotes
+        held = whole = None              # held files: the whole files are let go here
     else:
         base = coeffs if isinstance(coeffs, CoefficientSet) else CoefficientSet.load(coeffs)
         if set(base.unit.sensor_names) != set(unit.sensor_names):
