@@ -589,7 +589,7 @@ def _fmt(x) -> str:
 
 # --------------------------------------------------------------------------- preprocessing
 
-def preprocess(tel: Telemetry, unit) -> dict:
+def preprocess(tel: Telemetry, unit, sensors=None) -> dict:
     """Counts -> nT, SET/RESET -> field and chip offset, axis mapping -> frame axes.
 
     Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
@@ -606,7 +606,8 @@ def preprocess(tel: Telemetry, unit) -> dict:
     take SensorData.temp_or(t_C): the reported temperature, or the constant t_C for a
     sensor without one (a temperature-independent model).
     """
-    return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors}
+    return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors
+            if sensors is None or spec.name in sensors}
 
 
 def _sensor_cells(tel: Telemetry, spec):

@@ -195,17 +195,19 @@ def _series_of(series, t, temp_C, chs, shared):
 
 
 def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None,
-                   strict=()) -> dict:
+                   strict=(), sensors=None) -> dict:
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
     boom -> body rotation (the rate in a boom sensor's frame is H^T w). strict: channels
     whose non-finite rows are missing (the samples left out: a user regressor's division
-    by zero); other channels' empty cells are held at the channel's last value (_held)."""
+    by zero); other channels' empty cells are held at the channel's last value (_held).
+    sensors: the names of the sensors to gather (default: all the unit's)."""
     from generator.io.telemetry_csv import preprocess, usable_rows
     notes = notes if notes is not None else []
+    specs = [s for s in unit.sensors if sensors is None or s.name in sensors]
     H = np.eye(3) if H is None else np.asarray(H, float)
-    acc = {s.name: [] for s in unit.sensors}
-    files = {s.name: [] for s in unit.sensors}
+    acc = {s.name: [] for s in specs}
+    files = {s.name: [] for s in specs}
     names = [str(t.path) for t in tels]
     has_rate = any(all(f"rate_{a}_dps" in t.columns for a in "xyz") for t in tels)
     order0 = 0
@@ -218,7 +220,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                 else np.flatnonzero(tel.sample_rows))
         sub = tel if rows is None else tel.sample_view()
         full = getattr(tel, "full_column", tel.get)          # a column over every row
-        pre = preprocess(sub, unit)
+        pre = preprocess(sub, unit, sensors)
         n, ns = tel.n, sub.n
         t = np.asarray(tel.time_s, float)
         pos = sub.get("position")
@@ -277,7 +279,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             ch[c] = v
         temps = board_temperatures(unit)
         shared = []            # (series mask, its time and channels): one copy per mask
-        for s in unit.sensors:
+        for s in specs:
             sd = pre[s.name]
             # a sensor with its own temperature does not take the boards' as channels
             chs = {c: v for c, v in ch.items() if not (s.temperature and c in temps)}
@@ -319,7 +321,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
         del pre
         order0 += n
     out = {}
-    for s in unit.sensors:
+    for s in specs:
         parts = acc[s.name]
 
         def cat(key, parts=parts):

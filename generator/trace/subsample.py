@@ -259,7 +259,7 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
     acc = {}
     for tel in _pieces(tels):
         S_all = gather_samples(unit, [tel], [0], coils=coils, H=H, channels=channels,
-                               strict=strict)
+                               strict=strict, sensors=sensors)
         for n in sensors:
             S = S_all.get(n)
             if S is None or S.n == 0:
@@ -276,6 +276,8 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
             a["samples"] += S.n
             a["lag_num"] += num
             a["lag_den"] += den
+            del S, models, rs
+        del S_all, tel           # one piece held at a time: not this one beside the next
     return acc
 
 
