@@ -46,8 +46,59 @@ def run(cmd) -> tuple[float, float, str, float]:
     return wall, rusage.ru_maxrss / 1024.0, out, rusage.ru_utime + rusage.ru_stime
 
 
+MEMORY_CODE = """
+import sys
+from generator.trace.tracer import trace
+res = trace(sys.argv[1], [sys.argv[2]], max_samples=int(sys.argv[3]), sensors=[sys.argv[4]],
+            coeffs=sys.argv[5] or None)
+print(res.subsample["samples"] if res.subsample else 0)
+"""
+
+
+def memory(data: Path, lengths, baseline: Path | None, cap: int, sensor: str,
+           coeffs: str) -> int:
+    """Peak RSS and wall of a capped trace (API, one sensor) of flight_6h repeated to each
+    length, this checkout against a baseline checkout (e.g. `git archive 8248fa4`) in the
+    same run: the ratios this / baseline."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from bench_io import measured, write_long_file
+    trees = [("this", REPO)] + ([("baseline", baseline)] if baseline else [])
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in lengths:
+            f = Path(tmp) / f"flight_{n}.csv"
+            write_long_file(data / "flight_6h.csv", f, n)
+            for name, tree in trees:
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                wall, peak, rc, out, err = measured(
+                    [sys.executable, "-c", MEMORY_CODE, str(data / "unit.toml"), str(f),
+                     str(cap), sensor, coeffs], env=env)
+                if rc:
+                    raise SystemExit(f"failed ({name}, {n} rows):\n{err[-2000:]}")
+                rows[n, name] = (wall, peak)
+                print(f"{n:>9,} rows  {name:8s}  {wall:6.1f} s  {peak:7.0f} MiB", flush=True)
+            f.unlink()
+    if baseline:
+        for n in lengths:
+            (w, p), (wb, pb) = rows[n, "this"], rows[n, "baseline"]
+            print(f"{n:>9,} rows  this / baseline: time {w / wb:.2f}x, peak {p / pb:.2f}x")
+    for name, _ in trees:
+        a, b = lengths[0], lengths[-1]
+        slope = (rows[b, name][1] - rows[a, name][1]) * 2**20 / (b - a)
+        print(f"{name}: peak grows {slope:.0f} B a row from {a:,} to {b:,} rows")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--memory", type=int, nargs="+", default=None, metavar="ROWS",
+                    help="peak memory and time of a capped one-sensor trace at these lengths "
+                         "(flight_6h repeated) instead of the fit comparison")
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="with --memory: a baseline checkout run in the same run")
+    ap.add_argument("--cap", type=int, default=20_000)
+    ap.add_argument("--sensor", default="mmc1")
+    ap.add_argument("--coeffs", default="", help="with --memory: a supplied baseline")
     ap.add_argument("--data", default=None, help="the samsat_fm1 folder")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--files", nargs="+", default=FILES)
@@ -56,6 +107,8 @@ def main(argv=None) -> int:
     if data is None:
         print("shared samsat_fm1 data not found; pass --data", file=sys.stderr)
         return 2
+    if a.memory:
+        return memory(data, a.memory, a.baseline, a.cap, a.sensor, a.coeffs)
     files = [str(data / f) for f in a.files]
     unit = str(data / "unit.toml")
     py = [sys.executable, "-m", "generator.cli"]

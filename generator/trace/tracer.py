@@ -719,6 +719,16 @@ def _holdout_not_data(data, holdout):
                                  "held-out figures would be in-sample")
 
 
+def _drop_series_caches(S) -> None:
+    """The recursions' caches on a traced sensor's per-file series (trace.effects: whole-
+    series arrays, up to SERIES_CACHE_BYTES a cache) let go once its trace is done: the
+    values are the same without them (a later use recomputes), and the next sensor's
+    trace does not run beside them."""
+    for f in S.files:
+        for k in [k for k in vars(f) if k.endswith("_cache")]:
+            del f.__dict__[k]
+
+
 def _held_files(unit, data, holdout, regs, max_samples, need_whole):
     """(data, holdout, whole) as trace.filerows.FileRows when every item is a file on
     disk that can be held so (filerows.stream_ok) and their rows exceed the cap; whole:
@@ -865,6 +875,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                       S_final=S_final, progress=say,
                                       confirm=None if checker is None else
                                       (lambda m0, m1, n=s.name: checker(n, m0, m1)))
+        _drop_series_caches(S)
     if not traces:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
         raise InputError(tels[0].path if len(tels) == 1 else unit.path,
