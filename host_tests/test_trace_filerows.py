@@ -18,8 +18,8 @@ from generator.io.telemetry_csv import read_telemetry
 from generator.io.unitfile import load_unit
 from generator.trace import subsample as sub
 from generator.trace import tracer as tr
-from generator.trace.filerows import BlockedRows, FileRows
-from generator.trace.samples import candidate_channels, gather_samples
+from generator.trace.filerows import BlockedRows, FileRows, pack
+from generator.trace.samples import PackedSeries, candidate_channels, gather_samples
 
 sys.path.insert(0, str(REPO / "bench"))
 from bench_io import write_long_file  # noqa: E402
@@ -100,6 +100,12 @@ def test_held_file_gives_the_samples_and_series_of_the_whole_file(name, cap, fm1
     whole = read_telemetry(path, fm1)
     held = FileRows(path, fm1)
     assert held.n == whole.n and np.array_equal(held.time_s, whole.time_s)
+    if name == "flight_60k":
+        # what it holds of a row: the time as int32 (whole seconds past 2^15), the
+        # temperatures and channels (1-4 decimals, under 2^15 as integers) as int16, one
+        # bit a sensor; not 8 B a column
+        per_row = 4 + 2 * (len(held._full) - 1) + len(fm1.sensors) / 8
+        assert held.nbytes <= per_row * held.n + 1024
     kw, _, iw = sub.subsample_files([whole], [], cap)
     kh, _, ih = sub.subsample_files([held], [], cap, keep=lambda f, m: f.blocked(m))
     assert iw is not None and iw == ih                     # the same draw, said the same
@@ -118,12 +124,28 @@ def test_held_file_gives_the_samples_and_series_of_the_whole_file(name, cap, fm1
                   "channel_present"):
             _same(getattr(a, f), getattr(b, f), f"{s.name}.{f}")
         (fa,), (fb,) = a.files, b.files
+        assert isinstance(fb, PackedSeries) and not isinstance(fa, PackedSeries)
         assert fa.name == fb.name
         _same(fa.time_s, fb.time_s, "series time")
         _same(fa.temp_C, fb.temp_C, "series temperature")
         _same(fa.channels, fb.channels, "series channels")
     if name == "thermal_12pos.csv":
         assert any(np.any(Sw[s.name].ref_rate) for s in fm1.sensors), "slopes must be seen"
+
+
+@pytest.mark.parametrize("values,narrow", [
+    ([26.5, 26.6, np.nan, -3.25], True),          # decimals of a few places, a blank cell
+    ([0.0, -0.0, 1.5], True),                     # -0.0 ("-0" cells): its own marker
+    ([0.1 + 0.2, 1.0], False),                    # not the double of a short decimal
+    ([3e7 - 2, 3e7], True),                       # a year of seconds: int32
+    ([0.0248, -0.0094, 8.017, 23297.8], True),
+    ([np.nan, np.nan], True)])
+def test_packed_columns_give_the_values_back_bit_for_bit(values, narrow):
+    v = np.array(values * 70_001)                 # more than one part of PACK_ROWS rows
+    c = pack(v)
+    w = c.values()
+    assert np.array_equal(w.view(np.int64), v.view(np.int64))
+    assert (c.nbytes <= v.nbytes // 2) == narrow
 
 
 def test_held_file_pieces_are_the_whole_file_pieces(fm1, flight_60k, monkeypatch):

@@ -32,6 +32,86 @@ import numpy as np
 from generator.io.telemetry import Telemetry
 
 REF_VECTOR = ("ref_x_nT", "ref_y_nT", "ref_z_nT")
+# decimal places tried when packing a column: telemetry cells are decimals of a few
+# places (flight_6h: 0 to 4); beyond 6 a column is held as float64
+MAX_PLACES = 6
+PACK_ROWS = 1 << 16          # rows packed at a time by pack()
+
+
+def _pack_part(v: np.ndarray, places: int):
+    """(places, ints) with v == ints / 10**places bit for bit (NaN: the dtype's minimum,
+    -0.0: the minimum + 1),
+    ints of the narrowest integer type; or (None, a float64 copy) when no places up to
+    MAX_PLACES give every value exactly. A CSV cell of d decimals is the double nearest
+    k / 10^d, and so is the float64 quotient k / 10^d (IEEE division rounds correctly):
+    such cells pack, and the check below makes sure of every value, -0.0 included."""
+    v = np.asarray(v, np.float64)
+    fin = ~np.isnan(v)
+    x = v[fin]
+    negz = (x == 0) & np.signbit(x)           # "-0" cells: the dtype's minimum + 1
+    tries = [places] + [d for d in range(MAX_PLACES + 1) if d != places]
+    for d in tries:
+        scale = 10.0 ** d
+        with np.errstate(invalid="ignore", over="ignore"):
+            k = np.round(x * scale) + 0.0     # + 0.0: -0.0 becomes 0.0, as an integer holds it
+        if x.size and not np.abs(k).max() < 2.0 ** 53:
+            continue
+        back = np.where(negz, -0.0, k / scale)
+        if not np.array_equal(back.view(np.int64), x.view(np.int64)):
+            continue
+        top = float(np.abs(k).max()) if x.size else 0.0
+        dtype = next(t for t in (np.int8, np.int16, np.int32, np.int64)
+                     if top < np.iinfo(t).max - 1)
+        ints = np.full(v.shape, np.iinfo(dtype).min, dtype)
+        ints[fin] = np.where(negz, np.iinfo(dtype).min + 1, k).astype(dtype)
+        return d, ints
+    return None, v.copy()
+
+
+class PackedColumn:
+    """A float64 column held in parts of the narrowest exact form (_pack_part): most
+    telemetry cells take 1-2 bytes instead of 8; values() gives the float64 values back
+    bit for bit."""
+
+    def __init__(self):
+        self.parts, self.n, self._places = [], 0, 0
+
+    def append(self, v) -> None:
+        d, a = _pack_part(v, self._places)
+        self._places = d if d is not None else self._places
+        self.parts.append((d, a))
+        self.n += len(a)
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for _, a in self.parts)
+
+    def values(self) -> np.ndarray:
+        out = np.empty(self.n)
+        i = 0
+        for d, a in self.parts:
+            if d is None:
+                out[i:i + len(a)] = a
+            else:
+                part = out[i:i + len(a)]
+                np.divide(a, 10.0 ** d, out=part, dtype=np.float64)
+                lo = np.iinfo(a.dtype).min
+                part[a == lo] = np.nan
+                part[a == lo + 1] = -0.0
+            i += len(a)
+        return out
+
+
+def pack(v) -> PackedColumn:
+    """A whole float64 array as a PackedColumn (in parts of PACK_ROWS rows)."""
+    c = PackedColumn()
+    v = np.asarray(v, np.float64)
+    for a in range(0, max(len(v), 1), PACK_ROWS):
+        c.append(v[a:a + PACK_ROWS])
+    return c
 
 
 def kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
@@ -81,53 +161,65 @@ class FileRows:
     def __init__(self, path, unit, regressors=(), tel: Telemetry | None = None):
         """Reads the file once (or takes the in-memory tel of it, read from path, as
         read_telemetry gives it: its held columns are kept, the rest is not)."""
-        from generator.io.telemetry_csv import _rows_at_most, concat_chunks, usable_rows
         self.path, self.unit, self.regressors = path, unit, list(regressors)
+        from generator.io.telemetry_csv import usable_rows
         counts = {c for s in unit.sensors for c in s.count_columns}
         usable = {s.name: [] for s in unit.sensors}
-        held = {}
-
-        def reduced(chunks):
-            for c in chunks:
-                if not held:
-                    held["names"] = list(c.columns)
-                    held["meta"], held["comments"] = dict(c.meta), list(c.comments)
-                for s in unit.sensors:
-                    usable[s.name].append(usable_rows(c, s))
+        self._full = None
+        chunks = ([kept_rows(tel, np.arange(a, min(tel.n, a + PACK_ROWS)))
+                   for a in range(0, max(tel.n, 1), PACK_ROWS)] if tel is not None
+                  else _chunks(path, unit, self.regressors))
+        for c in chunks:
+            if self._full is None:
+                self.names = list(c.columns)
+                self.meta, self.comments = dict(c.meta), list(c.comments)
                 keep = ["time_s"] + [k for k in _full_names(c.columns) if k not in counts]
-                yield Telemetry(c.path, {k: c.columns[k] for k in keep}, c.line_numbers)
-        if tel is not None:
-            full = next(reduced([tel]))
-        else:
-            full = concat_chunks(reduced(_chunks(path, unit, self.regressors)),
-                                 rows=_rows_at_most(path))
-        self.names = held["names"]
-        self.meta, self.comments = held["meta"], held["comments"]
-        self._full = full.columns
-        self.time_s = self._full["time_s"]
-        self._usable = {k: np.concatenate(v) if len(v) != 1 else v[0]
-                        for k, v in usable.items()}
+                self._full = {k: PackedColumn() for k in keep}
+            for k, col in self._full.items():
+                col.append(c.columns[k])
+            for s in unit.sensors:
+                usable[s.name].append(usable_rows(c, s))
+        self._n = len(self._full["time_s"])
+        # one bit a row and sensor
+        self._usable = {k: np.packbits(np.concatenate(v)) for k, v in usable.items()}
 
     @property
     def n(self) -> int:
-        return int(self.time_s.shape[0])
+        return self._n
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """(n,) float64, unpacked at each call (not kept)."""
+        return self._full["time_s"].values()
 
     @property
     def columns(self) -> dict:
-        """Every column name of the file (in order); the values of the held ones over
-        every row, None for the others (read them with pieces or blocked)."""
-        return {c: self._full.get(c) for c in self.names}
+        """Every column name of the file (in order) -> None (the values: full_column,
+        pieces or blocked)."""
+        return dict.fromkeys(self.names)
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes held for every row (the packed columns and usable bits)."""
+        return (sum(c.nbytes for c in self._full.values())
+                + sum(u.nbytes for u in self._usable.values()))
 
     def has(self, *names) -> bool:
         return all(n in self.names for n in names)
 
     def full_column(self, name):
-        """A held column over every row (None when not held or not in the file)."""
+        """A held column over every row, unpacked (None when not held or not in the
+        file)."""
+        c = self._full.get(name)
+        return None if c is None else c.values()
+
+    def packed_column(self, name):
+        """A held column as held (PackedColumn), None when not held."""
         return self._full.get(name)
 
     def usable_of(self, spec) -> np.ndarray:
         """(n,) bool: the rows preprocess marks usable for this sensor."""
-        return self._usable[spec.name]
+        return np.unpackbits(self._usable[spec.name], count=self._n).astype(bool)
 
     def pieces(self, rows: int):
         """The file again, every column, in consecutive pieces of `rows` rows (the last
@@ -185,6 +277,9 @@ class BlockedRows:
 
     def full_column(self, name):
         return self.file.full_column(name)
+
+    def packed_column(self, name):
+        return self.file.packed_column(name)
 
     def usable_of(self, spec) -> np.ndarray:
         return self.file.usable_of(spec)

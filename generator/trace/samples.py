@@ -12,6 +12,7 @@ Residual rows per sample:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,43 @@ class FileSeries:
     time_s: np.ndarray
     temp_C: np.ndarray
     channels: dict = field(default_factory=dict)
+
+
+class _Unpacked(Mapping):
+    """A PackedSeries' channels: each unpacked (and its rows selected) when asked for."""
+
+    def __init__(self, owner):
+        self._owner = owner
+
+    def __getitem__(self, c):
+        return self._owner._rows_of(self._owner._packed_channels[c])
+
+    def __iter__(self):
+        return iter(self._owner._packed_channels)
+
+    def __len__(self):
+        return len(self._owner._packed_channels)
+
+
+class PackedSeries(FileSeries):
+    """A FileSeries of a file held packed (trace.filerows.FileRows): its time, temperature
+    and channels are PackedColumns over every row of the file, unpacked (and the series'
+    rows taken, mask) each time they are read; the same values as FileSeries' arrays,
+    without holding them (8 B a row each) for the whole trace."""
+
+    def __init__(self, name, time, temp, channels: dict, mask=None):
+        self.name = name
+        self._packed = (time, temp)
+        self._packed_channels = channels
+        self._mask = mask
+
+    def _rows_of(self, col):
+        v = col.values()
+        return v if self._mask is None else v[self._mask]
+
+    time_s = property(lambda self: self._rows_of(self._packed[0]))
+    temp_C = property(lambda self: self._rows_of(self._packed[1]))
+    channels = property(lambda self: _Unpacked(self))
 
 
 @dataclass
@@ -203,6 +241,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
     by zero); other channels' empty cells are held at the channel's last value (_held).
     sensors: the names of the sensors to gather (default: all the unit's)."""
     from generator.io.telemetry_csv import preprocess, usable_rows
+    from generator.trace.filerows import pack
     notes = notes if notes is not None else []
     specs = [s for s in unit.sensors if sensors is None or s.name in sensors]
     H = np.eye(3) if H is None else np.asarray(H, float)
@@ -256,15 +295,21 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                                               axis=1).astype(float))
             else:
                 rate = np.zeros((ns, 3))
+        # a file held packed (trace.filerows): its series stay packed (PackedSeries)
+        packed = getattr(tel, "packed_column", None)
+        chp = {}
         ch, present = {}, {}
         missing = np.zeros(n, bool)
         for c in channels:
             v = full(c)
             present[c] = v is not None
+            if packed is not None and v is not None:
+                chp[c] = packed(c)
             if v is None:
                 v = np.zeros(n)
             v = np.asarray(v, float)
             if not np.isfinite(v).all():
+                chp.pop(c, None)                 # packed below as changed
                 bad = ~np.isfinite(v)
                 if c in strict:
                     missing |= bad
@@ -277,6 +322,8 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                                  "its first)")
                     v = _held(v)
             ch[c] = v
+            if packed is not None and c not in chp:
+                chp[c] = pack(v)
         temps = board_temperatures(unit)
         shared = []            # (series mask, its time and channels): one copy per mask
         for s in specs:
@@ -302,8 +349,15 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
-            files[s.name].append(FileSeries(names[fi], *_series_of(series, t, temp_all, chs,
-                                                                   shared)))
+            if packed is None:
+                files[s.name].append(FileSeries(names[fi], *_series_of(series, t, temp_all,
+                                                                       chs, shared)))
+            else:
+                tp = (packed(s.temp_column) if s.temperature and
+                      packed(s.temp_column) is not None else pack(temp_all))
+                files[s.name].append(PackedSeries(
+                    names[fi], packed("time_s"), tp, {c: chp[c] for c in chs},
+                    None if series.all() else series))
             j = np.nonzero(ok)[0]                # among the sample rows
             i = j if rows is None else rows[j]   # among the file's rows
             w = None
