@@ -296,7 +296,7 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
             else:
                 rate = np.zeros((ns, 3))
         # a file held packed (trace.filerows): its series stay packed (PackedSeries)
-        packed = getattr(tel, "packed_column", None)
+        packed = getattr(tel, "packed_column", None) if rows is not None else None
         chp = {}
         ch, present = {}, {}
         missing = np.zeros(n, bool)
@@ -321,9 +321,13 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                                  "empty cells, held at the channel's last value (0 before "
                                  "its first)")
                     v = _held(v)
-            ch[c] = v
-            if packed is not None and c not in chp:
-                chp[c] = pack(v)
+            if packed is None:
+                ch[c] = v
+            else:            # held packed for the series; the samples' rows alone here
+                if c not in chp:
+                    chp[c] = pack(v)
+                ch[c] = v[rows]
+            del v
         temps = board_temperatures(unit)
         shared = []            # (series mask, its time and channels): one copy per mask
         for s in specs:
@@ -370,7 +374,8 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                     np.nan_to_num(ref[j]), axis=1), norm[j]),
                 group=np.where(kind[j] == POS, fi * 1_000_000 + pos[j], -1).astype(np.int64),
                 ref_rate=ref_rate[j], coil=None if coil is None else coil[j], rate=w,
-                channels={c: v[i] for c, v in chs.items()}, role=np.full(len(i), role),
+                channels={c: v[i if packed is None else j] for c, v in chs.items()},
+                role=np.full(len(i), role),
                 present={c: np.full(len(i), present[c]) for c in chs}))
         del pre
         order0 += n

@@ -29,8 +29,9 @@ from generator.trace.filerows import kept_rows as _kept_rows
 # unit (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), more with more sensors
 # and channels: 3.0 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
 # traced, /usr/bin/time -v; ~30 KiB a row); 10^6 rows would be ~13-30 GiB. Above the cap
-# the rows left out cost only their raw values in the per-file series (1.5 M rows, one
-# sensor: 1.24 GB peak).
+# files on disk are held by what the trace needs of every row (trace.filerows.FileRows:
+# the series columns packed, ~30 B a row on flight_6h; the drawn rows read again); the
+# rest of a row costs nothing once read (bench/bench_trace.py --memory).
 # Statistics: an effect whose term has rms a against a residual noise sigma is detected
 # with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
 # residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
