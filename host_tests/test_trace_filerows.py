@@ -204,3 +204,34 @@ def test_capped_trace_with_a_supplied_baseline_never_reads_a_file_whole(fm1, fli
     a, b = _result(c_whole), _result(c_held)
     assert a[0] == b[0]
     assert a[1].to_json_dict() == b[1].to_json_dict()
+
+
+# --- N5: --holdout counts toward the cap ----------------------------------------------
+
+def _rows(path, n, t0=0.0):
+    from generator.io.telemetry import Telemetry
+    return Telemetry(path, {"time_s": t0 + np.arange(n, dtype=float)},
+                     np.arange(2, n + 2))
+
+
+def test_a_cap_too_small_for_a_block_per_role_is_refused():
+    """With --holdout files the data's and the holdout's blocks are drawn apart, one at
+    least each: a cap below two blocks cannot hold them and exits 2 naming
+    --max-samples (before: one block each, over the cap, and a warning)."""
+    from generator.errors import InputError
+    data, hold = [_rows("d.csv", 50_000)], [_rows("h.csv", 50_000, 1e6)]
+    L = sub.block_rows(data + hold, 1_500)
+    assert L == 1_000
+    with pytest.raises(InputError, match="--max-samples") as e:
+        sub.subsample_files(data, hold, 1_500)
+    assert f"at least {2 * L:,}" in str(e.value) and "--holdout" in str(e.value)
+    kd, kh, info = sub.subsample_files(data, hold, 2 * L)
+    assert info["traced"] <= 2 * L and len(kd) == len(kh) == 1
+
+
+def test_holdout_heavy_files_keep_the_cap():
+    """Holdout files with most of the blocks: the data keep one block at least and data
+    and holdout together stay within the cap."""
+    data, hold = [_rows("d.csv", 1_000)], [_rows("h.csv", 30_000, 1e6)]
+    kd, kh, info = sub.subsample_files(data, hold, 3_000)
+    assert info["traced"] <= 3_000 and len(kd) == 1 and len(kh) == 1

@@ -98,12 +98,18 @@ class BlockedTelemetry(Telemetry):
         return _kept_rows(self, np.flatnonzero(self.sample_rows))
 
 
-def check_cap(max_samples, n_rows, L, source=None) -> None:
-    """A cap below one block cannot be met by whole blocks (the blocks would exceed it):
-    InputError naming --max-samples and the smallest cap that works."""
-    if max_samples and n_rows > max_samples and max_samples < L:
-        raise InputError(source, f"--max-samples {max_samples:,} is below one block of "
-                                 f"{L:,} consecutive rows: give at least {L:,} (at least "
+def check_cap(max_samples, n_rows, L, source=None, roles=1) -> None:
+    """A cap below one block cannot be met by whole blocks (the blocks would exceed it),
+    nor, with --holdout files (roles 2: the data's blocks and the holdout's are drawn
+    apart, one at least each), a cap below two blocks: InputError naming --max-samples and
+    the smallest cap that works."""
+    if max_samples and n_rows > max_samples and max_samples < roles * L:
+        what = (f"one block of {L:,} consecutive rows" if roles == 1 else
+                f"the {roles} blocks of {L:,} consecutive rows a trace with --holdout "
+                "draws at least (one for the data files, one for the holdout files; the "
+                "cap counts both)")
+        raise InputError(source, f"--max-samples {max_samples:,} is below {what}: give at "
+                                 f"least {roles * L:,} (at least "
                                  f"{MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps the {MIN_BLOCKS} "
                                  f"blocks the trace is designed for), or 0 for every row")
 
@@ -143,8 +149,8 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     blocks of all the files in order (fractional_systematic: one systematic draw over the
     concatenated block list, numpy PCG64 seeded from seed alone, not from the files'
     names), the data files' and the holdout files' blocks drawn apart in proportion to
-    their blocks (at least one each), so the kept rows are at most the cap (plus one
-    block when a holdout file is given and the cap is one block). The kept blocks of a file
+    their blocks (at least one each), so the kept rows are at most the cap (a cap below
+    one block per role is refused, check_cap). The kept blocks of a file
     are one BlockedTelemetry (the whole file, its samples the blocks' rows); a file with
     no kept block is
     left out (info counts them); info holds the figures of the note. A cap below one block
@@ -157,13 +163,16 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
         return list(tels), list(hold), None
     everything = list(tels) + list(hold)
     L = block_rows(everything, max_samples)
-    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None)
+    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None,
+              roles=2 if hold else 1)
     nb_d = sum(-(-t.n // L) for t in tels)
     nb_h = sum(-(-t.n // L) for t in hold)
     n_blocks = nb_d + nb_h
     def plan(m):
         """The draws of m blocks (data and holdout apart, in proportion) and their rows."""
-        m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
+        # at least one block each, and the data at least one of the m (m >= 2 with
+        # holdout files, check_cap): data and holdout blocks together m, within the cap
+        m_h = min(nb_h, m - 1, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
         m_d = min(nb_d, max(1, m - m_h))
         draws = []
         for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
