@@ -48,10 +48,12 @@ def run(cmd) -> tuple[float, float, str, float]:
 
 MEMORY_CODE = """
 import sys
+sys.path[:] = [p for p in sys.path if p]     # not the working directory: PYTHONPATH's tree
 from generator.trace.tracer import trace
 res = trace(sys.argv[1], [sys.argv[2]], max_samples=int(sys.argv[3]), sensors=[sys.argv[4]],
             coeffs=sys.argv[5] or None)
-print(res.subsample["samples"] if res.subsample else 0)
+import generator
+print(res.subsample["samples"] if res.subsample else 0, generator.__file__)
 """
 
 
@@ -76,6 +78,7 @@ def memory(data: Path, lengths, baseline: Path | None, cap: int, sensor: str,
                 if rc:
                     raise SystemExit(f"failed ({name}, {n} rows):\n{err[-2000:]}")
                 rows[n, name] = (wall, peak)
+                assert out.split()[1].startswith(str(tree)), (name, out)   # the tree asked for
                 print(f"{n:>9,} rows  {name:8s}  {wall:6.1f} s  {peak:7.0f} MiB", flush=True)
             f.unlink()
     if baseline:
