@@ -12,6 +12,27 @@ Prints the walls and CPU times (user + system, from wait4), the ratio trace / fi
 each run and of the best of the runs, and the trace's own progress lines (per sensor
 and round, with the time each round took). On a shared machine the CPU ratio is the
 steadier figure: the walls include waiting for a core, which differs between the runs.
+
+    python3 bench/bench_trace.py --memory 220000 880000 1500000 --baseline DIR [--coeffs C]
+
+Peak RSS and wall of a capped trace (API, one sensor, cap 20,000) of flight_6h repeated to
+each length, this checkout against a baseline checkout DIR (`git archive <commit> | tar -x
+-C DIR`) in the same run, each in a fresh process importing its own tree; the ratios this /
+baseline and how the peak grows a row. Issue 20 F4, tmem12 against main 8248fa4, with
+`--coeffs generated/samsat_fm1/coefficients.json` (no baseline fit: the trace's own
+memory), on the shared 2-core machine under load (the walls vary by tens of %):
+
+        rows   this            8248fa4          this / 8248fa4
+     220,000    28.3 s  501 MiB    21.1 s 1047 MiB   time 1.34x, peak 0.48x
+     880,000    44.8 s  512 MiB    44.9 s 1805 MiB   time 1.00x, peak 0.28x
+   1,500,000    94.6 s  573 MiB   123.2 s 2145 MiB   time 0.77x, peak 0.27x
+   peak grows a row: this 60 B, 8248fa4 899 B (220,000 -> 1,500,000 rows)
+
+The 60 B a row: the packed series (~30 B, trace.filerows) and the recursions' caches
+(trace.effects, at least 4 series-long arrays a cache); the rest of the peak is the
+samples and the all-rows pieces, which do not grow with the length. The time: the file is
+read again for the drawn rows and for every all-rows figure (reading whole once cost more
+at the longer files: the whole-file preprocess and series copies).
 """
 
 from __future__ import annotations
