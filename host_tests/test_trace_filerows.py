@@ -235,3 +235,25 @@ def test_holdout_heavy_files_keep_the_cap():
     data, hold = [_rows("d.csv", 1_000)], [_rows("h.csv", 30_000, 1e6)]
     kd, kh, info = sub.subsample_files(data, hold, 3_000)
     assert info["traced"] <= 3_000 and len(kd) == 1 and len(kh) == 1
+
+
+def test_a_bad_cell_in_a_held_file_exits_2_one_line(fm1_dir, flight_60k, tmp_path, capsys):
+    """The held file is checked as read_telemetry checks it (every pass reads through
+    io.telemetry_csv.iter_telemetry): a bad cell far into a long file above the cap is
+    one line naming the file, line and column, exit 2, no output folder."""
+    from generator.cli import main
+    lines = flight_60k.read_text().split("\n")
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("time_s"))
+    k = first + 1 + 50_000
+    cells = lines[k].split(",")
+    cells[-1] = "8.0x"
+    lines[k] = ",".join(cells)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines))
+    coeffs = REPO / "generated" / "samsat_fm1" / "coefficients.json"
+    rc = main(["trace", str(fm1_dir / "unit.toml"), str(bad), "-o", str(tmp_path / "out"),
+               "--coeffs", str(coeffs), "--max-samples", "20000"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err, err
+    assert f"bad.csv:{k + 1}" in err and "bus_voltage_V" in err, err
+    assert not (tmp_path / "out").exists()
