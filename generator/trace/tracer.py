@@ -477,7 +477,7 @@ def _why_no_samples(spec, tels) -> str:
     why = []
     for t in tels:
         col = getattr(spec, "temp_column", None)
-        v = t.columns.get(col) if col else None
+        v = getattr(t, "full_column", t.columns.get)(col) if col else None
         if v is not None and not np.isfinite(np.asarray(v, float)).any():
             why.append(f"{t.path}: column {col} is empty")
     return "; ".join(why) if why else ("no reading with a temperature and a field reference "
