@@ -729,26 +729,35 @@ def _drop_series_caches(S) -> None:
             del f.__dict__[k]
 
 
-def _held_files(unit, data, holdout, regs, max_samples, need_whole):
-    """(data, holdout, whole) as trace.filerows.FileRows when every item is a file on
-    disk that can be held so (filerows.stream_ok) and their rows exceed the cap; whole:
-    the files read whole for the baseline fit (need_whole, else None). None otherwise
-    (the files are read whole, as under the cap)."""
+def _open_files(unit, data, holdout, regs, max_samples, need_whole):
+    """(data, holdout, whole, held): the telemetry of the data and holdout items. Held
+    (trace.filerows.FileRows) when every item is a file on disk that can be held so
+    (filerows.stream_ok) and their rows exceed the cap; whole: then the data files read
+    whole for the baseline fit (need_whole, else None). Otherwise read whole, as under
+    the cap (Telemetry; whole None)."""
+    from generator.io.telemetry_csv import _rows_at_most
     from generator.trace.filerows import FileRows, stream_ok
     items = list(data) + list(holdout)
+
+    def read_whole():
+        return ([add_regressors(regs, t) for t in _read(unit, data)],
+                [add_regressors(regs, t) for t in _read(unit, holdout)])
     if not max_samples or not all(isinstance(it, (str, Path)) for it in items) \
+            or sum(_rows_at_most(it) or math.inf for it in items) <= max_samples \
             or not all(stream_ok(it, unit) for it in items):
-        return None
+        return (*read_whole(), None, False)
     whole = None
     if need_whole:                   # the baseline fit reads every column of every row
-        whole = [add_regressors(regs, t) for t in _read(unit, data)]
-        wh = [add_regressors(regs, t) for t in _read(unit, holdout)]
+        whole, wh = read_whole()
+        if sum(t.n for t in whole + wh) <= max_samples:
+            return whole, wh, None, False
         files = [FileRows(t.path, unit, regs, tel=t) for t in whole + wh]
+        del wh
     else:
         files = [FileRows(it, unit, regs) for it in items]
-    if sum(f.n for f in files) <= max_samples:
-        return None
-    return files[:len(data)], files[len(data):], whole
+        if sum(f.n for f in files) <= max_samples:
+            return (*read_whole(), None, False)
+    return files[:len(data)], files[len(data):], whole, True
 
 
 def _read(unit, items):
@@ -786,17 +795,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     _holdout_not_data(data, holdout)
     # above the cap, files on disk are held by what the trace needs of every row
     # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
-    held = _held_files(unit, data, holdout, regs, max_samples, need_whole=coeffs is None)
-    if held is None:
-        tels = [add_regressors(regs, t) for t in _read(unit, data)]
-        hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
-        whole = None
-    else:
-        tels, hold, whole = held
+    tels, hold, whole, held = _open_files(unit, data, holdout, regs, max_samples,
+                                          need_whole=coeffs is None)
     # the blocks are drawn first (a cap below one block is refused before any fit)
     kept_tels, kept_hold, subsample = subsample_files(
-        tels, hold, max_samples,
-        **({} if held is None else {"keep": lambda f, mask: f.blocked(mask)}))
+        tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
     notes = []
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
@@ -808,7 +811,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     if coeffs is None:
         base, degrees, bnotes = baseline_coefficients(unit, whole or tels, say)
         notes += bnotes
-        held = whole = None              # held files: the whole files are let go here
+        whole = None                     # held files: the whole files are let go here
     else:
         base = coeffs if isinstance(coeffs, CoefficientSet) else CoefficientSet.load(coeffs)
         if set(base.unit.sensor_names) != set(unit.sensor_names):
