@@ -28,6 +28,16 @@ memory), on the shared 2-core machine under load (the walls vary by tens of %):
    1,500,000    94.6 s  573 MiB   123.2 s 2145 MiB   time 0.77x, peak 0.27x
    peak grows a row: this 60 B, 8248fa4 899 B (220,000 -> 1,500,000 rows)
 
+Without --coeffs (the baseline fitted, as `magcal trace` does by default: the files are
+read whole for the fit and let go after it), same run conditions, 8248fa4 again:
+
+     220,000    80.3 s  694 MiB   124.3 s 1249 MiB   time 0.65x, peak 0.56x
+     880,000   310.9 s  846 MiB   197.0 s 2000 MiB   time 1.58x, peak 0.42x
+   peak grows a row: this 241 B, 8248fa4 1193 B (220,000 -> 880,000 rows)
+
+(the 880,000-row walls are not comparable: other test runs shared the 2 cores during
+this tree's run). What still grows there is the whole read and the fit (generator.fit).
+
 The 60 B a row: the packed series (~30 B, trace.filerows) and the recursions' caches
 (trace.effects, at least 4 series-long arrays a cache); the rest of the peak is the
 samples and the all-rows pieces, which do not grow with the length. The time: the file is
