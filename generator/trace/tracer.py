@@ -729,6 +729,20 @@ def _drop_series_caches(S) -> None:
             del f.__dict__[k]
 
 
+def _drop_unused_explained(tr: SensorTrace) -> None:
+    """The candidates' explained residuals (Score.explained: a float a residual row of
+    the fit set, per candidate and round) let go once the sensor's trace is done, but
+    those of each step's winner and runner-up (read again for trace.json: equivalent,
+    runner_up_text): the rest is never read after the rounds, and kept it held ~0.1 GB a
+    sensor at the cap (28 candidates x 7 rounds x 80,000 rows)."""
+    keep = {id(x) for st in tr.steps for x in (st.score, st.runner_up) if x is not None}
+    for sc in [*tr.last_scores, *(x for st in tr.steps
+                                   for x in (*st.scores, *st.scores_after,
+                                             st.runner_up_after) if x is not None)]:
+        if id(sc) not in keep:
+            sc.explained = None
+
+
 def _open_files(unit, data, holdout, regs, max_samples, need_whole):
     """(data, holdout, whole, held): the telemetry of the data and holdout items. Held
     (trace.filerows.FileRows) when every item is a file on disk that can be held so
@@ -879,6 +893,8 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                       confirm=None if checker is None else
                                       (lambda m0, m1, n=s.name: checker(n, m0, m1)))
         _drop_series_caches(S)
+        if s.name in traces:
+            _drop_unused_explained(traces[s.name])
     if not traces:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
         raise InputError(tels[0].path if len(tels) == 1 else unit.path,
