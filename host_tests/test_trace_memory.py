@@ -56,7 +56,7 @@ def _peak_MiB(unit_path, data) -> float:
     return int(out.strip()), peak_MiB
 
 
-@pytest.mark.slow            # about 70 s: two files and two capped traces
+@pytest.mark.slow            # 30 s alone, 1-3 min on the loaded 2-core machine: two traces
 def test_capped_trace_memory_grows_only_by_what_it_keeps_of_a_row(tmp_path, fm1_dir):
     unit_path = fm1_dir / "unit.toml"
     small = tmp_path / "small.csv"
