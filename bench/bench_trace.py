@@ -12,6 +12,37 @@ Prints the walls and CPU times (user + system, from wait4), the ratio trace / fi
 each run and of the best of the runs, and the trace's own progress lines (per sensor
 and round, with the time each round took). On a shared machine the CPU ratio is the
 steadier figure: the walls include waiting for a core, which differs between the runs.
+
+    python3 bench/bench_trace.py --memory 220000 880000 1500000 --baseline DIR [--coeffs C]
+
+Peak RSS and wall of a capped trace (API, one sensor, cap 20,000) of flight_6h repeated to
+each length, this checkout against a baseline checkout DIR (`git archive <commit> | tar -x
+-C DIR`) in the same run, each in a fresh process importing its own tree; the ratios this /
+baseline and how the peak grows a row. Issue 20 F4, tmem12 against main 8248fa4, with
+`--coeffs generated/samsat_fm1/coefficients.json` (no baseline fit: the trace's own
+memory), on the shared 2-core machine under load (the walls vary by tens of %):
+
+        rows   this            8248fa4          this / 8248fa4
+     220,000    28.3 s  501 MiB    21.1 s 1047 MiB   time 1.34x, peak 0.48x
+     880,000    44.8 s  512 MiB    44.9 s 1805 MiB   time 1.00x, peak 0.28x
+   1,500,000    94.6 s  573 MiB   123.2 s 2145 MiB   time 0.77x, peak 0.27x
+   peak grows a row: this 60 B, 8248fa4 899 B (220,000 -> 1,500,000 rows)
+
+Without --coeffs (the baseline fitted, as `magcal trace` does by default: the files are
+read whole for the fit and let go after it), same run conditions, 8248fa4 again:
+
+     220,000    80.3 s  694 MiB   124.3 s 1249 MiB   time 0.65x, peak 0.56x
+     880,000   310.9 s  846 MiB   197.0 s 2000 MiB   time 1.58x, peak 0.42x
+   peak grows a row: this 241 B, 8248fa4 1193 B (220,000 -> 880,000 rows)
+
+(the 880,000-row walls are not comparable: other test runs shared the 2 cores during
+this tree's run). What still grows there is the whole read and the fit (generator.fit).
+
+The 60 B a row: the packed series (~30 B, trace.filerows) and the recursions' caches
+(trace.effects, at least 4 series-long arrays a cache); the rest of the peak is the
+samples and the all-rows pieces, which do not grow with the length. The time: the file is
+read again for the drawn rows and for every all-rows figure (reading whole once cost more
+at the longer files: the whole-file preprocess and series copies).
 """
 
 from __future__ import annotations
@@ -46,8 +77,62 @@ def run(cmd) -> tuple[float, float, str, float]:
     return wall, rusage.ru_maxrss / 1024.0, out, rusage.ru_utime + rusage.ru_stime
 
 
+MEMORY_CODE = """
+import sys
+sys.path[:] = [p for p in sys.path if p]     # not the working directory: PYTHONPATH's tree
+from generator.trace.tracer import trace
+res = trace(sys.argv[1], [sys.argv[2]], max_samples=int(sys.argv[3]), sensors=[sys.argv[4]],
+            coeffs=sys.argv[5] or None)
+import generator
+print(res.subsample["samples"] if res.subsample else 0, generator.__file__)
+"""
+
+
+def memory(data: Path, lengths, baseline: Path | None, cap: int, sensor: str,
+           coeffs: str) -> int:
+    """Peak RSS and wall of a capped trace (API, one sensor) of flight_6h repeated to each
+    length, this checkout against a baseline checkout (e.g. `git archive 8248fa4`) in the
+    same run: the ratios this / baseline."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from bench_io import measured, write_long_file
+    trees = [("this", REPO)] + ([("baseline", baseline)] if baseline else [])
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in lengths:
+            f = Path(tmp) / f"flight_{n}.csv"
+            write_long_file(data / "flight_6h.csv", f, n)
+            for name, tree in trees:
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                wall, peak, rc, out, err = measured(
+                    [sys.executable, "-c", MEMORY_CODE, str(data / "unit.toml"), str(f),
+                     str(cap), sensor, coeffs], env=env)
+                if rc:
+                    raise SystemExit(f"failed ({name}, {n} rows):\n{err[-2000:]}")
+                rows[n, name] = (wall, peak)
+                assert out.split()[1].startswith(str(tree)), (name, out)   # the tree asked for
+                print(f"{n:>9,} rows  {name:8s}  {wall:6.1f} s  {peak:7.0f} MiB", flush=True)
+            f.unlink()
+    if baseline:
+        for n in lengths:
+            (w, p), (wb, pb) = rows[n, "this"], rows[n, "baseline"]
+            print(f"{n:>9,} rows  this / baseline: time {w / wb:.2f}x, peak {p / pb:.2f}x")
+    for name, _ in trees:
+        a, b = lengths[0], lengths[-1]
+        slope = (rows[b, name][1] - rows[a, name][1]) * 2**20 / (b - a)
+        print(f"{name}: peak grows {slope:.0f} B a row from {a:,} to {b:,} rows")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--memory", type=int, nargs="+", default=None, metavar="ROWS",
+                    help="peak memory and time of a capped one-sensor trace at these lengths "
+                         "(flight_6h repeated) instead of the fit comparison")
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="with --memory: a baseline checkout run in the same run")
+    ap.add_argument("--cap", type=int, default=20_000)
+    ap.add_argument("--sensor", default="mmc1")
+    ap.add_argument("--coeffs", default="", help="with --memory: a supplied baseline")
     ap.add_argument("--data", default=None, help="the samsat_fm1 folder")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--files", nargs="+", default=FILES)
@@ -56,6 +141,8 @@ def main(argv=None) -> int:
     if data is None:
         print("shared samsat_fm1 data not found; pass --data", file=sys.stderr)
         return 2
+    if a.memory:
+        return memory(data, a.memory, a.baseline, a.cap, a.sensor, a.coeffs)
     files = [str(data / f) for f in a.files]
     unit = str(data / "unit.toml")
     py = [sys.executable, "-m", "generator.cli"]

@@ -589,7 +589,7 @@ def _fmt(x) -> str:
 
 # --------------------------------------------------------------------------- preprocessing
 
-def preprocess(tel: Telemetry, unit) -> dict:
+def preprocess(tel: Telemetry, unit, sensors=None) -> dict:
     """Counts -> nT, SET/RESET -> field and chip offset, axis mapping -> frame axes.
 
     Per sensor: usable=False where any needed cell is missing or non-finite, or a count is at
@@ -606,17 +606,15 @@ def preprocess(tel: Telemetry, unit) -> dict:
     take SensorData.temp_or(t_C): the reported temperature, or the constant t_C for a
     sensor without one (a temperature-independent model).
     """
-    return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors}
+    return {spec.name: _sensor_data(tel, spec) for spec in unit.sensors
+            if sensors is None or spec.name in sensors}
 
 
-def _sensor_data(tel: Telemetry, spec) -> SensorData:
-    """One sensor's SensorData, column by column: no (N, 6) stack of the counts and no
-    (N, 3) intermediate per step; the temperature is the file's column itself (a view:
-    nothing writes into either). The same operations per element as on stacked arrays,
-    so the same bits."""
+def _sensor_cells(tel: Telemetry, spec):
+    """(raw, temp_C, missing, saturated) of one sensor: its count (or physical input)
+    columns as float64 views, its temperature (all NaN without one), and per row whether a
+    needed cell is missing or non-finite, or a count at the part's rail (saturated)."""
     n = tel.n
-    counts = {c: tel.columns[c] for c in spec.count_columns if c in tel.columns}
-    missing_columns = tuple(c for c in spec.required_columns if c not in tel.columns)
     absent_cells = None
     raw = []                          # the count (or physical input) columns, float64 views
     for c in spec.count_columns:
@@ -642,6 +640,26 @@ def _sensor_data(tel: Telemetry, spec) -> SensorData:
     else:
         temp_C = np.full(n, np.nan)          # documented: no temperature, not missing
     saturated = at_rail & ~missing              # missing and saturated counts once, as missing
+    return raw, temp_C, missing, saturated
+
+
+def usable_rows(tel: Telemetry, spec) -> np.ndarray:
+    """(N,) bool: the rows whose readings of this sensor preprocess marks usable (none of
+    its cells missing or non-finite, no count at the rail), without computing the fields
+    (1 byte a row: what a capped trace keeps of the rows it does not trace)."""
+    _, _, missing, saturated = _sensor_cells(tel, spec)
+    return ~missing & ~saturated
+
+
+def _sensor_data(tel: Telemetry, spec) -> SensorData:
+    """One sensor's SensorData, column by column: no (N, 6) stack of the counts and no
+    (N, 3) intermediate per step; the temperature is the file's column itself (a view:
+    nothing writes into either). The same operations per element as on stacked arrays,
+    so the same bits."""
+    n = tel.n
+    counts = {c: tel.columns[c] for c in spec.count_columns if c in tel.columns}
+    missing_columns = tuple(c for c in spec.required_columns if c not in tel.columns)
+    raw, temp_C, missing, saturated = _sensor_cells(tel, spec)
     usable = ~missing & ~saturated
 
     idx, sign = spec.axis_map()

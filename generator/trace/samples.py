@@ -12,6 +12,7 @@ Residual rows per sample:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,43 @@ class FileSeries:
     time_s: np.ndarray
     temp_C: np.ndarray
     channels: dict = field(default_factory=dict)
+
+
+class _Unpacked(Mapping):
+    """A PackedSeries' channels: each unpacked (and its rows selected) when asked for."""
+
+    def __init__(self, owner):
+        self._owner = owner
+
+    def __getitem__(self, c):
+        return self._owner._rows_of(self._owner._packed_channels[c])
+
+    def __iter__(self):
+        return iter(self._owner._packed_channels)
+
+    def __len__(self):
+        return len(self._owner._packed_channels)
+
+
+class PackedSeries(FileSeries):
+    """A FileSeries of a file held packed (trace.filerows.FileRows): its time, temperature
+    and channels are PackedColumns over every row of the file, unpacked (and the series'
+    rows taken, mask) each time they are read; the same values as FileSeries' arrays,
+    without holding them (8 B a row each) for the whole trace."""
+
+    def __init__(self, name, time, temp, channels: dict, mask=None):
+        self.name = name
+        self._packed = (time, temp)
+        self._packed_channels = channels
+        self._mask = mask
+
+    def _rows_of(self, col):
+        v = col.values()
+        return v if self._mask is None else v[self._mask]
+
+    time_s = property(lambda self: self._rows_of(self._packed[0]))
+    temp_C = property(lambda self: self._rows_of(self._packed[1]))
+    channels = property(lambda self: _Unpacked(self))
 
 
 @dataclass
@@ -174,58 +212,104 @@ def _held(v):
     return np.where(last >= 0, v[np.maximum(last, 0)], 0.0)
 
 
+def _series_of(series, t, temp_C, chs, shared):
+    """(time, temperature, channels) of the rows in series: the arrays themselves where
+    every row is in it (no copy), else copies; the time and channels of one mask are
+    copied once for all the sensors that share it (shared: [(mask, t, {channel: v})])."""
+    if series.all():
+        return t, temp_C, dict(chs)
+    for m, ts, cs in shared:
+        if np.array_equal(m, series):
+            break
+    else:
+        ts, cs = t[series], {}
+        shared.append((series, ts, cs))
+    out = {}
+    for c, v in chs.items():
+        if c not in cs:
+            cs[c] = v[series]
+        out[c] = cs[c]
+    return ts, temp_C[series], out
+
+
 def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=None,
-                   strict=()) -> dict:
+                   strict=(), sensors=None) -> dict:
     """{sensor: SensorSamples} over all files (data files then holdout files: the time
     order). roles: 0 data / 1 holdout per file. coils: the modelled coil columns; H: the
     boom -> body rotation (the rate in a boom sensor's frame is H^T w). strict: channels
     whose non-finite rows are missing (the samples left out: a user regressor's division
-    by zero); other channels' empty cells are held at the channel's last value (_held)."""
-    from generator.io.telemetry_csv import preprocess
+    by zero); other channels' empty cells are held at the channel's last value (_held).
+    sensors: the names of the sensors to gather (default: all the unit's)."""
+    from generator.io.telemetry_csv import preprocess, usable_rows
+    from generator.trace.filerows import pack
     notes = notes if notes is not None else []
+    specs = [s for s in unit.sensors if sensors is None or s.name in sensors]
     H = np.eye(3) if H is None else np.asarray(H, float)
-    acc = {s.name: [] for s in unit.sensors}
-    files = {s.name: [] for s in unit.sensors}
+    acc = {s.name: [] for s in specs}
+    files = {s.name: [] for s in specs}
     names = [str(t.path) for t in tels]
     has_rate = any(all(f"rate_{a}_dps" in t.columns for a in "xyz") for t in tels)
     order0 = 0
     for fi, (tel, role) in enumerate(zip(tels, roles)):
-        pre = preprocess(tel, unit)
-        n = tel.n
+        # the rows that may become samples (a capped trace's drawn blocks, else every row):
+        # everything a sample carries is computed on them alone; the per-file series the
+        # recursions run over (time, temperatures, channels, usable) on every row
+        # (sample_view / full_column: trace.subsample's BlockedTelemetry and BlockedRows)
+        rows = (None if getattr(tel, "sample_rows", None) is None
+                else np.flatnonzero(tel.sample_rows))
+        sub = tel if rows is None else tel.sample_view()
+        full = getattr(tel, "full_column", tel.get)          # a column over every row
+        pre = preprocess(sub, unit, sensors)
+        n, ns = tel.n, sub.n
         t = np.asarray(tel.time_s, float)
-        pos = tel.get("position")
-        pos = np.zeros(n) if pos is None else np.nan_to_num(np.asarray(pos, float))
-        ref = (np.stack([tel.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1).astype(float)
-               if tel.has("ref_x_nT", "ref_y_nT", "ref_z_nT") else np.full((n, 3), np.nan))
+        pos = sub.get("position")
+        pos = np.zeros(ns) if pos is None else np.nan_to_num(np.asarray(pos, float))
+        ref = (np.stack([sub.columns[f"ref_{a}_nT"] for a in "xyz"], axis=1).astype(float)
+               if sub.has("ref_x_nT", "ref_y_nT", "ref_z_nT") else np.full((ns, 3), np.nan))
         has_vec = np.isfinite(ref).all(axis=1)
-        ref_rate = _ref_rate(t, ref, pos) if has_vec.any() else np.zeros((n, 2, 3))
-        norm = tel.get("ref_norm_nT")
-        norm = np.full(n, np.nan) if norm is None else np.asarray(norm, float)
+        if not has_vec.any():
+            ref_rate = np.zeros((ns, 2, 3))
+        elif rows is None:
+            ref_rate = _ref_rate(t, ref, pos)
+        else:                # the slopes run to the neighbours: over every row of the file
+            pos_all = full("position")
+            pos_all = np.zeros(n) if pos_all is None else np.nan_to_num(np.asarray(pos_all,
+                                                                                  float))
+            ref_rate = _ref_rate(t, np.stack([full(f"ref_{a}_nT") for a in "xyz"],
+                                             axis=1).astype(float), pos_all)[rows]
+        norm = sub.get("ref_norm_nT")
+        norm = np.full(ns, np.nan) if norm is None else np.asarray(norm, float)
         if unit.lab_field_nT is not None and "ref_norm_nT" not in tel.columns:
-            norm = np.full(n, float(unit.lab_field_nT))
+            norm = np.full(ns, float(unit.lab_field_nT))
         has_norm = np.isfinite(norm) & (norm > 0)
         kind = np.where(has_vec, VEC, np.where(has_norm, NORM, np.where(pos > 0, POS, -1)))
         coil = None
         if coils:
-            cols = [np.asarray(tel.columns[c], float) if c in tel.columns else np.zeros(n)
+            cols = [np.asarray(sub.columns[c], float) if c in sub.columns else np.zeros(ns)
                     for c in coils]
             coil = np.stack(cols, axis=1)
         rate = None
         if has_rate:
-            if all(f"rate_{a}_dps" in tel.columns for a in "xyz"):
-                rate = np.nan_to_num(np.stack([tel.columns[f"rate_{a}_dps"] for a in "xyz"],
+            if all(f"rate_{a}_dps" in sub.columns for a in "xyz"):
+                rate = np.nan_to_num(np.stack([sub.columns[f"rate_{a}_dps"] for a in "xyz"],
                                               axis=1).astype(float))
             else:
-                rate = np.zeros((n, 3))
+                rate = np.zeros((ns, 3))
+        # a file held packed (trace.filerows): its series stay packed (PackedSeries)
+        packed = getattr(tel, "packed_column", None) if rows is not None else None
+        chp = {}
         ch, present = {}, {}
         missing = np.zeros(n, bool)
         for c in channels:
-            v = tel.get(c)
+            v = full(c)
             present[c] = v is not None
+            if packed is not None and v is not None:
+                chp[c] = packed(c)
             if v is None:
                 v = np.zeros(n)
             v = np.asarray(v, float)
             if not np.isfinite(v).all():
+                chp.pop(c, None)                 # packed below as changed
                 bad = ~np.isfinite(v)
                 if c in strict:
                     missing |= bad
@@ -237,40 +321,66 @@ def gather_samples(unit, tels, roles, *, coils=(), H=None, channels=(), notes=No
                                  "empty cells, held at the channel's last value (0 before "
                                  "its first)")
                     v = _held(v)
-            ch[c] = v
+            if packed is None:
+                ch[c] = v
+            else:            # held packed for the series; the samples' rows alone here
+                if c not in chp:
+                    chp[c] = pack(v)
+                ch[c] = v[rows]
+            del v
         temps = board_temperatures(unit)
-        for s in unit.sensors:
+        shared = []            # (series mask, its time and channels): one copy per mask
+        for s in specs:
             sd = pre[s.name]
             # a sensor with its own temperature does not take the boards' as channels
             chs = {c: v for c, v in ch.items() if not (s.temperature and c in temps)}
             # a sensor without temperature (temperature = false): the constant stand-in
             # (its baseline clamps every temperature to dT = 0, so the value is immaterial)
             temp_C = np.asarray(sd.temp_or(T_REF_C), float)
-            series = sd.usable & np.isfinite(temp_C)
-            ok = series & np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0) & ~missing
-            if getattr(tel, "sample_rows", None) is not None:
-                ok &= tel.sample_rows      # trace.subsample's blocks: the rest bridge rows
+            if rows is None:
+                series = sd.usable & np.isfinite(temp_C)
+                temp_all = temp_C
+            else:
+                usable = (tel.usable_of(s) if hasattr(tel, "usable_of")
+                          else usable_rows(tel, s))
+                col = full(s.temp_column) if s.temperature else None
+                temp_all = (np.full(n, float(T_REF_C)) if not s.temperature else
+                            np.full(n, np.nan) if col is None else np.asarray(col, float))
+                series = usable & np.isfinite(temp_all)
+            ok = (series if rows is None else series[rows]) & \
+                np.isfinite(sd.field_frame_nT).all(axis=1) & (kind >= 0) & \
+                ~(missing if rows is None else missing[rows])
             if coil is not None:
                 ok &= np.isfinite(coil).all(axis=1)
             srow = np.cumsum(series) - 1
-            files[s.name].append(FileSeries(names[fi], t[series], temp_C[series],
-                                            {c: v[series] for c, v in chs.items()}))
-            i = np.nonzero(ok)[0]
+            if packed is None:
+                files[s.name].append(FileSeries(names[fi], *_series_of(series, t, temp_all,
+                                                                       chs, shared)))
+            else:
+                tp = (packed(s.temp_column) if s.temperature and
+                      packed(s.temp_column) is not None else pack(temp_all))
+                files[s.name].append(PackedSeries(
+                    names[fi], packed("time_s"), tp, {c: chp[c] for c in chs},
+                    None if series.all() else series))
+            j = np.nonzero(ok)[0]                # among the sample rows
+            i = j if rows is None else rows[j]   # among the file's rows
             w = None
             if rate is not None:
-                w = rate[i] @ H if s.frame == "boom" else rate[i]
+                w = rate[j] @ H if s.frame == "boom" else rate[j]
             acc[s.name].append(dict(
                 time_s=t[i], file_index=np.full(len(i), fi), file_row=srow[i],
-                order=order0 + i, x=sd.field_frame_nT[i], temp_C=temp_C[i],
-                kind=kind[i], ref=ref[i], norm=np.where(has_vec[i], np.linalg.norm(
-                    np.nan_to_num(ref[i]), axis=1), norm[i]),
-                group=np.where(kind[i] == POS, fi * 1_000_000 + pos[i], -1).astype(np.int64),
-                ref_rate=ref_rate[i], coil=None if coil is None else coil[i], rate=w,
-                channels={c: v[i] for c, v in chs.items()}, role=np.full(len(i), role),
+                order=order0 + i, x=sd.field_frame_nT[j], temp_C=temp_C[j],
+                kind=kind[j], ref=ref[j], norm=np.where(has_vec[j], np.linalg.norm(
+                    np.nan_to_num(ref[j]), axis=1), norm[j]),
+                group=np.where(kind[j] == POS, fi * 1_000_000 + pos[j], -1).astype(np.int64),
+                ref_rate=ref_rate[j], coil=None if coil is None else coil[j], rate=w,
+                channels={c: v[i if packed is None else j] for c, v in chs.items()},
+                role=np.full(len(i), role),
                 present={c: np.full(len(i), present[c]) for c in chs}))
+        del pre
         order0 += n
     out = {}
-    for s in unit.sensors:
+    for s in specs:
         parts = acc[s.name]
 
         def cat(key, parts=parts):

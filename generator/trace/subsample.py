@@ -21,14 +21,18 @@ import numpy as np
 from generator.errors import InputError
 from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
+from generator.trace.filerows import FileRows
+from generator.trace.filerows import kept_rows as _kept_rows
 
 # The most telemetry rows (data and --holdout files together) a trace works on; 0: all.
 # Memory: the trace keeps per-sample design columns, about 13 KiB a sample on bench_io's
 # unit (bench/bench_io.py --trace-rows: 10^5 rows, 1389 MiB peak), more with more sensors
 # and channels: 3.0 GB peak at the cap on the five-sensor samsat_fm1 unit (99,000 rows
 # traced, /usr/bin/time -v; ~30 KiB a row); 10^6 rows would be ~13-30 GiB. Above the cap
-# the rows left out cost only their raw values in the per-file series (1.5 M rows, one
-# sensor: 1.24 GB peak).
+# files on disk are held by what the trace needs of every row (trace.filerows.FileRows:
+# the series columns packed, ~30 B a row on flight_6h; the drawn rows read again); the
+# rest of a row costs nothing once read (bench/bench_trace.py --memory); at the cap on
+# samsat_fm1 (flight_6h to 300,000 rows, five sensors) 1976 MiB peak against 2908 MiB.
 # Statistics: an effect whose term has rms a against a residual noise sigma is detected
 # with z ~ (a / sigma) sqrt(n_eff); with 3 vector rows a sample, n = 10^5 samples and a
 # residual lag-1 correlation as high as 0.9 (n_eff = n (1 - rho) / (1 + rho), ~16,000
@@ -90,19 +94,23 @@ class BlockedTelemetry(Telemetry):
     rows cost ~8 B a channel, the design columns of a sample ~13 KiB."""
     sample_rows: np.ndarray | None = None      # (N,) bool: the rows of the drawn blocks
 
-
-def _kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
-    """The file restricted to these rows (in order): the same path, so the same file."""
-    return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
-                     tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
+    def sample_view(self) -> Telemetry:
+        """The rows of the drawn blocks, every column (what becomes samples)."""
+        return _kept_rows(self, np.flatnonzero(self.sample_rows))
 
 
-def check_cap(max_samples, n_rows, L, source=None) -> None:
-    """A cap below one block cannot be met by whole blocks (the blocks would exceed it):
-    InputError naming --max-samples and the smallest cap that works."""
-    if max_samples and n_rows > max_samples and max_samples < L:
-        raise InputError(source, f"--max-samples {max_samples:,} is below one block of "
-                                 f"{L:,} consecutive rows: give at least {L:,} (at least "
+def check_cap(max_samples, n_rows, L, source=None, roles=1) -> None:
+    """A cap below one block cannot be met by whole blocks (the blocks would exceed it),
+    nor, with --holdout files (roles 2: the data's blocks and the holdout's are drawn
+    apart, one at least each), a cap below two blocks: InputError naming --max-samples and
+    the smallest cap that works."""
+    if max_samples and n_rows > max_samples and max_samples < roles * L:
+        what = (f"one block of {L:,} consecutive rows" if roles == 1 else
+                f"the {roles} blocks of {L:,} consecutive rows a trace with --holdout "
+                "draws at least (one for the data files, one for the holdout files; the "
+                "cap counts both)")
+        raise InputError(source, f"--max-samples {max_samples:,} is below {what}: give at "
+                                 f"least {roles * L:,} (at least "
                                  f"{MIN_BLOCKS * MIN_BLOCK_ROWS:,} keeps the {MIN_BLOCKS} "
                                  f"blocks the trace is designed for), or 0 for every row")
 
@@ -128,32 +136,44 @@ def _draw(files, m, rng, L):
     return [(int(f), picks[fi == f] - first[f]) for f in range(len(files))]
 
 
-def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED):
+def _blocked_telemetry(t, mask):
+    """The kept file of an in-memory Telemetry: the whole file, its samples the mask."""
+    return BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta, t.comments,
+                            sample_rows=mask)
+
+
+def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SEED,
+                    keep=_blocked_telemetry):
     """(tels, hold, info): the files unchanged and info None at or under the cap (total
     rows of tels + hold <= max_samples, or max_samples 0); else every file cut into
     consecutive blocks of L rows (block_rows) and floor(cap / L) blocks drawn over all the
     blocks of all the files in order (fractional_systematic: one systematic draw over the
     concatenated block list, numpy PCG64 seeded from seed alone, not from the files'
     names), the data files' and the holdout files' blocks drawn apart in proportion to
-    their blocks (at least one each), so the kept rows are at most the cap (plus one
-    block when a holdout file is given and the cap is one block). The kept blocks of a file
+    their blocks (at least one each), so the kept rows are at most the cap (a cap below
+    one block per role is refused, check_cap). The kept blocks of a file
     are one BlockedTelemetry (the whole file, its samples the blocks' rows); a file with
     no kept block is
     left out (info counts them); info holds the figures of the note. A cap below one block
-    is an InputError (check_cap)."""
+    is an InputError (check_cap). The files need only n, time_s and path to be drawn;
+    keep(file, mask) makes the kept file of the drawn rows (default: BlockedTelemetry;
+    FileRows.blocked reads only those rows again)."""
     max_samples = check_max_samples(max_samples)
     N = sum(t.n for t in list(tels) + list(hold))
     if not max_samples or N <= max_samples:
         return list(tels), list(hold), None
     everything = list(tels) + list(hold)
     L = block_rows(everything, max_samples)
-    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None)
+    check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None,
+              roles=2 if hold else 1)
     nb_d = sum(-(-t.n // L) for t in tels)
     nb_h = sum(-(-t.n // L) for t in hold)
     n_blocks = nb_d + nb_h
     def plan(m):
         """The draws of m blocks (data and holdout apart, in proportion) and their rows."""
-        m_h = min(nb_h, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
+        # at least one block each, and the data at least one of the m (m >= 2 with
+        # holdout files, check_cap): data and holdout blocks together m, within the cap
+        m_h = min(nb_h, m - 1, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
         m_d = min(nb_d, max(1, m - m_h))
         draws = []
         for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
@@ -187,8 +207,7 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
             if runs:
                 mask = np.zeros(t.n, bool)
                 mask[np.concatenate(runs)] = True
-                kept.append((BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta,
-                                              t.comments, sample_rows=mask), runs))
+                kept.append((keep(t, mask), runs))
         out.append(kept)
     kd, kh = out
     n_kept = sum(int(t.sample_rows.sum()) for t, _ in kd + kh)
@@ -222,8 +241,12 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
 
 def _pieces(tels):
     """Every data file in pieces of at most ALL_ROWS_CHUNK consecutive rows (the file's
-    path kept, so that what an effect locates in a file is found in its pieces)."""
+    path kept, so that what an effect locates in a file is found in its pieces); a
+    FileRows is read again from its file, piece by piece (the same pieces)."""
     for t in tels:
+        if isinstance(t, FileRows):
+            yield from t.pieces(ALL_ROWS_CHUNK)
+            continue
         if t.n <= ALL_ROWS_CHUNK:
             yield t
             continue
@@ -247,7 +270,7 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
     acc = {}
     for tel in _pieces(tels):
         S_all = gather_samples(unit, [tel], [0], coils=coils, H=H, channels=channels,
-                               strict=strict)
+                               strict=strict, sensors=sensors)
         for n in sensors:
             S = S_all.get(n)
             if S is None or S.n == 0:
@@ -264,6 +287,8 @@ def _all_rows_sse(models_of, tels, unit, *, coils, H, channels, sensors, strict=
             a["samples"] += S.n
             a["lag_num"] += num
             a["lag_den"] += den
+            del S, models, rs
+        del S_all, tel           # one piece held at a time: not this one beside the next
     return acc
 
 

@@ -477,7 +477,8 @@ def _why_no_samples(spec, tels) -> str:
     why = []
     for t in tels:
         col = getattr(spec, "temp_column", None)
-        if col and col in t.columns and not np.isfinite(np.asarray(t.columns[col], float)).any():
+        v = getattr(t, "full_column", t.columns.get)(col) if col else None
+        if v is not None and not np.isfinite(np.asarray(v, float)).any():
             why.append(f"{t.path}: column {col} is empty")
     return "; ".join(why) if why else ("no reading with a temperature and a field reference "
                                        "or a static position in the data files")
@@ -695,7 +696,11 @@ def _holdout_not_data(data, holdout):
         p = getattr(it, "path", it)
         try:
             p = Path(p)
-            return p.resolve(), hashlib.sha256(p.read_bytes()).hexdigest()
+            h = hashlib.sha256()
+            with open(p, "rb") as f:          # in blocks: not the whole file at once
+                for b in iter(lambda: f.read(1 << 20), b""):
+                    h.update(b)
+            return p.resolve(), h.hexdigest()
         except OSError:
             return None, None
     keys = {}
@@ -712,6 +717,61 @@ def _holdout_not_data(data, holdout):
                                  f"--holdout: the same {'file' if k == r else 'content'} as "
                                  f"the data file {getattr(keys[k], 'path', keys[k])}: the "
                                  "held-out figures would be in-sample")
+
+
+def _drop_series_caches(S) -> None:
+    """The recursions' caches on a traced sensor's per-file series (trace.effects: whole-
+    series arrays, up to SERIES_CACHE_BYTES a cache) let go once its trace is done: the
+    values are the same without them (a later use recomputes), and the next sensor's
+    trace does not run beside them."""
+    for f in S.files:
+        for k in [k for k in vars(f) if k.endswith("_cache")]:
+            del f.__dict__[k]
+
+
+def _drop_unused_explained(tr: SensorTrace) -> None:
+    """The candidates' explained residuals (Score.explained: a float a residual row of
+    the fit set, per candidate and round) let go once the sensor's trace is done, but
+    those of each step's winner and runner-up (read again for trace.json: equivalent,
+    runner_up_text): the rest is never read after the rounds, and kept it held ~0.1 GB a
+    sensor at the cap (28 candidates x 7 rounds x 80,000 rows)."""
+    keep = {id(x) for st in tr.steps for x in (st.score, st.runner_up) if x is not None}
+    for sc in [*tr.last_scores, *(x for st in tr.steps
+                                   for x in (*st.scores, *st.scores_after,
+                                             st.runner_up_after) if x is not None)]:
+        if id(sc) not in keep:
+            sc.explained = None
+
+
+def _open_files(unit, data, holdout, regs, max_samples, need_whole):
+    """(data, holdout, whole, held): the telemetry of the data and holdout items. Held
+    (trace.filerows.FileRows) when every item is a file on disk that can be held so
+    (filerows.stream_ok) and their rows exceed the cap; whole: then the data files read
+    whole for the baseline fit (need_whole, else None). Otherwise read whole, as under
+    the cap (Telemetry; whole None)."""
+    from generator.io.telemetry_csv import _rows_at_most
+    from generator.trace.filerows import FileRows, stream_ok
+    items = list(data) + list(holdout)
+
+    def read_whole():
+        return ([add_regressors(regs, t) for t in _read(unit, data)],
+                [add_regressors(regs, t) for t in _read(unit, holdout)])
+    if not max_samples or not all(isinstance(it, (str, Path)) for it in items) \
+            or sum(_rows_at_most(it) or math.inf for it in items) <= max_samples \
+            or not all(stream_ok(it, unit) for it in items):
+        return (*read_whole(), None, False)
+    whole = None
+    if need_whole:                   # the baseline fit reads every column of every row
+        whole, wh = read_whole()
+        if sum(t.n for t in whole + wh) <= max_samples:
+            return whole, wh, None, False
+        files = [FileRows(t.path, unit, regs, tel=t) for t in whole + wh]
+        del wh
+    else:
+        files = [FileRows(it, unit, regs) for it in items]
+        if sum(f.n for f in files) <= max_samples:
+            return (*read_whole(), None, False)
+    return files[:len(data)], files[len(data):], whole, True
 
 
 def _read(unit, items):
@@ -747,10 +807,13 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     max_samples = check_max_samples(max_samples, unit.path)
     regs = declared_regressors(unit)
     _holdout_not_data(data, holdout)
-    tels = [add_regressors(regs, t) for t in _read(unit, data)]
-    hold = [add_regressors(regs, t) for t in _read(unit, holdout)]
+    # above the cap, files on disk are held by what the trace needs of every row
+    # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
+    tels, hold, whole, held = _open_files(unit, data, holdout, regs, max_samples,
+                                          need_whole=coeffs is None)
     # the blocks are drawn first (a cap below one block is refused before any fit)
-    kept_tels, kept_hold, subsample = subsample_files(tels, hold, max_samples)
+    kept_tels, kept_hold, subsample = subsample_files(
+        tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
     notes = []
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
@@ -760,8 +823,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                         f"{', '.join(r['inputs'])}: not a candidate; ")
                      + REGRESSOR_FLIGHT)
     if coeffs is None:
-        base, degrees, bnotes = baseline_coefficients(unit, tels, say)
+        base, degrees, bnotes = baseline_coefficients(unit, whole or tels, say)
         notes += bnotes
+        whole = None                     # held files: the whole files are let go here
     else:
         base = coeffs if isinstance(coeffs, CoefficientSet) else CoefficientSet.load(coeffs)
         if set(base.unit.sensor_names) != set(unit.sensor_names):
@@ -828,6 +892,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                       S_final=S_final, progress=say,
                                       confirm=None if checker is None else
                                       (lambda m0, m1, n=s.name: checker(n, m0, m1)))
+        _drop_series_caches(S)
+        if s.name in traces:
+            _drop_unused_explained(traces[s.name])
     if not traces:
         why = "; ".join(f"{n}: {w}" for n, w in skipped.items())
         raise InputError(tels[0].path if len(tels) == 1 else unit.path,
