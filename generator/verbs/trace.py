@@ -24,9 +24,12 @@ def add_trace_args(p):
                    help=f"the most telemetry rows the trace works on (default "
                         f"{MAX_TRACE_SAMPLES}, trace.subsample.MAX_TRACE_SAMPLES; 0: all): "
                         "above it blocks of consecutive rows drawn at random (seed fixed) over "
-                        "all the files' blocks in order, as many as the cap holds; the "
-                        "error over every row is checked; said in trace.json and the notes "
-                        "(docs/fit_samples.md)")
+                        "all the files' blocks in order, as many as the cap holds (the data "
+                        "and --holdout files together: with --holdout at least two blocks); "
+                        "the error over every row is checked; said in trace.json and the "
+                        "notes. Memory: a capped trace keeps ~30-60 B per row of the whole "
+                        "files plus the drawn rows; the core fit of the data (without "
+                        "--coeffs) still reads every row (docs/fit_samples.md)")
 
 
 def _max_samples(text):
