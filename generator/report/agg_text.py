@@ -79,6 +79,24 @@ def _build():
                 self._renderer.draw_text_image(buf, x0 + left, h - (y0_up + top) + buf.shape[0],
                                                0, gc)
 
+        def get_text_width_height_descent(self, s, prop, ismath):
+            """RendererAgg's (width, height, descent) of s, kept per process: matplotlib
+            keeps them per renderer (text._get_text_metrics_with_cache), and every figure
+            has its own, so each figure laid the same tick labels out again (~450 layouts
+            a report, ~6 % of the figure time, py-spy). Same arguments, same numbers: the
+            key holds everything the result depends on (the string, the font properties,
+            the size, dpi, the math mode and the hinting flags)."""
+            if _STOCK_ONLY[0] or ismath == "TeX":
+                return super().get_text_width_height_descent(s, prop, ismath)
+            key = ("extent", s, hash(prop), prop.get_size_in_points(), self.dpi, ismath,
+                   get_hinting_flag())
+            out = _CACHE.get(key)
+            if out is None:
+                if len(_CACHE) >= MAX_ENTRIES:
+                    _CACHE.clear()
+                out = _CACHE[key] = super().get_text_width_height_descent(s, prop, ismath)
+            return out
+
         def _get_font_height_metrics(self, prop):
             """(ascent, descent, line gap) of prop's font in pixels, which Text._get_layout
             asks its renderer for when it has this method (else it finds the font file and
