@@ -134,10 +134,13 @@ def _ticks_in_view(fig):
     and null locators are left as they are. The locator object's class is changed in
     place, so shared axes (one locator) follow; calling this again is harmless."""
     from matplotlib.ticker import AutoMinorLocator, LogLocator, MaxNLocator
+
+    from generator.report.lean_axis import lean
     for ax in fig.axes:
         if ax.name != "rectilinear" or hasattr(ax, "_colorbar"):
             continue
         for axis in (ax.xaxis, ax.yaxis):
+            lean(axis)          # its ticks drawn from one tick object (lean_axis)
             if not axis.label.get_text() and getattr(axis, "_autolabelpos", False):
                 # no axis label: nothing to place below (beside) the tick labels, whose
                 # boxes matplotlib would otherwise measure a second time on each draw
