@@ -383,7 +383,12 @@ def _coefficient_grids(jobs) -> list:
     axes and their ticks are built once, which halves the cost of every further sensor.
     jobs: list of dicts with coefficient_grid's arguments. Returns the paths."""
     fig = _figure(13.0, 7.2)
-    axes = fig.subplots(3, 4, sharex=True)
+    # the same x limits set on every axes (below) instead of shared x axes: matplotlib
+    # walks the share group on every look at a shared axes' limits; tick labels on the
+    # bottom row only, as sharex=True puts them
+    axes = fig.subplots(3, 4)
+    for ax in axes[:-1].ravel():
+        ax.tick_params(axis="x", labelbottom=False)
     order = [axes[c, 0] for c in range(3)] + [axes[i, j + 1] for i in range(3) for j in range(3)]
     titles = []
     for ax in order:

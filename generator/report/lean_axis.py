@@ -118,6 +118,19 @@ class _LeanAxis:
                 tick.label2.draw(renderer)
             tick.stale = False
 
+    _drawn_boxes = None
+
+    def _get_tick_boxes_siblings(self, renderer):
+        """The tick label boxes the axis label is placed below (beside): while this axis
+        is drawn and its label is not aligned with other axes' (Figure.align_labels), the
+        boxes just measured, instead of the ticks found and measured again."""
+        if self._drawn_boxes is not None:
+            groups = self.get_figure(root=False)._align_label_groups
+            group = groups.get(self._get_axis_name())
+            if group is not None and list(group.get_siblings(self.axes)) == [self.axes]:
+                return self._drawn_boxes
+        return super()._get_tick_boxes_siblings(renderer)
+
     def draw(self, renderer):
         # matplotlib's Axis.draw (3.11) with the ticks drawn by _draw_ticks
         if not self.get_visible():
@@ -126,7 +139,11 @@ class _LeanAxis:
         ticks_to_draw = self._update_ticks()
         tlb1, tlb2 = self._get_ticklabel_bboxes(ticks_to_draw, renderer)
         self._draw_ticks(ticks_to_draw, renderer)
-        self._update_label_position(renderer)
+        self._drawn_boxes = (tlb1, tlb2)
+        try:
+            self._update_label_position(renderer)
+        finally:
+            self._drawn_boxes = None
         self.label.draw(renderer)
         self._update_offset_text_position(tlb1, tlb2)
         self.offsetText.set_text(self.major.formatter.get_offset())
