@@ -97,6 +97,26 @@ def _lean_ticks(ax, nx=5, ny=4, log_y=False):
     ax.yaxis.set_minor_locator(NullLocator())
 
 
+def _fixed_ticks(axis, locs, labels, **text_kw):
+    """axis.set_ticks(locs, labels, **text_kw) without a tick object per location: the
+    same locator (FixedLocator), labels by location (the formatter set_ticklabels makes),
+    the view widened to the locations, and text_kw set on the labels of the ticks made so
+    far (the first; lean_axis draws every location from it, and matplotlib copies it into
+    any tick it makes later)."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter
+    locs = [float(v) for v in locs]
+    labels = [str(v) for v in labels]
+    if len(locs):
+        axis.set_view_interval(min(locs), max(locs))      # as Axis._set_tick_locations
+    axis.set_major_locator(FixedLocator(locs))
+    by_loc = dict(zip(locs, labels))
+    axis.set_major_formatter(FuncFormatter(lambda v, pos=None: by_loc.get(v, "")))
+    if text_kw:
+        for tick in axis.majorTicks:
+            tick.label1.set(**text_kw)
+            tick.label2.set(**text_kw)
+
+
 class _InViewTicks:
     """Mixin for a tick locator: only the locations inside the axis's view interval (by the
     test matplotlib's Axis._update_ticks applies before drawing, in the scale's space).
@@ -484,8 +504,8 @@ def rms_bars(path, title, rows) -> Path:
             ax.set_yscale("log")
             ax.set_ylim(lo, hi)
             _lean_ticks(ax, log_y=True)
-            ax.set_xticks(x)
-            ax.set_xticklabels(p["labels"], fontsize=7, rotation=0 if len(x) <= 14 else 60)
+            _fixed_ticks(ax.xaxis, x, p["labels"], fontsize=7,
+                         rotation=0 if len(x) <= 14 else 60)
             if p.get("xlabel"):
                 ax.set_xlabel(p["xlabel"], fontsize=7, labelpad=1)
             ax.tick_params(axis="y", labelsize=7)
@@ -562,10 +582,10 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT",
             continue
         im = ax.imshow(maps[k], origin="lower", aspect="auto", cmap="viridis", vmin=0,
                        vmax=vmax)
-        ax.set_xticks(range(len(theta_deg)))
-        ax.set_xticklabels([f"{t:g}" for t in theta_deg], fontsize=6)
-        ax.set_yticks(range(len(rate_dps)))
-        ax.set_yticklabels([f"{r:g}" for r in rate_dps], fontsize=6)
+        _fixed_ticks(ax.xaxis, range(len(theta_deg)), [f"{t:g}" for t in theta_deg],
+                     fontsize=6)
+        _fixed_ticks(ax.yaxis, range(len(rate_dps)), [f"{r:g}" for r in rate_dps],
+                     fontsize=6)
         ax.set_xlabel("angle between field and axis, deg", fontsize=7)
         ax.set_ylabel("rate, deg/s", fontsize=7)
         _axes_title(ax, map_titles[k], fontsize=8)
