@@ -423,7 +423,9 @@ def _coefficient_grids(jobs) -> list:
     sup = fig.suptitle("", fontsize=11)
     fig.subplots_adjust(left=0.06, right=0.99, top=0.91, bottom=0.08, wspace=0.32, hspace=0.32)
     paths = []
+    made = [None] * len(order)      # per axes: its artists and the data shape they show
     for job in jobs:
+        new_legend = False
         level_T = np.asarray(job["level_T"], float).reshape(-1)
         level_val = np.asarray(job["level_val"], float).reshape(len(level_T), 12)
         level_sig = np.asarray(job["level_sig"], float).reshape(len(level_T), 12)
@@ -432,25 +434,53 @@ def _coefficient_grids(jobs) -> list:
         curve_band = np.asarray(job["curve_band"], float).reshape(len(curve_T), 12)
         t_range = job.get("t_range")
         for c, ax in enumerate(order):
-            for a in list(ax.lines) + list(ax.collections) + list(ax.patches):
-                a.remove()
-            ax.containers.clear()
             band = curve_band[:, c]
             ok = np.isfinite(band)
+            sig = np.where(np.isfinite(level_sig[:, c]), level_sig[:, c], 0.0)
             lo_hi = [curve_val[:, c]]
             if ok.any():
-                ax.fill_between(curve_T[ok], curve_val[ok, c] - band[ok],
-                                curve_val[ok, c] + band[ok], color="#1f77b4", alpha=0.25, lw=0,
-                                label="polynomial ±1σ")
                 lo_hi += [curve_val[ok, c] - band[ok], curve_val[ok, c] + band[ok]]
-            ax.plot(curve_T, curve_val[:, c], "-", color="#1f77b4", lw=1.3,
-                    label="fitted polynomial")
             if len(level_T):
-                sig = np.where(np.isfinite(level_sig[:, c]), level_sig[:, c], 0.0)
-                ax.errorbar(level_T, level_val[:, c], yerr=sig, fmt="o", ms=3.5,
-                            color="#d62728", ecolor="#d62728", capsize=2, lw=1,
-                            label="per-level estimate ±1σ")
                 lo_hi += [level_val[:, c] - sig, level_val[:, c] + sig]
+            shape = (bool(ok.any()), bool(len(level_T)))
+            if made[c] is not None and made[c]["shape"] == shape:
+                # the artists of the previous sensor given this sensor's data (making
+                # them anew was half this figure's time): the same artists as new ones
+                a = made[c]
+                if ok.any():
+                    a["fill"].set_data(curve_T[ok], curve_val[ok, c] - band[ok],
+                                       curve_val[ok, c] + band[ok])
+                a["line"].set_data(curve_T, curve_val[:, c])
+                if len(level_T):
+                    # as Axes.errorbar: the marker line, the two cap lines at y -/+ sigma
+                    # and the bars from one to the other (vlines)
+                    data_line, (cap_lo, cap_hi), (bars,) = a["errorbar"]
+                    low, high = level_val[:, c] - sig, level_val[:, c] + sig
+                    data_line.set_data(level_T, level_val[:, c])
+                    cap_lo.set_data(level_T, low)
+                    cap_hi.set_data(level_T, high)
+                    bars.set_segments(np.stack([np.stack([level_T, low], -1),
+                                                np.stack([level_T, high], -1)], 1))
+                for p in list(ax.patches):       # the span: drawn last, as before
+                    p.remove()
+            else:
+                for a in list(ax.lines) + list(ax.collections) + list(ax.patches):
+                    a.remove()
+                ax.containers.clear()
+                made[c] = {"shape": shape}
+                if c == 0:
+                    new_legend = True
+                if ok.any():
+                    made[c]["fill"] = ax.fill_between(
+                        curve_T[ok], curve_val[ok, c] - band[ok], curve_val[ok, c] + band[ok],
+                        color="#1f77b4", alpha=0.25, lw=0, label="polynomial ±1σ")
+                made[c]["line"], = ax.plot(curve_T, curve_val[:, c], "-", color="#1f77b4",
+                                           lw=1.3, label="fitted polynomial")
+                if len(level_T):
+                    made[c]["errorbar"] = ax.errorbar(
+                        level_T, level_val[:, c], yerr=sig, fmt="o", ms=3.5,
+                        color="#d62728", ecolor="#d62728", capsize=2, lw=1,
+                        label="per-level estimate ±1σ")
             if t_range is not None:
                 ax.axvspan(*t_range, color="#2ca02c", alpha=0.04, lw=0)
             y = np.concatenate([np.ravel(v) for v in lo_hi])
@@ -465,10 +495,11 @@ def _coefficient_grids(jobs) -> list:
                 ax.set_xlim(float(xs.min()) - 0.04 * span, float(xs.max()) + 0.04 * span)
             names, units = job["names"], job["units"]
             titles[c].set_text(f"{names[c]} ({units[c]})" if units[c] else names[c])
-        leg = order[0].get_legend()
-        if leg is not None:
-            leg.remove()
-        order[0].legend(fontsize=6, loc="best")
+        if new_legend:          # its handles made anew (else: the same, given new data)
+            leg = order[0].get_legend()
+            if leg is not None:
+                leg.remove()
+            order[0].legend(fontsize=6, loc="best")
         sup.set_text(job["title"])
         paths.append(_save(fig, job["path"]))
     return paths
