@@ -182,6 +182,9 @@ def _ticks_in_view(fig):
 # their call and return the path(s) they will write; leaving the block draws them all, in
 # forked worker processes (one per core), since drawing is most of a report's time.
 _DEFERRED = None
+# a drawer started before the figures were asked for (generator.report.drawer), which
+# parallel() hands its calls to; None: parallel() forks its own workers
+_EARLY = None
 
 
 def _lean(fn):
@@ -279,6 +282,13 @@ class parallel:
         calls = _DEFERRED
         try:
             if exc_type is not None or not calls:
+                return False
+            global _EARLY
+            early, _EARLY = _EARLY, None        # used once
+            done = early.draw(calls) if early is not None else None
+            if done is not None:                # drawn by the drawer, but for its failures
+                for k in [k for k, ok in enumerate(done) if not ok]:
+                    _run_deferred(k)
                 return False
             from contextlib import closing
 
