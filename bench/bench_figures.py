@@ -127,6 +127,34 @@ from generator.report.report import fit_report
 unit, data, out, mode = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4]
 cs = pipeline.fit(unit, [data])
 
+if mode in ("report", "report_nofig"):
+    # the whole report as `magcal fit` writes it (its drawer, where the tree has one,
+    # started at its beginning), or with the figure calls recorded and not drawn (and no
+    # drawer): the difference is the wall time the figures add to the report
+    marks = {}
+    def say(m):
+        marks.setdefault(m, time.perf_counter())
+    if mode == "report_nofig":
+        class Recorder(F.parallel):
+            def __exit__(self, exc_type, exc, tb):
+                F._DEFERRED = None
+                return False
+        F.parallel = Recorder
+        try:
+            import contextlib
+            from generator.report import drawer
+            drawer.early_drawer = lambda *a, **k: contextlib.nullcontext()
+        except ImportError:
+            pass
+    w0, c0 = time.perf_counter(), os.times()
+    fit_report(cs, out / "report", [data], progress=say)
+    w1, c1 = time.perf_counter(), os.times()
+    block = [t for m, t in marks.items() if "drawing the figures" in m] + \
+        [t for m, t in marks.items() if "figures drawn" in m]
+    print(json.dumps({"report_wall_s": w1 - w0, "report_cpu_s": sum(c1[:4]) - sum(c0[:4]),
+                      "block_wall_s": block[1] - block[0] if len(block) == 2 else None}))
+    sys.exit(0)
+
 calls = []
 class Recorder(F.parallel):         # collect the deferred calls, draw nothing
     def __exit__(self, exc_type, exc, tb):
@@ -158,11 +186,22 @@ else:
     # each worker's CPU (written by the worker when the pipe is empty) and the parent's
     # until the fork (matplotlib's import and the warm-up): on a free second core the wall
     # time is about the parent's share plus the larger worker's
-    claimed, warm = getattr(F, "_draw_claimed", None), F._warm_up   # older trees: no hand-out
+    # the hand-out: _draw_or_report per figure in the workers (8248fa4 and later; older
+    # trees: _draw_claimed per worker); each worker adds each call's CPU to its own file
+    claimed, warm = getattr(F, "_draw_claimed", None), F._warm_up
+    per_call = getattr(F, "_draw_or_report", None)
+    def add_cpu(s):
+        p = out / f"worker_cpu_{os.getpid()}"
+        p.write_text(repr(s + (float(p.read_text()) if p.exists() else 0.0)))
     def timed_claims(fd):
         c0 = time.process_time()
         res = claimed(fd)
-        (out / f"worker_cpu_{os.getpid()}").write_text(repr(time.process_time() - c0))
+        add_cpu(time.process_time() - c0)
+        return res
+    def timed_call(k):
+        c0 = time.process_time()
+        res = per_call(k)
+        add_cpu(time.process_time() - c0)
         return res
     pre = {}
     def timed_warm_up():
@@ -171,6 +210,8 @@ else:
     F._warm_up = timed_warm_up
     if claimed is not None:
         F._draw_claimed = timed_claims
+    elif per_call is not None:
+        F._draw_or_report = timed_call
     w0, c0 = time.perf_counter(), os.times()
     c0p = time.process_time()
     with F.parallel(workers=2):
@@ -184,7 +225,8 @@ else:
 
 
 def run(tree: Path, out: Path, mode: str) -> dict:
-    """mode "serial" or "forked", in a fresh process (no caches of the other mode)."""
+    """mode "serial", "forked", "report" or "report_nofig", in a fresh process (no
+    caches of another mode)."""
     out.mkdir(parents=True, exist_ok=True)
     p = subprocess.run([sys.executable, "-c", DRIVER, str(FM1 / "unit.toml"),
                         str(FM1 / "thermal_12pos.csv"), str(out), mode],
@@ -197,7 +239,7 @@ def run(tree: Path, out: Path, mode: str) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--baseline-commit", default="ce2b43f")
+    ap.add_argument("--baseline-commit", default="8248fa4")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_figures_") as tmp:
         tmp = Path(tmp)
@@ -207,6 +249,12 @@ def main():
             for name, tree in trees.items():
                 res = run(tree, tmp / f"out_{name}_{r}", "serial")
                 res.update(run(tree, tmp / f"out_{name}_{r}_f", "forked"))
+                rep = run(tree, tmp / f"out_{name}_{r}_r", "report")
+                nofig = run(tree, tmp / f"out_{name}_{r}_n", "report_nofig")
+                res.update(rep)
+                res["report_nofig_wall_s"] = nofig["report_wall_s"]
+                res["report_nofig_cpu_s"] = nofig["report_cpu_s"]
+                res["nofig_block_wall_s"] = nofig["block_wall_s"]
                 rounds[name].append(res)
     best = {}
     for name, rs in rounds.items():
@@ -228,7 +276,15 @@ def main():
                       "cpu": min(res["forked_cpu_s"] for res in rs),
                       # the round whose parent share + larger worker is least
                       "free": min((res["prefork_cpu_s"] + max(res["worker_cpu_s"] or [0]),
-                                   res["prefork_cpu_s"], res["worker_cpu_s"]) for res in rs)}
+                                   res["prefork_cpu_s"], res["worker_cpu_s"]) for res in rs),
+                      # the report with its figures, without (recorded, not drawn), and
+                      # the difference within the same round
+                      "report": min(res["report_wall_s"] for res in rs),
+                      "nofig": min(res["report_nofig_wall_s"] for res in rs),
+                      "added": min(res["report_wall_s"] - res["report_nofig_wall_s"]
+                                   for res in rs),
+                      "block": min(res["block_wall_s"] for res in rs),
+                      "nofig_block": min(res["nofig_block_wall_s"] for res in rs)}
     b, t = best["baseline"], best["today"]
     print(f"figure CPU per figure function (calls, PNGs), drawn serially, best of {a.repeat} "
           f"rounds (baseline {a.baseline_commit} -> today), s:")
@@ -250,6 +306,13 @@ def main():
           f"second core, fork and pipe aside): {b['free'][0]:.3f} -> {t['free'][0]:.3f} s  "
           f"ratio {b['free'][0] / t['free'][0]:.2f}x  (before the fork {b['free'][1]:.2f} -> "
           f"{t['free'][1]:.2f} s; workers {fmt_w(b['free'])} -> {fmt_w(t['free'])} s)")
+    print(f"  fit_report as `magcal fit` runs it (best round), wall: with the figures "
+          f"{b['report']:.3f} -> {t['report']:.3f} s, without (recorded, not drawn) "
+          f"{b['nofig']:.3f} -> {t['nofig']:.3f} s; the figures' block {b['block']:.3f} -> "
+          f"{t['block']:.3f} s (without drawing {b['nofig_block']:.3f} -> "
+          f"{t['nofig_block']:.3f} s)")
+    print(f"  wall the figures add to the report (with - without, same round, best): "
+          f"{b['added']:.3f} -> {t['added']:.3f} s  ratio {b['added'] / t['added']:.2f}x")
 
 
 if __name__ == "__main__":
