@@ -35,6 +35,7 @@ import importlib
 import os
 import pickle
 import signal
+import struct
 
 from generator.report import figures
 
@@ -59,39 +60,170 @@ def _resolve(ref):
     return attr.draw_now if via else attr
 
 
-def _read_all(fd) -> bytes:
-    chunks = []
-    while True:
-        b = os.read(fd, 1 << 20)
-        if not b:
-            return b"".join(chunks)
-        chunks.append(b)
+_MSG = struct.Struct("<iQ")      # item number (-1: the end, n in the length), length
 
 
-def _write_all(fd, data: bytes) -> None:
+def _write_all(fd, data) -> None:
     view = memoryview(data)
     while view:
         view = view[os.write(fd, view):]
 
 
-def _drawer_main(calls_fd, result_fd, workers) -> None:
-    """The drawer: matplotlib imported and warmed up, then the calls read to the end of
-    the pipe (none: exit), drawn by forked workers; the ok flags written back. Never
-    returns (os._exit)."""
+class _Messages:
+    """Length-prefixed messages (_MSG) read from a pipe as they arrive."""
+
+    def __init__(self, fd):
+        self.fd, self.buf, self.open = fd, bytearray(), True
+
+    def pump(self) -> list:
+        """Read what the pipe has (one read): the complete messages [(k, bytes)]."""
+        chunk = os.read(self.fd, 1 << 20)
+        if not chunk:
+            self.open = False
+        self.buf += chunk
+        out = []
+        while len(self.buf) >= _MSG.size:
+            k, n = _MSG.unpack_from(self.buf)
+            if k < 0:                   # the end: n is the number of calls
+                out.append((k, n))
+                del self.buf[:_MSG.size]
+                continue
+            if len(self.buf) < _MSG.size + n:
+                break
+            out.append((k, bytes(self.buf[_MSG.size:_MSG.size + n])))
+            del self.buf[:_MSG.size + n]
+        return out
+
+    def next(self):
+        """The next complete message, or None at the end of the pipe (blocks)."""
+        while True:
+            if len(self.buf) >= _MSG.size:
+                k, n = _MSG.unpack_from(self.buf)
+                if k < 0:
+                    del self.buf[:_MSG.size]
+                    return k, n
+                if len(self.buf) >= _MSG.size + n:
+                    data = bytes(self.buf[_MSG.size:_MSG.size + n])
+                    del self.buf[:_MSG.size + n]
+                    return k, data
+            if not self.open:
+                return None
+            chunk = os.read(self.fd, 1 << 20)
+            if not chunk:
+                self.open = False
+            self.buf += chunk
+
+
+def _worker_main(calls_fd, result_fd) -> None:
+    """A drawing worker: each call it is given drawn, (k, ok) written back; ends at the end
+    of its pipe. Never returns (os._exit)."""
     code = 1
     try:
-        from contextlib import closing
+        msgs = _Messages(calls_fd)
+        while True:
+            m = msgs.next()
+            if m is None:
+                break
+            k, data = m
+            try:
+                ref, args, kwargs = pickle.loads(data)
+                _resolve(ref)(*args, **kwargs)
+                ok = True
+            except Exception:       # noqa: BLE001 -- drawn again (and raised) by the parent
+                ok = False
+            _write_all(result_fd, _RESULT.pack(k, ok))
+        code = 0
+    except BaseException:       # noqa: BLE001 -- the drawer reports its call as failed
+        pass
+    finally:
+        try:
+            from generator.forked import _flush_std
+            _flush_std()
+        finally:
+            os._exit(code)
 
-        from generator.forked import forked_map
+
+_RESULT = struct.Struct("<i?")
+
+
+def _drawer_main(calls_fd, result_fd, workers) -> None:
+    """The drawer: matplotlib imported and warmed up, its workers forked (they inherit
+    both), then each call that arrives handed to an idle worker, and at the end the ok
+    flag of every call written back (a call whose worker died: not ok). Never returns."""
+    code = 1
+    try:
+        import select
         figures._warm_up()
-        data = _read_all(calls_fd)
-        if data:
-            calls = [(_resolve(ref), args, kwargs) for ref, args, kwargs in pickle.loads(data)]
-            figures._DEFERRED = calls
-            with closing(forked_map(figures._draw_or_report, range(len(calls)), workers,
-                                    on_demand=True)) as done:
-                ok = [bool(x) for x in done]
-            _write_all(result_fd, pickle.dumps(ok))
+        pool = {}               # result read end -> [pid, calls write end, call or None]
+        for _ in range(workers):
+            cr, cw = os.pipe()
+            rr, rw = os.pipe()
+            pid = os.fork()
+            if pid == 0:
+                try:           # only its own two ends stay open
+                    for fd in [cw, rr, calls_fd, result_fd] + [v[1] for v in pool.values()] \
+                            + list(pool):
+                        os.close(fd)
+                finally:
+                    _worker_main(cr, rw)
+            os.close(cr)
+            os.close(rw)
+            pool[rr] = [pid, cw, None]
+        parent = _Messages(calls_fd)
+        queue, ok, end = [], {}, None
+        partial = {rr: b"" for rr in pool}
+        while end is None or len(ok) < end:
+            for rr, w in pool.items():          # hand out: the next call to an idle worker
+                if w[2] is None and w[1] is not None and queue:
+                    k, data = queue.pop(0)
+                    try:
+                        _write_all(w[1], _MSG.pack(k, len(data)) + data)
+                        w[2] = k
+                    except OSError:             # the worker is gone
+                        ok[k] = False
+            live = [rr for rr, w in pool.items() if w[1] is not None]
+            if not live and queue:              # no worker left: not drawn here
+                for k, _ in queue:
+                    ok[k] = False
+                queue = []
+            watch = live + ([calls_fd] if parent.open else [])
+            if not watch:
+                break
+            ready, _, _ = select.select(watch, [], [])
+            for fd in ready:
+                if fd == calls_fd:
+                    for k, data in parent.pump():
+                        if k < 0:
+                            end = data
+                        else:
+                            queue.append((k, data))
+                    continue
+                chunk = os.read(fd, 4096)
+                w = pool[fd]
+                if not chunk:                   # the worker died: its call not drawn
+                    if w[2] is not None:
+                        ok[w[2]] = False
+                    os.close(w[1])
+                    w[1], w[2] = None, None
+                    continue
+                partial[fd] += chunk
+                while len(partial[fd]) >= _RESULT.size:
+                    k, good = _RESULT.unpack_from(partial[fd])
+                    partial[fd] = partial[fd][_RESULT.size:]
+                    ok[k] = bool(good)
+                    w[2] = None
+            if end is None and not parent.open:     # the parent went away
+                break
+        if end is not None:
+            _write_all(result_fd, pickle.dumps([ok.get(k, False) for k in range(end)]))
+        for rr, w in pool.items():
+            if w[1] is not None:
+                os.close(w[1])                  # the worker ends at the end of its pipe
+        for rr, w in pool.items():
+            try:
+                os.waitpid(w[0], 0)
+            except OSError:
+                pass
         code = 0
     except BaseException:       # noqa: BLE001 -- the parent draws what is not reported
         pass
@@ -107,6 +239,7 @@ class _Drawer:
     def __init__(self, workers):
         from generator.forked import _flush_std
         self.pid = None
+        self.broken = False
         calls_r, calls_w = os.pipe()
         try:
             result_r, result_w = os.pipe()
@@ -145,31 +278,48 @@ class _Drawer:
         os.close(result_w)
         self.calls_w, self.result_r = calls_w, result_r
 
-    def draw(self, calls):
-        """Send the calls [(fn, args, kwargs)]; the drawer's ok flag per call, or None when
-        it did not draw them (calls that do not pickle, a broken pipe, a drawer that
-        died). Any exception or interrupt here kills the drawer before it goes on."""
+    def send(self, k, fn, args, kwargs) -> None:
+        """Call k, sent to the drawer as soon as it is recorded: its workers draw it while
+        this process goes on. A call that does not pickle or a drawer gone: the drawer is
+        given up (parallel() then draws every call itself)."""
+        if self.broken:
+            return
         try:
             try:
-                data = pickle.dumps([(_ref(fn), args, kwargs) for fn, args, kwargs in calls],
-                                    protocol=pickle.HIGHEST_PROTOCOL)
+                data = pickle.dumps((_ref(fn), args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
+                _write_all(self.calls_w, _MSG.pack(k, len(data)) + data)
             except Exception:       # noqa: BLE001 -- not for the drawer: parallel() draws
+                self.broken = True
                 self.close(kill=True)
-                return None
+        except BaseException:
+            self.close(kill=True)
+            raise
+
+    def finish(self, n):
+        """The drawer's ok flag for each of the n calls sent, or None when it did not draw
+        them (module doc). An exception or interrupt here kills the drawer first."""
+        if self.broken:
+            return None
+        try:
             try:
-                _write_all(self.calls_w, data)
+                _write_all(self.calls_w, _MSG.pack(-1, n))
             except OSError:          # the drawer is gone
                 self.close(kill=True)
                 return None
             os.close(self.calls_w)
             self.calls_w = None
-            raw = _read_all(self.result_r)
+            chunks = []
+            while True:
+                b = os.read(self.result_r, 1 << 16)
+                if not b:
+                    break
+                chunks.append(b)
             try:
-                ok = pickle.loads(raw) if raw else None
+                ok = pickle.loads(b"".join(chunks)) if chunks else None
             except Exception:       # noqa: BLE001 -- cut short: the drawer died
                 ok = None
             self.close(kill=ok is None)
-            if ok is not None and len(ok) != len(calls):
+            if ok is not None and len(ok) != n:
                 return None
             return ok
         except BaseException:

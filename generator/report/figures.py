@@ -221,6 +221,14 @@ def _lean(fn):
     return run
 
 
+def _defer(fn, args, kwargs):
+    """Record a figure call inside parallel(); with a drawer started early, also send it
+    there at once (its workers draw while this process goes on)."""
+    _DEFERRED.append((fn, args, kwargs))
+    if _EARLY is not None:
+        _EARLY.send(len(_DEFERRED) - 1, fn, args, kwargs)
+
+
 def _deferrable(paths_of):
     def deco(fn):
         fn = _lean(fn)
@@ -228,7 +236,7 @@ def _deferrable(paths_of):
         def wrapper(*args, **kwargs):
             if _DEFERRED is None:
                 return fn(*args, **kwargs)
-            _DEFERRED.append((fn, args, kwargs))
+            _defer(fn, args, kwargs)
             return paths_of(*args, **kwargs)
         wrapper.__name__, wrapper.__doc__ = fn.__name__, fn.__doc__
         wrapper.draw_now = fn
@@ -285,7 +293,7 @@ class parallel:
                 return False
             global _EARLY
             early, _EARLY = _EARLY, None        # used once
-            done = early.draw(calls) if early is not None else None
+            done = early.finish(len(calls)) if early is not None else None
             if done is not None:                # drawn by the drawer, but for its failures
                 for k in [k for k, ok in enumerate(done) if not ok]:
                     _run_deferred(k)
@@ -403,7 +411,7 @@ def coefficient_grids(jobs) -> list:
     meanwhile."""
     if _DEFERRED is None:
         return _coefficient_grids(jobs)
-    _DEFERRED.append((_coefficient_grids, (jobs,), {}))
+    _defer(_coefficient_grids, (jobs,), {})
     return [Path(j["path"]) for j in jobs]
 
 
