@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -17,9 +18,11 @@ from generator.report import drawer, figures
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this system")
 
 
-def fake_figure(path, fail=False, note=None):
+def fake_figure(path, fail=False, note=None, die_unless=None):
     """A 'figure': writes the pid of the process that drew it and of its parent; fail:
-    raise."""
+    raise; die_unless: end the process at once unless it is that pid."""
+    if die_unless is not None and os.getpid() != die_unless:
+        os._exit(3)
     if fail:
         raise ValueError(f"cannot draw {Path(path).name}")
     Path(path).write_text(f"{os.getpid()} {os.getppid()}")
@@ -113,3 +116,30 @@ def test_no_drawer_with_one_worker(tmp_path):
         with figures.parallel(workers=1):
             fake_figure(p)
     assert _drawn_by([p]) == [os.getpid()]
+
+
+def test_a_figure_is_drawn_while_the_block_goes_on(tmp_path):
+    """The first figure exists before the parallel() block ends: the drawer had it as
+    soon as it was asked for."""
+    first, second = tmp_path / "f0.txt", tmp_path / "f1.txt"
+    with drawer.early_drawer(workers=2) as d:
+        pid = d.pid
+        with figures.parallel(workers=2):
+            fake_figure(first)
+            deadline = time.monotonic() + 20.0      # a fork and a file write: far less
+            while not first.exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert first.exists()
+            fake_figure(second)
+    assert _parents([first, second]) == {pid}
+
+
+def test_a_dying_worker_leaves_its_figure_to_this_process(tmp_path):
+    parent = os.getpid()
+    paths = [tmp_path / f"f{k}.txt" for k in range(4)]
+    with drawer.early_drawer(workers=2):
+        with figures.parallel(workers=2):
+            for k, p in enumerate(paths):
+                fake_figure(p, die_unless=parent if k == 2 else None)
+    assert all(p.exists() for p in paths)
+    assert _drawn_by(paths)[2] == parent

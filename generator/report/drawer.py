@@ -1,28 +1,28 @@
-"""The report's figure drawer started before the figures are asked for.
+"""The report's figure drawer, started before the figures are asked for.
 
-Drawing the figures of a report begins with importing matplotlib and a first draw (its
-fonts): ~0.3 s of one core, the same every time, before the figures' forked workers can
-start (figures.parallel). A report first computes what its figures show (the telemetry
-read again, the segments, the per-level fits: CampaignAnalysis, ~0.5 s): a process
-forked at that point (the drawer) imports matplotlib and makes its first draw on the
-other core meanwhile, then waits for the figures. When the parallel() block ends, its
-recorded calls are sent to the drawer (pickled through a pipe: the arrays drawn, ~15 MB
-for the thermal campaign, ~0.1 s to pickle and load), which draws them with its own
-forked workers (generator.forked.forked_map, on demand, as parallel() does) and answers
-with which figures it drew.
+Drawing a report's figures begins with importing matplotlib and a first draw (its
+fonts): ~0.3 s of one core, the same every time, before figures.parallel() can fork its
+workers. A report first computes what its figures show (the telemetry read again, the
+segments, the per-level fits: CampaignAnalysis, ~0.5 s). The drawer is a process forked
+at that point: it imports matplotlib and makes its first draw on the other core
+meanwhile, then forks its workers (they inherit both) and waits. Inside the parallel()
+block each figure call is sent to it as soon as it is recorded (pickled through a pipe:
+the arrays drawn, ~15 MB for the thermal campaign) and handed to an idle worker, so the
+figures are drawn while this process computes the data of the next ones; at the end of
+the block the drawer answers with which calls it drew.
 
     with early_drawer():            # forks the drawer (or does nothing: see below)
         ...                         # the report's own work
-        with figures.parallel():    # the figures recorded, then sent to the drawer
+        with figures.parallel():    # each figure call sent to the drawer as recorded
             ...
 
-Failures keep parallel()'s behaviour: a figure that raised in the drawer's workers is
-drawn again in this process, where its error is raised; a drawer that died, calls that do
-not pickle, or a pipe that broke leave every figure to parallel()'s own path (forked
-workers of this process). An exception or interrupt in this process kills the drawer and
-its workers (its own process group) and reaps it; a drawer never used (no figure asked
-for) reads the end of its pipe and exits. This process never imports matplotlib when the
-drawer draws everything.
+Failures keep parallel()'s behaviour: a figure that raised in a worker, or whose worker
+died, is drawn again in this process, where its error is raised; a call that does not
+pickle, a broken pipe or a dead drawer leave every figure to parallel()'s own path
+(forked workers of this process; files a worker had written are written again, the same
+bytes). An exception or interrupt in this process kills the drawer and its workers (its
+own process group) and reaps it; so does the end of the block when no figure was asked
+for. This process does not import matplotlib when the drawer draws everything.
 
 No drawer (parallel() as before) where generator.forked would not fork: fewer than 2
 workers (MAGCAL_WORKERS=1), no fork, in a forked child, while other threads run.
