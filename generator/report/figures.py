@@ -274,7 +274,11 @@ class parallel:
 
     The figures are handed out as the children ask for them, not dealt in advance
     (forked_map's on_demand), so a child that drew an expensive figure draws fewer of the
-    rest. A figure no child reports as drawn (its child failed or died) is drawn here."""
+    rest. A figure no child reports as drawn (its child failed or died) is drawn here.
+
+    Within generator.report.drawer.early_drawer() the calls go to that drawer instead,
+    each as soon as it is recorded (matplotlib already imported there, the figures drawn
+    while the block goes on); what it did not draw is drawn as above."""
 
     def __init__(self, workers=None):
         from generator.forked import default_workers
