@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _axes_title, _deferrable,
-                                      _figure, _fixed_ticks, _lean_ticks, _save)
+                                      _figure, _save)
+from generator.report.lean_axis import fixed_ticks as _fixed_ticks
+from generator.report.lean_axis import lean_ticks as _lean_ticks
 
 BAND = 0.35          # sphere_projections: points within 0.35 |B| of the plane (~20 deg)
 MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only gets slower

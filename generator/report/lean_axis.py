@@ -24,6 +24,10 @@ matplotlib's own drawing).
 Applied only to an axis whose existing ticks are all styled like its first (no single
 tick label coloured or sized differently: what the report's figures never do); any other
 axis keeps matplotlib's own.
+
+Also here, the figures' other tick choices: few ticks (lean_ticks), explicit ticks
+without a tick object per location (fixed_ticks), locators that return only the
+locations in view (ticks_in_view, which also puts every axis of a figure on _LeanAxis).
 """
 
 from __future__ import annotations
@@ -184,3 +188,95 @@ def lean(axis) -> bool:
         _CLASSES[cls] = type(f"Lean{cls.__name__}", (_LeanAxis, cls), {})
     axis.__class__ = _CLASSES[cls]
     return True
+
+
+# ---- the figures' tick choices -------------------------------------------------------
+def lean_ticks(ax, nx=5, ny=4, log_y=False):
+    """Few ticks: tick objects are most of the drawing time."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullLocator
+    ax.xaxis.set_major_locator(MaxNLocator(nx))
+    if log_y:
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    else:
+        ax.yaxis.set_major_locator(MaxNLocator(ny))
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_minor_locator(NullLocator())
+
+
+def fixed_ticks(axis, locs, labels, **text_kw):
+    """axis.set_ticks(locs, labels, **text_kw) without a tick object per location: the
+    same locator (FixedLocator), labels by location (the formatter set_ticklabels makes),
+    the view widened to the locations, and text_kw set on the labels of the ticks made so
+    far (the first; lean_axis draws every location from it, and matplotlib copies it into
+    any tick it makes later)."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter
+    locs = [float(v) for v in locs]
+    labels = [str(v) for v in labels]
+    if len(locs):
+        axis.set_view_interval(min(locs), max(locs))      # as Axis._set_tick_locations
+    axis.set_major_locator(FixedLocator(locs))
+    by_loc = dict(zip(locs, labels))
+    axis.set_major_formatter(FuncFormatter(lambda v, pos=None: by_loc.get(v, "")))
+    if text_kw:
+        for tick in axis.majorTicks:
+            tick.label1.set(**text_kw)
+            tick.label2.set(**text_kw)
+
+
+class _InViewTicks:
+    """Mixin for a tick locator: only the locations inside the axis's view interval (by the
+    test matplotlib's Axis._update_ticks applies before drawing, in the scale's space).
+    A locator returns a margin of locations outside the view (a log locator a decade or
+    more on each side); matplotlib builds a tick object and formats a label for every
+    location it gets, then draws only those in view. Dropping them beforehand draws the
+    same ticks, labels and grid lines, with fewer tick objects: those are most of the
+    drawing time (two lines, a grid line and two labels each)."""
+
+    def __call__(self):
+        from matplotlib.transforms import _interval_contains_close
+        locs = np.asarray(super().__call__())
+        if self.axis is None or not locs.size:
+            return locs
+        lo, hi = sorted(self.axis.get_view_interval())
+        tr = self.axis.get_transform()
+        interval = tr.transform([lo, hi])
+        keep = []
+        for v in locs:
+            try:
+                keep.append(bool(_interval_contains_close(interval, tr.transform(v))))
+            except AssertionError:      # a masked value of the scale: matplotlib skips it
+                keep.append(False)
+        return locs[np.asarray(keep, bool)]
+
+
+_IN_VIEW_CLASSES = {}
+
+
+def ticks_in_view(fig):
+    """Every plain 2D axes of fig (not colour bars): an axis without a label text gets a
+    fixed label position (set_label_coords: not measured, not drawn either way), and
+    _InViewTicks goes on its major and minor locators of the kinds that return locations
+    outside the view (MaxNLocator and AutoLocator, LogLocator, AutoMinorLocator); fixed
+    and null locators are left as they are. The locator object's class is changed in
+    place, so shared axes (one locator) follow; calling this again is harmless."""
+    from matplotlib.ticker import AutoMinorLocator, LogLocator, MaxNLocator
+    for ax in fig.axes:
+        if ax.name != "rectilinear" or hasattr(ax, "_colorbar"):
+            continue
+        for axis in (ax.xaxis, ax.yaxis):
+            lean(axis)          # its ticks drawn from one tick object (lean_axis)
+            if not axis.label.get_text() and getattr(axis, "_autolabelpos", False):
+                # no axis label: nothing to place below (beside) the tick labels, whose
+                # boxes matplotlib would otherwise measure a second time on each draw
+                axis.set_label_coords(0.5, 0.5)
+            for ticker in (axis.major, axis.minor):
+                loc = ticker.locator
+                cls = type(loc)
+                if isinstance(loc, _InViewTicks) or \
+                        not isinstance(loc, (MaxNLocator, LogLocator, AutoMinorLocator)):
+                    continue
+                if cls not in _IN_VIEW_CLASSES:
+                    _IN_VIEW_CLASSES[cls] = type(f"InView{cls.__name__}", (_InViewTicks, cls),
+                                                 {})
+                loc.__class__ = _IN_VIEW_CLASSES[cls]
