@@ -240,6 +240,7 @@ class _Drawer:
         from generator.forked import _flush_std
         self.pid = None
         self.broken = False
+        self.calls_w = self.result_r = None
         calls_r, calls_w = os.pipe()
         try:
             result_r, result_w = os.pipe()
@@ -271,12 +272,16 @@ class _Drawer:
             except OSError:
                 pass
             self.pid = pid
+            os.close(calls_r)
+            os.close(result_w)
+            self.calls_w, self.result_r = calls_w, result_r
         finally:
-            if mask:
-                signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        os.close(calls_r)
-        os.close(result_w)
-        self.calls_w, self.result_r = calls_w, result_r
+            try:
+                if mask:    # an interrupt held back during the fork is raised here
+                    signal.pthread_sigmask(signal.SIG_SETMASK, old)
+            except BaseException:
+                self.close(kill=True)       # not left running with nobody to end it
+                raise
 
     def send(self, k, fn, args, kwargs) -> None:
         """Call k, sent to the drawer as soon as it is recorded: its workers draw it while
