@@ -56,24 +56,28 @@ changed; four of the baseline's (coefficients of mmc1, positions, rms bars, twel
 positions) and today's relative error maps were looked at. No tick, label, point or panel
 was removed.
 
-The final run (2026-11-24 23:01-23:08 UTC, --repeat 3; the 2 cores shared with other
-helpers' jobs throughout: load average 5.5-6.1, so every wall time below is the load's,
-not the code's; today = 84d71a5):
-    _coefficient_grids (5 PNG)  0.932 -> 0.661 s  1.41x
-    axis_rms_bars               0.112 -> 0.095 s  1.18x
-    error_maps (2 PNG)          0.337 -> 0.223 s  1.51x
-    positions_timeline          0.385 -> 0.282 s  1.36x
-    rms_bars                    0.419 -> 0.246 s  1.70x
-    sphere_projections          0.363 -> 0.286 s  1.27x
-    temperature_profile         0.187 -> 0.176 s  1.06x
-    all figures, serial CPU: 2.849 -> 1.984 s  ratio 1.44x
-    forked (2 workers, no drawer): wall 7.804 -> 2.619 s (load); CPU 3.610 -> 2.750 s
-      1.31x; parent before the fork + larger worker 1.957 -> 1.455 s 1.34x (before the
-      fork 0.30 -> 0.30 s; workers 1.43/1.65 -> 1.11/1.16 s)
-    fit_report: with the figures 9.887 -> 3.069 s, without 1.686 -> 0.914 s (load);
-      the figures' block 8.670 -> 2.129 s (without drawing 0.573 -> 0.308 s)
-    today's drawer: its workers' figure CPU 0.92/0.99 s
-    wall the figures add to the report: 8.202 -> 2.155 s (load)
+The final run (2026-11-24 23:30-23:34 UTC, --repeat 3; load average 2.2-3.8 sampled
+every 15 s, this benchmark's own process counted: the second core was never free, so
+every wall time below is partly the load's; today = 296756e):
+    _coefficient_grids (5 PNG)  0.853 -> 0.593 s  1.44x
+    axis_rms_bars               0.101 -> 0.093 s  1.08x
+    error_maps (2 PNG)          0.311 -> 0.201 s  1.54x
+    positions_timeline          0.359 -> 0.259 s  1.39x
+    rms_bars                    0.362 -> 0.269 s  1.35x
+    sphere_projections          0.366 -> 0.245 s  1.49x
+    temperature_profile         0.171 -> 0.169 s  1.01x
+    all figures, serial CPU: 2.552 -> 1.877 s  ratio 1.36x
+    forked (2 workers, no drawer): wall 3.062 -> 2.565 s 1.19x; CPU 3.260 -> 2.680 s
+      1.22x; parent before the fork + larger worker 1.748 -> 1.485 s 1.18x (before the
+      fork 0.30 -> 0.36 s; workers 1.35/1.45 -> 1.06/1.13 s)
+    fit_report: with the figures 5.648 -> 3.447 s, without 0.825 -> 0.793 s; the
+      figures' block 4.816 -> 2.436 s (without drawing 0.272 -> 0.277 s)
+    today's drawer: its workers' figure CPU 1.05/1.13 s
+    wall the figures add to the report: 4.277 -> 2.654 s  ratio 1.61x
+  The run before (23:01-23:08 UTC, load 5.5-6.1, today = 84d71a5, the same code but for
+  a kill of the drawer on an interrupt during its fork and the tick helpers moved to
+  lean_axis): serial 2.849 -> 1.984 s, 1.44x; forked workers 1.43/1.65 -> 1.11/1.16 s;
+  the drawer's workers 0.92/0.99 s; the figures add 8.202 -> 2.155 s (load).
   Earlier runs the same afternoon (22:38 UTC, load 3.9-5.9, the steps before the drawer
   streamed its calls: serial 2.521 -> 1.927 s, 1.31x; 22:52 UTC, load 5.5-7.2, batch
   drawer: serial 2.614 -> 1.945 s, 1.34x, workers 1.57/1.60 -> 1.01/1.15 s) agree.
@@ -81,12 +85,14 @@ not the code's; today = 84d71a5):
   0.9-6.7, the steps up to the glyph cache) took 1.69-1.86 s.
 The 1 s target is NOT shown to be reached. No run had a free second core, so no wall
 time here says what a user on a quiet machine sees. Estimated from CPU for a free second
-core: with the drawer, the figures add about the larger worker's share, ~0.95-1.0 s
-(0.92/0.99 s above, measured under load, which inflates CPU time too), plus pickling the
-calls (~15 MB, tens of ms) and the wait for the last figure; without the drawer (the
-forked path) ~1.45 s. Where the rest goes (py-spy, serial, 22:31 UTC): text ~23 % (a new
-string's HarfBuzz layout and extents, ~0.7 ms each, ~370 distinct strings per process,
-paid again in each worker), axes creation ~12 % (spines, the first ticks, clip paths),
+core: with the drawer, the figures add about the larger worker's share, ~1.0-1.1 s
+(0.99 and 1.13 s in the two runs above, measured under load, which inflates CPU time
+too), plus pickling the calls (~15 MB, tens of ms) and the wait for the last figure;
+without the drawer (the forked path) ~1.45-1.5 s; at 8248fa4 ~1.75-1.95 s. Measured, at
+load 2.2-3.8, the figures added 2.65 s (8248fa4: 4.28 s). Where the rest goes (py-spy,
+serial, 22:31 UTC): text ~23 % (a new string's HarfBuzz layout and extents, ~0.7 ms
+each, ~370 distinct strings per process, paid again in each worker), axes creation
+~12 % (spines, the first ticks, clip paths),
 tick labels' layout and drawing in the lean axes, PNG encoding ~7 %, legends ~5 %.
 Further cuts: fewer distinct tick labels (a content decision: the coefficient grids
 draw ~60 new y labels per sensor), or text laid out once for its extents and its glyphs
