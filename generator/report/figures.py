@@ -11,6 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from generator.report.lean_axis import fixed_ticks as _fixed_ticks
+from generator.report.lean_axis import lean_ticks as _lean_ticks
+from generator.report.lean_axis import ticks_in_view as _ticks_in_view
+
 DPI = 90
 _AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")     # X red, Y green, Z blue
 _BEFORE, _AFTER = "#bbbbbb", "#1f77b4"
@@ -84,81 +88,14 @@ def _axes_title(ax, text, fontsize=9):
     ax.set_title(text, fontsize=fontsize, y=1.0)
 
 
-def _lean_ticks(ax, nx=5, ny=4, log_y=False):
-    """Few ticks: tick objects are most of the drawing time."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullLocator
-    ax.xaxis.set_major_locator(MaxNLocator(nx))
-    if log_y:
-        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=12))
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    else:
-        ax.yaxis.set_major_locator(MaxNLocator(ny))
-    ax.xaxis.set_minor_locator(NullLocator())
-    ax.yaxis.set_minor_locator(NullLocator())
-
-
-class _InViewTicks:
-    """Mixin for a tick locator: only the locations inside the axis's view interval (by the
-    test matplotlib's Axis._update_ticks applies before drawing, in the scale's space).
-    A locator returns a margin of locations outside the view (a log locator a decade or
-    more on each side); matplotlib builds a tick object and formats a label for every
-    location it gets, then draws only those in view. Dropping them beforehand draws the
-    same ticks, labels and grid lines, with fewer tick objects: those are most of the
-    drawing time (two lines, a grid line and two labels each)."""
-
-    def __call__(self):
-        from matplotlib.transforms import _interval_contains_close
-        locs = np.asarray(super().__call__())
-        if self.axis is None or not locs.size:
-            return locs
-        lo, hi = sorted(self.axis.get_view_interval())
-        tr = self.axis.get_transform()
-        interval = tr.transform([lo, hi])
-        keep = []
-        for v in locs:
-            try:
-                keep.append(bool(_interval_contains_close(interval, tr.transform(v))))
-            except AssertionError:      # a masked value of the scale: matplotlib skips it
-                keep.append(False)
-        return locs[np.asarray(keep, bool)]
-
-
-_IN_VIEW_CLASSES = {}
-
-
-def _ticks_in_view(fig):
-    """Every plain 2D axes of fig (not colour bars): an axis without a label text gets a
-    fixed label position (set_label_coords: not measured, not drawn either way), and
-    _InViewTicks goes on its major and minor locators of the kinds that return locations
-    outside the view (MaxNLocator and AutoLocator, LogLocator, AutoMinorLocator); fixed
-    and null locators are left as they are. The locator object's class is changed in
-    place, so shared axes (one locator) follow; calling this again is harmless."""
-    from matplotlib.ticker import AutoMinorLocator, LogLocator, MaxNLocator
-    for ax in fig.axes:
-        if ax.name != "rectilinear" or hasattr(ax, "_colorbar"):
-            continue
-        for axis in (ax.xaxis, ax.yaxis):
-            if not axis.label.get_text() and getattr(axis, "_autolabelpos", False):
-                # no axis label: nothing to place below (beside) the tick labels, whose
-                # boxes matplotlib would otherwise measure a second time on each draw
-                axis.set_label_coords(0.5, 0.5)
-            for ticker in (axis.major, axis.minor):
-                loc = ticker.locator
-                cls = type(loc)
-                if isinstance(loc, _InViewTicks) or \
-                        not isinstance(loc, (MaxNLocator, LogLocator, AutoMinorLocator)):
-                    continue
-                if cls not in _IN_VIEW_CLASSES:
-                    _IN_VIEW_CLASSES[cls] = type(f"InView{cls.__name__}", (_InViewTicks, cls),
-                                                 {})
-                loc.__class__ = _IN_VIEW_CLASSES[cls]
-
-
 # ---- drawing several figures at once -----------------------------------------------------
 # Inside `with parallel():` the figure functions decorated with @_deferrable only record
 # their call and return the path(s) they will write; leaving the block draws them all, in
 # forked worker processes (one per core), since drawing is most of a report's time.
 _DEFERRED = None
+# a drawer started before the figures were asked for (generator.report.drawer), which
+# parallel() hands its calls to; None: parallel() forks its own workers
+_EARLY = None
 
 
 def _lean(fn):
@@ -195,6 +132,14 @@ def _lean(fn):
     return run
 
 
+def _defer(fn, args, kwargs):
+    """Record a figure call inside parallel(); with a drawer started early, also send it
+    there at once (its workers draw while this process goes on)."""
+    _DEFERRED.append((fn, args, kwargs))
+    if _EARLY is not None:
+        _EARLY.send(len(_DEFERRED) - 1, fn, args, kwargs)
+
+
 def _deferrable(paths_of):
     def deco(fn):
         fn = _lean(fn)
@@ -202,7 +147,7 @@ def _deferrable(paths_of):
         def wrapper(*args, **kwargs):
             if _DEFERRED is None:
                 return fn(*args, **kwargs)
-            _DEFERRED.append((fn, args, kwargs))
+            _defer(fn, args, kwargs)
             return paths_of(*args, **kwargs)
         wrapper.__name__, wrapper.__doc__ = fn.__name__, fn.__doc__
         wrapper.draw_now = fn
@@ -240,7 +185,11 @@ class parallel:
 
     The figures are handed out as the children ask for them, not dealt in advance
     (forked_map's on_demand), so a child that drew an expensive figure draws fewer of the
-    rest. A figure no child reports as drawn (its child failed or died) is drawn here."""
+    rest. A figure no child reports as drawn (its child failed or died) is drawn here.
+
+    Within generator.report.drawer.early_drawer() the calls go to that drawer instead,
+    each as soon as it is recorded (matplotlib already imported there, the figures drawn
+    while the block goes on); what it did not draw is drawn as above."""
 
     def __init__(self, workers=None):
         from generator.forked import default_workers
@@ -256,6 +205,13 @@ class parallel:
         calls = _DEFERRED
         try:
             if exc_type is not None or not calls:
+                return False
+            global _EARLY
+            early, _EARLY = _EARLY, None        # used once
+            done = early.finish(len(calls)) if early is not None else None
+            if done is not None:                # drawn by the drawer, but for its failures
+                for k in [k for k, ok in enumerate(done) if not ok]:
+                    _run_deferred(k)
                 return False
             from contextlib import closing
 
@@ -370,7 +326,7 @@ def coefficient_grids(jobs) -> list:
     meanwhile."""
     if _DEFERRED is None:
         return _coefficient_grids(jobs)
-    _DEFERRED.append((_coefficient_grids, (jobs,), {}))
+    _defer(_coefficient_grids, (jobs,), {})
     return [Path(j["path"]) for j in jobs]
 
 
@@ -380,7 +336,12 @@ def _coefficient_grids(jobs) -> list:
     axes and their ticks are built once, which halves the cost of every further sensor.
     jobs: list of dicts with coefficient_grid's arguments. Returns the paths."""
     fig = _figure(13.0, 7.2)
-    axes = fig.subplots(3, 4, sharex=True)
+    # the same x limits set on every axes (below) instead of shared x axes: matplotlib
+    # walks the share group on every look at a shared axes' limits; tick labels on the
+    # bottom row only, as sharex=True puts them
+    axes = fig.subplots(3, 4)
+    for ax in axes[:-1].ravel():
+        ax.tick_params(axis="x", labelbottom=False)
     order = [axes[c, 0] for c in range(3)] + [axes[i, j + 1] for i in range(3) for j in range(3)]
     titles = []
     for ax in order:
@@ -395,7 +356,9 @@ def _coefficient_grids(jobs) -> list:
     sup = fig.suptitle("", fontsize=11)
     fig.subplots_adjust(left=0.06, right=0.99, top=0.91, bottom=0.08, wspace=0.32, hspace=0.32)
     paths = []
+    made = [None] * len(order)      # per axes: its artists and the data shape they show
     for job in jobs:
+        new_legend = False
         level_T = np.asarray(job["level_T"], float).reshape(-1)
         level_val = np.asarray(job["level_val"], float).reshape(len(level_T), 12)
         level_sig = np.asarray(job["level_sig"], float).reshape(len(level_T), 12)
@@ -404,25 +367,53 @@ def _coefficient_grids(jobs) -> list:
         curve_band = np.asarray(job["curve_band"], float).reshape(len(curve_T), 12)
         t_range = job.get("t_range")
         for c, ax in enumerate(order):
-            for a in list(ax.lines) + list(ax.collections) + list(ax.patches):
-                a.remove()
-            ax.containers.clear()
             band = curve_band[:, c]
             ok = np.isfinite(band)
+            sig = np.where(np.isfinite(level_sig[:, c]), level_sig[:, c], 0.0)
             lo_hi = [curve_val[:, c]]
             if ok.any():
-                ax.fill_between(curve_T[ok], curve_val[ok, c] - band[ok],
-                                curve_val[ok, c] + band[ok], color="#1f77b4", alpha=0.25, lw=0,
-                                label="polynomial ±1σ")
                 lo_hi += [curve_val[ok, c] - band[ok], curve_val[ok, c] + band[ok]]
-            ax.plot(curve_T, curve_val[:, c], "-", color="#1f77b4", lw=1.3,
-                    label="fitted polynomial")
             if len(level_T):
-                sig = np.where(np.isfinite(level_sig[:, c]), level_sig[:, c], 0.0)
-                ax.errorbar(level_T, level_val[:, c], yerr=sig, fmt="o", ms=3.5,
-                            color="#d62728", ecolor="#d62728", capsize=2, lw=1,
-                            label="per-level estimate ±1σ")
                 lo_hi += [level_val[:, c] - sig, level_val[:, c] + sig]
+            shape = (bool(ok.any()), bool(len(level_T)))
+            if made[c] is not None and made[c]["shape"] == shape:
+                # the artists of the previous sensor given this sensor's data (making
+                # them anew was half this figure's time): the same artists as new ones
+                a = made[c]
+                if ok.any():
+                    a["fill"].set_data(curve_T[ok], curve_val[ok, c] - band[ok],
+                                       curve_val[ok, c] + band[ok])
+                a["line"].set_data(curve_T, curve_val[:, c])
+                if len(level_T):
+                    # as Axes.errorbar: the marker line, the two cap lines at y -/+ sigma
+                    # and the bars from one to the other (vlines)
+                    data_line, (cap_lo, cap_hi), (bars,) = a["errorbar"]
+                    low, high = level_val[:, c] - sig, level_val[:, c] + sig
+                    data_line.set_data(level_T, level_val[:, c])
+                    cap_lo.set_data(level_T, low)
+                    cap_hi.set_data(level_T, high)
+                    bars.set_segments(np.stack([np.stack([level_T, low], -1),
+                                                np.stack([level_T, high], -1)], 1))
+                for p in list(ax.patches):       # the span: drawn last, as before
+                    p.remove()
+            else:
+                for a in list(ax.lines) + list(ax.collections) + list(ax.patches):
+                    a.remove()
+                ax.containers.clear()
+                made[c] = {"shape": shape}
+                if c == 0:
+                    new_legend = True
+                if ok.any():
+                    made[c]["fill"] = ax.fill_between(
+                        curve_T[ok], curve_val[ok, c] - band[ok], curve_val[ok, c] + band[ok],
+                        color="#1f77b4", alpha=0.25, lw=0, label="polynomial ±1σ")
+                made[c]["line"], = ax.plot(curve_T, curve_val[:, c], "-", color="#1f77b4",
+                                           lw=1.3, label="fitted polynomial")
+                if len(level_T):
+                    made[c]["errorbar"] = ax.errorbar(
+                        level_T, level_val[:, c], yerr=sig, fmt="o", ms=3.5,
+                        color="#d62728", ecolor="#d62728", capsize=2, lw=1,
+                        label="per-level estimate ±1σ")
             if t_range is not None:
                 ax.axvspan(*t_range, color="#2ca02c", alpha=0.04, lw=0)
             y = np.concatenate([np.ravel(v) for v in lo_hi])
@@ -437,10 +428,11 @@ def _coefficient_grids(jobs) -> list:
                 ax.set_xlim(float(xs.min()) - 0.04 * span, float(xs.max()) + 0.04 * span)
             names, units = job["names"], job["units"]
             titles[c].set_text(f"{names[c]} ({units[c]})" if units[c] else names[c])
-        leg = order[0].get_legend()
-        if leg is not None:
-            leg.remove()
-        order[0].legend(fontsize=6, loc="best")
+        if new_legend:          # its handles made anew (else: the same, given new data)
+            leg = order[0].get_legend()
+            if leg is not None:
+                leg.remove()
+            order[0].legend(fontsize=6, loc="best")
         sup.set_text(job["title"])
         paths.append(_save(fig, job["path"]))
     return paths
@@ -476,8 +468,8 @@ def rms_bars(path, title, rows) -> Path:
             ax.set_yscale("log")
             ax.set_ylim(lo, hi)
             _lean_ticks(ax, log_y=True)
-            ax.set_xticks(x)
-            ax.set_xticklabels(p["labels"], fontsize=7, rotation=0 if len(x) <= 14 else 60)
+            _fixed_ticks(ax.xaxis, x, p["labels"], fontsize=7,
+                         rotation=0 if len(x) <= 14 else 60)
             if p.get("xlabel"):
                 ax.set_xlabel(p["xlabel"], fontsize=7, labelpad=1)
             ax.tick_params(axis="y", labelsize=7)
@@ -554,10 +546,10 @@ def error_maps(path, title, rate_dps, theta_deg, maps, map_titles, unit="nT",
             continue
         im = ax.imshow(maps[k], origin="lower", aspect="auto", cmap="viridis", vmin=0,
                        vmax=vmax)
-        ax.set_xticks(range(len(theta_deg)))
-        ax.set_xticklabels([f"{t:g}" for t in theta_deg], fontsize=6)
-        ax.set_yticks(range(len(rate_dps)))
-        ax.set_yticklabels([f"{r:g}" for r in rate_dps], fontsize=6)
+        _fixed_ticks(ax.xaxis, range(len(theta_deg)), [f"{t:g}" for t in theta_deg],
+                     fontsize=6)
+        _fixed_ticks(ax.yaxis, range(len(rate_dps)), [f"{r:g}" for r in rate_dps],
+                     fontsize=6)
         ax.set_xlabel("angle between field and axis, deg", fontsize=7)
         ax.set_ylabel("rate, deg/s", fontsize=7)
         _axes_title(ax, map_titles[k], fontsize=8)

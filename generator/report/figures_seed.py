@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from generator.report.figures import (_AFTER, _AXIS_COLORS, _BEFORE, _axes_title, _deferrable,
-                                      _figure, _lean_ticks, _save)
+                                      _figure, _save)
+from generator.report.lean_axis import fixed_ticks as _fixed_ticks
+from generator.report.lean_axis import lean_ticks as _lean_ticks
 
 BAND = 0.35          # sphere_projections: points within 0.35 |B| of the plane (~20 deg)
 MAX_POINTS = 3000    # points per scatter series: beyond this the drawing only gets slower
@@ -204,8 +206,7 @@ def axis_rms_bars(path, title, names, before, after) -> Path:
         ax.bar(x + (2 * c - 1.5) * w, after[:, c], w, color=_AXIS_COLORS[c],
                label=f"after, {'xyz'[c]}")
     ax.set_yscale("log")
-    ax.set_xticks(x)
-    ax.set_xticklabels(names, fontsize=8)
+    _fixed_ticks(ax.xaxis, x, names, fontsize=8)
     ax.set_ylabel("vector residual RMS per axis, nT", fontsize=8)
     ax.tick_params(labelsize=7)
     ax.grid(axis="y", alpha=0.3, lw=0.5)

@@ -872,9 +872,19 @@ def _alignment_from_fit(cs, analysis, al, out_dir) -> Section:
 def fit_report(cs, out_dir, data_paths=(), progress=None, compare=True) -> Report:
     """The report of a fit, figures written into out_dir. compare: add the method
     comparison when the campaign has a rotation and twelve positions."""
-    say = progress or (lambda m: None)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if not data_paths:
+        return _fit_report(cs, out_dir, data_paths, progress, compare)
+    # figures to draw: their drawer (matplotlib imported, a first draw) starts now, on
+    # the other core, while this process computes what they show (generator.report.drawer)
+    from generator.report.drawer import early_drawer
+    with early_drawer():
+        return _fit_report(cs, out_dir, data_paths, progress, compare)
+
+
+def _fit_report(cs, out_dir, data_paths, progress, compare) -> Report:
+    say = progress or (lambda m: None)
     analysis = CampaignAnalysis(cs, data_paths, progress) if data_paths else None
     rep = Report(f"magcal fit: unit {cs.unit.id}")
     from generator.report.summary import summary_section
