@@ -94,6 +94,14 @@ serial, 22:31 UTC): text ~23 % (a new string's HarfBuzz layout and extents, ~0.7
 each, ~370 distinct strings per process, paid again in each worker), axes creation
 ~12 % (spines, the first ticks, clip paths),
 tick labels' layout and drawing in the lean axes, PNG encoding ~7 %, legends ~5 %.
+A run on main after the merge (2026-11-24 23:40-23:41 UTC, 549f675, load average 1.6-1.9:
+a review and nothing else beside it, --repeat 2): serial CPU 2.574 -> 1.794 s (1.44x);
+forked workers (no drawer) 1.21/1.23 -> 0.81/0.92 s; today's drawer's workers
+0.83/0.94 s; fit_report with the figures 2.552 -> 1.681 s wall, without 0.784 -> 0.748 s;
+the wall the figures add to the report (with - without, same round, best):
+1.730 -> 0.897 s, ratio 1.93x. So at that load the figures added 0.90 s, under the
+issue's 1 s; it is one run, and on a busier machine they add more (2.65 s at load
+2.2-3.8 above).
 Further cuts: fewer distinct tick labels (a content decision: the coefficient grids
 draw ~60 new y labels per sensor), or text laid out once for its extents and its glyphs
 (matplotlib lays a string out twice: FT2Font.set_text, then _layout).
