@@ -114,6 +114,16 @@ class _Messages:
             self.buf += chunk
 
 
+def _exit_child(code) -> None:
+    """End a forked process (the drawer or one of its workers): its buffered output
+    flushed, then os._exit (no parent's cleanup run twice)."""
+    try:
+        from generator.forked import _flush_std
+        _flush_std()
+    finally:
+        os._exit(code)
+
+
 def _worker_main(calls_fd, result_fd) -> None:
     """A drawing worker: each call it is given drawn, (k, ok) written back; ends at the end
     of its pipe. Never returns (os._exit)."""
@@ -136,11 +146,7 @@ def _worker_main(calls_fd, result_fd) -> None:
     except BaseException:       # noqa: BLE001 -- the drawer reports its call as failed
         pass
     finally:
-        try:
-            from generator.forked import _flush_std
-            _flush_std()
-        finally:
-            os._exit(code)
+        _exit_child(code)
 
 
 _RESULT = struct.Struct("<i?")
@@ -228,11 +234,7 @@ def _drawer_main(calls_fd, result_fd, workers) -> None:
     except BaseException:       # noqa: BLE001 -- the parent draws what is not reported
         pass
     finally:
-        try:
-            from generator.forked import _flush_std
-            _flush_std()
-        finally:
-            os._exit(code)
+        _exit_child(code)
 
 
 class _Drawer:
