@@ -155,6 +155,20 @@ def _args_fit(p):
                         "seed 000, magnitudes only (M known up to a rotation)")
 
 
+def _warn_refused_default(args, cs) -> None:
+    """A flagged output (one line on stderr, -q or not) when the flight code's table checks
+    would refuse these coefficients: `magcal table` exits 2 on them, and as a compiled-in
+    default `<unit>_table_init` replaces them by NaN (review #20d F1)."""
+    from generator.flight.tables import default_refusal
+    why = default_refusal(cs)
+    if why:
+        print(f"magcal {args.verb}: warning: {args.coeffs}: the flight code's table checks "
+              f"refuse these coefficients ({_one_line(why)}): `magcal table` will not "
+              "write them, and as the compiled-in default `<unit>_table_init` replaces "
+              "them by NaN (every correction IMPLAUSIBLE); the outputs here are not what "
+              "flight would compute", file=sys.stderr)
+
+
 @verb("apply", "correct telemetry through the compiled flight C")
 def cmd_apply(args):
     from generator.flight.coeffs import CoefficientSet
@@ -165,6 +179,7 @@ def cmd_apply(args):
     check_output_file(args.output)
     refuse_inputs(args.output, [args.coeffs, args.data])
     cs = CoefficientSet.load(args.coeffs)
+    _warn_refused_default(args, cs)
     if args.boom_stowed:
         cs = cs.with_boom_stowed()
     apply(cs, args.data, args.output, progress=_progress(args), coils_off=args.coils_off,
@@ -198,6 +213,7 @@ def cmd_generate(args):
     check_output_folder(args.output)
     cs = CoefficientSet.load(args.coeffs)
     progress = _progress(args)
+    _warn_refused_default(args, cs)
     with output_folder(args.output) as folder:
         paths = generate(cs, folder.tmp)
         if args.compile:     # before the folder is committed: no C left that fails to build

@@ -118,15 +118,16 @@ def _unfolded_flops(spec, s, set_only=False):
 
 
 def test_bound_counts_the_folds_the_issue_names():
-    """A plain counts sensor's unfolded chain does per call 3 multiplications by lsb, 3
-    subtractions of the zero count and squares the two band limits: the bound has none of
-    them. A boom sensor without rate compensation also applies H (9 multiplications, 6
+    """A plain counts sensor's unfolded chain does per call 3 multiplications by lsb and
+    squares the two band limits: the bound has none of them. Its 3 subtractions of the
+    zero count stay per call: count - zero is exact, a zero point folded into b(T) would
+    round the temperature terms added to it (review #20d F2). A boom sensor without rate compensation also applies H (9 multiplications, 6
     additions), which folds into M. The generated kernel is the folded chain: its per-call
     operations are the bound's."""
     cs = random_coeffs(np.random.default_rng(6), samsat_unit("fb"), coils=COILS)
     plain_body, plain_boom = cs.unit.sensor("mpu1"), cs.unit.sensor("mpu3")
     assert not plain_body.set_reset and plain_boom.frame == "boom"
-    for s, saved in ((plain_body, 3 + 3 + 2), (plain_boom, 3 + 3 + 2 + 15)):
+    for s, saved in ((plain_body, 3 + 2), (plain_boom, 3 + 2 + 15)):
         b = am.flop_bound(cs.spec, s)
         unfolded = _unfolded_flops(cs.spec, s)
         total = unfolded["flops"] + unfolded["coeff_only"]
@@ -158,13 +159,14 @@ def test_per_call_count_ignores_coefficient_only_operations():
 def test_bound_data_movement():
     """moves: one load per folded coefficient and input element, one store per output.
     A plain counts sensor with a cubic b(T), M(T) and three coils reads 4 x 3 offsets,
-    4 x 9 matrix entries, 3 x 3 couplings, t_ref and the two squared band limits, takes
+    4 x 9 matrix entries, 3 x 3 couplings, t_ref, its zero count and the two squared band
+    limits, takes
     3 counts, a temperature and 3 currents, writes 3 field components and 2 margins; a
     boom sensor's H is folded into M, so it reads no more."""
     cs = random_coeffs(np.random.default_rng(6), samsat_unit("fm"), coils=COILS)
     for name in ("mpu1", "mpu3"):
         b = am.flop_bound(cs.spec, cs.unit.sensor(name))
-        assert b["moves"] == (12 + 36 + 9 + 1 + 2) + (3 + 1 + 3) + (3 + 2), (name, b)
+        assert b["moves"] == (12 + 36 + 9 + 1 + 1 + 2) + (3 + 1 + 3) + (3 + 2), (name, b)
 
 
 def test_every_optional_stage_has_a_folded_form():

@@ -135,13 +135,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
         sig[2] = -c[SAMSAT_FM1_MPU1_LSB_NT];
         prepare_terms(c + SAMSAT_FM1_MPU1_B_POLY_NT, c + SAMSAT_FM1_MPU1_M_POLY, sig, 0, 4,
                       p + 0, p + 12);
-        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
-            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU1_ZERO_COUNT];
-        }
         prepare_rows(c + SAMSAT_FM1_MPU1_K_NT_PER_A, sig, 3, p + 48);
         p[57] = c[SAMSAT_FM1_MPU1_T_REF_C];
-        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
-        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+        p[58] = c[SAMSAT_FM1_MPU1_ZERO_COUNT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[60] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
     }
 
     for (i = 0; i < SAMSAT_FM1_MPU2_N_COEFFS; ++i) {
@@ -156,13 +154,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
         sig[2] = c[SAMSAT_FM1_MPU2_LSB_NT];
         prepare_terms(c + SAMSAT_FM1_MPU2_B_POLY_NT, c + SAMSAT_FM1_MPU2_M_POLY, sig, 0, 4,
                       p + 0, p + 12);
-        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
-            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU2_ZERO_COUNT];
-        }
         prepare_rows(c + SAMSAT_FM1_MPU2_K_NT_PER_A, sig, 3, p + 48);
         p[57] = c[SAMSAT_FM1_MPU2_T_REF_C];
-        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
-        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+        p[58] = c[SAMSAT_FM1_MPU2_ZERO_COUNT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[60] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
     }
 
     for (i = 0; i < SAMSAT_FM1_MMC2_N_COEFFS; ++i) {
@@ -220,13 +216,11 @@ void samsat_fm1_table_prepare(const samsat_fm1_coeffs_t *coeffs,
         sig[2] = c[SAMSAT_FM1_MPU3_LSB_NT];
         prepare_terms(c + SAMSAT_FM1_MPU3_B_POLY_NT, c + SAMSAT_FM1_MPU3_M_POLY, sig, h, 4,
                       p + 0, p + 12);
-        for (i = 0; i < 3; ++i) {   /* the zero count joins the constant offset */
-            p[0 + i] = p[0 + i] + c[SAMSAT_FM1_MPU3_ZERO_COUNT];
-        }
         prepare_rows(c + SAMSAT_FM1_MPU3_K_NT_PER_A, sig, 3, p + 48);
         p[57] = c[SAMSAT_FM1_MPU3_T_REF_C];
-        p[58] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
-        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
+        p[58] = c[SAMSAT_FM1_MPU3_ZERO_COUNT];
+        p[59] = u[SAMSAT_FM1_UNIT_FIELD_MIN_NT] * u[SAMSAT_FM1_UNIT_FIELD_MIN_NT];
+        p[60] = u[SAMSAT_FM1_UNIT_FIELD_MAX_NT] * u[SAMSAT_FM1_UNIT_FIELD_MAX_NT];
     }
 
 }

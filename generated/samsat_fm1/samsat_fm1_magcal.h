@@ -142,18 +142,22 @@ extern const samsat_fm1_coeffs_t samsat_fm1_coeffs_default;
 /* ---- Prepared coefficients: what the correction reads ----
  * The kernels read constants folded once from a coefficient set (generator/flight/chain.py
  * fold_sensor_coeffs): the count-to-nT scale and the axis signs folded into b, K and M,
- * H M for boom sensors, the squared band limits. samsat_fm1_table_prepare computes them;
- * the table manager does so when it activates a table (samsat_fm1_table_prepared), and
- * samsat_fm1_table_prepared_default holds those of the compiled-in defaults (computed at
- * generate time, bit-identical to samsat_fm1_table_prepare(&samsat_fm1_coeffs_default)).
- * Fill one only through samsat_fm1_table_prepare. */
+ * H M for a boom sensor without SET/RESET rate compensation, the squared band limits.
+ * samsat_fm1_table_prepare computes them; the table manager does so when it activates a
+ * table: take them from samsat_fm1_table_prepared(mgr), which also holds the all-NaN
+ * fallback when the compiled-in defaults fail the table checks at init.
+ * samsat_fm1_table_prepared_default holds those of the compiled-in defaults as they are
+ * (computed at generate time, bit-identical to
+ * samsat_fm1_table_prepare(&samsat_fm1_coeffs_default)), WITHOUT the table checks: for
+ * tests and for a build without the table manager only. Fill one only through
+ * samsat_fm1_table_prepare. */
 #define SAMSAT_FM1_MMC1_N_FOLDED 63
 #define SAMSAT_FM1_MMC1_SET_N_FOLDED 61
-#define SAMSAT_FM1_MPU1_N_FOLDED 60
-#define SAMSAT_FM1_MPU2_N_FOLDED 60
+#define SAMSAT_FM1_MPU1_N_FOLDED 61
+#define SAMSAT_FM1_MPU2_N_FOLDED 61
 #define SAMSAT_FM1_MMC2_N_FOLDED 72
 #define SAMSAT_FM1_MMC2_SET_N_FOLDED 70
-#define SAMSAT_FM1_MPU3_N_FOLDED 60
+#define SAMSAT_FM1_MPU3_N_FOLDED 61
 
 
 /* mmc1: its coefficients (clamp limits, time constants, agreement tolerance) and

@@ -718,8 +718,8 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     """(The flight code's `<unit>_table_prepare`, templates/magcal.c.j2, is this function in
     C, operation for operation: change both; host_tests/test_prepare.py compares the bits.)
     The folded coefficients of one sensor's chain from its table blocks (any scalar
-    type): {name: value or nested lists}. b_poly, K, C are divided by sigma (a plain
-    count's zero added to the constant term of b), the cubic multiplied by sigma^2, M's
+    type): {name: value or nested lists}. b_poly, K, C are divided by sigma (a count's
+    zero point kept apart, subtracted from the count), the cubic multiplied by sigma^2, M's
     columns by sigma and, for a boom sensor without rate compensation, M premultiplied by
     H; field_min^2, field_max^2."""
     o = spec.opts(sensor)
@@ -731,8 +731,6 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     n = spec.degree(sensor) + 1
     b_poly, M_poly = c.get("b_poly_nT"), c.get("M_poly")
     f = {"b_poly": [[b_poly[k][i] / sig[i] for i in range(3)] for k in range(n)]}
-    if not is_physical(sensor) and not (sensor.set_reset or set_only):
-        f["b_poly"][0] = [f["b_poly"][0][i] + c.scalar("zero_count") for i in range(3)]
     M = [[[M_poly[k][i][j] * sig[j] for j in range(3)] for i in range(3)] for k in range(n)]
     fold_H = sensor.frame == "boom" and not o.sr_compensation
     if fold_H:
@@ -764,8 +762,12 @@ def fold_sensor_coeffs(spec: ChainSpec, sensor: SensorSpec, c: CoeffView, u: Coe
     if sensor.set_reset and not set_only:   # the bridge offset output stays in nT
         f["offset_scale"] = type(half)(input_scale_nT(sensor)) if is_physical(sensor) \
             else c.scalar("lsb_nT")
-        if not is_physical(sensor):
-            f["zero_count"] = c.scalar("zero_count")
+    # a count's zero point is subtracted from the count on every call, not folded into
+    # b(T): count - zero is exact (integers below 2^24), while a constant term of b(T)
+    # holding a large zero (8,388,608 for a 24-bit offset-binary part) would round the
+    # temperature terms added to it to its ulp (review #20d F2: up to 0.8 nT)
+    if not is_physical(sensor) and not set_only:
+        f["zero_count"] = c.scalar("zero_count")
     f_min, f_max = u.scalar("field_min_nT"), u.scalar("field_max_nT")
     f["field_min2"], f["field_max2"] = f_min * f_min, f_max * f_max
     return f
@@ -855,8 +857,10 @@ def folded_sensor_kernel(spec: ChainSpec, sensor: SensorSpec, raw, temp_C, coil_
                                      [(oc[i] - f["zero_count"]) * f["offset_scale"]
                                       for i in range(3)])
             out["offset_counts"] = oc
-    else:
+    elif is_physical(sensor):
         v = [raw[idx[k]] for k in range(3)]
+    else:
+        v = [raw[idx[k]] - f["zero_count"] for k in range(3)]
     n = spec.degree(sensor) + 1
     if sensor.temperature:
         dT = temp_C - f["t_ref_C"]

@@ -250,7 +250,6 @@ def _fold_layout(spec: ChainSpec, sensor, set_only) -> dict:
             "scale_literal": scale, "pair": pair,
             "offset_literal": c_literal(input_scale_nT(sensor), ft)
             if is_physical(sensor) and pair else None,
-            "plain_zero": not is_physical(sensor) and not (sensor.set_reset or set_only),
             "fold_H": sensor.frame == "boom" and not spec.opts(sensor).sr_compensation,
             "n_coils": len(spec.coils), "n_chan": len(spec.opts(sensor).channels),
             "n_chlag": len(spec.opts(sensor).lagged_channels)}

@@ -684,6 +684,19 @@ def check_values(values, spec: ChainSpec | None = None, header_range=None) -> No
     _check_physics(spec, values)
 
 
+def default_refusal(cs: CoefficientSet) -> str | None:
+    """Why `<unit>_table_init` would refuse these coefficients as its compiled-in default
+    (the content checks, CONTENT_CHECKS, as `magcal table` applies them: it then serves
+    all-NaN coefficients, every correction IMPLAUSIBLE), or None when it accepts them."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        values = flat_values(cs).astype(value_dtype(cs.spec))
+    try:
+        check_values(values, cs.spec)
+    except TableError as e:
+        return e.message
+    return None
+
+
 def _spec_of(spec):
     return spec.spec if isinstance(spec, CoefficientSet) else spec
 
