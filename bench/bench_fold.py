@@ -115,8 +115,8 @@ def ulps(a, b) -> np.ndarray:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", default=BASE)
-    ap.add_argument("--coeffs", default=str(EXAMPLE))
-    ap.add_argument("--csv", default=None,
+    ap.add_argument("--coeffs", default=str(EXAMPLE), type=lambda p: str(Path(p).resolve()))
+    ap.add_argument("--csv", default=None, type=lambda p: str(Path(p).resolve()),
                     help="telemetry for the output comparison (default: the shared "
                          "thermal campaign of samsat_fm1)")
     args = ap.parse_args(argv)
