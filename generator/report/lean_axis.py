@@ -35,6 +35,32 @@ from __future__ import annotations
 import numpy as np
 
 _CLASSES: dict = {}
+_SUPPORTED: list = []
+
+# the matplotlib whose Axis.draw, Axis._update_ticks and tick-label measuring _LeanAxis
+# copies, and the private names it calls; any other matplotlib draws its own axes
+MATPLOTLIB_COPIED = (3, 11)
+_PRIVATE_AXIS = ("_tick_group_visible", "_get_ticklabel_bboxes", "_update_label_position",
+                 "_update_offset_text_position", "_get_tick_boxes_siblings", "_get_axis_name")
+
+
+def supported() -> bool:
+    """True when this matplotlib is the one _LeanAxis copies (MATPLOTLIB_COPIED) and has
+    every private name it relies on; otherwise lean() leaves every axis to matplotlib
+    (the same figures, drawn more slowly). Checked once per process."""
+    if not _SUPPORTED:
+        import matplotlib
+        from matplotlib import axis as maxis
+        from matplotlib import transforms as mtransforms
+        try:
+            version = tuple(int(v) for v in matplotlib.__version__.split(".")[:2])
+        except ValueError:
+            version = ()
+        ok = (version == MATPLOTLIB_COPIED
+              and all(hasattr(maxis.Axis, n) for n in _PRIVATE_AXIS)
+              and hasattr(mtransforms, "_interval_contains_close"))
+        _SUPPORTED.append(ok)
+    return _SUPPORTED[0]
 
 
 class _LeanAxis:
@@ -177,6 +203,8 @@ def lean(axis) -> bool:
     are styled alike (_style); True when it is (or already was)."""
     if isinstance(axis, _LeanAxis):
         return True
+    if not supported():
+        return False
     for ticks in (axis.__dict__.get("majorTicks"), axis.__dict__.get("minorTicks")):
         # ticks not made yet (the lazy list): the first is made when asked for
         if ticks and len(ticks) > 1:
@@ -261,6 +289,8 @@ def ticks_in_view(fig):
     and null locators are left as they are. The locator object's class is changed in
     place, so shared axes (one locator) follow; calling this again is harmless."""
     from matplotlib.ticker import AutoMinorLocator, LogLocator, MaxNLocator
+    if not supported():        # another matplotlib: its own ticks, as they are
+        return
     for ax in fig.axes:
         if ax.name != "rectilinear" or hasattr(ax, "_colorbar"):
             continue
