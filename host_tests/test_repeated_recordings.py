@@ -78,3 +78,19 @@ def test_an_unreadable_path_is_left_to_the_reader(tmp_path, capsys):
                                     str(tmp_path / "o")])
     assert str(missing) in line and "same recording" not in line
 
+
+
+def test_a_held_out_file_that_the_trace_also_fits_is_refused(tmp_path, capsys):
+    unit, data = _fm1("unit.toml"), _fm1("flight_6h.csv")
+    copy = tmp_path / "copy.csv"
+    shutil.copyfile(data, copy)
+    line = _one_line_error(capsys, ["trace", unit, data, "-o", str(tmp_path / "out"),
+                                    "--holdout", str(copy)])
+    assert line.startswith(f"magcal trace: {copy}: held-out file: the same recording as "
+                           f"{data} (identical bytes), which the fit uses"), line
+    # two held-out copies of one recording: the plain rule (they would count twice)
+    other = tmp_path / "other.csv"
+    shutil.copyfile(copy, other)
+    with pytest.raises(InputError, match="count twice"):
+        refuse_repeated_recordings([], held_out=[copy, other])
+    assert not (tmp_path / "out").exists()

@@ -36,32 +36,40 @@ def _digest(path) -> bytes | None:
     return h.digest()
 
 
-def refuse_repeated_recordings(paths) -> None:
+def refuse_repeated_recordings(paths, held_out=()) -> None:
     """InputError naming the later of two paths whose files hold the same bytes (the same
-    path given twice included); nothing when every recording is distinct."""
+    path given twice included); nothing when every recording is distinct. held_out: files
+    that judge what paths taught (magcal trace --holdout): one that repeats a recording of
+    paths would be no held-out check at all."""
+    paths, held_out = list(paths), list(held_out)
+    every = paths + held_out            # position >= len(paths): a held-out file
     by_size: dict[int, list] = {}
-    for p in paths:
+    for i, p in enumerate(every):
         try:
             st = os.stat(p)
         except OSError:
             continue            # the reader says what is wrong with it
         if not os.path.isfile(p):
             continue
-        by_size.setdefault(st.st_size, []).append(p)
+        by_size.setdefault(st.st_size, []).append(i)
     for same_size in by_size.values():
         if len(same_size) < 2:
             continue
-        seen: dict[bytes, object] = {}
-        for p in same_size:
-            d = _digest(p)
+        seen: dict[bytes, int] = {}
+        for i in same_size:
+            d = _digest(every[i])
             if d is None:
                 continue
             if d in seen:
-                first = seen[d]
+                p, first = every[i], every[seen[d]]
                 what = ("the same file given twice" if os.path.samefile(p, first)
                         else "identical bytes")
+                if i >= len(paths) > seen[d]:
+                    raise InputError(p, f"held-out file: the same recording as {first} "
+                                        f"({what}), which the fit uses: it would hold "
+                                        "nothing out; hold out another recording")
                 raise InputError(p, f"the same recording as {first} ({what}): each sample "
                                     "would count twice (sigmas too small by sqrt(2), "
                                     "effects found in shared noise); give each recording "
                                     "once")
-            seen[d] = p
+            seen[d] = i

@@ -46,7 +46,7 @@ def _max_samples(text):
 def cmd_trace(args) -> int:
     progress = getattr(args, "progress", None) or Progress(quiet=getattr(args, "quiet", False))
     check_output_folder(args.output)
-    refuse_repeated_recordings(args.data)
+    refuse_repeated_recordings(args.data, held_out=args.holdout)
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress,
                 max_samples=getattr(args, "max_samples", MAX_TRACE_SAMPLES))
     res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
