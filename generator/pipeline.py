@@ -181,6 +181,10 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             fault = column_fault(c)
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
+    from generator.io.recordings import repeated_rows_warnings
+    repeated = repeated_rows_warnings(tels)   # overlapping recordings: said, not dropped
+    for w in repeated:
+        progress(w)
     check_full_scale(unit, tels)      # every sample beyond full scale: a wrong input unit
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
     # the settling analysis reads only the files: it runs beside the sensors' fits (in
@@ -191,7 +195,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                               accept_misfit=accept_misfit, max_samples=max_samples,
                               beside=lambda: _settling_analysis(data_paths, tels, unit))
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
-            "method": method, "notes": [],
+            "method": method, "notes": list(repeated),
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")

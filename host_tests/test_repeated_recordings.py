@@ -94,3 +94,81 @@ def test_a_held_out_file_that_the_trace_also_fits_is_refused(tmp_path, capsys):
     with pytest.raises(InputError, match="count twice"):
         refuse_repeated_recordings([], held_out=[copy, other])
     assert not (tmp_path / "out").exists()
+
+
+# ---- rows repeated in part (overlapping recordings) --------------------------------------
+
+import numpy as np  # noqa: E402
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+from generator.io.recordings import repeated_rows, repeated_rows_warnings  # noqa: E402
+from generator.io.telemetry import Telemetry  # noqa: E402
+
+
+def _tel(path, time_s, values, first_line=2):
+    cols = {"time_s": np.asarray(time_s, float)}
+    cols.update({f"c{k}": np.asarray(v, float) for k, v in enumerate(values)})
+    return Telemetry(str(path), cols, np.arange(first_line, first_line + len(time_s)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(2, 60), overlap=st.integers(0, 20), cols=st.integers(1, 4),
+       seed=st.integers(0, 2**31 - 1))
+def test_an_overlap_is_counted_row_for_row(n, overlap, cols, seed):
+    """A recording cut in two with `overlap` rows in both: exactly those rows are found,
+    from the first line of the second file; no noise row is ever taken for a repeat."""
+    rng = np.random.default_rng(seed)
+    overlap = min(overlap, n - 1)
+    t = np.cumsum(rng.uniform(0.01, 1.0, 2 * n))
+    v = rng.normal(size=(cols, 2 * n))
+    a = _tel("a.csv", t[:n], v[:, :n])
+    b = _tel("b.csv", t[n - overlap:], v[:, n - overlap:], first_line=10)
+    found = repeated_rows([a, b])
+    if overlap:
+        assert found == [{"path": "b.csv", "rows": overlap, "first_line": 10, "of": "a.csv"}]
+    else:
+        assert found == []
+
+
+def test_a_row_written_twice_and_rows_that_only_share_a_time():
+    t = np.array([0.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0])
+    v = np.array([[5.0, 6.0, 6.0, 7.0, 8.0, 7.0, 9.0]])     # line 3 repeats line 2
+    found = repeated_rows([_tel("c.csv", t, v)])             # line 7 repeats line 5
+    assert found == [{"path": "c.csv", "rows": 2, "first_line": 4, "of": "c.csv"}]
+    # the same times with other values: nothing (a coarse clock, not a repeat)
+    assert repeated_rows([_tel("d.csv", t, [[1.0, 2, 3, 4, 5, 6, 7]])]) == []
+
+
+def test_nan_and_signed_zero_compare_as_values_and_unshared_columns_do_not_count():
+    t = [0.0, 1.0]
+    a = _tel("a.csv", t, [[np.nan, 0.0], [1.0, 2.0]])
+    b = _tel("b.csv", [1.0, 2.0], [[-0.0, 3.0], [2.0, 4.0]])
+    assert repeated_rows([a, b]) == [{"path": "b.csv", "rows": 1, "first_line": 2,
+                                      "of": "a.csv"}]
+    # only time_s shared: two runs that both start at 0 are not repeats of each other
+    c = Telemetry("c.csv", {"time_s": np.array([0.0, 1.0]), "x": np.array([1.0, 2.0])},
+                  np.array([2, 3]))
+    d = Telemetry("d.csv", {"time_s": np.array([0.0, 1.0]), "y": np.array([1.0, 2.0])},
+                  np.array([2, 3]))
+    assert repeated_rows([c, d]) == []
+    assert repeated_rows([]) == []
+
+
+def test_fit_says_an_overlap_in_its_output(tmp_path, capsys):
+    unit, data = _fm1("unit.toml"), _fm1("thermal_12pos.csv")
+    lines = open(data).read().splitlines(True)
+    head = [ln for ln in lines if ln.startswith("#") or ln.startswith("time_s")]
+    body = lines[len(head):]
+    assert len(head) + len(body) == len(lines)
+    (tmp_path / "t1.csv").write_text("".join(head + body[:20000]))
+    (tmp_path / "t2.csv").write_text("".join(head + body[19000:]))
+    rc = main(["fit", unit, str(tmp_path / "t1.csv"), str(tmp_path / "t2.csv"), "-o",
+               str(tmp_path / "out"), "--no-report"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    want = (f"WARNING: {tmp_path / 't2.csv'}: 1000 row(s) from line {len(head) + 1} repeat "
+            f"rows of {tmp_path / 't1.csv'}")
+    assert want in err
+    import json
+    notes = json.loads((tmp_path / "out" / "coefficients.json").read_text())["fit"]["notes"]
+    assert any(n.startswith(want) for n in notes)

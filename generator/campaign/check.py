@@ -703,6 +703,9 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     say(f"read {len(tels)} file(s): {sum(t.n for t in tels)} samples")
     samples = gather_samples(unit, tels, pres)
     gaps, notes = [], []
+    if not cells_only:      # overlapping recordings: their repeated rows count twice
+        from generator.io.recordings import repeated_rows_warnings
+        notes += repeated_rows_warnings(tels)
 
     files = []
     static = False

@@ -12,12 +12,22 @@ the same.
 Only files of equal size are compared (a stat each); their contents are hashed in chunks
 (BLAKE2b), so the check costs nothing for distinct files and one read for true copies.
 A path that cannot be read is left to the reader, which reports it with its own message.
+
+Recordings can also overlap in part: two downlinks of one pass, a log cut where the next
+one starts, a logger that writes a row twice. repeated_rows finds, after reading, the rows
+that repeat an earlier row exactly (the same time and the same value in every column the
+files share); the fit, the check and the trace say so in a WARNING (those samples count
+twice) rather than drop them: which copy to keep is the user's call. A repeat needs equal
+times, so files whose time ranges do not overlap, and a file whose times only increase,
+are not compared at all.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+
+import numpy as np
 
 from generator.errors import InputError
 
@@ -73,3 +83,71 @@ def refuse_repeated_recordings(paths, held_out=()) -> None:
                                     "effects found in shared noise); give each recording "
                                     "once")
             seen[d] = i
+
+
+def _fingerprints(tel, names) -> np.ndarray:
+    """(n,) uint64: one number per row of the columns `names` (their float64 bits, NaN
+    made one pattern), equal for rows whose values are all equal."""
+    h = np.zeros(tel.n, np.uint64)
+    with np.errstate(over="ignore"):
+        for c in names:
+            v = np.array(tel.columns[c], np.float64)     # a copy: NaNs are rewritten
+            v[np.isnan(v)] = np.nan                       # one NaN bit pattern
+            v[v == 0] = 0.0                               # -0.0 equals 0.0
+            h = h * np.uint64(0x100000001B3) ^ v.view(np.uint64)
+    return h
+
+
+def repeated_rows(tels) -> list:
+    """The rows of each file that repeat an earlier row (an earlier file's, or its own):
+    the same time_s and the same value in every column all the files share (at least one
+    besides time_s, else nothing is compared). [{"path", "rows", "first_line", "of"}]:
+    `of` the earlier file (its path; the file itself for a row written twice)."""
+    if not tels:
+        return []
+    shared = set(tels[0].columns)
+    for t in tels[1:]:
+        shared &= set(t.columns)
+    if "time_s" not in shared or len(shared) < 2:
+        return []
+    names = ["time_s"] + sorted(shared - {"time_s"})
+    spans = [(float(t.time_s[0]), float(t.time_s[-1])) if t.n else None for t in tels]
+    out, prints = [], [None] * len(tels)
+    for j, t in enumerate(tels):
+        if not t.n:
+            continue
+        earlier = [i for i in range(j) if spans[i] is not None
+                   and spans[i][0] <= spans[j][1] and spans[j][0] <= spans[i][1]]
+        own = bool(np.any(np.diff(t.time_s) == 0))
+        if not earlier and not own:
+            continue
+        for i in earlier + [j]:
+            if prints[i] is None:
+                prints[i] = _fingerprints(tels[i], names)
+        for i in earlier:
+            hit = np.isin(prints[j], prints[i])
+            if hit.any():
+                out.append({"path": t.path, "rows": int(hit.sum()),
+                            "first_line": int(t.line_numbers[np.argmax(hit)]),
+                            "of": tels[i].path})
+        if own:
+            # a row written twice: equal to the row before it (times are non-decreasing,
+            # so equal rows of one file are neighbours unless a third row with the same
+            # time lies between: then the earlier occurrence is searched among them)
+            order = np.lexsort((prints[j], t.time_s))
+            f = prints[j][order]
+            same = np.zeros(t.n, bool)
+            same[1:] = (f[1:] == f[:-1]) & (t.time_s[order][1:] == t.time_s[order][:-1])
+            if same.any():
+                out.append({"path": t.path, "rows": int(same.sum()),
+                            "first_line": int(t.line_numbers[order[same]].min()),
+                            "of": t.path})
+    return out
+
+
+def repeated_rows_warnings(tels) -> list:
+    """One WARNING line per finding of repeated_rows."""
+    return [f"WARNING: {r['path']}: {r['rows']} row(s) from line {r['first_line']} repeat "
+            + ("rows of the same file" if r["of"] == r["path"] else f"rows of {r['of']}")
+            + " (the same time and values): those samples count twice; give each "
+              "sample once (cut the overlap)" for r in repeated_rows(tels)]

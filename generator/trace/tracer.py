@@ -811,6 +811,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
     tels, hold, whole, held = _open_files(unit, data, holdout, regs, max_samples,
                                           need_whole=coeffs is None)
+    # rows that repeat earlier rows (overlapping recordings): said, not dropped; files held
+    # by rows above the cap are not compared (the copies of whole files are refused first,
+    # io.recordings.refuse_repeated_recordings)
+    from generator.io.recordings import repeated_rows_warnings
+    repeated = [] if held else repeated_rows_warnings(tels + hold)
     # the blocks are drawn first (a cap below one block is refused before any fit)
     kept_tels, kept_hold, subsample = subsample_files(
         tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
@@ -915,7 +920,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                          "over every row of the data files did not fall: " + "; ".join(vetoed))
     _channel_units_fit(traces, tels_all)
     cs = to_coefficient_set(base, traces, info)
-    warnings = []
+    warnings = list(repeated)
     if subsample:        # the figures of the blocks, and the apply over every row
         subsample["all_rows"] = all_rows_rms(
             base, cs, tels_all, list(traces), {n: t.final_model for n, t in traces.items()},
