@@ -172,3 +172,34 @@ def test_fit_says_an_overlap_in_its_output(tmp_path, capsys):
     import json
     notes = json.loads((tmp_path / "out" / "coefficients.json").read_text())["fit"]["notes"]
     assert any(n.startswith(want) for n in notes)
+
+
+def _split_with_overlap(tmp_path, data, cut, overlap):
+    lines = open(data).read().splitlines(True)
+    head = [ln for ln in lines if ln.startswith("#") or ln.startswith("time_s")]
+    body = lines[len(head):]
+    (tmp_path / "p1.csv").write_text("".join(head + body[:cut]))
+    (tmp_path / "p2.csv").write_text("".join(head + body[cut - overlap:]))
+    return tmp_path / "p1.csv", tmp_path / "p2.csv", len(head) + 1
+
+
+def test_a_capped_trace_warns_from_the_fingerprints_it_holds(tmp_path, capsys):
+    """Above the cap the trace holds files by rows (trace.filerows.FileRows, never the
+    whole file): the overlap is still found, from the fingerprints held per row."""
+    unit, data = _fm1("unit.toml"), _fm1("flight_6h.csv")
+    coeffs = os.path.join(os.path.dirname(__file__), "..", "generated", "samsat_fm1",
+                          "coefficients.json")
+    p1, p2, line = _split_with_overlap(tmp_path, data, 6000, 1000)
+    from generator.io.unitfile import load_unit
+    from generator.trace.filerows import FileRows
+    held = [FileRows(str(p), load_unit(unit)) for p in (p1, p2)]
+    assert repeated_rows(held) == [{"path": str(p2), "rows": 1000, "first_line": line,
+                                    "of": str(p1)}]
+    rc = main(["trace", unit, str(p1), str(p2), "-o", str(tmp_path / "out"),
+               "--max-samples", "6000", "--coeffs", coeffs, "-q"])
+    capsys.readouterr()
+    assert rc == 0
+    import json
+    warnings = json.loads((tmp_path / "out" / "trace.json").read_text())["warnings"]
+    assert any(w.startswith(f"WARNING: {p2}: 1000 row(s) from line {line} repeat rows "
+                            f"of {p1}") for w in warnings), warnings

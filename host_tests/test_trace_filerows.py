@@ -103,8 +103,9 @@ def test_held_file_gives_the_samples_and_series_of_the_whole_file(name, cap, fm1
     if name == "flight_60k":
         # what it holds of a row: the time as int32 (whole seconds past 2^15), the
         # temperatures and channels (1-4 decimals, under 2^15 as integers) as int16, one
-        # bit a sensor; not 8 B a column
-        per_row = 4 + 2 * (len(held._full) - 1) + len(fm1.sensors) / 8
+        # bit a sensor, and the row's fingerprint (uint64) and line (uint32) for
+        # io.recordings.repeated_rows; not 8 B a column
+        per_row = 4 + 2 * (len(held._full) - 1) + len(fm1.sensors) / 8 + 8 + 4
         assert held.nbytes <= per_row * held.n + 1024
     kw, _, iw = sub.subsample_files([whole], [], cap)
     kh, _, ih = sub.subsample_files([held], [], cap, keep=lambda f, m: f.blocked(m))

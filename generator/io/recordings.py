@@ -85,9 +85,16 @@ def refuse_repeated_recordings(paths, held_out=()) -> None:
             seen[d] = i
 
 
-def _fingerprints(tel, names) -> np.ndarray:
-    """(n,) uint64: one number per row of the columns `names` (their float64 bits, NaN
-    made one pattern), equal for rows whose values are all equal."""
+def row_names(columns) -> list:
+    """The columns a row's fingerprint covers, in its order: time_s, then the rest sorted."""
+    return ["time_s"] + sorted(set(columns) - {"time_s"})
+
+
+def row_fingerprints(tel, names=None) -> np.ndarray:
+    """(n,) uint64: one number per row of the columns `names` (default row_names of the
+    file's columns; their float64 bits, NaN made one pattern, -0.0 made 0.0), equal for
+    rows whose values are all equal."""
+    names = row_names(tel.columns) if names is None else names
     h = np.zeros(tel.n, np.uint64)
     with np.errstate(over="ignore"):
         for c in names:
@@ -102,7 +109,13 @@ def repeated_rows(tels) -> list:
     """The rows of each file that repeat an earlier row (an earlier file's, or its own):
     the same time_s and the same value in every column all the files share (at least one
     besides time_s, else nothing is compared). [{"path", "rows", "first_line", "of"}]:
-    `of` the earlier file (its path; the file itself for a row written twice)."""
+    `of` the earlier file (its path; the file itself for a row written twice).
+
+    A file is a Telemetry, or anything with path, n, time_s, columns, line_numbers and
+    row_fingerprints (row_fingerprints of its columns, computed as it was read: a file
+    a capped trace holds by rows, trace.filerows.FileRows); such a file is compared only
+    when its columns are the shared ones (else its fingerprints cover other columns and
+    its repeats are not looked for)."""
     if not tels:
         return []
     shared = set(tels[0].columns)
@@ -110,20 +123,28 @@ def repeated_rows(tels) -> list:
         shared &= set(t.columns)
     if "time_s" not in shared or len(shared) < 2:
         return []
-    names = ["time_s"] + sorted(shared - {"time_s"})
-    spans = [(float(t.time_s[0]), float(t.time_s[-1])) if t.n else None for t in tels]
+    names = row_names(shared)
+
+    def comparable(t):
+        return t.n and (not hasattr(t, "row_fingerprints") or set(t.columns) == shared)
+
+    def prints_of(t):
+        held = getattr(t, "row_fingerprints", None)
+        return held if held is not None else row_fingerprints(t, names)
+    times = [np.asarray(t.time_s) if comparable(t) else None for t in tels]
+    spans = [(float(ts[0]), float(ts[-1])) if ts is not None else None for ts in times]
     out, prints = [], [None] * len(tels)
     for j, t in enumerate(tels):
-        if not t.n:
+        if spans[j] is None:
             continue
         earlier = [i for i in range(j) if spans[i] is not None
                    and spans[i][0] <= spans[j][1] and spans[j][0] <= spans[i][1]]
-        own = bool(np.any(np.diff(t.time_s) == 0))
+        own = bool(np.any(np.diff(times[j]) == 0))
         if not earlier and not own:
             continue
         for i in earlier + [j]:
             if prints[i] is None:
-                prints[i] = _fingerprints(tels[i], names)
+                prints[i] = prints_of(tels[i])
         for i in earlier:
             hit = np.isin(prints[j], prints[i])
             if hit.any():
@@ -131,13 +152,12 @@ def repeated_rows(tels) -> list:
                             "first_line": int(t.line_numbers[np.argmax(hit)]),
                             "of": tels[i].path})
         if own:
-            # a row written twice: equal to the row before it (times are non-decreasing,
-            # so equal rows of one file are neighbours unless a third row with the same
-            # time lies between: then the earlier occurrence is searched among them)
-            order = np.lexsort((prints[j], t.time_s))
-            f = prints[j][order]
+            # a row written twice: equal rows of one file have equal times, so sorted by
+            # (time, fingerprint) each repeat follows a row equal to it
+            order = np.lexsort((prints[j], times[j]))
+            f, ts = prints[j][order], times[j][order]
             same = np.zeros(t.n, bool)
-            same[1:] = (f[1:] == f[:-1]) & (t.time_s[order][1:] == t.time_s[order][:-1])
+            same[1:] = (f[1:] == f[:-1]) & (ts[1:] == ts[:-1])
             if same.any():
                 out.append({"path": t.path, "rows": int(same.sum()),
                             "first_line": int(t.line_numbers[order[same]].min()),

@@ -11,6 +11,8 @@ unit: 2.9 GB at 300,000 rows). A FileRows holds instead, per row of the whole fi
 * the time and the series columns (every column but the sensors' count columns and the
   references; float64, as read: the recursions run over the same values), and
 * one byte per sensor: its usable rows (io.telemetry_csv.usable_rows);
+* 12 bytes: the row's fingerprint and file line (io.recordings.repeated_rows: rows that
+  repeat rows of another file, or of the same file, are warned as under the cap);
 
 the vector references and the position are kept over every row only where the file
 carries reference vectors (the reference's slopes run to the neighbouring rows,
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from generator.io.recordings import row_fingerprints
 from generator.io.telemetry import Telemetry
 
 REF_VECTOR = ("ref_x_nT", "ref_y_nT", "ref_z_nT")
@@ -165,6 +168,7 @@ class FileRows:
         from generator.io.telemetry_csv import usable_rows
         counts = {c for s in unit.sensors for c in s.count_columns}
         usable = {s.name: [] for s in unit.sensors}
+        prints, lines = [], []       # io.recordings: each row's fingerprint and line
         self._full = None
         chunks = ([kept_rows(tel, np.arange(a, min(tel.n, a + PACK_ROWS)))
                    for a in range(0, max(tel.n, 1), PACK_ROWS)] if tel is not None
@@ -179,7 +183,11 @@ class FileRows:
                 col.append(c.columns[k])
             for s in unit.sensors:
                 usable[s.name].append(usable_rows(c, s))
+            prints.append(row_fingerprints(c))
+            lines.append(np.asarray(c.line_numbers, np.uint32))
         self._n = len(self._full["time_s"])
+        self.row_fingerprints = np.concatenate(prints)
+        self.line_numbers = np.concatenate(lines)
         # one bit a row and sensor
         self._usable = {k: np.packbits(np.concatenate(v)) for k, v in usable.items()}
 
@@ -202,7 +210,8 @@ class FileRows:
     def nbytes(self) -> int:
         """The bytes held for every row (the packed columns and usable bits)."""
         return (sum(c.nbytes for c in self._full.values())
-                + sum(u.nbytes for u in self._usable.values()))
+                + sum(u.nbytes for u in self._usable.values())
+                + self.row_fingerprints.nbytes + self.line_numbers.nbytes)
 
     def has(self, *names) -> bool:
         return all(n in self.names for n in names)

@@ -811,11 +811,10 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
     tels, hold, whole, held = _open_files(unit, data, holdout, regs, max_samples,
                                           need_whole=coeffs is None)
-    # rows that repeat earlier rows (overlapping recordings): said, not dropped; files held
-    # by rows above the cap are not compared (the copies of whole files are refused first,
-    # io.recordings.refuse_repeated_recordings)
+    # rows that repeat earlier rows (overlapping recordings): said, not dropped (files held
+    # by rows above the cap carry their rows' fingerprints)
     from generator.io.recordings import repeated_rows_warnings
-    repeated = [] if held else repeated_rows_warnings(tels + hold)
+    repeated = repeated_rows_warnings(tels + hold)
     # the blocks are drawn first (a cap below one block is refused before any fit)
     kept_tels, kept_hold, subsample = subsample_files(
         tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
