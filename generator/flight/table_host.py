@@ -54,8 +54,9 @@ typedef struct {
     uint32_t last_bad_value;
     uint8_t coeffs_valid;
 } {{ unit }}_table_info_t;
-typedef struct { ...; } {{ unit }}_table_mgr_t;
+typedef struct { uint32_t init_mark; ...; } {{ unit }}_table_mgr_t;
 typedef struct { ...; } {{ unit }}_coeffs_t;
+typedef struct { ...; } {{ unit }}_table_prepared_t;
 extern const uint8_t {{ unit }}_table_default[{{ table.table_bytes }}];
 uint32_t {{ unit }}_table_crc32(const uint8_t *buf, uint32_t len);
 {{ unit }}_table_status_t {{ unit }}_table_validate(const uint8_t *buf, uint32_t len);
@@ -67,12 +68,14 @@ const char *{{ unit }}_table_strerror(int status);
 {{ unit }}_table_status_t {{ unit }}_table_load({{ unit }}_table_mgr_t *mgr, const uint8_t *table, uint32_t len);
 void {{ unit }}_table_abort({{ unit }}_table_mgr_t *mgr);
 const {{ unit }}_coeffs_t *{{ unit }}_table_active(const {{ unit }}_table_mgr_t *mgr);
+const {{ unit }}_table_prepared_t *{{ unit }}_table_prepared(const {{ unit }}_table_mgr_t *mgr);
 void {{ unit }}_table_info(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_table_info_t *info);
 const {{ unit }}_coeffs_t *host_table_defaults(void);
 void host_table_flat(const {{ unit }}_coeffs_t *co, {{ real }} *flat);
 long host_table_prepared_size(void);
 void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ real }} *flat);
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets, const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw, const double *temp_C, {{ real }} *field, uint16_t *status, {{ real }} *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_H = """\
@@ -89,6 +92,9 @@ void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_real
 #define HOST_COMMIT_AFTER 2u   /* actions: {{ unit }}_table_commit after the input */
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
     const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status,
+    {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_C = """\
@@ -124,6 +130,45 @@ void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
 {% else %}
     (void)k;
 {% endif %}
+}
+
+/* One sample of every sensor through its {{ unit }}_<sensor>_correct on the prepared set
+ * the manager hands out ({{ unit }}_table_prepared(mgr); aux NULL, state NULL), then
+ * {{ unit }}_select on them, as flight software calls them. raw[8 k ..]: sensor k's
+ * readings (3; SET then RESET: 6), temp_C[k]; out: field[3 k ..], status[k], and the
+ * selection's field, sensor and reason. */
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status,
+    {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason)
+{
+    const {{ unit }}_table_prepared_t *co = {{ unit }}_table_prepared(mgr);
+    {{ unit }}_real_t fields[{{ UNIT }}_N_SENSORS][3];
+    {{ unit }}_selection_t sel;
+    int i;
+{% for s in sensors %}
+{% set rt = (unit ~ "_real_t") if s.physical else "int32_t" %}
+    {
+        {{ unit }}_{{ s.name }}_raw_t in;
+        {{ unit }}_{{ s.name }}_out_t out;
+        memset(&in, 0, sizeof in);
+        for (i = 0; i < 3; ++i) {
+{% if s.set_reset %}
+            in.{{ s.raw_fields.set }}[i] = ({{ rt }})raw[8 * {{ s.index }} + i];
+            in.{{ s.raw_fields.reset }}[i] = ({{ rt }})raw[8 * {{ s.index }} + 3 + i];
+{% else %}
+            in.{{ s.raw_fields.plain }}[i] = ({{ rt }})raw[8 * {{ s.index }} + i];
+{% endif %}
+        }
+        in.temp_C = ({{ unit }}_real_t)temp_C[{{ s.index }}];
+        status[{{ s.index }}] = {{ unit }}_{{ s.name }}_correct(co, &in,{% if has_aux %} 0,{% endif %}{% if s.has_state %} 0,{% endif %} &out);
+        memcpy(fields[{{ s.index }}], out.field_body_nT, sizeof out.field_body_nT);
+        memcpy(field + 3 * {{ s.index }}, out.field_body_nT, sizeof out.field_body_nT);
+    }
+{% endfor %}
+    (void){{ unit }}_select(co, (const {{ unit }}_real_t (*)[3])fields, status, &sel);
+    memcpy(sel_field, sel.field_body_nT, sizeof sel.field_body_nT);
+    *sel_sensor = sel.sensor;
+    *sel_reason = sel.reason;
 }
 
 /* Each input goes through validate_detail, load and receive_part, with an abort before it
@@ -376,6 +421,39 @@ class TableHost:
             defaults = co
         st = TableStatus(self._fn("init")(mgr, defaults))
         return mgr, st
+
+    def uninitialised(self, fill: int = 0):
+        """A manager that `<unit>_table_init` never ran on: every byte `fill` (0: static
+        storage; 0xFF: erased memory)."""
+        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        n = self.ffi.sizeof(f"{self.unit}_table_mgr_t")
+        self.ffi.memmove(mgr, bytes([fill]) * n, n)
+        return mgr
+
+    def correct_all(self, mgr, raw, temp_C) -> dict:
+        """One sample of every sensor through its correction on `<unit>_table_prepared(mgr)`
+        and then select (host_table_correct_all): raw (S, 3 or 6) readings, temp_C (S,)."""
+        sensors = self.spec.unit.sensors
+        r = np.zeros((len(sensors), 8))
+        for k, s in enumerate(sensors):
+            v = np.asarray(raw[k], dtype=np.float64)
+            assert v.shape == ((6,) if s.set_reset else (3,)), (s.name, v.shape)
+            r[k, :v.size] = v
+        t = np.ascontiguousarray(temp_C, dtype=np.float64)
+        assert t.shape == (len(sensors),)
+        field = np.zeros((len(sensors), 3), dtype=self.dtype)
+        status = np.zeros(len(sensors), dtype=np.uint16)
+        sel_field = np.zeros(3, dtype=self.dtype)
+        sel_sensor = self.ffi.new("int8_t *")
+        sel_reason = self.ffi.new("uint8_t *")
+        ct = "float" if self.dtype == np.float32 else "double"
+        ffi = self.ffi
+        self.lib.host_table_correct_all(
+            mgr, ffi.cast("double *", r.ctypes.data), ffi.cast("double *", t.ctypes.data),
+            ffi.cast(f"{ct} *", field.ctypes.data), ffi.cast("uint16_t *", status.ctypes.data),
+            ffi.cast(f"{ct} *", sel_field.ctypes.data), sel_sensor, sel_reason)
+        return {"field_body_nT": field, "status": status, "sel_field_body_nT": sel_field,
+                "sel_sensor": int(sel_sensor[0]), "sel_reason": int(sel_reason[0])}
 
     def receive_part(self, mgr, part) -> TableStatus:
         return TableStatus(self._fn("receive_part")(mgr, self._buf(part), len(part)))
