@@ -75,7 +75,8 @@ void host_table_flat(const {{ unit }}_coeffs_t *co, {{ real }} *flat);
 long host_table_prepared_size(void);
 void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ real }} *flat);
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets, const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
-void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw, const double *temp_C, {{ real }} *field, uint16_t *status, {{ real }} *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw, const double *temp_C, {{ real }} *field, uint16_t *status);
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ real }} *field, uint16_t *status, {{ real }} *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_H = """\
@@ -93,8 +94,9 @@ void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_real
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
     const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
 void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
-    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status,
-    {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status);
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ unit }}_real_t *field,
+    uint16_t *status, {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_C = """\
@@ -133,17 +135,13 @@ void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
 }
 
 /* One sample of every sensor through its {{ unit }}_<sensor>_correct on the prepared set
- * the manager hands out ({{ unit }}_table_prepared(mgr); aux NULL, state NULL), then
- * {{ unit }}_select on them, as flight software calls them. raw[8 k ..]: sensor k's
- * readings (3; SET then RESET: 6), temp_C[k]; out: field[3 k ..], status[k], and the
- * selection's field, sensor and reason. */
+ * the manager hands out ({{ unit }}_table_prepared(mgr); aux NULL, state NULL), as flight
+ * software calls it. raw[8 k ..]: sensor k's readings (3; SET then RESET: 6), temp_C[k];
+ * out: field[3 k ..], status[k]. */
 void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
-    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status,
-    {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason)
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status)
 {
     const {{ unit }}_table_prepared_t *co = {{ unit }}_table_prepared(mgr);
-    {{ unit }}_real_t fields[{{ UNIT }}_N_SENSORS][3];
-    {{ unit }}_selection_t sel;
     int i;
 {% for s in sensors %}
 {% set rt = (unit ~ "_real_t") if s.physical else "int32_t" %}
@@ -161,11 +159,22 @@ void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw
         }
         in.temp_C = ({{ unit }}_real_t)temp_C[{{ s.index }}];
         status[{{ s.index }}] = {{ unit }}_{{ s.name }}_correct(co, &in,{% if has_aux %} 0,{% endif %}{% if s.has_state %} 0,{% endif %} &out);
-        memcpy(fields[{{ s.index }}], out.field_body_nT, sizeof out.field_body_nT);
         memcpy(field + 3 * {{ s.index }}, out.field_body_nT, sizeof out.field_body_nT);
     }
 {% endfor %}
-    (void){{ unit }}_select(co, (const {{ unit }}_real_t (*)[3])fields, status, &sel);
+}
+
+/* {{ unit }}_select on the prepared set the manager hands out: field[3 k ..] and status[k]
+ * of sensor k (status updated in place, as select does), the selection's field, sensor
+ * and reason. */
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ unit }}_real_t *field,
+    uint16_t *status, {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason)
+{
+    {{ unit }}_real_t fields[{{ UNIT }}_N_SENSORS][3];
+    {{ unit }}_selection_t sel;
+    memcpy(fields, field, sizeof fields);
+    (void){{ unit }}_select({{ unit }}_table_prepared(mgr),
+                            (const {{ unit }}_real_t (*)[3])fields, status, &sel);
     memcpy(sel_field, sel.field_body_nT, sizeof sel.field_body_nT);
     *sel_sensor = sel.sensor;
     *sel_reason = sel.reason;
@@ -406,11 +415,12 @@ class TableHost:
         assert st == TableStatus.OK, st
         return mgr
 
-    def init(self, defaults=None) -> tuple:
+    def init(self, defaults=None, mgr=None) -> tuple:
         """(manager, status of <unit>_table_init): defaults None: the compiled-in
         <unit>_coeffs_default; else a pointer to a <unit>_coeffs_t, or flat values in
-        layout order (put into a struct first)."""
-        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        layout order (put into a struct first). mgr: init this manager (else a new one)."""
+        if mgr is None:
+            mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
         if defaults is None:
             defaults = self.lib.host_table_defaults()
         elif isinstance(defaults, np.ndarray):
@@ -432,7 +442,8 @@ class TableHost:
 
     def correct_all(self, mgr, raw, temp_C) -> dict:
         """One sample of every sensor through its correction on `<unit>_table_prepared(mgr)`
-        and then select (host_table_correct_all): raw (S, 3 or 6) readings, temp_C (S,)."""
+        (host_table_correct_all), then select on the same set (select): raw (S, 3 or 6)
+        readings, temp_C (S,)."""
         sensors = self.spec.unit.sensors
         r = np.zeros((len(sensors), 8))
         for k, s in enumerate(sensors):
@@ -443,16 +454,30 @@ class TableHost:
         assert t.shape == (len(sensors),)
         field = np.zeros((len(sensors), 3), dtype=self.dtype)
         status = np.zeros(len(sensors), dtype=np.uint16)
+        ct = "float" if self.dtype == np.float32 else "double"
+        ffi = self.ffi
+        self.lib.host_table_correct_all(
+            mgr, ffi.cast("double *", r.ctypes.data), ffi.cast("double *", t.ctypes.data),
+            ffi.cast(f"{ct} *", field.ctypes.data), ffi.cast("uint16_t *", status.ctypes.data))
+        out = {"field_body_nT": field, "status": status.copy()}
+        out.update(self.select(mgr, field, status))
+        return out
+
+    def select(self, mgr, field, status) -> dict:
+        """`<unit>_select` on `<unit>_table_prepared(mgr)`: field (S, 3), status (S,) of one
+        cycle. Returns the statuses after select (DISAGREE bits) and the selection."""
+        f = np.ascontiguousarray(field, dtype=self.dtype)
+        st = np.array(status, dtype=np.uint16)
+        assert f.shape == (len(self.spec.unit.sensors), 3) and st.shape == (f.shape[0],)
         sel_field = np.zeros(3, dtype=self.dtype)
         sel_sensor = self.ffi.new("int8_t *")
         sel_reason = self.ffi.new("uint8_t *")
         ct = "float" if self.dtype == np.float32 else "double"
         ffi = self.ffi
-        self.lib.host_table_correct_all(
-            mgr, ffi.cast("double *", r.ctypes.data), ffi.cast("double *", t.ctypes.data),
-            ffi.cast(f"{ct} *", field.ctypes.data), ffi.cast("uint16_t *", status.ctypes.data),
+        self.lib.host_table_select(
+            mgr, ffi.cast(f"{ct} *", f.ctypes.data), ffi.cast("uint16_t *", st.ctypes.data),
             ffi.cast(f"{ct} *", sel_field.ctypes.data), sel_sensor, sel_reason)
-        return {"field_body_nT": field, "status": status, "sel_field_body_nT": sel_field,
+        return {"sel_status": st, "sel_field_body_nT": sel_field,
                 "sel_sensor": int(sel_sensor[0]), "sel_reason": int(sel_reason[0])}
 
     def receive_part(self, mgr, part) -> TableStatus:
