@@ -313,3 +313,56 @@ def test_random_manager_bytes_are_not_initialised(seed):
     if int(mgr.init_mark) == MANAGER_INIT_MARK:      # 1 in 2^32: not a manager never inited
         mgr.init_mark = 0
     _assert_not_initialised(h, mgr, cs)
+
+
+# ---- the same on the emulated Cortex-M4F (qemu mps2-an386) --------------------------------
+
+
+@pytest.mark.arm
+@pytest.mark.parametrize("label", ("example", "f64"))
+def test_not_initialised_on_the_target(label):
+    """The manager built for the target with the flight flags (arm_tables: the runner's
+    table extension): managers filled with 0x00 / 0xFF / 0xA5, every entry point on them,
+    then init and tables, compared result by result (statuses, info, the bytes of the
+    coefficients and prepared coefficients handed out) with the host build and the
+    Python model."""
+    from generator.flight import target as ta
+    from generator.flight.arm_tables import ArmTables, host_results, python_results
+
+    missing = ta.missing_tools()
+    require(not missing, f"missing {', '.join(missing)}: install the Debian packages "
+                         f"{' '.join(ta.DEBIAN_PACKAGES)}")
+    cs, h = _unit(label)
+    table = encode_table(cs, 1, 0)
+    vals = tables.flat_values(cs).copy()
+    vals[next(v.index for v in tables.value_layout(cs.spec)
+              if v.block.name == "b_poly_nT")] += 1.0
+    other = encode_table(tables.coefficient_set(cs.spec, vals), 2, 0)
+    parts = chunk_table(table, 500)
+    ops = [("fill", 0x00), ("active",), ("prepared",), ("load", table)]
+    ops += [("receive_part", p) for p in parts] + [("commit",), ("abort",), ("prepared",)]
+    ops += [("fill", 0xFF), ("load", table), ("receive_part", parts[0]), ("commit",),
+            ("active",), ("prepared",), ("fill", 0xA5), ("prepared",), ("commit",)]
+    ops += [("init",), ("prepared",), ("commit",), ("load", other), ("prepared",),
+            ("active",)]
+    flat = tables.flat_values(cs).astype(tables.value_dtype(cs.spec))
+    got = ArmTables(cs).run(ops)
+    want_host = host_results(h, ops)
+    want_py = python_results(cs.spec, flat, ops)
+    assert len(got) == len(want_host) == len(want_py) == len(ops)
+    for i, (op, a, w, p) in enumerate(zip(ops, got, want_host, want_py)):
+        assert a == w == p, (i, op[0], a, w, p)
+    dt = np.dtype(tables.value_dtype(cs.spec)).newbyteorder("<")
+    filled = True
+    for op, r in zip(ops, got):
+        if op[0] in ("fill", "init"):
+            filled = op[0] == "fill"
+        elif op[0] in ("active", "prepared"):
+            assert bool(np.all(np.isnan(np.frombuffer(r, dt)))) == filled, op
+        elif op[0] != "abort":
+            assert (r[0] == S.NOT_INITIALISED) == filled, (op[0], r)
+            assert r[4] == S.NOT_INITIALISED or not filled, (op[0], r)
+    after_init = ops.index(("init",))
+    assert got[after_init][0] == S.OK
+    assert got[after_init + 2][0] == S.NOTHING_STAGED      # commit: the usual answer again
+    assert got[after_init + 3][0] == S.OK                  # load of the other table

@@ -11,9 +11,12 @@ compare the three result by result.
 
     ops: ("init",) | ("init_values", flat) | ("validate", table) | ("load", table)
          | ("receive_part", part) | ("commit",) | ("abort",) | ("active",)
+         | ("fill", byte) | ("prepared",)
 
-Each result is (status, bad value index, active serial, coeffs_valid, last status) as
-ints, or for "active" the bit pattern of the active coefficients (bytes).
+("fill", b) makes the manager one that init never ran on, every byte b (its Python model:
+TableManager(spec) without defaults). Each result is (status, bad value index, active
+serial, coeffs_valid, last status) as ints, or for "active" / "prepared" the bit pattern
+of the coefficients / prepared coefficients handed out (bytes).
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ from generator.flight.arm_runner import ArmUnit, Job, run_job
 from generator.flight.codegen import template_context
 
 OPS = {"init": 0, "init_values": 1, "validate": 2, "load": 3, "receive_part": 4,
-       "commit": 5, "abort": 6, "active": 7}
+       "commit": 5, "abort": 6, "active": 7, "fill": 8, "prepared": 9}
+BYTES_OPS = ("active", "prepared")   # answered with the struct's bytes
 EXT_FILE = "table_ext.c"
 
 
@@ -47,6 +51,8 @@ def _payload(spec, op) -> bytes:
         return code + flat.tobytes()
     if kind in ("validate", "load", "receive_part"):
         return code + bytes(args[0])
+    if kind == "fill":
+        return code + bytes([args[0]])
     return code
 
 
@@ -68,9 +74,9 @@ class ArmTables:
         out, _ = run_job(self.arm.build.elf, job.bytes(), timeout=timeout)
         results = []
         for op, r in zip(ops, job.parse(out)):
-            if op[0] == "active":
+            if op[0] in BYTES_OPS:
                 if r["rc"] != 0:
-                    raise ArmRunError(f"active: runner extension answered {r['rc']}")
+                    raise ArmRunError(f"{op[0]}: runner extension answered {r['rc']}")
                 results.append(bytes(r["data"]))
                 continue
             if len(r["data"]) != 20:
@@ -95,6 +101,12 @@ def host_results(h, ops) -> list:
         elif kind == "active":
             results.append(h.active_flat(mgr).tobytes())
             continue
+        elif kind == "prepared":
+            results.append(h.prepared_flat(mgr).tobytes())
+            continue
+        elif kind == "fill":
+            mgr = h.uninitialised(args[0])
+            st = TableStatus.OK
         elif kind == "abort":
             h.abort(mgr)
             st = TableStatus.OK
@@ -122,6 +134,9 @@ def python_results(spec, default_values, ops) -> list:
         if kind in ("init", "init_values"):
             m = TableManager(spec, default_values if kind == "init" else args[0])
             st = m.init_status
+        elif kind == "fill":      # a single-byte fill is never the init mark
+            m = TableManager(spec)
+            st = TableStatus.OK
         elif kind == "validate":
             try:
                 check_table(args[0], spec)
@@ -133,9 +148,10 @@ def python_results(spec, default_values, ops) -> list:
                 (m.active_serial, int(m.coeffs_valid), int(m.last_status))
             results.append((int(st), int(bad)) + tuple(int(x) for x in tail))
             continue
-        elif kind == "active":
-            results.append(np.ascontiguousarray(m.active_values).astype(
-                m.active_values.dtype.newbyteorder("<")).tobytes())
+        elif kind in BYTES_OPS:
+            v = m.active_values if kind == "active" else m.prepared
+            results.append(np.ascontiguousarray(v).astype(
+                v.dtype.newbyteorder("<")).tobytes())
             continue
         elif kind == "abort":
             m.abort()
