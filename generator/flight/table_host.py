@@ -158,7 +158,8 @@ void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw
 {% endif %}
         }
         in.temp_C = ({{ unit }}_real_t)temp_C[{{ s.index }}];
-        status[{{ s.index }}] = {{ unit }}_{{ s.name }}_correct(co, &in,{% if has_aux %} 0,{% endif %}{% if s.has_state %} 0,{% endif %} &out);
+        status[{{ s.index }}] = {{ unit }}_{{ s.name }}_correct(co, &in,
+            {%- if has_aux %} 0,{% endif %}{% if s.has_state %} 0,{% endif %} &out);
         memcpy(field + 3 * {{ s.index }}, out.field_body_nT, sizeof out.field_body_nT);
     }
 {% endfor %}

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from generator.flight.chain import ChainSpec, n_prepared, prepare_sensor
+from generator.flight.chain import ChainSpec, prepare_sensor
 from generator.flight.tables import (NO_INDEX, Reassembler, TableError, TableStatus,
-                                     check_table, check_values, n_values, value_dtype)
+                                     check_table, check_values, n_prepared_values, n_values,
+                                     value_dtype)
 
 
 def serial_status(active_serial: int, active_values, serial: int, values) -> TableStatus:
@@ -49,7 +50,7 @@ def prepared_values(spec: ChainSpec, values) -> np.ndarray:
     sensor, the SET-only kernel's."""
     dt = value_dtype(spec).newbyteorder("=")
     vals = np.asarray(values).astype(dt, copy=False)
-    sizes = [sum(b.size for b in spec.sensor_blocks(s)) for s in spec.unit.sensors]
+    sizes = [spec.n_sensor_coeffs(s) for s in spec.unit.sensors]
     unit_vals = vals[sum(sizes):]
     parts, k = [], 0
     for s, n in zip(spec.unit.sensors, sizes):
@@ -64,10 +65,7 @@ def prepared_values(spec: ChainSpec, values) -> np.ndarray:
 def poisoned_prepared(spec: ChainSpec) -> np.ndarray:
     """The all-NaN `<unit>_table_prepared_t` (flat) that the flight manager hands out when
     init never completed on it, and puts in use when the defaults fail at init."""
-    n = sum(sum(b.size for b in spec.sensor_blocks(s)) + n_prepared(spec, s)
-            + (n_prepared(spec, s, set_only=True) if s.set_reset else 0)
-            for s in spec.unit.sensors)
-    return np.full(n, np.nan, dtype=value_dtype(spec).newbyteorder("="))
+    return np.full(n_prepared_values(spec), np.nan, dtype=value_dtype(spec).newbyteorder("="))
 
 
 def init_status(spec: ChainSpec, default_values) -> tuple:

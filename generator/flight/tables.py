@@ -398,6 +398,15 @@ def n_values(spec: ChainSpec) -> int:
     return sum(spec.n_sensor_coeffs(s) for s in spec.unit.sensors) + spec.n_unit_coeffs()
 
 
+def n_prepared_values(spec: ChainSpec) -> int:
+    """Reals in `<unit>_table_prepared_t` (templates/magcal.h.j2): per sensor its table
+    coefficients and its kernels' prepared vectors (the SET-only one of a SET/RESET
+    sensor too)."""
+    return sum(spec.n_sensor_coeffs(s) + n_prepared(spec, s)
+               + (n_prepared(spec, s, set_only=True) if s.set_reset else 0)
+               for s in spec.unit.sensors)
+
+
 @_per_spec
 def layout_hash(spec: ChainSpec) -> int:
     """spec.layout_hash(), cached (it serialises the whole structure)."""
@@ -1017,12 +1026,6 @@ def table_context(cs: CoefficientSet) -> dict:
 
     t_lo, t_hi = PLAUSIBLE_RANGES["temp"].bounds()
     default = encode_table(cs, serial=0, created_s=0, check=False)
-    # reals of <unit>_table_prepared_t: per sensor its table coefficients and its kernels'
-    # prepared vectors (templates/magcal.h.j2)
-    n_prepared_reals = sum(
-        sum(b.size for b in spec.sensor_blocks(s)) + n_prepared(spec, s)
-        + (n_prepared(spec, s, set_only=True) if s.set_reset else 0)
-        for s in spec.unit.sensors)
     return {
         "magic": list(MAGIC), "magic_text": MAGIC.decode(),
         "part_magic": list(PART_MAGIC), "part_magic_text": PART_MAGIC.decode(),
@@ -1039,7 +1042,7 @@ def table_context(cs: CoefficientSet) -> dict:
         "init_mark": f"0x{MANAGER_INIT_MARK:08x}",
         # the all-NaN <unit>_coeffs_t and <unit>_table_prepared_t of a manager not
         # initialised (and of init's fallback): their constant memory
-        "nan_bytes": (nv + n_prepared_reals) * dt.itemsize,
+        "nan_bytes": (nv + n_prepared_values(spec)) * dt.itemsize,
         "segments": [{"first": s.first, "count": s.count, "lo": c_literal(s.lo, ft),
                       "hi": c_literal(s.hi, ft),
                       "what": f"{s.owner} {s.block.name}"
