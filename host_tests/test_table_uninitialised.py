@@ -318,14 +318,30 @@ def test_random_manager_bytes_are_not_initialised(seed):
 # ---- the same on the emulated Cortex-M4F (qemu mps2-an386) --------------------------------
 
 
+def _assert_same_cycle(a: bytes, b: bytes, dt, n, where):
+    """Two answers of the runner's op 10 (arm_tables.correct_bytes): the same bytes, except
+    that a NaN field may differ in sign and payload. IEEE 754 leaves the sign and payload
+    of an arithmetic NaN result unspecified, and they do differ: the float64 (soft-float,
+    libgcc) corrections on the NaN set give negative quiet NaNs on the target where the
+    host (x86-64 SSE2) gives positive ones. Every finite value, status, the selection: bit
+    for bit."""
+    assert len(a) == len(b), where
+    k = 3 * n * dt.itemsize
+    fa, fb = np.frombuffer(a[:k], dt), np.frombuffer(b[:k], dt)
+    both_nan = np.isnan(fa) & np.isnan(fb)
+    np.testing.assert_array_equal(bits(fa)[~both_nan], bits(fb)[~both_nan], err_msg=str(where))
+    assert a[k:] == b[k:], where
+
+
 @pytest.mark.arm
 @pytest.mark.parametrize("label", ("example", "f64"))
 def test_not_initialised_on_the_target(label):
     """The manager built for the target with the flight flags (arm_tables: the runner's
     table extension): managers filled with 0x00 / 0xFF / 0xA5, every entry point on them,
-    then init and tables, compared result by result (statuses, info, the bytes of the
-    coefficients and prepared coefficients handed out) with the host build and the
-    Python model."""
+    corrections and select on the prepared set they hand out, then init and tables,
+    compared result by result (statuses, info, the bytes of the coefficients and prepared
+    coefficients handed out, the corrections' outputs) with the host build, and all but
+    the corrections with the Python model."""
     from generator.flight import target as ta
     from generator.flight.arm_tables import ArmTables, host_results, python_results
 
@@ -339,30 +355,51 @@ def test_not_initialised_on_the_target(label):
               if v.block.name == "b_poly_nT")] += 1.0
     other = encode_table(tables.coefficient_set(cs.spec, vals), 2, 0)
     parts = chunk_table(table, 500)
-    ops = [("fill", 0x00), ("active",), ("prepared",), ("load", table)]
+    # cycles: the zero field at 0 degC, and three with valid outputs after init (picked on
+    # the host build, so the target's comparison covers valid and flagged outputs)
+    samples = _samples(cs, 200, 60)
+    good = h.manager()
+    with_valid = [x for x in samples[1:] if np.any(h.correct_all(good, *x)["status"] == 0)]
+    cycles = [("correct", raw, temp) for raw, temp in [samples[0]] + with_valid[:3]]
+    ops = [("fill", 0x00), ("active",), ("prepared",), *cycles, ("load", table)]
     ops += [("receive_part", p) for p in parts] + [("commit",), ("abort",), ("prepared",)]
     ops += [("fill", 0xFF), ("load", table), ("receive_part", parts[0]), ("commit",),
-            ("active",), ("prepared",), ("fill", 0xA5), ("prepared",), ("commit",)]
-    ops += [("init",), ("prepared",), ("commit",), ("load", other), ("prepared",),
-            ("active",)]
+            ("active",), ("prepared",), *cycles, ("fill", 0xA5), ("prepared",), ("commit",)]
+    ops += [("init",), ("prepared",), *cycles, ("commit",), ("load", other), ("prepared",),
+            ("active",), *cycles]
     flat = tables.flat_values(cs).astype(tables.value_dtype(cs.spec))
     got = ArmTables(cs).run(ops)
     want_host = host_results(h, ops)
     want_py = python_results(cs.spec, flat, ops)
     assert len(got) == len(want_host) == len(want_py) == len(ops)
-    for i, (op, a, w, p) in enumerate(zip(ops, got, want_host, want_py)):
-        assert a == w == p, (i, op[0], a, w, p)
     dt = np.dtype(tables.value_dtype(cs.spec)).newbyteorder("<")
-    filled = True
+    n = len(cs.unit.sensors)
+    for i, (op, a, w, p) in enumerate(zip(ops, got, want_host, want_py)):
+        if op[0] == "correct":
+            assert p is None
+            _assert_same_cycle(a, w, dt, n, (i, op[0]))
+        else:
+            assert a == w == p, (i, op[0], a, w, p)
+    filled, valid_outputs = True, 0
     for op, r in zip(ops, got):
         if op[0] in ("fill", "init"):
             filled = op[0] == "fill"
         elif op[0] in ("active", "prepared"):
             assert bool(np.all(np.isnan(np.frombuffer(r, dt)))) == filled, op
+        elif op[0] == "correct":
+            field = np.frombuffer(r, dt, 3 * n)
+            status = np.frombuffer(r, "<u2", n, 3 * n * dt.itemsize)
+            sensor, reason = np.frombuffer(r[-2:], np.int8)[0], r[-1]
+            if filled:
+                assert np.all(np.isnan(field)) and np.all(status & chain.STATUS_IMPLAUSIBLE)
+                assert (sensor, reason) == (-1, chain.SELECT_NONE)
+            valid_outputs += int(np.sum(status == 0))
         elif op[0] != "abort":
             assert (r[0] == S.NOT_INITIALISED) == filled, (op[0], r)
             assert r[4] == S.NOT_INITIALISED or not filled, (op[0], r)
+    assert valid_outputs > 0        # the cycles after init reach valid outputs
     after_init = ops.index(("init",))
     assert got[after_init][0] == S.OK
-    assert got[after_init + 2][0] == S.NOTHING_STAGED      # commit: the usual answer again
-    assert got[after_init + 3][0] == S.OK                  # load of the other table
+    after_cycles = after_init + 2 + len(cycles)
+    assert got[after_cycles][0] == S.NOTHING_STAGED        # commit: the usual answer again
+    assert got[after_cycles + 1][0] == S.OK                # load of the other table

@@ -11,12 +11,17 @@ compare the three result by result.
 
     ops: ("init",) | ("init_values", flat) | ("validate", table) | ("load", table)
          | ("receive_part", part) | ("commit",) | ("abort",) | ("active",)
-         | ("fill", byte) | ("prepared",)
+         | ("fill", byte) | ("prepared",) | ("correct", readings, temps_C)
 
 ("fill", b) makes the manager one that init never ran on, every byte b (its Python model:
-TableManager(spec) without defaults). Each result is (status, bad value index, active
-serial, coeffs_valid, last status) as ints, or for "active" / "prepared" the bit pattern
-of the coefficients / prepared coefficients handed out (bytes).
+TableManager(spec) without defaults). ("correct", readings, temps_C) runs one cycle of
+every sensor's correction and select on the prepared set the manager hands out
+(table_host.c, linked into the runner too): readings[k] sensor k's 3 (SET/RESET: 6)
+values. Each result is (status, bad value index, active serial, coeffs_valid, last
+status) as ints, or for "active" / "prepared" the bit pattern of the coefficients /
+prepared coefficients handed out, for "correct" the outputs' bytes (correct_bytes); the
+Python model answers None to "correct" (the chain's own tests compare the corrections
+with the Python reference).
 """
 
 from __future__ import annotations
@@ -32,15 +37,41 @@ from generator.flight.tables import (NO_INDEX, TableError, TableStatus,
 from generator.flight.arm_build import EXT_MAX, ArmRunError, _arm_env
 from generator.flight.arm_runner import ArmUnit, Job, run_job
 from generator.flight.codegen import template_context
+from generator.flight.table_host import host_sources
 
 OPS = {"init": 0, "init_values": 1, "validate": 2, "load": 3, "receive_part": 4,
-       "commit": 5, "abort": 6, "active": 7, "fill": 8, "prepared": 9}
-BYTES_OPS = ("active", "prepared")   # answered with the struct's bytes
+       "commit": 5, "abort": 6, "active": 7, "fill": 8, "prepared": 9, "correct": 10}
+BYTES_OPS = ("active", "prepared", "correct")   # answered with bytes
 EXT_FILE = "table_ext.c"
 
 
 def ext_source(cs: CoefficientSet) -> str:
     return _arm_env().get_template("table_ext.c.j2").render(**template_context(cs))
+
+
+def _cycle_input(spec, readings, temps_C) -> np.ndarray:
+    """(S, 9) float64: per sensor 8 reading slots (3, or SET then RESET 6) and its
+    temperature, the layout of host_table_correct_all and of the runner's op 10."""
+    sensors = spec.unit.sensors
+    out = np.zeros((len(sensors), 9))
+    for k, s in enumerate(sensors):
+        v = np.asarray(readings[k], dtype=np.float64)
+        assert v.shape == ((6,) if s.set_reset else (3,)), (s.name, v.shape)
+        out[k, :v.size] = v
+        out[k, 8] = float(temps_C[k])
+    return out
+
+
+def correct_bytes(c: dict) -> bytes:
+    """A TableHost.correct_all result as the runner's op 10 answers it (little-endian):
+    fields, statuses of the corrections, statuses after select, the selected field, its
+    sensor and reason."""
+    def le(a, dt):
+        return np.ascontiguousarray(a).astype(np.dtype(dt).newbyteorder("<")).tobytes()
+    real = c["field_body_nT"].dtype
+    return (le(c["field_body_nT"], real) + le(c["status"], np.uint16)
+            + le(c["sel_status"], np.uint16) + le(c["sel_field_body_nT"], real)
+            + struct.pack("<bB", c["sel_sensor"], c["sel_reason"]))
 
 
 def _payload(spec, op) -> bytes:
@@ -53,6 +84,8 @@ def _payload(spec, op) -> bytes:
         return code + bytes(args[0])
     if kind == "fill":
         return code + bytes([args[0]])
+    if kind == "correct":
+        return code + _cycle_input(spec, *args).astype("<f8").tobytes()
     return code
 
 
@@ -62,7 +95,10 @@ class ArmTables:
     def __init__(self, cs: CoefficientSet):
         self.cs = cs
         self.spec = cs.spec
-        self.arm = ArmUnit(cs, extra_sources={EXT_FILE: ext_source(cs)})
+        helpers = host_sources(cs)
+        self.arm = ArmUnit(cs, extra_sources={EXT_FILE: ext_source(cs),
+                                              "table_host.c": helpers["table_host.c"],
+                                              "table_host.h": helpers["table_host.h"]})
 
     def run(self, ops, timeout=300.0) -> list:
         job = Job(self.cs)
@@ -103,6 +139,9 @@ def host_results(h, ops) -> list:
             continue
         elif kind == "prepared":
             results.append(h.prepared_flat(mgr).tobytes())
+            continue
+        elif kind == "correct":
+            results.append(correct_bytes(h.correct_all(mgr, *args)))
             continue
         elif kind == "fill":
             mgr = h.uninitialised(args[0])
@@ -147,6 +186,9 @@ def python_results(spec, default_values, ops) -> list:
             tail = (0, 0, 0) if m is None else \
                 (m.active_serial, int(m.coeffs_valid), int(m.last_status))
             results.append((int(st), int(bad)) + tuple(int(x) for x in tail))
+            continue
+        elif kind == "correct":
+            results.append(None)
             continue
         elif kind in BYTES_OPS:
             v = m.active_values if kind == "active" else m.prepared

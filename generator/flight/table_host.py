@@ -34,8 +34,10 @@ def flight_sources(cs: CoefficientSet) -> dict:
 
 # ---- host build: the flight table code through cffi --------------------------------------
 
-# HOST ONLY (not flight code): copy-out and a batch loop over the flight table API, so the
-# tests push large numbers of inputs through it quickly; the sanitizer driver uses it too.
+# TEST CODE (not flight code): copy-out and a batch loop over the flight table API, so the
+# tests push large numbers of inputs through it quickly; the sanitizer driver uses it too,
+# and the Cortex-M4F table runner (arm_tables) links table_host.c for its corrections on
+# the manager's prepared set.
 HOST_CDEF = """\
 typedef enum {
 {% for e in table.errors %}
@@ -80,7 +82,8 @@ void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ real }} *fiel
 """
 
 HOST_HELPER_H = """\
-/* HOST ONLY: test helpers around the flight table code of {{ unit }}. */
+/* TEST CODE (host, and the target table runner): helpers around the flight table code
+ * of {{ unit }}. */
 #include <stdint.h>
 #include "{{ unit }}_magcal.h"
 #include "{{ unit }}_table.h"
@@ -100,7 +103,8 @@ void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ unit }}_real_
 """
 
 HOST_HELPER_C = """\
-/* HOST ONLY (not flight code): helpers for the tests of {{ unit }}_table.c. */
+/* TEST CODE (not flight code): helpers for the tests of {{ unit }}_table.c, built on the
+ * host (cffi) and into the Cortex-M4F table runner. */
 #include <string.h>
 #include "table_host.h"
 
