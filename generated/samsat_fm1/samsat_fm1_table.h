@@ -31,8 +31,10 @@
  * samsat_fm1_table_active and samsat_fm1_table_prepared never return NULL and never the
  * unchecked bytes of such a manager: on a manager not initialised (or a NULL one) they
  * return compiled-in all-NaN sets, so every correction on them returns
- * SAMSAT_FM1_STATUS_IMPLAUSIBLE (the |B| band check fails on NaN) and select finds no
- * valid sensor, as after a failed init (which uses the same sets). NULL was the other
+ * SAMSAT_FM1_STATUS_IMPLAUSIBLE (the |B| band check fails on NaN) and select on those
+ * outputs finds no valid sensor, as after a failed init (which uses the same sets; with 3
+ * or more sensors select finds none on them even when told every sensor is valid: the
+ * NaN agreement tolerance fails every comparison). NULL was the other
  * choice (the caller must check, as cFS apps check CFE_TBL_GetAddress); it was not taken
  * because the corrections do not test their pointers and on a Cortex-M address 0 is
  * readable memory (the vector table): a NULL passed on by a careless caller is not a

@@ -215,7 +215,10 @@ def format_doc() -> str:
     a("- `<unit>_table_active` and `<unit>_table_prepared` return compiled-in sets whose "
       "every value is a quiet NaN (the sets the init fallback puts in use), never NULL and "
       "never the manager's unchecked bytes: every correction on them returns "
-      "`STATUS_IMPLAUSIBLE` and `<unit>_select` finds no valid sensor (`SELECT_NONE`). "
+      "`STATUS_IMPLAUSIBLE` and `<unit>_select` on those outputs finds no valid sensor "
+      "(`SELECT_NONE`; with 3 or more sensors it finds none on the NaN set even when "
+      "told every sensor is valid, as the NaN agreement tolerance fails every "
+      "comparison; with 1 or 2 it follows the statuses it is given). "
       "The same holds for a NULL manager.")
     a("")
     a("NaN rather than NULL: the corrections do not test their pointer, and on a "
