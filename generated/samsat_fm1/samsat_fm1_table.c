@@ -213,6 +213,7 @@ static const char *const status_text[SAMSAT_FM1_TABLE_N_STATUS] = {
     "table serial below the active table's: rollback refused",
     "table serial equal to the active table's, with other coefficients",
     "table serial and coefficients equal the active table's: nothing changed",
+    "table manager not initialised (table_init never completed on it): nothing changed, NaN coefficients handed out",
 };
 
 const uint8_t samsat_fm1_table_default[SAMSAT_FM1_TABLE_BYTES] = {  /* CRC 0xf91193a1 */
@@ -335,6 +336,214 @@ const uint8_t samsat_fm1_table_default[SAMSAT_FM1_TABLE_BYTES] = {  /* CRC 0xf91
     0x53, 0xdc, 0x23, 0xbc, 0xd1, 0x0e, 0x9c, 0xbb, 0xfb, 0xfb, 0x7f, 0x3f,
     0xa1, 0x93, 0x11, 0xf9,
 };
+
+/* ---- the coefficients of a manager not initialised, and of init's fallback ----
+ * Every value a quiet NaN (math.h NAN, a constant expression): every correction on them
+ * is flagged IMPLAUSIBLE (the |B| band check fails on NaN) and select finds no valid
+ * sensor. Their size is stated in samsat_fm1_table.h; the check below keeps it true. */
+static const samsat_fm1_coeffs_t coeffs_nan = {
+    { /* mmc1 */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN,
+    },
+    { /* mpu1 */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+    },
+    { /* mpu2 */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+    },
+    { /* mmc2 */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN,
+    },
+    { /* mpu3 */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+    },
+    { /* unit */
+        NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        NAN, NAN, NAN,
+    },
+};
+
+static const samsat_fm1_table_prepared_t prepared_nan = {
+    { /* mmc1 */
+        {
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN,
+        },
+        { /* folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+        { /* set_folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN,
+        },
+    },
+    { /* mpu1 */
+        {
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+        { /* folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN,
+        },
+    },
+    { /* mpu2 */
+        {
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+        { /* folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN,
+        },
+    },
+    { /* mmc2 */
+        {
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN,
+        },
+        { /* folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+        { /* set_folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+    },
+    { /* mpu3 */
+        {
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+        },
+        { /* folded */
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
+            NAN, NAN, NAN, NAN, NAN,
+        },
+    },
+};
+
+typedef char samsat_fm1_table_nan_bytes[(sizeof coeffs_nan + sizeof prepared_nan == 4416u) ? 1 : -1];
+
+/* 1 if samsat_fm1_table_init completed on this manager (it stores the mark last). */
+static int initialised(const samsat_fm1_table_mgr_t *mgr)
+{
+    return mgr != 0 && mgr->init_mark == SAMSAT_FM1_TABLE_INIT_MARK;
+}
 
 /* ---- little-endian decoding, no type punning ---- */
 
@@ -734,12 +943,12 @@ static samsat_fm1_table_status_t install(samsat_fm1_table_mgr_t *mgr, const uint
 samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
     const samsat_fm1_coeffs_t *defaults)
 {
-    uint32_t bad, i;
+    uint32_t bad;
     samsat_fm1_table_status_t status;
     if (mgr == 0 || defaults == 0) {
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
     }
-    memset(mgr, 0, sizeof *mgr);
+    memset(mgr, 0, sizeof *mgr);   /* also clears init_mark: not initialised until the end */
     /* the compiled-in defaults get the content checks of an uplinked table (no header) */
     encode(defaults, mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES);
     bad = SAMSAT_FM1_TABLE_NO_INDEX;
@@ -748,26 +957,24 @@ samsat_fm1_table_status_t samsat_fm1_table_init(samsat_fm1_table_mgr_t *mgr,
     mgr->last_status = status;
     mgr->last_bad_value = bad;
     if (status != SAMSAT_FM1_TABLE_OK) {
-        /* the fallback: no coefficient is trusted. Both buffers hold NaN, so every
-         * correction is flagged (the |B| band check fails on NaN: IMPLAUSIBLE) and
-         * select finds no valid sensor, until a valid table (serial >= 1) is loaded. */
-        for (i = 0u; i < SAMSAT_FM1_TABLE_N_VALUES; ++i) {
-            put_value(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, i, (samsat_fm1_real_t)NAN);
-        }
-        decode(mgr->staging + SAMSAT_FM1_TABLE_HEADER_BYTES, &mgr->buffer[0]);
-        memset(mgr->staging, 0, sizeof mgr->staging);
-        mgr->buffer[1] = mgr->buffer[0];
+        /* the fallback: no coefficient is trusted. Both buffers hold NaN (the sets a
+         * manager not initialised hands out), so every correction is flagged (the |B|
+         * band check fails on NaN: IMPLAUSIBLE) and select finds no valid sensor, until
+         * a valid table (serial >= 1) is loaded. */
+        mgr->buffer[0] = coeffs_nan;
+        mgr->buffer[1] = coeffs_nan;
+        mgr->prepared[0] = prepared_nan;
+        mgr->prepared[1] = prepared_nan;
+        mgr->coeffs_valid = 0u;
+    } else {
+        mgr->buffer[0] = *defaults;
+        mgr->buffer[1] = *defaults;
         samsat_fm1_table_prepare(&mgr->buffer[0], &mgr->prepared[0]);
         mgr->prepared[1] = mgr->prepared[0];
-        mgr->coeffs_valid = 0u;
-        return status;
+        mgr->coeffs_valid = 1u;
     }
-    mgr->buffer[0] = *defaults;
-    mgr->buffer[1] = *defaults;
-    samsat_fm1_table_prepare(&mgr->buffer[0], &mgr->prepared[0]);
-    mgr->prepared[1] = mgr->prepared[0];
-    mgr->coeffs_valid = 1u;
-    return SAMSAT_FM1_TABLE_OK;
+    mgr->init_mark = SAMSAT_FM1_TABLE_INIT_MARK;   /* last: the manager is complete */
+    return status;
 }
 
 samsat_fm1_table_status_t samsat_fm1_table_load(samsat_fm1_table_mgr_t *mgr,
@@ -777,6 +984,9 @@ samsat_fm1_table_status_t samsat_fm1_table_load(samsat_fm1_table_mgr_t *mgr,
     samsat_fm1_table_status_t status;
     if (mgr == 0) {
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
+    }
+    if (!initialised(mgr)) {
+        return SAMSAT_FM1_TABLE_NOT_INITIALISED;
     }
     status = check_table(table, len, &bad);
     if (status == SAMSAT_FM1_TABLE_OK) {
@@ -796,6 +1006,9 @@ samsat_fm1_table_status_t samsat_fm1_table_receive_part(samsat_fm1_table_mgr_t *
 
     if (mgr == 0 || part == 0) {
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
+    }
+    if (!initialised(mgr)) {
+        return SAMSAT_FM1_TABLE_NOT_INITIALISED;
     }
     if (len < SAMSAT_FM1_PART_HEADER_BYTES + SAMSAT_FM1_TABLE_CRC_BYTES) {
         return SAMSAT_FM1_TABLE_PART_TRUNCATED;
@@ -863,6 +1076,9 @@ samsat_fm1_table_status_t samsat_fm1_table_commit(samsat_fm1_table_mgr_t *mgr)
     if (mgr == 0) {
         return SAMSAT_FM1_TABLE_NULL_ARGUMENT;
     }
+    if (!initialised(mgr)) {
+        return SAMSAT_FM1_TABLE_NOT_INITIALISED;
+    }
     if (mgr->transfer_open == 0u) {
         return SAMSAT_FM1_TABLE_NOTHING_STAGED;
     }
@@ -885,24 +1101,31 @@ samsat_fm1_table_status_t samsat_fm1_table_commit(samsat_fm1_table_mgr_t *mgr)
 
 void samsat_fm1_table_abort(samsat_fm1_table_mgr_t *mgr)
 {
-    if (mgr != 0) {
+    if (initialised(mgr)) {
         mgr->transfer_open = 0u;
     }
 }
 
 const samsat_fm1_coeffs_t *samsat_fm1_table_active(const samsat_fm1_table_mgr_t *mgr)
 {
-    return mgr != 0 ? &mgr->buffer[mgr->active & 1u] : 0;
+    return initialised(mgr) ? &mgr->buffer[mgr->active & 1u] : &coeffs_nan;
 }
 
 const samsat_fm1_table_prepared_t *samsat_fm1_table_prepared(const samsat_fm1_table_mgr_t *mgr)
 {
-    return mgr != 0 ? &mgr->prepared[mgr->active & 1u] : 0;
+    return initialised(mgr) ? &mgr->prepared[mgr->active & 1u] : &prepared_nan;
 }
 
 void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_info_t *info)
 {
     if (mgr == 0 || info == 0) {
+        return;
+    }
+    if (!initialised(mgr)) {
+        memset(info, 0, sizeof *info);
+        info->last_status = SAMSAT_FM1_TABLE_NOT_INITIALISED;
+        info->last_bad_value = SAMSAT_FM1_TABLE_NO_INDEX;
+        info->coeffs_valid = 0u;
         return;
     }
     info->active_serial = mgr->serial[mgr->active & 1u];

@@ -16,6 +16,32 @@
  *
  * Fixed-size, no heap, no recursion, C99. Little-endian bytes are decoded portably
  * (shifts, then memcpy of the integer into the float); IEEE-754 floats are assumed.
+ *
+ * A manager never initialised. samsat_fm1_table_init stores SAMSAT_FM1_TABLE_INIT_MARK in
+ * mgr->init_mark as its last step (after the OK or the NaN-fallback state is complete;
+ * its first step, the memset, clears it). Every other manager function tests the mark,
+ * so a manager that is zero-filled (static storage), 0xFF-filled or holds any other bytes,
+ * and was never passed to init, is "not initialised", as cFS table services answer
+ * CFE_TBL_ERR_NEVER_LOADED for a table never loaded: load, receive_part and commit return
+ * SAMSAT_FM1_TABLE_NOT_INITIALISED and change nothing; abort does nothing; info reports
+ * coeffs_valid 0, last_status NOT_INITIALISED, last_bad_value NO_INDEX, zeros elsewhere.
+ * The mark is not a lock: init must complete before another context (an ISR, a task)
+ * uses the manager, as the rule above for commit/load says.
+ *
+ * samsat_fm1_table_active and samsat_fm1_table_prepared never return NULL and never the
+ * unchecked bytes of such a manager: on a manager not initialised (or a NULL one) they
+ * return compiled-in all-NaN sets, so every correction on them returns
+ * SAMSAT_FM1_STATUS_IMPLAUSIBLE (the |B| band check fails on NaN) and select on those
+ * outputs finds no valid sensor, as after a failed init (which uses the same sets; with 3
+ * or more sensors select finds none on them even when told every sensor is valid: the
+ * NaN agreement tolerance fails every comparison). NULL was the other
+ * choice (the caller must check, as cFS apps check CFE_TBL_GetAddress); it was not taken
+ * because the corrections do not test their pointers and on a Cortex-M address 0 is
+ * readable memory (the vector table): a NULL passed on by a careless caller is not a
+ * crash but a correction computed from the vector table's words (seen on the emulated
+ * Cortex-M4F: no fault, a non-finite field). The cost is constant memory:
+ * sizeof(samsat_fm1_coeffs_t) + sizeof(samsat_fm1_table_prepared_t) bytes
+ * (4416 B for this unit), read on these paths and by init's fallback only.
  */
 #ifndef SAMSAT_FM1_TABLE_H
 #define SAMSAT_FM1_TABLE_H
@@ -63,6 +89,10 @@ extern "C" {
 /* No coefficient (bad_value_index of a failure that is not about one value). */
 #define SAMSAT_FM1_TABLE_NO_INDEX 0xFFFFFFFFu
 
+/* mgr->init_mark of a manager whose samsat_fm1_table_init completed (bytes "INIT" in a
+ * little-endian dump; not all bytes equal, so no single-byte fill matches it). */
+#define SAMSAT_FM1_TABLE_INIT_MARK 0x54494e49u
+
 /* Status codes: 0 accepted, else the first check that failed (in this order). */
 typedef enum {
     SAMSAT_FM1_TABLE_OK = 0,  /* accepted */
@@ -100,11 +130,13 @@ typedef enum {
     SAMSAT_FM1_TABLE_SERIAL_ROLLBACK = 32,  /* table serial below the active table's: rollback refused */
     SAMSAT_FM1_TABLE_SERIAL_REPLAY = 33,  /* table serial equal to the active table's, with other coefficients */
     SAMSAT_FM1_TABLE_ALREADY_ACTIVE = 34,  /* table serial and coefficients equal the active table's: nothing changed */
-    SAMSAT_FM1_TABLE_N_STATUS = 35
+    SAMSAT_FM1_TABLE_NOT_INITIALISED = 35,  /* table manager not initialised (table_init never completed on it): nothing changed, NaN coefficients handed out */
+    SAMSAT_FM1_TABLE_N_STATUS = 36
 } samsat_fm1_table_status_t;
 
 /* Table manager: the double buffer and the reassembly of the next table. */
 typedef struct {
+    uint32_t init_mark;                 /* SAMSAT_FM1_TABLE_INIT_MARK once init completed */
     samsat_fm1_coeffs_t buffer[2];      /* buffer[active] is in use, the other is written */
     samsat_fm1_table_prepared_t prepared[2];  /* prepared[k]: buffer[k] prepared */
     uint32_t serial[2];                 /* table serial of each buffer (0: compiled-in) */
@@ -178,16 +210,20 @@ samsat_fm1_table_status_t samsat_fm1_table_commit(samsat_fm1_table_mgr_t *mgr);
 samsat_fm1_table_status_t samsat_fm1_table_load(samsat_fm1_table_mgr_t *mgr,
     const uint8_t *table, uint32_t len);
 
-/* Drop the transfer in progress (e.g. to start another serial). */
+/* Drop the transfer in progress (e.g. to start another serial). Nothing on a manager
+ * not initialised. */
 void samsat_fm1_table_abort(samsat_fm1_table_mgr_t *mgr);
 
-/* The coefficients in use. */
+/* The coefficients in use; all NaN on a manager not initialised (or NULL). Never NULL. */
 const samsat_fm1_coeffs_t *samsat_fm1_table_active(const samsat_fm1_table_mgr_t *mgr);
 
 /* The coefficients in use, prepared (computed when they were activated): what the
- * correction and select take. */
+ * correction and select take. All NaN on a manager not initialised (or NULL): every
+ * correction flagged IMPLAUSIBLE, no sensor selected. Never NULL. */
 const samsat_fm1_table_prepared_t *samsat_fm1_table_prepared(const samsat_fm1_table_mgr_t *mgr);
 
+/* Housekeeping of the manager. On a manager not initialised: coeffs_valid 0, last_status
+ * SAMSAT_FM1_TABLE_NOT_INITIALISED, last_bad_value SAMSAT_FM1_TABLE_NO_INDEX, zeros elsewhere. */
 void samsat_fm1_table_info(const samsat_fm1_table_mgr_t *mgr, samsat_fm1_table_info_t *info);
 
 #ifdef __cplusplus

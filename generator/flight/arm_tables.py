@@ -11,9 +11,17 @@ compare the three result by result.
 
     ops: ("init",) | ("init_values", flat) | ("validate", table) | ("load", table)
          | ("receive_part", part) | ("commit",) | ("abort",) | ("active",)
+         | ("fill", byte) | ("prepared",) | ("correct", readings, temps_C)
 
-Each result is (status, bad value index, active serial, coeffs_valid, last status) as
-ints, or for "active" the bit pattern of the active coefficients (bytes).
+("fill", b) makes the manager one that init never ran on, every byte b (its Python model:
+TableManager(spec) without defaults). ("correct", readings, temps_C) runs one cycle of
+every sensor's correction and select on the prepared set the manager hands out
+(table_host.c, linked into the runner too): readings[k] sensor k's 3 (SET/RESET: 6)
+values. Each result is (status, bad value index, active serial, coeffs_valid, last
+status) as ints, or for "active" / "prepared" the bit pattern of the coefficients /
+prepared coefficients handed out, for "correct" the outputs' bytes (correct_bytes); the
+Python model answers None to "correct" (the chain's own tests compare the corrections
+with the Python reference).
 """
 
 from __future__ import annotations
@@ -29,14 +37,41 @@ from generator.flight.tables import (NO_INDEX, TableError, TableStatus,
 from generator.flight.arm_build import EXT_MAX, ArmRunError, _arm_env
 from generator.flight.arm_runner import ArmUnit, Job, run_job
 from generator.flight.codegen import template_context
+from generator.flight.table_host import host_sources
 
 OPS = {"init": 0, "init_values": 1, "validate": 2, "load": 3, "receive_part": 4,
-       "commit": 5, "abort": 6, "active": 7}
+       "commit": 5, "abort": 6, "active": 7, "fill": 8, "prepared": 9, "correct": 10}
+BYTES_OPS = ("active", "prepared", "correct")   # answered with bytes
 EXT_FILE = "table_ext.c"
 
 
 def ext_source(cs: CoefficientSet) -> str:
     return _arm_env().get_template("table_ext.c.j2").render(**template_context(cs))
+
+
+def _cycle_input(spec, readings, temps_C) -> np.ndarray:
+    """(S, 9) float64: per sensor 8 reading slots (3, or SET then RESET 6) and its
+    temperature, the layout of host_table_correct_all and of the runner's op 10."""
+    sensors = spec.unit.sensors
+    out = np.zeros((len(sensors), 9))
+    for k, s in enumerate(sensors):
+        v = np.asarray(readings[k], dtype=np.float64)
+        assert v.shape == ((6,) if s.set_reset else (3,)), (s.name, v.shape)
+        out[k, :v.size] = v
+        out[k, 8] = float(temps_C[k])
+    return out
+
+
+def correct_bytes(c: dict) -> bytes:
+    """A TableHost.correct_all result as the runner's op 10 answers it (little-endian):
+    fields, statuses of the corrections, statuses after select, the selected field, its
+    sensor and reason."""
+    def le(a, dt):
+        return np.ascontiguousarray(a).astype(np.dtype(dt).newbyteorder("<")).tobytes()
+    real = c["field_body_nT"].dtype
+    return (le(c["field_body_nT"], real) + le(c["status"], np.uint16)
+            + le(c["sel_status"], np.uint16) + le(c["sel_field_body_nT"], real)
+            + struct.pack("<bB", c["sel_sensor"], c["sel_reason"]))
 
 
 def _payload(spec, op) -> bytes:
@@ -47,6 +82,10 @@ def _payload(spec, op) -> bytes:
         return code + flat.tobytes()
     if kind in ("validate", "load", "receive_part"):
         return code + bytes(args[0])
+    if kind == "fill":
+        return code + bytes([args[0]])
+    if kind == "correct":
+        return code + _cycle_input(spec, *args).astype("<f8").tobytes()
     return code
 
 
@@ -56,7 +95,10 @@ class ArmTables:
     def __init__(self, cs: CoefficientSet):
         self.cs = cs
         self.spec = cs.spec
-        self.arm = ArmUnit(cs, extra_sources={EXT_FILE: ext_source(cs)})
+        helpers = host_sources(cs)
+        self.arm = ArmUnit(cs, extra_sources={EXT_FILE: ext_source(cs),
+                                              "table_host.c": helpers["table_host.c"],
+                                              "table_host.h": helpers["table_host.h"]})
 
     def run(self, ops, timeout=300.0) -> list:
         job = Job(self.cs)
@@ -68,9 +110,9 @@ class ArmTables:
         out, _ = run_job(self.arm.build.elf, job.bytes(), timeout=timeout)
         results = []
         for op, r in zip(ops, job.parse(out)):
-            if op[0] == "active":
+            if op[0] in BYTES_OPS:
                 if r["rc"] != 0:
-                    raise ArmRunError(f"active: runner extension answered {r['rc']}")
+                    raise ArmRunError(f"{op[0]}: runner extension answered {r['rc']}")
                 results.append(bytes(r["data"]))
                 continue
             if len(r["data"]) != 20:
@@ -95,6 +137,15 @@ def host_results(h, ops) -> list:
         elif kind == "active":
             results.append(h.active_flat(mgr).tobytes())
             continue
+        elif kind == "prepared":
+            results.append(h.prepared_flat(mgr).tobytes())
+            continue
+        elif kind == "correct":
+            results.append(correct_bytes(h.correct_all(mgr, *args)))
+            continue
+        elif kind == "fill":
+            mgr = h.uninitialised(args[0])
+            st = TableStatus.OK
         elif kind == "abort":
             h.abort(mgr)
             st = TableStatus.OK
@@ -122,6 +173,9 @@ def python_results(spec, default_values, ops) -> list:
         if kind in ("init", "init_values"):
             m = TableManager(spec, default_values if kind == "init" else args[0])
             st = m.init_status
+        elif kind == "fill":      # a single-byte fill is never the init mark
+            m = TableManager(spec)
+            st = TableStatus.OK
         elif kind == "validate":
             try:
                 check_table(args[0], spec)
@@ -133,9 +187,13 @@ def python_results(spec, default_values, ops) -> list:
                 (m.active_serial, int(m.coeffs_valid), int(m.last_status))
             results.append((int(st), int(bad)) + tuple(int(x) for x in tail))
             continue
-        elif kind == "active":
-            results.append(np.ascontiguousarray(m.active_values).astype(
-                m.active_values.dtype.newbyteorder("<")).tobytes())
+        elif kind == "correct":
+            results.append(None)
+            continue
+        elif kind in BYTES_OPS:
+            v = m.active_values if kind == "active" else m.prepared
+            results.append(np.ascontiguousarray(v).astype(
+                v.dtype.newbyteorder("<")).tobytes())
             continue
         elif kind == "abort":
             m.abort()

@@ -34,8 +34,10 @@ def flight_sources(cs: CoefficientSet) -> dict:
 
 # ---- host build: the flight table code through cffi --------------------------------------
 
-# HOST ONLY (not flight code): copy-out and a batch loop over the flight table API, so the
-# tests push large numbers of inputs through it quickly; the sanitizer driver uses it too.
+# TEST CODE (not flight code): copy-out and a batch loop over the flight table API, so the
+# tests push large numbers of inputs through it quickly; the sanitizer driver uses it too,
+# and the Cortex-M4F table runner (arm_tables) links table_host.c for its corrections on
+# the manager's prepared set.
 HOST_CDEF = """\
 typedef enum {
 {% for e in table.errors %}
@@ -54,8 +56,9 @@ typedef struct {
     uint32_t last_bad_value;
     uint8_t coeffs_valid;
 } {{ unit }}_table_info_t;
-typedef struct { ...; } {{ unit }}_table_mgr_t;
+typedef struct { uint32_t init_mark; ...; } {{ unit }}_table_mgr_t;
 typedef struct { ...; } {{ unit }}_coeffs_t;
+typedef struct { ...; } {{ unit }}_table_prepared_t;
 extern const uint8_t {{ unit }}_table_default[{{ table.table_bytes }}];
 uint32_t {{ unit }}_table_crc32(const uint8_t *buf, uint32_t len);
 {{ unit }}_table_status_t {{ unit }}_table_validate(const uint8_t *buf, uint32_t len);
@@ -67,16 +70,20 @@ const char *{{ unit }}_table_strerror(int status);
 {{ unit }}_table_status_t {{ unit }}_table_load({{ unit }}_table_mgr_t *mgr, const uint8_t *table, uint32_t len);
 void {{ unit }}_table_abort({{ unit }}_table_mgr_t *mgr);
 const {{ unit }}_coeffs_t *{{ unit }}_table_active(const {{ unit }}_table_mgr_t *mgr);
+const {{ unit }}_table_prepared_t *{{ unit }}_table_prepared(const {{ unit }}_table_mgr_t *mgr);
 void {{ unit }}_table_info(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_table_info_t *info);
 const {{ unit }}_coeffs_t *host_table_defaults(void);
 void host_table_flat(const {{ unit }}_coeffs_t *co, {{ real }} *flat);
 long host_table_prepared_size(void);
 void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ real }} *flat);
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets, const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw, const double *temp_C, {{ real }} *field, uint16_t *status);
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ real }} *field, uint16_t *status, {{ real }} *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_H = """\
-/* HOST ONLY: test helpers around the flight table code of {{ unit }}. */
+/* TEST CODE (host, and the target table runner): helpers around the flight table code
+ * of {{ unit }}. */
 #include <stdint.h>
 #include "{{ unit }}_magcal.h"
 #include "{{ unit }}_table.h"
@@ -89,10 +96,15 @@ void host_table_prepared_flat(const {{ unit }}_table_mgr_t *mgr, {{ unit }}_real
 #define HOST_COMMIT_AFTER 2u   /* actions: {{ unit }}_table_commit after the input */
 long host_table_fuzz({{ unit }}_table_mgr_t *mgr, const uint8_t *blob, const uint32_t *offsets,
     const uint32_t *lens, const uint8_t *actions, long n, int32_t *codes);
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status);
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ unit }}_real_t *field,
+    uint16_t *status, {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason);
 """
 
 HOST_HELPER_C = """\
-/* HOST ONLY (not flight code): helpers for the tests of {{ unit }}_table.c. */
+/* TEST CODE (not flight code): helpers for the tests of {{ unit }}_table.c, built on the
+ * host (cffi) and into the Cortex-M4F table runner. */
 #include <string.h>
 #include "table_host.h"
 
@@ -124,6 +136,53 @@ void host_table_flat(const {{ unit }}_coeffs_t *co, {{ unit }}_real_t *flat)
 {% else %}
     (void)k;
 {% endif %}
+}
+
+/* One sample of every sensor through its {{ unit }}_<sensor>_correct on the prepared set
+ * the manager hands out ({{ unit }}_table_prepared(mgr); aux NULL, state NULL), as flight
+ * software calls it. raw[8 k ..]: sensor k's readings (3; SET then RESET: 6), temp_C[k];
+ * out: field[3 k ..], status[k]. */
+void host_table_correct_all(const {{ unit }}_table_mgr_t *mgr, const double *raw,
+    const double *temp_C, {{ unit }}_real_t *field, uint16_t *status)
+{
+    const {{ unit }}_table_prepared_t *co = {{ unit }}_table_prepared(mgr);
+    int i;
+{% for s in sensors %}
+{% set rt = (unit ~ "_real_t") if s.physical else "int32_t" %}
+    {
+        {{ unit }}_{{ s.name }}_raw_t in;
+        {{ unit }}_{{ s.name }}_out_t out;
+        memset(&in, 0, sizeof in);
+        for (i = 0; i < 3; ++i) {
+{% if s.set_reset %}
+            in.{{ s.raw_fields.set }}[i] = ({{ rt }})raw[8 * {{ s.index }} + i];
+            in.{{ s.raw_fields.reset }}[i] = ({{ rt }})raw[8 * {{ s.index }} + 3 + i];
+{% else %}
+            in.{{ s.raw_fields.plain }}[i] = ({{ rt }})raw[8 * {{ s.index }} + i];
+{% endif %}
+        }
+        in.temp_C = ({{ unit }}_real_t)temp_C[{{ s.index }}];
+        status[{{ s.index }}] = {{ unit }}_{{ s.name }}_correct(co, &in,
+            {%- if has_aux %} 0,{% endif %}{% if s.has_state %} 0,{% endif %} &out);
+        memcpy(field + 3 * {{ s.index }}, out.field_body_nT, sizeof out.field_body_nT);
+    }
+{% endfor %}
+}
+
+/* {{ unit }}_select on the prepared set the manager hands out: field[3 k ..] and status[k]
+ * of sensor k (status updated in place, as select does), the selection's field, sensor
+ * and reason. */
+void host_table_select(const {{ unit }}_table_mgr_t *mgr, const {{ unit }}_real_t *field,
+    uint16_t *status, {{ unit }}_real_t *sel_field, int8_t *sel_sensor, uint8_t *sel_reason)
+{
+    {{ unit }}_real_t fields[{{ UNIT }}_N_SENSORS][3];
+    {{ unit }}_selection_t sel;
+    memcpy(fields, field, sizeof fields);
+    (void){{ unit }}_select({{ unit }}_table_prepared(mgr),
+                            (const {{ unit }}_real_t (*)[3])fields, status, &sel);
+    memcpy(sel_field, sel.field_body_nT, sizeof sel.field_body_nT);
+    *sel_sensor = sel.sensor;
+    *sel_reason = sel.reason;
 }
 
 /* Each input goes through validate_detail, load and receive_part, with an abort before it
@@ -361,11 +420,12 @@ class TableHost:
         assert st == TableStatus.OK, st
         return mgr
 
-    def init(self, defaults=None) -> tuple:
+    def init(self, defaults=None, mgr=None) -> tuple:
         """(manager, status of <unit>_table_init): defaults None: the compiled-in
         <unit>_coeffs_default; else a pointer to a <unit>_coeffs_t, or flat values in
-        layout order (put into a struct first)."""
-        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        layout order (put into a struct first). mgr: init this manager (else a new one)."""
+        if mgr is None:
+            mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
         if defaults is None:
             defaults = self.lib.host_table_defaults()
         elif isinstance(defaults, np.ndarray):
@@ -376,6 +436,54 @@ class TableHost:
             defaults = co
         st = TableStatus(self._fn("init")(mgr, defaults))
         return mgr, st
+
+    def uninitialised(self, fill: int = 0):
+        """A manager that `<unit>_table_init` never ran on: every byte `fill` (0: static
+        storage; 0xFF: erased memory)."""
+        mgr = self.ffi.new(f"{self.unit}_table_mgr_t *")
+        n = self.ffi.sizeof(f"{self.unit}_table_mgr_t")
+        self.ffi.memmove(mgr, bytes([fill]) * n, n)
+        return mgr
+
+    def correct_all(self, mgr, raw, temp_C) -> dict:
+        """One sample of every sensor through its correction on `<unit>_table_prepared(mgr)`
+        (host_table_correct_all), then select on the same set (select): raw (S, 3 or 6)
+        readings, temp_C (S,)."""
+        sensors = self.spec.unit.sensors
+        r = np.zeros((len(sensors), 8))
+        for k, s in enumerate(sensors):
+            v = np.asarray(raw[k], dtype=np.float64)
+            assert v.shape == ((6,) if s.set_reset else (3,)), (s.name, v.shape)
+            r[k, :v.size] = v
+        t = np.ascontiguousarray(temp_C, dtype=np.float64)
+        assert t.shape == (len(sensors),)
+        field = np.zeros((len(sensors), 3), dtype=self.dtype)
+        status = np.zeros(len(sensors), dtype=np.uint16)
+        ct = "float" if self.dtype == np.float32 else "double"
+        ffi = self.ffi
+        self.lib.host_table_correct_all(
+            mgr, ffi.cast("double *", r.ctypes.data), ffi.cast("double *", t.ctypes.data),
+            ffi.cast(f"{ct} *", field.ctypes.data), ffi.cast("uint16_t *", status.ctypes.data))
+        out = {"field_body_nT": field, "status": status.copy()}
+        out.update(self.select(mgr, field, status))
+        return out
+
+    def select(self, mgr, field, status) -> dict:
+        """`<unit>_select` on `<unit>_table_prepared(mgr)`: field (S, 3), status (S,) of one
+        cycle. Returns the statuses after select (DISAGREE bits) and the selection."""
+        f = np.ascontiguousarray(field, dtype=self.dtype)
+        st = np.array(status, dtype=np.uint16)
+        assert f.shape == (len(self.spec.unit.sensors), 3) and st.shape == (f.shape[0],)
+        sel_field = np.zeros(3, dtype=self.dtype)
+        sel_sensor = self.ffi.new("int8_t *")
+        sel_reason = self.ffi.new("uint8_t *")
+        ct = "float" if self.dtype == np.float32 else "double"
+        ffi = self.ffi
+        self.lib.host_table_select(
+            mgr, ffi.cast(f"{ct} *", f.ctypes.data), ffi.cast("uint16_t *", st.ctypes.data),
+            ffi.cast(f"{ct} *", sel_field.ctypes.data), sel_sensor, sel_reason)
+        return {"sel_status": st, "sel_field_body_nT": sel_field,
+                "sel_sensor": int(sel_sensor[0]), "sel_reason": int(sel_reason[0])}
 
     def receive_part(self, mgr, part) -> TableStatus:
         return TableStatus(self._fn("receive_part")(mgr, self._buf(part), len(part)))

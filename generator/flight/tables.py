@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from generator.flight.chain import Block, ChainSpec, np_dtype
+from generator.flight.chain import Block, ChainSpec, n_prepared, np_dtype
 from generator.flight.coeffs import CoefficientSet
 from generator.errors import InputError
 from generator.flight.c_syntax import c_literal
@@ -57,6 +57,11 @@ FORMAT_VERSION = 1         # bump when the meaning of a header field changes
 UNIT_ID_FIELD_BYTES = 32   # unit id, ASCII, NUL-padded (at most 31 characters)
 CRC_BYTES = 4
 NO_INDEX = 0xFFFFFFFF      # "no coefficient" in bad_value_index
+# <unit>_table_mgr_t.init_mark after a completed <unit>_table_init (its last store): the
+# bytes "INIT" in a little-endian memory dump. Its bytes are not all equal, so no
+# single-byte fill (zeroed static storage, erased flash's 0xFF, any memset) makes a
+# manager look initialised; every manager function tests it.
+MANAGER_INIT_MARK = 0x54494E49
 MAX_U16 = 0xFFFF
 
 # Table files for the flight build; same shape as codegen.TEMPLATES entries.
@@ -185,6 +190,9 @@ ERRORS = (
     ("SERIAL_REPLAY", "table serial equal to the active table's, with other coefficients"),
     ("ALREADY_ACTIVE", "table serial and coefficients equal the active table's: "
                        "nothing changed"),
+    # a manager never initialised (load, receive_part, commit; info's last_status), first
+    ("NOT_INITIALISED", "table manager not initialised (table_init never completed on "
+                        "it): nothing changed, NaN coefficients handed out"),
 )
 
 # The table checks of <unit>_table_validate, in the order they run.
@@ -388,6 +396,15 @@ def value_layout(spec: ChainSpec) -> tuple:
 @_per_spec
 def n_values(spec: ChainSpec) -> int:
     return sum(spec.n_sensor_coeffs(s) for s in spec.unit.sensors) + spec.n_unit_coeffs()
+
+
+def n_prepared_values(spec: ChainSpec) -> int:
+    """Reals in `<unit>_table_prepared_t` (templates/magcal.h.j2): per sensor its table
+    coefficients and its kernels' prepared vectors (the SET-only one of a SET/RESET
+    sensor too)."""
+    return sum(spec.n_sensor_coeffs(s) + n_prepared(spec, s)
+               + (n_prepared(spec, s, set_only=True) if s.set_reset else 0)
+               for s in spec.unit.sensors)
 
 
 @_per_spec
@@ -1022,6 +1039,10 @@ def table_context(cs: CoefficientSet) -> dict:
         "unit_id_hash": f"0x{unit_id_hash(spec.unit.id):08x}",
         "unit_id_field": list(unit_id_field(spec.unit.id)),
         "errors": [{"name": n, "value": i, "reason": r} for i, (n, r) in enumerate(ERRORS)],
+        "init_mark": f"0x{MANAGER_INIT_MARK:08x}",
+        # the all-NaN <unit>_coeffs_t and <unit>_table_prepared_t of a manager not
+        # initialised (and of init's fallback): their constant memory
+        "nan_bytes": (nv + n_prepared_values(spec)) * dt.itemsize,
         "segments": [{"first": s.first, "count": s.count, "lo": c_literal(s.lo, ft),
                       "hi": c_literal(s.hi, ft),
                       "what": f"{s.owner} {s.block.name}"

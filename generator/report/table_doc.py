@@ -10,7 +10,8 @@ from pathlib import Path
 
 from generator.flight.chain import ChainSpec
 from generator.flight.tables import (CHECK_ORDER, CONTENT_CHECKS, CRC_BYTES, ERRORS,
-                                     HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS, NO_TEMP_RANGE_C,
+                                     HEADER_BYTES, HEADER_FIELDS, HEADER_OFFSETS,
+                                     MANAGER_INIT_MARK, NO_TEMP_RANGE_C,
                                      ORDERED_PAIRS, PART_FIELDS, PART_HEADER_BYTES, PART_OFFSETS,
                                      PHYSICAL_LIMITS, PLAUSIBLE_RANGES, SERIAL_CHECKS,
                                      TableStatus)
@@ -189,6 +190,46 @@ def format_doc() -> str:
       "from a broken default reaches attitude control. `info.coeffs_valid` is 0 in "
       "that state and becomes 1 when a valid table (serial >= 1) is loaded.")
     a("")
+    a("## A manager never initialised")
+    a("")
+    a("A `<unit>_table_mgr_t` that `<unit>_table_init` never completed on (zero-filled "
+      "static storage, erased memory, a task or an interrupt that runs before init) holds "
+      "no coefficients: on its zeros every correction returns a zero field that passes "
+      "the |B| band check (0 - 0 >= 0), flagged valid wherever the temperature check "
+      "passes too (a sensor without a temperature; 0 degC, the zeroed range). The "
+      "manager therefore knows whether init completed: init clears the whole struct "
+      "first and, as its last step (after the OK or the NaN-fallback state is "
+      "complete), stores "
+      f"`<UNIT>_TABLE_INIT_MARK` = 0x{MANAGER_INIT_MARK:08X} in `init_mark` (the bytes "
+      f"\"{MANAGER_INIT_MARK.to_bytes(4, 'little').decode('ascii')}\" in a little-endian "
+      "dump; its bytes are not all equal, so no single-byte fill, 0x00 or 0xFF or any "
+      "other, looks initialised). Every other manager function tests it, as cFS table "
+      "services answer `CFE_TBL_ERR_NEVER_LOADED` for a table never loaded. On a manager "
+      "not initialised:")
+    a("")
+    a("- `<unit>_table_load`, `_receive_part` and `_commit` return `NOT_INITIALISED` "
+      f"(code {int(TableStatus.NOT_INITIALISED)}) and change nothing (a NULL manager or "
+      "part is still `NULL_ARGUMENT`, checked first); `<unit>_table_abort` does nothing;")
+    a("- `<unit>_table_info` reports `coeffs_valid` 0, `last_status` `NOT_INITIALISED`, "
+      "`last_bad_value` `NO_INDEX` and zero in every other field;")
+    a("- `<unit>_table_active` and `<unit>_table_prepared` return compiled-in sets whose "
+      "every value is a quiet NaN (the sets the init fallback puts in use), never NULL and "
+      "never the manager's unchecked bytes: every correction on them returns "
+      "`STATUS_IMPLAUSIBLE` and `<unit>_select` on those outputs finds no valid sensor "
+      "(`SELECT_NONE`; with 3 or more sensors it finds none on the NaN set even when "
+      "told every sensor is valid, as the NaN agreement tolerance fails every "
+      "comparison; with 1 or 2 it follows the statuses it is given). "
+      "The same holds for a NULL manager.")
+    a("")
+    a("NaN rather than NULL: the corrections do not test their pointer, and on a "
+      "Cortex-M address 0 is readable memory (the vector table), so a NULL passed on by a "
+      "caller that forgot to check would not stop the program but would be read as "
+      "coefficients. The NaN sets cost constant memory, sizeof(`<unit>_coeffs_t`) + "
+      "sizeof(`<unit>_table_prepared_t`) (the number is in `<unit>_table.h`; "
+      "docs/flight_target.md gives the table object's constants). The mark is not a lock: "
+      "init must complete before another context uses the manager. "
+      "`generator.flight.table_manager.TableManager(spec)` (no defaults) models this state.")
+    a("")
     a("## Prepared coefficients")
     a("")
     a("The corrections (`<unit>_<sensor>_correct`, `_correct_set`) and `<unit>_select` "
@@ -244,6 +285,9 @@ def format_doc() -> str:
       "parts before the table checks of the reassembled table, the serial mismatch after "
       "them); then load and commit apply the serial rule ("
       + ", ".join(f"`{c}`" for c in SERIAL_CHECKS) + "). "
+      f"`NOT_INITIALISED` (code {int(TableStatus.NOT_INITIALISED)}) comes from load, "
+      "receive_part and commit on a manager that init never completed on, before any "
+      "other check but the NULL pointers (*A manager never initialised*). "
       "`<unit>_table_strerror(code)` gives the meaning.")
     a("")
     a("## Parts")
