@@ -306,4 +306,10 @@ MUTATIONS = [
       (("templates/table.c.j2", "        return {{ UNIT }}_TABLE_WRONG_LAYOUT;\n",
         "        (void)0;\n"),),
       tuple(TABLES)),
+    M("table_uninitialised_trusted", "table manager: a manager never initialised counts as "
+      "initialised (its zero bytes handed out as coefficients)",
+      (("templates/table.c.j2",
+        "    return mgr != 0 && mgr->init_mark == {{ UNIT }}_TABLE_INIT_MARK;",
+        "    return mgr != 0;"),),
+      ("host_tests/test_table_uninitialised.py",)),
 ]
