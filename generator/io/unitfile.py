@@ -114,7 +114,7 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
     sensors = []
     sensor_extra = {}
     for i, d in enumerate(sensor_list, start=1):
-        spec, unknown = _read_sensor(_Table(path, lines, d, "sensor", i))
+        spec, unknown = _read_sensor(_Table(path, lines, d, "sensor", i), float_type)
         sensors.append(spec)
         if unknown:
             sensor_extra[spec.name] = unknown
@@ -166,7 +166,14 @@ def unit_from_doc(path, doc: dict, text: str = "") -> Unit:
                 float_type=float_type, boom_reference=boom_reference, path=str(path), extra=extra)
 
 
-def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
+# The largest raw count magnitude a chain holds exactly: the flight code takes counts as
+# int32_t and converts them to its float type, where every integer up to 2^24 (float32's
+# 24-bit significand) or up to int32's range (float64) is exact; the folded chain's
+# count - zero_count rests on that (docs/flight_target.md, "The flop bound").
+EXACT_COUNT_LIMIT = {"float32": 2 ** 24, "float64": 2 ** 31 - 1}
+
+
+def _read_sensor(t: "_Table", float_type: str = "float32") -> tuple[SensorSpec, dict]:
     name = t.name("name")
     t.label = f"[[sensor]] #{t.index} '{name}'"
     part_name = t.get("part")
@@ -189,6 +196,16 @@ def _read_sensor(t: "_Table") -> tuple[SensorSpec, dict]:
         if not lo < zero_count < hi:
             t.fail("zero_count", f"{zero_count} is not inside the {part_name} raw range "
                                  f"({lo}, {hi})")
+        limit = EXACT_COUNT_LIMIT[float_type]
+        if lo < -limit or hi > limit:
+            key = ("zero_count" if abs(zero_count) > limit else
+                   "range_nT" if part.generic else "lsb_nT")
+            t.fail(key, f"the raw range ({lo}, {hi}) reaches beyond +-{limit:,}, the "
+                        f"largest count the {float_type} flight chain holds exactly (counts "
+                        "are int32 converted to the chain's float type): give the readings "
+                        "in a physical unit (input = \"nT\", \"uT\" or \"G\")"
+                        + (" or use float = \"float64\" in [unit]"
+                           if float_type == "float32" else ""))
     else:
         # ICD section 4: the columns hold real numbers in `input`; lsb_nT and zero_count
         # are not used (written, they are ignored). The spec carries the unit's nT factor
