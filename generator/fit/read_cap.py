@@ -52,8 +52,8 @@ EVERY_ROW_PIECE = 1 << 17
 
 def read_cap_rows(max_samples: int, max_rows=None) -> int:
     """The rows the fit reads at most (0: every row): max_rows when given (whole number >=
-    0), else READ_ROWS_PER_SAMPLE x max(max_samples, MAX_FIT_SAMPLES); 0 when max_samples
-    is 0 (every sample, so every row)."""
+    0), else READ_CAP_ROWS or READ_ROWS_PER_SAMPLE x max_samples, the larger; 0 when
+    max_samples is 0 (every sample, so every row)."""
     if max_rows is not None:
         if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) \
                 or max_rows < 0:
@@ -62,7 +62,7 @@ def read_cap_rows(max_samples: int, max_rows=None) -> int:
         return int(max_rows)
     if not max_samples:
         return 0
-    return READ_ROWS_PER_SAMPLE * max(int(max_samples), MAX_FIT_SAMPLES)
+    return max(READ_CAP_ROWS, READ_ROWS_PER_SAMPLE * int(max_samples))
 
 
 @dataclass
