@@ -239,7 +239,11 @@ def _apply_cmd(data, out):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows (0: skip)")
-    ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
+    ap.add_argument("--fit-rows", type=int, nargs="+", default=[1_000_000],
+                    help="fit input rows, one or more lengths (0: skip)")
+    ap.add_argument("--before-fit-rows", type=int, default=1_000_000,
+                    help="the longest fit input --before runs too (an uncapped fit holds "
+                         "~1.4 KiB a row: 3x10^6 rows would need ~4 GiB)")
     ap.add_argument("--read-rows", type=int, default=360_000,
                     help="read-memory rows (0: skip)")
     ap.add_argument("--fit-cap-rows", type=int, default=0,
@@ -343,22 +347,41 @@ def main(argv=None) -> int:
                   f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
             before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
 
-        if a.fit_rows:
+        fit_peaks = {}
+        for rows in [r for r in a.fit_rows if r]:
             fd = tmp / "fit.csv"
-            write_long_file(src, fd, a.fit_rows)
+            write_long_file(src, fd, rows)
             fit_cmd = [PY, "-m", "generator.cli", "fit", unit, fd, "-o", tmp / "fit_out",
                        "--no-report", "--quiet"]
             t_fit, m_fit = best(fit_cmd, 1)
+            fit_peaks[rows] = m_fit
             t_fl, m_fl = best(_worker_cmd("loadtxt", fd), 1)
             _, m_imp = best(_worker_cmd("imports"), 1)
-            res["fit_vs_loadtxt_time"] = t_fit / t_fl
-            res["fit_vs_loadtxt_memory"] = m_fit / m_fl
-            print(f"fit --no-report {a.fit_rows} rows: {t_fit:.2f} s, {m_fit:.0f} MiB peak "
-                  f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
+            res[f"fit_{rows}_vs_loadtxt_time"] = t_fit / t_fl
+            res[f"fit_{rows}_vs_loadtxt_memory"] = m_fit / m_fl
+            cap = json.loads((tmp / "fit_out" / "coefficients.json").read_text())
+            f0 = cap["fit"]["sensors"]["mmc1"]["stats"]["files"][0]
+            read = (f"read {f0['rows_read']:,} of {f0['rows']:,} rows" if "rows_read" in f0
+                    else "read every row")
+            print(f"fit --no-report {rows} rows ({read}): {t_fit:.2f} s, {m_fit:.0f} MiB peak "
+                  f"({(m_fit - m_imp) * 2**20 / rows / 1024:.2f} KiB per sample above "
                   f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
-            fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
-            before_after("fit", fit_cmd, t_fit, m_fit)
+            for name, v in cap["fit"]["sensors"].items():
+                alls, own = v["stats"].get("all_samples_residual_nT"), v["stats"]["fit"]
+                if alls:
+                    key = "rms_vector_nT" if alls["rms_vector_nT"] is not None else "rms_norm_nT"
+                    print(f"  {name}: {key} over all {alls['n']:,} samples {alls[key]:.3f} nT, "
+                          f"on the fit's own {own.get('n', '?')}: {own[key]:.3f} nT")
+            if rows <= a.before_fit_rows:
+                fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
+                before_after(f"fit_{rows}", fit_cmd, t_fit, m_fit)
+            fd.unlink()
+        if len(fit_peaks) > 1:          # bounded memory: the peak's growth per row
+            (r0, p0), (r1, p1) = min(fit_peaks.items()), max(fit_peaks.items())
+            res["fit_peak_longest_vs_shortest"] = p1 / p0
+            print(f"fit peak {p0:.0f} MiB at {r0} rows, {p1:.0f} MiB at {r1}: "
+                  f"{p1 / p0:.2f}x, {(p1 - p0) * 2**20 / (r1 - r0):.1f} B per row")
         if a.fit_cap_rows:     # the subsample's cost and gain, both in this run
             fc = tmp / "fit_cap.csv"
             write_long_file(src, fc, a.fit_cap_rows)

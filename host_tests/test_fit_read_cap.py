@@ -185,10 +185,9 @@ def test_peak_memory_does_not_grow_with_the_file(tmp_path):
     of the file: the read pass keeps the drawn blocks' rows (at most READ_CAP_ROWS whatever
     the length) and one chunk (CHUNK_BYTES of text); the every-row pass one piece
     (EVERY_ROW_PIECE rows) and per sensor four sums. The rows read at the two lengths differ
-    by less than one block (draw_blocks keeps them within L of the cap): 6,000 rows at
-    1 s... here 1,200 rows at 5 s, at ~1.4 KiB a row read (bench_io's docstring: the fit's
-    cost per row of memory) under 2 MiB, i.e. under 2 B a row over the 1.2x10^6 rows between
-    the lengths. Bound: 32 B a row (16x that: the allocator's page-level noise; the
+    by less than one block (draw_blocks keeps them within L of the cap): 1,200 rows here
+    (5 s a row: 100 min), at ~1.4 KiB a row read (bench_io's docstring: the fit's memory
+    per row) under 2 MiB, i.e. under 2 B a row over the 1.2x10^6 rows between the lengths. Bound: 32 B a row (16x that: the allocator's page-level noise; the
     uncapped fit grew ~1,400 B a row)."""
     sys.path.insert(0, str(REPO / "bench"))
     from bench_io import FM1, measured, write_long_file
@@ -204,7 +203,10 @@ def test_peak_memory_does_not_grow_with_the_file(tmp_path):
         assert code == 0, err
         d = json.loads((tmp_path / f"out_{rows}" / "coefficients.json").read_text())
         st = d["fit"]["sensors"]["mmc1"]["stats"]
-        assert st["files"][0]["rows"] == rows and st["all_samples_residual_nT"]["n"] == rows
+        f0, res = st["files"][0], st["all_samples_residual_nT"]
+        # every row's usable samples, more than the rows read (the screen drops some rows
+        # where the repeated campaign's temperature jumps back at each seam)
+        assert f0["rows"] == rows and f0["rows_read"] <= rc.READ_CAP_ROWS < res["n"] <= rows
         peaks[rows] = peak_mib
         data.unlink()
     growth = (peaks[1_800_000] - peaks[600_000]) * 2 ** 20 / 1_200_000
