@@ -153,7 +153,7 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     left out of the fit (the every-row pass still covers it). A cap below one block is
     InputError naming --max-samples."""
     from generator.io.coil_study import is_coil_study
-    from generator.io.orbit import wants_field_model
+    from generator.io.orbit import require_field_reference, wants_field_model
     from generator.io.telemetry_csv import _rows_at_most, concat_chunks
     R = read_cap_rows(max_samples, max_rows)
     bounds = [_rows_at_most(p) for p in paths]
@@ -179,25 +179,25 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     for (f, picks), path, bound in zip(draws, paths, bounds):
         runs = block_runs(bound, picks, L)
         want = np.concatenate(runs) if runs else np.zeros(0, int)
-        kept, a = [], 0
-        for c in _chunks(path, unit):           # every row parsed and checked
-            lo, hi = np.searchsorted(want, [a, a + c.n])
-            if hi > lo:
-                kept.append(rows_of(c, want[lo:hi] - a))
-            a += c.n
-            del c
-        rows_read = sum(k.n for k in kept)
+        a = 0
+
+        def picked():
+            """Every chunk of the file (every row parsed and checked), each cut to its
+            drawn rows (maybe none): concat_chunks fills the file's columns once."""
+            nonlocal a
+            for c in _chunks(path, unit):
+                lo, hi = np.searchsorted(want, [a, a + c.n])
+                yield rows_of(c, want[lo:hi] - a)
+                a += c.n
+        tel = concat_chunks(picked(), rows=len(want))
         n_blocks = sum(1 for r in runs if len(r) and r[0] < a)    # blocks with rows
-        reads.append(FileRead(str(path), int(a), int(rows_read), int(n_blocks)))
-        progress(f"read {path}: {a:,} rows, kept {rows_read:,} in {n_blocks} blocks of "
+        reads.append(FileRead(str(path), int(a), int(tel.n), int(n_blocks)))
+        progress(f"read {path}: {a:,} rows, kept {tel.n:,} in {n_blocks} blocks of "
                  f"{L:,} consecutive rows (the fit's read cap {R:,})")
-        if not rows_read:
-            continue
-        tel = concat_chunks(kept, rows=rows_read)
-        del kept
-        from generator.io.orbit import require_field_reference
-        require_field_reference(tel)
-        tels.append(tel)
+        if tel.n:
+            require_field_reference(tel)
+            tels.append(tel)
+        del tel
     n_all = sum(r.rows for r in reads)
     n_read = sum(r.rows_read for r in reads)
     m = sum(r.blocks for r in reads)
