@@ -159,13 +159,17 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     bounds = [_rows_at_most(p) for p in paths]
     if not R or any(b is None for b in bounds) or sum(bounds) <= R:
         return [_read_whole(p, unit, progress) for p in paths], None
-    firsts = [_first_chunk(p, unit) for p in paths]
-    if any(is_coil_study(c) or wants_field_model(c, unit) for c in firsts):
-        return [_read_whole(p, unit, progress) for p in paths], None
-    bounds = [_rows_bound(p, c) for p, c in zip(paths, firsts)]
+    bounds, dts = [], []
+    for p in paths:           # one first chunk at a time (hundreds of files: not all held)
+        c = _first_chunk(p, unit)
+        if is_coil_study(c) or wants_field_model(c, unit):
+            return [_read_whole(p, unit, progress) for p in paths], None
+        bounds.append(_rows_bound(p, c))
+        dts.append(median_period_s(c.time_s))
+        del c
     if sum(bounds) <= R:
         return [_read_whole(p, unit, progress) for p in paths], None
-    dts = [d for d in (median_period_s(c.time_s) for c in firsts) if d is not None]
+    dts = [d for d in dts if d is not None]
     L = block_rows_of_period(min(dts) if dts else 1.0, R)
     if R < L:
         what = "--max-samples" if max_rows is None else "max_rows"
@@ -173,7 +177,6 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
                          f"{what}: the fit reads at most {R:,} rows, below one block of "
                          f"{L:,} consecutive rows: give a cap that reads at least {L:,} "
                          "rows, or --max-samples 0 for every row")
-    del firsts
     m, _, (draws, _), _ = draw_blocks(bounds, [], R, L, READ_SEED)
     tels, reads = [], []
     for (f, picks), path, bound in zip(draws, paths, bounds):
