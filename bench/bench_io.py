@@ -161,8 +161,11 @@ sys.stderr.write(f"\\n@@measured {time.perf_counter() - t0!r} {ru.ru_maxrss} "
 def measured(cmd, env=None) -> tuple[float, float, int, str, str]:
     """(wall seconds, peak RSS MiB, exit code, stdout, stderr) of one command run in a
     fresh process (through _LAUNCHER: the peak is the command's own)."""
+    # cwd outside any checkout: `python -m generator.cli` puts the working directory first
+    # on sys.path, so run from a checkout it would import that checkout's generator/ and
+    # not PYTHONPATH's (a --before run would measure today's code)
     p = subprocess.run([PY, "-c", _LAUNCHER, *map(str, cmd)], capture_output=True,
-                       env=env or ENV)
+                       env=env or ENV, cwd=tempfile.gettempdir())
     err = p.stderr.decode()
     head, _, last = err.rstrip("\n").rpartition("\n@@measured ")
     wall, kib, code = last.split()
