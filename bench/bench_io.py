@@ -73,6 +73,29 @@ Recorded (sub6, 2026-11-24, 2 shared cores at load ~4; times noisy, memory not):
     residual over all 10^6 samples: 1.0000 to 1.0001 times the full fit's. (A separate run,
     --fit-rows 1000000 with the default cap: 40.74 s, 774 MiB, 0.70 KiB per sample above
     the imports.)
+
+Recorded (fitmem14, 2026-11-25, 2 shared cores at load ~4.2-5.1 from other jobs: times
+noisy, memory not; --before an export of main c6ef128, measured in the same run):
+    python3 bench/bench_io.py --rows 0 --read-rows 0 --no-thermal \
+        --fit-rows 1000000 3000000 --before <export of c6ef128> --before-fit-rows 1000000
+  fit --no-report 10^6 rows, the read cap (fit/read_cap.py: 399,600 of the 10^6 rows read
+    in 333 blocks of 1,200 rows; every row checked after the fit): 35.87 s, 579 MiB peak;
+    c6ef128 (every row read, its sample cap) 47.27 s, 1324 MiB: after/before 0.76x time,
+    0.44x memory.
+  fit --no-report 3x10^6 rows: 55.85 s, 579 MiB peak (c6ef128 not run: ~1.3 KiB a row, ~4
+    GiB). The peak does not grow with the file: 579 MiB at 10^6 and at 3x10^6 rows (1.00x,
+    -0.2 B a row); the time grows by the two streaming passes over every row (~10 s per
+    10^6 rows here; numpy.loadtxt alone reads 3x10^6 rows in 24.20 s).
+  The residual over every usable row against the fit's own (199,800 samples per sensor):
+    27.807 / 27.789 nT (mmc1), 249.223 / 249.145 (mpu1), 250.810 / 250.822 (mpu2),
+    28.651 / 28.687 (mmc2), 260.059 / 260.160 nT (mpu3) at 10^6 rows; the same to 0.2 %
+    at 3x10^6.
+  Before this run, measured() ran its commands in the caller's working directory, where
+  `python -m generator.cli` imports the checkout in that directory ahead of PYTHONPATH: a
+  --before run launched from a checkout measured that checkout, not --before (a first run
+  of the above from the worktree gave "before" 48.87 s, 579 MiB: today's code). Earlier
+  records' after/before figures may share that fault; they now run from the temporary
+  directory.
 """
 
 from __future__ import annotations
