@@ -153,6 +153,40 @@ def test_blocks_over_two_files(fm1_dir):
     assert [t.line_numbers.tolist() for t in tels] == [t.line_numbers.tolist() for t in again]
 
 
+def test_a_bad_cell_in_rows_not_read_is_still_refused(fm1_dir, tmp_path):
+    """Every row is parsed and checked while the blocks are read: a bad cell in a row no
+    block keeps exits 2 naming its line, as without the cap."""
+    unit = load_unit(fm1_dir / "unit.toml")
+    src = fm1_dir / "thermal_12pos.csv"
+    (tel,), _ = rc.read_for_fit(unit, [src], 200_000, lambda m: None, max_rows=CAP)
+    lines = src.read_text().split("\n")
+    kept = set(tel.line_numbers.tolist())
+    bad = next(k for k in range(5_000, 36_000) if k not in kept)   # 1-based line number
+    cells = lines[bad - 1].split(",")
+    cells[2] = "12x"
+    lines[bad - 1] = ",".join(cells)
+    path = tmp_path / "bad.csv"
+    path.write_text("\n".join(lines))
+    with pytest.raises(InputError) as e:
+        fit(fm1_dir / "unit.toml", [path], max_rows=CAP)
+    assert f"bad.csv:{bad}: column" in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_parquet_reads_the_same_blocks(fm1_dir, tmp_path):
+    """A Parquet file (its row count from the footer) gives the same blocks as the CSV
+    (its row count from the line breaks less the lines before the first row)."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from bench_io import write_long_parquet
+    unit = load_unit(fm1_dir / "unit.toml")
+    pq = tmp_path / "thermal.parquet"
+    write_long_parquet(fm1_dir / "thermal_12pos.csv", pq, 36_000)
+    (a,), ca = rc.read_for_fit(unit, [fm1_dir / "thermal_12pos.csv"], 200_000,
+                               lambda m: None, max_rows=CAP)
+    (b,), cb = rc.read_for_fit(unit, [pq], 200_000, lambda m: None, max_rows=CAP)
+    assert ca.files[0].rows == cb.files[0].rows == 36_000
+    assert np.array_equal(a.time_s, b.time_s) and a.n == b.n == CAP
+
+
 @pytest.mark.parametrize("value", [-1, 1.5, True, "10"])
 def test_bad_max_rows_in_the_api(fm1_dir, value):
     with pytest.raises(InputError, match="max_rows"):
