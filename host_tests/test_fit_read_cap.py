@@ -187,6 +187,43 @@ def test_parquet_reads_the_same_blocks(fm1_dir, tmp_path):
     assert np.array_equal(a.time_s, b.time_s) and a.n == b.n == CAP
 
 
+def test_orbit_file_streams_with_the_field_model(tmp_path, monkeypatch):
+    """A file whose reference the field model computes along its track (io.orbit, a TLE):
+    the model is attached row by row to the rows kept, so they carry the reference the
+    whole file's read gives them, and the every-row pass computes it piece by piece."""
+    import dataclasses
+    from generator.campaign import simulate_orbit as so
+    from generator.campaign.simulate import make_example_unit, random_truth
+    from generator.fit.thermal import fit_unit
+    from generator.io.telemetry_csv import read_telemetry
+    monkeypatch.setenv("MAGCAL_CACHE", str(tmp_path / "cache"))
+    ex = make_example_unit()
+    one = dataclasses.replace(ex, sensors=ex.sensors[:1], boom_reference=None)
+    rng = np.random.default_rng(1802)
+    camp = so.simulate_orbit(one, random_truth(one, rng), rng, tmp_path,
+                             duration_s=12 * 3600.0)            # 4,320 rows, 10 s apart
+    unit = load_unit(camp["unit"])
+    whole = read_telemetry(camp["csv"], unit)
+    lines = []
+    (tel,), cap = rc.read_for_fit(unit, [camp["csv"]], 200_000, _progress(lines),
+                                  max_rows=2_000)
+    assert whole.n == 4_320 and tel.n == 2_000 and cap.files[0].blocks == 2
+    assert "field_reference" in tel.meta and any("IGRF" in m for m in lines)
+    at = np.searchsorted(whole.line_numbers, tel.line_numbers)
+    assert np.array_equal(whole.line_numbers[at], tel.line_numbers)
+    assert np.array_equal(tel.columns["ref_norm_nT"], whole.columns["ref_norm_nT"][at],
+                          equal_nan=True)
+    cals = fit_unit(unit, [tel])
+    res = rc.every_row_residual(unit, [camp["csv"]], cals, piece_rows=1_500)
+    name, = cals
+    from generator.fit.samples import fit_data_from, usable_samples
+    from generator.io.telemetry_csv import preprocess
+    d = fit_data_from(whole, preprocess(whole, unit)[name], unit)
+    # the usable samples of the whole file, found piece by piece (none screened out here)
+    assert res[name]["n"] == int(usable_samples(d)[0].sum()) > 0
+    assert np.isfinite(res[name]["rms_norm_nT"]) and res[name]["rms_vector_nT"] is None
+
+
 @pytest.mark.parametrize("value", [-1, 1.5, True, "10"])
 def test_bad_max_rows_in_the_api(fm1_dir, value):
     with pytest.raises(InputError, match="max_rows"):

@@ -92,12 +92,11 @@ def rows_of(tel: Telemetry, rows) -> Telemetry:
 
 
 def _chunks(path, unit):
-    """The file's validated chunks as read_telemetry's rows are (io.orbit's field
-    reference attached chunk by chunk, as read_telemetry attaches it to the file)."""
-    from generator.io.orbit import attach_field_reference
+    """The file's validated chunks (io.telemetry_csv.iter_telemetry); the field reference
+    (io.orbit.attach_field_reference: row by row, the field model along a track, Kp) is
+    attached to what is kept of them, as read_telemetry attaches it to the whole file."""
     from generator.io.telemetry_csv import iter_telemetry
-    for c in iter_telemetry(path, unit):
-        yield attach_field_reference(c, unit)
+    yield from iter_telemetry(path, unit)
 
 
 def _first_chunk(path, unit) -> Telemetry:
@@ -144,16 +143,15 @@ def _read_whole(path, unit, progress) -> Telemetry:
 def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     """(telemetries, ReadCap or None): the data files as the fit takes them. At or under
     the read cap (read_cap_rows; the files' rows bounded by io.telemetry_csv._rows_at_most,
-    summed), or when a file must be read whole (a coil study, a file whose reference the
-    field model computes along its track: their whole-file rules), every file is read
-    whole, as before (None). Above it: blocks of L rows (fit.blocks.block_rows_of_period
+    summed), or when a coil study is among the files (its whole-file rules), every file is
+    read whole, as before (None). Above it: blocks of L rows (fit.blocks.block_rows_of_period
     at the files' shortest median sample period, from their first chunks) drawn over all
     the files' blocks in order (fit.blocks.draw_blocks, seed READ_SEED), each file read
     streaming and only its drawn rows kept, as one Telemetry; a file with no block drawn is
     left out of the fit (the every-row pass still covers it). A cap below one block is
     InputError naming --max-samples."""
     from generator.io.coil_study import is_coil_study
-    from generator.io.orbit import require_field_reference, wants_field_model
+    from generator.io.orbit import attach_field_reference, describe, require_field_reference
     from generator.io.telemetry_csv import _rows_at_most, concat_chunks
     R = read_cap_rows(max_samples, max_rows)
     bounds = [_rows_at_most(p) for p in paths]
@@ -162,7 +160,7 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     bounds, dts = [], []
     for p in paths:           # one first chunk at a time (hundreds of files: not all held)
         c = _first_chunk(p, unit)
-        if is_coil_study(c) or wants_field_model(c, unit):
+        if is_coil_study(c):         # its whole-file rules (io.coil_study.check_file)
             return [_read_whole(p, unit, progress) for p in paths], None
         bounds.append(_rows_bound(p, c))
         dts.append(median_period_s(c.time_s))
@@ -192,13 +190,15 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
                 lo, hi = np.searchsorted(want, [a, a + c.n])
                 yield rows_of(c, want[lo:hi] - a)
                 a += c.n
-        tel = concat_chunks(picked(), rows=len(want))
+        tel = attach_field_reference(concat_chunks(picked(), rows=len(want)), unit)
         n_blocks = sum(1 for r in runs if len(r) and r[0] < a)    # blocks with rows
         reads.append(FileRead(str(path), int(a), int(tel.n), int(n_blocks)))
         progress(f"read {path}: {a:,} rows, kept {tel.n:,} in {n_blocks} blocks of "
                  f"{L:,} consecutive rows (the fit's read cap {R:,})")
         if tel.n:
-            require_field_reference(tel)
+            require_field_reference(tel)      # ICD section 4: orbit data need the model
+            if "field_reference" in tel.meta:
+                progress(f"{path}: {describe(tel.meta['field_reference'])}")
             tels.append(tel)
         del tel
     n_all = sum(r.rows for r in reads)
@@ -258,8 +258,10 @@ def every_row_residual(unit, paths, cals, piece_rows: int = EVERY_ROW_PIECE) -> 
         if have:
             yield concat_chunks(buf, rows=have)
 
+    from generator.io.orbit import attach_field_reference
     for path in paths:
         for tel in pieces(path):
+            tel = attach_field_reference(tel, unit)    # row by row: as on the whole file
             pre = preprocess(tel, unit, sensors=list(cals))
             for name, cal in cals.items():
                 if name not in pre:
