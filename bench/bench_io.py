@@ -73,6 +73,29 @@ Recorded (sub6, 2026-11-24, 2 shared cores at load ~4; times noisy, memory not):
     residual over all 10^6 samples: 1.0000 to 1.0001 times the full fit's. (A separate run,
     --fit-rows 1000000 with the default cap: 40.74 s, 774 MiB, 0.70 KiB per sample above
     the imports.)
+
+Recorded (fitmem14, 2026-11-25, 2 shared cores at load ~4.2-5.1 from other jobs: times
+noisy, memory not; --before an export of main c6ef128, measured in the same run):
+    python3 bench/bench_io.py --rows 0 --read-rows 0 --no-thermal \
+        --fit-rows 1000000 3000000 --before <export of c6ef128> --before-fit-rows 1000000
+  fit --no-report 10^6 rows, the read cap (fit/read_cap.py: 399,600 of the 10^6 rows read
+    in 333 blocks of 1,200 rows; every row checked after the fit): 35.87 s, 579 MiB peak;
+    c6ef128 (every row read, its sample cap) 47.27 s, 1324 MiB: after/before 0.76x time,
+    0.44x memory.
+  fit --no-report 3x10^6 rows: 55.85 s, 579 MiB peak (c6ef128 not run: ~1.3 KiB a row, ~4
+    GiB). The peak does not grow with the file: 579 MiB at 10^6 and at 3x10^6 rows (1.00x,
+    -0.2 B a row); the time grows by the two streaming passes over every row (~10 s per
+    10^6 rows here; numpy.loadtxt alone reads 3x10^6 rows in 24.20 s).
+  The residual over every usable row against the fit's own (199,800 samples per sensor):
+    27.807 / 27.789 nT (mmc1), 249.223 / 249.145 (mpu1), 250.810 / 250.822 (mpu2),
+    28.651 / 28.687 (mmc2), 260.059 / 260.160 nT (mpu3) at 10^6 rows; the same to 0.2 %
+    at 3x10^6.
+  Before this run, measured() ran its commands in the caller's working directory, where
+  `python -m generator.cli` imports the checkout in that directory ahead of PYTHONPATH: a
+  --before run launched from a checkout measured that checkout, not --before (a first run
+  of the above from the worktree gave "before" 48.87 s, 579 MiB: today's code). Earlier
+  records' after/before figures may share that fault; they now run from the temporary
+  directory.
 """
 
 from __future__ import annotations
@@ -161,8 +184,11 @@ sys.stderr.write(f"\\n@@measured {time.perf_counter() - t0!r} {ru.ru_maxrss} "
 def measured(cmd, env=None) -> tuple[float, float, int, str, str]:
     """(wall seconds, peak RSS MiB, exit code, stdout, stderr) of one command run in a
     fresh process (through _LAUNCHER: the peak is the command's own)."""
+    # cwd outside any checkout: `python -m generator.cli` puts the working directory first
+    # on sys.path, so run from a checkout it would import that checkout's generator/ and
+    # not PYTHONPATH's (a --before run would measure today's code)
     p = subprocess.run([PY, "-c", _LAUNCHER, *map(str, cmd)], capture_output=True,
-                       env=env or ENV)
+                       env=env or ENV, cwd=tempfile.gettempdir())
     err = p.stderr.decode()
     head, _, last = err.rstrip("\n").rpartition("\n@@measured ")
     wall, kib, code = last.split()
@@ -239,7 +265,11 @@ def _apply_cmd(data, out):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", type=int, default=1_000_000, help="apply input rows (0: skip)")
-    ap.add_argument("--fit-rows", type=int, default=1_000_000, help="fit input rows (0: skip)")
+    ap.add_argument("--fit-rows", type=int, nargs="+", default=[1_000_000],
+                    help="fit input rows, one or more lengths (0: skip)")
+    ap.add_argument("--before-fit-rows", type=int, default=1_000_000,
+                    help="the longest fit input --before runs too (an uncapped fit holds "
+                         "~1.4 KiB a row: 3x10^6 rows would need ~4 GiB)")
     ap.add_argument("--read-rows", type=int, default=360_000,
                     help="read-memory rows (0: skip)")
     ap.add_argument("--fit-cap-rows", type=int, default=0,
@@ -343,22 +373,41 @@ def main(argv=None) -> int:
                   f"MiB, {(m_read - m_read0) / (m_ltx - m_ltx0):.2f}x")
             before_after("read", _worker_cmd("read", rd, unit), t_read, m_read)
 
-        if a.fit_rows:
+        fit_peaks = {}
+        for rows in [r for r in a.fit_rows if r]:
             fd = tmp / "fit.csv"
-            write_long_file(src, fd, a.fit_rows)
+            write_long_file(src, fd, rows)
             fit_cmd = [PY, "-m", "generator.cli", "fit", unit, fd, "-o", tmp / "fit_out",
                        "--no-report", "--quiet"]
             t_fit, m_fit = best(fit_cmd, 1)
+            fit_peaks[rows] = m_fit
             t_fl, m_fl = best(_worker_cmd("loadtxt", fd), 1)
             _, m_imp = best(_worker_cmd("imports"), 1)
-            res["fit_vs_loadtxt_time"] = t_fit / t_fl
-            res["fit_vs_loadtxt_memory"] = m_fit / m_fl
-            print(f"fit --no-report {a.fit_rows} rows: {t_fit:.2f} s, {m_fit:.0f} MiB peak "
-                  f"({(m_fit - m_imp) * 2**20 / a.fit_rows / 1024:.2f} KiB per sample above "
+            res[f"fit_{rows}_vs_loadtxt_time"] = t_fit / t_fl
+            res[f"fit_{rows}_vs_loadtxt_memory"] = m_fit / m_fl
+            cap = json.loads((tmp / "fit_out" / "coefficients.json").read_text())
+            f0 = cap["fit"]["sensors"]["mmc1"]["stats"]["files"][0]
+            read = (f"read {f0['rows_read']:,} of {f0['rows']:,} rows" if "rows_read" in f0
+                    else "read every row")
+            print(f"fit --no-report {rows} rows ({read}): {t_fit:.2f} s, {m_fit:.0f} MiB peak "
+                  f"({(m_fit - m_imp) * 2**20 / rows / 1024:.2f} KiB per sample above "
                   f"the imports) | numpy.loadtxt: {t_fl:.2f} s, {m_fl:.0f} MiB | ratios "
                   f"{t_fit / t_fl:.2f}x time, {m_fit / m_fl:.2f}x memory")
-            fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
-            before_after("fit", fit_cmd, t_fit, m_fit)
+            for name, v in cap["fit"]["sensors"].items():
+                alls, own = v["stats"].get("all_samples_residual_nT"), v["stats"]["fit"]
+                if alls:
+                    key = "rms_vector_nT" if alls["rms_vector_nT"] is not None else "rms_norm_nT"
+                    print(f"  {name}: {key} over all {alls['n']:,} samples {alls[key]:.3f} nT, "
+                          f"on the fit's own {own.get('n', '?')}: {own[key]:.3f} nT")
+            if rows <= a.before_fit_rows:
+                fit_cmd[fit_cmd.index(tmp / "fit_out")] = tmp / "fit_out0"
+                before_after(f"fit_{rows}", fit_cmd, t_fit, m_fit)
+            fd.unlink()
+        if len(fit_peaks) > 1:          # bounded memory: the peak's growth per row
+            (r0, p0), (r1, p1) = min(fit_peaks.items()), max(fit_peaks.items())
+            res["fit_peak_longest_vs_shortest"] = p1 / p0
+            print(f"fit peak {p0:.0f} MiB at {r0} rows, {p1:.0f} MiB at {r1}: "
+                  f"{p1 / p0:.2f}x, {(p1 - p0) * 2**20 / (r1 - r0):.1f} B per row")
         if a.fit_cap_rows:     # the subsample's cost and gain, both in this run
             fc = tmp / "fit_cap.csv"
             write_long_file(src, fc, a.fit_cap_rows)

@@ -12,7 +12,6 @@ from generator.errors import InputError
 from generator.progress import Progress
 from generator.io.telemetry import Telemetry
 from generator.io.outputs import atomic_file
-from generator.io.telemetry_csv import read_telemetry
 from generator.io.unit import Unit
 from generator.io.unitfile import load_unit
 
@@ -90,7 +89,7 @@ def _has_ref_vectors(tel: Telemetry) -> bool:
 
 
 def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
-        accept_misfit=False, max_samples=None) -> CoefficientSet:
+        accept_misfit=False, max_samples=None, max_rows=None) -> CoefficientSet:
     """Fit a unit from all the given files jointly.
 
     * b(T), M(T) per sensor: fit.thermal.fit_unit over every file (reference vectors where
@@ -116,6 +115,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     max_samples: the most usable samples a sensor's fit takes (None: the default cap
     fit.samples.MAX_FIT_SAMPLES; 0: all): above it a systematic random subsample, said in
     the sensor's notes and per-file "fit_samples" (fit.thermal.fit_sensor).
+    max_rows: the most rows the fit reads (None: fit.read_cap.read_cap_rows; 0: every
+    row): above it blocks of consecutive rows drawn at random, the residual over every
+    row checked after the fit (fit.read_cap).
     """
     from generator.fit.alignment import align_boom
     from generator.fit.coils import coil_columns, fit_coils, has_coil_steps
@@ -166,16 +168,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     unit = load_unit(unit_path)
     progress(f"unit {unit.id}: {len(unit.sensors)} sensors")
     priors = _load_prior(prior, unit) if prior else None
-    tels = []
-    for p in data_paths:
-        tel = read_telemetry(p, unit)
-        progress(f"read {p}: {tel.n} samples, {len(tel.columns)} columns")
-        from generator.io.orbit import require_field_reference
-        require_field_reference(tel)          # ICD section 4: orbit data need the model
-        if "field_reference" in tel.meta:     # ICD section 4: |B| from the field model
-            from generator.io.orbit import describe
-            progress(f"{p}: {describe(tel.meta['field_reference'])}")
-        tels.append(tel)
+    from generator.fit.read_cap import check_every_row, read_for_fit
+    # above the read cap, blocks of rows drawn at random (fit.read_cap); else every row
+    tels, read_cap = read_for_fit(unit, data_paths, max_samples, progress, max_rows)
     for t in tels:          # coil names reach the flight C: C identifiers only, checked first
         for c in coil_columns(t):
             fault = column_fault(c)
@@ -202,6 +197,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                                        for n, c in cals.items()}}
     _orbit_notes(unit, tels, cals, info, progress)
     _settling_warnings(settling, cals, info, progress)
+    check_every_row(unit, data_paths, cals, read_cap, info, progress)   # above the read cap
     from generator.trace.coefficients import sr_chain_options
     sr_opts, sr_values = sr_chain_options(cals)
     for n in sr_opts:

@@ -323,6 +323,34 @@ def subsample_rng(name: str, file_index: int):
         [SUBSAMPLE_SEED, zlib.crc32(name.encode("utf-8")), int(file_index)]))
 
 
+def usable_samples(d: FitData):
+    """The samples of one file a sensor's fit can use (the one definition: _gather and the
+    residual over every row, fit.read_cap): (use (n,) bool, ref (n, 3) reference vectors
+    (NaN where none), norm (n,) reference magnitude (|ref| where there is a vector),
+    has_vec (n,) bool, and the counts: unusable, temperature_rejected {impossible,
+    outlying}, coil_current_excluded, no_reference). Usable: a finite reading and
+    temperature, a temperature the screen keeps (screen_temperatures, over d's rows), no
+    magnetorquer current, a field reference."""
+    n = len(d.time_s)
+    use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
+    n_unusable = int((~use).sum())
+    t_ok, t_rej = screen_temperatures(d.temp_C, use, d.time_s, d.temp_lsb_C)
+    use &= t_ok
+    coil_on = np.zeros(n, bool)
+    if d.coil_A is not None:
+        coil_on = np.any(np.nan_to_num(d.coil_A, nan=0.0) != 0, axis=1)
+    n_coil = int((use & coil_on).sum())
+    use &= ~coil_on
+    ref = d.ref_body_nT if d.ref_body_nT is not None else np.full((n, 3), np.nan)
+    has_vec = np.isfinite(ref).all(axis=1)
+    norm = d.ref_norm_nT if d.ref_norm_nT is not None else np.full(n, np.nan)
+    norm = np.where(has_vec, np.linalg.norm(np.nan_to_num(ref), axis=1), norm)
+    has_ref = has_vec | (np.isfinite(norm) & (norm > 0))
+    n_noref = int((use & ~has_ref).sum())
+    use &= has_ref
+    return use, ref, norm, has_vec, n_unusable, t_rej, n_coil, n_noref
+
+
 def _gather(name, datas, notes, per_file, max_samples=MAX_FIT_SAMPLES, say=None):
     """The usable samples of sensor `name` over all its files (_Samples). The screens, the
     cross-validation groups and the constant-temperature segments are found on the full
@@ -338,22 +366,7 @@ def _gather(name, datas, notes, per_file, max_samples=MAX_FIT_SAMPLES, say=None)
         if not d.has_temperature and not any("no temperature sensor" in m for m in notes):
             notes.append("no temperature sensor (temperature = false): a constant, "
                          "temperature-independent calibration")
-        use = d.usable & np.isfinite(d.temp_C) & np.isfinite(d.field_frame_nT).all(axis=1)
-        n_unusable = int((~use).sum())
-        t_ok, t_rej = screen_temperatures(d.temp_C, use, d.time_s, d.temp_lsb_C)
-        use &= t_ok
-        coil_on = np.zeros(n, bool)
-        if d.coil_A is not None:
-            coil_on = np.any(np.nan_to_num(d.coil_A, nan=0.0) != 0, axis=1)
-        n_coil = int((use & coil_on).sum())
-        use &= ~coil_on
-        ref = d.ref_body_nT if d.ref_body_nT is not None else np.full((n, 3), np.nan)
-        has_vec = np.isfinite(ref).all(axis=1)
-        norm = d.ref_norm_nT if d.ref_norm_nT is not None else np.full(n, np.nan)
-        norm = np.where(has_vec, np.linalg.norm(np.nan_to_num(ref), axis=1), norm)
-        has_ref = has_vec | (np.isfinite(norm) & (norm > 0))
-        n_noref = int((use & ~has_ref).sum())
-        use &= has_ref
+        use, ref, norm, has_vec, n_unusable, t_rej, n_coil, n_noref = usable_samples(d)
         per_file.append({"source": d.source, "samples": int(n), "used": int(use.sum()),
                          "reference": d.reference_kind, "unusable": n_unusable,
                          "coil_current_excluded": n_coil, "no_reference": n_noref,
@@ -437,46 +450,78 @@ def _gather(name, datas, notes, per_file, max_samples=MAX_FIT_SAMPLES, say=None)
     return S
 
 
+def residual_sums(cal, d: FitData, idx, ref, norm, sums=None) -> list:
+    """The sums of the residual of cal over the samples idx of one file d (ref, norm:
+    usable_samples' reference vectors and magnitudes of d's rows), added to sums
+    ([vector sum of squares, vector equations, |B| sum of squares, samples]; None: zeros):
+    calibrated minus reference vector where there is one (per axis), |calibrated| minus
+    the reference magnitude for every sample; in chunks of RESIDUAL_CHUNK samples (no
+    per-sample matrices kept). The one computation of all_samples_residual, in memory
+    (over S.all_usable) and streamed over every row of the files (fit.read_cap)."""
+    sums = [0.0, 0, 0.0, 0] if sums is None else sums
+    for a in range(0, len(idx), RESIDUAL_CHUNK):
+        i = idx[a:a + RESIDUAL_CHUNK]
+        z = cal.apply64(d.field_frame_nT[i], d.temp_C[i])
+        r = ref[i]
+        vec = np.isfinite(r).all(axis=1)
+        sums[0] += float(np.sum((z[vec] - r[vec]) ** 2))
+        sums[1] += 3 * int(vec.sum())
+        sums[2] += float(np.sum((np.linalg.norm(z, axis=1) - norm[i]) ** 2))
+        sums[3] += len(i)
+    return sums
+
+
+def residual_figures(sums, n_in_fit: int) -> dict:
+    """stats all_samples_residual_nT from residual_sums: rms_vector_nT (per axis, None
+    without vector samples), rms_norm_nT, n (usable samples), n_not_in_fit."""
+    sv, nv, sn, nn = sums
+    return {"rms_vector_nT": float(np.sqrt(sv / nv)) if nv else None,
+            "rms_norm_nT": float(np.sqrt(sn / nn)) if nn else None,
+            "n": int(nn), "n_not_in_fit": int(nn - n_in_fit)}
+
+
 def all_samples_residual(cal, S: _Samples):
     """Where the fit took a subsample (S.all_usable): the RMS residual of cal over EVERY
     usable sample, those left out of the fit included -- a held-out check that the
     subsample's calibration holds on the rest. Vector samples: calibrated minus
     reference (per axis, as the fit's own stats["fit"]["rms_vector_nT"]); every sample:
     |calibrated| minus the reference magnitude (rms_norm_nT). Accumulated as sums in
-    chunks of RESIDUAL_CHUNK samples. None when the fit had every sample."""
+    chunks of RESIDUAL_CHUNK samples (residual_sums). None when the fit had every
+    sample."""
     if S.all_usable is None:
         return None
-    sv, nv, sn, nn = 0.0, 0, 0.0, 0
+    sums = None
     for d, idx, ref, norm in S.all_usable:
-        for a in range(0, len(idx), RESIDUAL_CHUNK):
-            i = idx[a:a + RESIDUAL_CHUNK]
-            z = cal.apply64(d.field_frame_nT[i], d.temp_C[i])
-            r = ref[i]
-            vec = np.isfinite(r).all(axis=1)
-            sv += float(np.sum((z[vec] - r[vec]) ** 2))
-            nv += 3 * int(vec.sum())
-            sn += float(np.sum((np.linalg.norm(z, axis=1) - norm[i]) ** 2))
-            nn += len(i)
-    return {"rms_vector_nT": float(np.sqrt(sv / nv)) if nv else None,
-            "rms_norm_nT": float(np.sqrt(sn / nn)) if nn else None,
-            "n": int(nn), "n_not_in_fit": int(nn - S.n)}
+        sums = residual_sums(cal, d, idx, ref, norm, sums)
+    return residual_figures(sums or [0.0, 0, 0.0, 0], S.n)
 
 
-def record_all_samples_residual(cal, S: _Samples, say=None) -> None:
+RESIDUAL_NOTE_TAIL = " (stats all_samples_residual_nT)"
+
+
+def record_all_samples_residual(cal, S: _Samples | None, say=None, res=None,
+                                where="") -> None:
     """all_samples_residual into cal.stats["all_samples_residual_nT"] (beside the fit's
-    own residual stats["fit"]) and a note; nothing when the fit had every sample."""
-    res = all_samples_residual(cal, S)
+    own residual stats["fit"]) and a note; nothing when the fit had every sample. res:
+    the figures computed elsewhere (fit.read_cap's pass over every row of the files; they
+    replace the figures and note of an earlier call); where: what "all" covers, in the
+    note."""
+    res = all_samples_residual(cal, S) if res is None else res
     if res is None:
         return
     cal.stats["all_samples_residual_nT"] = res
+    notes = cal.stats.setdefault("notes", [])
+    notes[:] = [m for m in notes if not (m.startswith(f"{cal.name}: ")
+                                         and m.endswith(RESIDUAL_NOTE_TAIL))]
     fit = cal.stats.get("fit") or {}
     key = "rms_vector_nT" if res["rms_vector_nT"] is not None else "rms_norm_nT"
     what = "vector RMS per axis" if key == "rms_vector_nT" else "|B| RMS"
     own = fit.get(key)
-    note = (f"{cal.name}: {what} over all {res['n']:,} usable samples "
+    n_fit = res["n"] - res["n_not_in_fit"]
+    note = (f"{cal.name}: {what} over all {res['n']:,} usable samples{where} "
             f"({res['n_not_in_fit']:,} not in the fit): {res[key]:.2f} nT"
-            + (f", on the fit's own {fit.get('n', S.n):,}: {own:.2f} nT" if own is not None
-               else "") + " (stats all_samples_residual_nT)")
-    cal.stats.setdefault("notes", []).append(note)
+            + (f", on the fit's own {fit.get('n', n_fit):,}: {own:.2f} nT" if own is not None
+               else "") + RESIDUAL_NOTE_TAIL)
+    notes.append(note)
     if say:
         say(note)

@@ -19,6 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from generator.errors import InputError
+from generator.fit.blocks import (BLOCK_TAUS, MIN_BLOCK_ROWS, MIN_BLOCKS,  # noqa: F401
+                                  TAU_MAX_S, block_rows, block_runs, draw_blocks,
+                                  fractional_systematic)
 from generator.fit.samples import check_max_samples
 from generator.io.telemetry import Telemetry
 from generator.trace.filerows import FileRows
@@ -44,45 +47,18 @@ from generator.trace.filerows import kept_rows as _kept_rows
 MAX_TRACE_SAMPLES = 100_000
 SUBSAMPLE_SEED = 20          # fixed: the same input gives the same trace
 
-# The block length. The slowest time constant the catalogue's effects are meant to find
-# is a board's thermal lag: 10-20 min for these units' boards (fit.samples
-# BOARD_TAU_MIN_S documents the 5-min lower bound); TAU_MAX_S = 20 min. A block spans
-# BLOCK_TAUS = 5 of it (100 min), so that a lag's response to the temperature within a
-# block is seen in the block. The lag recursions themselves are exact above the cap: a
-# kept file stays the whole file (BlockedTelemetry), its rows left out feed the
-# recursions' state (bridge rows) and never become samples, so the element temperature
-# at a sample is the one the uncapped trace computes (the one step across a gap the
-# first version took was wrong when the temperature moved during the gap: 119 nT error
-# after a gap against 41 nT without, a 4000 s lag found at 1826 s). The scan grids reach
-# tau up to half a file's span (effects.ThermalLag.scan_grid), as without the cap. In
-# rows: the block's duration over the files' shortest median sample period, at least
-# MIN_BLOCK_ROWS (the lag-1 statistics -- crossval._lag1, the successive-difference
-# noise of trace.residual -- take one pair across each gap: under 0.1 % of the pairs),
-# and at most the cap over MIN_BLOCKS (so that the data keep at least that many blocks
-# spread over the files' time, and the 50 cross-validation blocks are not a handful of
-# runs; a block is then shorter than 5 tau of the slowest lag, and the note says how
-# long it is).
-TAU_MAX_S = 1200.0
-BLOCK_TAUS = 5.0
-MIN_BLOCK_ROWS = 1000
-MIN_BLOCKS = 20
+# The block length (TAU_MAX_S, BLOCK_TAUS, MIN_BLOCK_ROWS, MIN_BLOCKS, block_rows) and the
+# draw are fit.blocks': one place for the fit's read cap and this cap. The lag recursions
+# themselves are exact above the cap: a kept file stays the whole file (BlockedTelemetry),
+# its rows left out feed the recursions' state (bridge rows) and never become samples, so
+# the element temperature at a sample is the one the uncapped trace computes (the one step
+# across a gap the first version took was wrong when the temperature moved during the gap:
+# 119 nT error after a gap against 41 nT without, a 4000 s lag found at 1826 s). The scan
+# grids reach tau up to half a file's span (effects.ThermalLag.scan_grid), as without the
+# cap. The 50 cross-validation blocks are then not a handful of runs.
 # rows per piece of the all-rows apply (all_rows_rms): its per-sample arrays (no design
 # matrix) for this many rows at a time; long against the blocks (a restart per piece)
 ALL_ROWS_CHUNK = 200_000
-
-
-def block_rows(tels, max_samples) -> int:
-    """L, the rows of one block (see the constants above)."""
-    dts = []
-    for t in tels:
-        ts = np.asarray(t.time_s, float)
-        d = np.diff(ts)
-        d = d[np.isfinite(d) & (d > 0)]
-        if len(d):
-            dts.append(float(np.median(d)))
-    dt = min(dts) if dts else 1.0
-    L = max(MIN_BLOCK_ROWS, math.ceil(BLOCK_TAUS * TAU_MAX_S / dt))
-    return int(min(L, max(MIN_BLOCK_ROWS, max_samples // MIN_BLOCKS)))
 
 
 @dataclass
@@ -115,27 +91,6 @@ def check_cap(max_samples, n_rows, L, source=None, roles=1) -> None:
                                  f"blocks the trace is designed for), or 0 for every row")
 
 
-def fractional_systematic(n: int, m: int, rng) -> np.ndarray:
-    """m sorted positions of 0..n-1 (m <= n): systematic sampling with the fractional step
-    n / m, one position uniformly at random in each interval [floor(i n / m),
-    floor((i + 1) n / m)); exactly m positions, spread evenly over the n."""
-    if m <= 0 or n <= 0:
-        return np.zeros(0, int)
-    m = min(m, n)
-    edges = (np.arange(m + 1) * n) // m
-    return edges[:-1] + rng.integers(0, edges[1:] - edges[:-1])
-
-
-def _draw(files, m, rng, L):
-    """[(file index, sorted block numbers)]: m blocks drawn over ALL the files' blocks in
-    order (one systematic draw over the concatenated block list), grouped by file."""
-    nb = np.array([-(-t.n // L) for t in files], int)
-    first = np.concatenate([[0], np.cumsum(nb)])
-    picks = fractional_systematic(int(first[-1]), m, rng)
-    fi = np.searchsorted(first, picks, side="right") - 1
-    return [(int(f), picks[fi == f] - first[f]) for f in range(len(files))]
-
-
 def _blocked_telemetry(t, mask):
     """The kept file of an in-memory Telemetry: the whole file, its samples the mask."""
     return BlockedTelemetry(t.path, t.columns, t.line_numbers, t.meta, t.comments,
@@ -166,44 +121,15 @@ def subsample_files(tels, hold, max_samples=MAX_TRACE_SAMPLES, seed=SUBSAMPLE_SE
     L = block_rows(everything, max_samples)
     check_cap(max_samples, N, L, everything[0].path if len(everything) == 1 else None,
               roles=2 if hold else 1)
-    nb_d = sum(-(-t.n // L) for t in tels)
-    nb_h = sum(-(-t.n // L) for t in hold)
-    n_blocks = nb_d + nb_h
-    def plan(m):
-        """The draws of m blocks (data and holdout apart, in proportion) and their rows."""
-        # at least one block each, and the data at least one of the m (m >= 2 with
-        # holdout files, check_cap): data and holdout blocks together m, within the cap
-        m_h = min(nb_h, m - 1, max(1, round(m * nb_h / n_blocks))) if nb_h else 0
-        m_d = min(nb_d, max(1, m - m_h))
-        draws = []
-        for role, (files, mm) in enumerate(((list(tels), m_d), (list(hold), m_h))):
-            rng = np.random.Generator(np.random.PCG64([seed, role]))
-            draws.append(_draw(files, mm, rng, L))
-        rows = sum(min(files[f].n, (int(b) + 1) * L) - int(b) * L
-                   for files, d in zip((list(tels), list(hold)), draws)
-                   for f, picks in d for b in picks)
-        return m_d, m_h, draws, rows
-
-    m = min(n_blocks, max_samples // L)               # the blocks the cap holds
-    m_d, m_h, draws, rows = plan(m)
-    # files shorter than a block give blocks of fewer than L rows (review #20c N2: 200
-    # files of 200 rows beside a long file used a fifth of the cap): more blocks, as many
-    # as keep the drawn rows within the cap (bisection over the count; every count tried
-    # is drawn and measured, so the one taken holds the cap)
-    lo, hi = m, n_blocks
-    while rows < max_samples - L and lo < hi:
-        mid = (lo + hi + 1) // 2
-        cand = plan(mid)
-        if cand[3] <= max_samples:
-            lo, (m_d, m_h, draws, rows) = mid, cand
-        else:
-            hi = mid - 1
+    m_d, m_h, draws, _ = draw_blocks([t.n for t in tels], [t.n for t in hold], max_samples,
+                                     L, seed)
+    n_blocks = sum(-(-t.n // L) for t in everything)
     out = []
     for role, files in enumerate((list(tels), list(hold))):
         kept = []
         for f, picks in draws[role]:
             t = files[f]
-            runs = [np.arange(int(b) * L, min(t.n, (int(b) + 1) * L)) for b in picks]
+            runs = block_runs(t.n, picks, L)
             if runs:
                 mask = np.zeros(t.n, bool)
                 mask[np.concatenate(runs)] = True
