@@ -149,7 +149,10 @@ def _args_fit(p):
                    help="the most usable samples of one sensor its fit takes (default "
                         "200000, fit.samples.MAX_FIT_SAMPLES; 0: all): above it one sample "
                         "drawn at random in each block of consecutive samples (seed fixed), "
-                        "said in the notes, with the residual over all samples")
+                        "said in the notes, with the residual over all samples. Files of "
+                        "more than 400,000 rows in all (2x the cap) are read as blocks of "
+                        "consecutive rows drawn at random, streaming, and the residual "
+                        "checked over every row (docs/fit_samples.md); 0 reads every row")
     p.add_argument("--method", default="auto", choices=["auto", "analytic", "ellipsoid"],
                    help="auto: reference vectors where the data carry them (joint or "
                         "per-level cubic, chosen on held-out data), else the ellipsoid fit; "

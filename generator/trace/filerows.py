@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from generator.fit.read_cap import rows_of
 from generator.io.recordings import row_fingerprints
 from generator.io.telemetry import Telemetry
 
@@ -117,10 +118,7 @@ def pack(v) -> PackedColumn:
     return c
 
 
-def kept_rows(tel: Telemetry, rows: np.ndarray) -> Telemetry:
-    """The file restricted to these rows (in order): the same path, so the same file."""
-    return Telemetry(tel.path, {c: v[rows] for c, v in tel.columns.items()},
-                     tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
+kept_rows = rows_of      # the file restricted to these rows: the same path, so the same file
 
 
 def _chunks(path, unit, regressors):
