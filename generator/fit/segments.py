@@ -163,9 +163,14 @@ def find_segments(time_s, temp_C, position=None, usable=None, *, window_s=600.0,
     brk = np.zeros(n, bool)
     brk[1:] = (pos[1:] != pos[:-1]) | (np.diff(t) > 10 * dt_med)
     run_id = np.cumsum(brk)
+    # run_id does not decrease: a run's rows are one slice (found once, not by a scan of
+    # every row per run, which made long files quadratic: review 20e F3)
+    starts = np.flatnonzero(np.r_[True, brk[1:]])
+    ends = np.r_[starts[1:], n]
     segs = []
     for rid in np.unique(run_id[ok & (pos > 0)]):
-        idx = np.nonzero((run_id == rid) & ok)[0]
+        a, b = starts[rid], ends[rid]
+        idx = a + np.flatnonzero(ok[a:b])
         segs.extend(_segments_in_run(idx, t, T, int(pos[idx[0]]), dt_med, window_s,
                                      min_duration_s, band_C, limits))
     return segs
