@@ -283,3 +283,30 @@ def test_peak_memory_does_not_grow_with_the_file(tmp_path):
     growth = (peaks[1_800_000] - peaks[600_000]) * 2 ** 20 / 1_200_000
     print(f"peak RSS (MiB) by rows {peaks}: {growth:.1f} B a row")
     assert growth < 32, (peaks, growth)
+
+
+def test_a_trace_above_the_read_cap_fits_its_baseline_on_blocks(tmp_path, monkeypatch):
+    """magcal trace without --coeffs fits its baseline as magcal fit does: above the fit's
+    read cap on blocks read streaming (its files held by rows), never the whole files;
+    said in the trace's notes."""
+    from generator.trace import tracer
+    import generator.trace.filerows as fr
+    fm1 = "/work/shared/data/samsat_fm1"
+    if not os.path.exists(fm1):
+        pytest.skip("no shared data")
+    monkeypatch.setattr(tracer, "BASELINE_READ_ROWS", 5000)
+    held_whole = []
+    real = fr.FileRows.__init__
+
+    def spy(self, path, unit, regressors=(), tel=None):
+        held_whole.append(tel is not None)
+        real(self, path, unit, regressors, tel=tel)
+    monkeypatch.setattr(fr.FileRows, "__init__", spy)
+    res = tracer.trace(f"{fm1}/unit.toml", [f"{fm1}/flight_6h.csv"], max_samples=6000,
+                       sensors={"mpu1"})
+    assert held_whole == [False]                  # streamed, not built from a whole read
+    note = next(n for n in res.notes if n.startswith("baseline fit: on "))
+    read, total = (int(x.replace(",", "")) for x in
+                   note[len("baseline fit: on "):].split(" rows")[0].split(" of the data "
+                                                                       "files' "))
+    assert total == 10_800 and 0 < read <= 5000, note

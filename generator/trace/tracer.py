@@ -743,12 +743,21 @@ def _drop_unused_explained(tr: SensorTrace) -> None:
             sc.explained = None
 
 
-def _open_files(unit, data, holdout, regs, max_samples, need_whole):
+# The rows the baseline fit reads at most (None: `magcal fit`'s read cap,
+# fit.read_cap.read_cap_rows): above it the data files are read as the fit reads them, in
+# blocks, and never held whole (a test sets a small value).
+BASELINE_READ_ROWS = None
+
+
+def _open_files(unit, data, holdout, regs, max_samples, need_whole, notes=None):
     """(data, holdout, whole, held): the telemetry of the data and holdout items. Held
     (trace.filerows.FileRows) when every item is a file on disk that can be held so
     (filerows.stream_ok) and their rows exceed the cap; whole: then the data files read
-    whole for the baseline fit (need_whole, else None). Otherwise read whole, as under
-    the cap (Telemetry; whole None)."""
+    whole for the baseline fit (need_whole, else None), or above the fit's read cap
+    (BASELINE_READ_ROWS) as `magcal fit` reads them, in blocks (a note in notes).
+    Otherwise read whole, as under the cap (Telemetry; whole None)."""
+    from generator.fit.read_cap import read_cap_rows, read_for_fit
+    from generator.fit.samples import MAX_FIT_SAMPLES
     from generator.io.telemetry_csv import _rows_at_most
     from generator.trace.filerows import FileRows, stream_ok
     items = list(data) + list(holdout)
@@ -761,6 +770,23 @@ def _open_files(unit, data, holdout, regs, max_samples, need_whole):
             or not all(stream_ok(it, unit) for it in items):
         return (*read_whole(), None, False)
     whole = None
+    cap_rows = read_cap_rows(MAX_FIT_SAMPLES, BASELINE_READ_ROWS)
+    if need_whole and sum(_rows_at_most(it) for it in data) > cap_rows:
+        # the baseline fit takes the data files as `magcal fit` does above its read cap
+        # (fit.read_cap: blocks of rows drawn at random, read streaming), so no file is
+        # held whole; the trace's files are held by rows, read streaming as well
+        whole, cap = read_for_fit(unit, list(data), MAX_FIT_SAMPLES, lambda m: None,
+                                  max_rows=cap_rows)
+        if notes is not None and cap is not None:
+            n_all = sum(f.rows for f in cap.files)
+            n_read = sum(f.rows_read for f in cap.files)
+            notes.append(f"baseline fit: on {n_read:,} of the data files' {n_all:,} rows, "
+                         f"{sum(f.blocks for f in cap.files)} blocks of {cap.block_rows:,} "
+                         "consecutive rows drawn at random (seed fixed), as `magcal fit` "
+                         f"reads files above {cap.cap_rows:,} rows (docs/fit_samples.md); "
+                         "the trace itself holds every row")
+        files = [FileRows(it, unit, regs) for it in items]
+        return files[:len(data)], files[len(data):], whole, True
     if need_whole:                   # the baseline fit reads every column of every row
         whole, wh = read_whole()
         if sum(t.n for t in whole + wh) <= max_samples:
@@ -809,8 +835,9 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     _holdout_not_data(data, holdout)
     # above the cap, files on disk are held by what the trace needs of every row
     # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
+    read_notes = []
     tels, hold, whole, held = _open_files(unit, data, holdout, regs, max_samples,
-                                          need_whole=coeffs is None)
+                                          need_whole=coeffs is None, notes=read_notes)
     # rows that repeat earlier rows (overlapping recordings): said, not dropped (files held
     # by rows above the cap carry their rows' fingerprints)
     from generator.io.recordings import repeated_rows_warnings
@@ -818,7 +845,7 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     # the blocks are drawn first (a cap below one block is refused before any fit)
     kept_tels, kept_hold, subsample = subsample_files(
         tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
-    notes = []
+    notes = list(read_notes)
     for r in regs:
         have = [str(t.path) for t in tels + hold if r["name"] in t.columns]
         notes.append(f"regressor {r['name']} = {r['formula']} (unit file [[trace.regressor]]): "
