@@ -415,7 +415,7 @@ PARQUET_SUFFIXES = (".parquet", ".pq")
 
 def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
           coils_off=False, at_rest=False, collect=True, chunk_bytes=None,
-          progress_every_s=PROGRESS_EVERY_S, clock=None) -> dict:
+          progress_every_s=None, clock=None) -> dict:
     """Correct a telemetry file through the compiled flight C; write the ICD output: a CSV,
     or a Parquet file of the same columns when out_path ends in .parquet or .pq.
     coils_off: the data were recorded with the magnetorquers off; at_rest: standing still,
@@ -427,7 +427,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     same sequence as one batch over the file) and written (a Parquet row group a chunk);
     the output file appears only when the whole input was good (atomic_file). Memory is
     bounded by the chunk size when collect=False. A progress line every progress_every_s
-    seconds of clock() (time.monotonic) tells the rows done.
+    (default PROGRESS_EVERY_S) seconds of clock() (time.monotonic) tells the rows done.
 
     Returns per-sensor outputs (field_body_nT, status, valid, present) for callers and
     tests, with "selected" and "fallback_order"; collect=False (the command line): only
@@ -442,7 +442,8 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     states = {n: host.new_state(n) for n in names}
     n_valid = dict.fromkeys(names, 0)
     pieces, n, prev_t = [], 0, None
-    ticker = _RowsProgress(progress, data_path, progress_every_s, clock)
+    ticker = _RowsProgress(progress, data_path, PROGRESS_EVERY_S if progress_every_s is None
+                           else progress_every_s, clock)
     out_class = _ParquetOutput if is_parquet_name(out_path) else _CsvOutput
     with atomic_file(out_path, "wb") as f:
         out = out_class(f, cs.unit, cs.spec.fallback_order())
