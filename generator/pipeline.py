@@ -424,7 +424,8 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     The file streams through in chunks (io.telemetry_csv.iter_telemetry, about
     chunk_bytes of text each): each chunk is validated, corrected by the flight C on whole
     arrays (each sensor's chain state carried from chunk to chunk, so the calls are the
-    same sequence as one batch over the file) and written (a Parquet row group a chunk);
+    same sequence as one batch over the file) and written (Parquet: in row groups of
+    _ParquetOutput.ROW_GROUP_ROWS);
     the output file appears only when the whole input was good (atomic_file). Memory is
     bounded by the chunk size when collect=False. A progress line every progress_every_s
     (default PROGRESS_EVERY_S) seconds of clock() (time.monotonic) tells the rows done.
@@ -676,30 +677,54 @@ class _CsvOutput:
 
 
 class _ParquetOutput:
-    """The apply output as Parquet into an open binary file (pyarrow ParquetWriter): one
-    row group a chunk, so the writer holds one chunk's columns at a time."""
+    """The apply output as Parquet into an open binary file (pyarrow ParquetWriter), in
+    row groups of ROW_GROUP_ROWS rows (the last one shorter): the chunks' columns wait
+    until a row group is full, so memory holds at most a row group and a chunk, whatever
+    the file's length. (A row group per chunk would be small -- ~13,000 rows of the
+    default chunk -- and the footer the writer keeps, a few KiB per row group, would grow
+    with the file: 31 MiB more from 2x10^5 to 10^6 rows in 256 KiB chunks.)"""
 
     FORMAT = "Parquet"
+    # 2^16 rows: ~16 MiB of the fm1 unit's 31 columns as float64; a footer entry per 2^16
+    # rows, as common writers make them (bench/bench_io.write_long_parquet)
+    ROW_GROUP_ROWS = 1 << 16
 
     def __init__(self, f, unit: Unit, fallback_order):
         self.f, self.unit, self.fallback_order = f, unit, fallback_order
         self.writer = self.schema = None
+        self.pending, self.rows = [], 0
 
     def write(self, source, time_s, results) -> None:
+        import pyarrow as pa
         import pyarrow.parquet as pq
 
         columns = _apply_columns(time_s, self.unit, results)
         if self.writer is None:          # the first chunk (there is one, maybe empty)
             self.schema = _apply_schema(columns, source, self.unit, self.fallback_order)
             self.writer = pq.ParquetWriter(self.f, self.schema)
-        if len(time_s):
-            batch = _apply_batch(columns, self.schema)
-            self.writer.write_batch(batch, row_group_size=batch.num_rows)
+        if not len(time_s):
+            return
+        self.pending.append(_apply_batch(columns, self.schema))
+        self.rows += len(time_s)
+        while self.rows >= self.ROW_GROUP_ROWS:
+            table = pa.Table.from_batches(self.pending, schema=self.schema)
+            self.writer.write_table(table.slice(0, self.ROW_GROUP_ROWS),
+                                    row_group_size=self.ROW_GROUP_ROWS)
+            rest = table.slice(self.ROW_GROUP_ROWS)
+            self.pending, self.rows = rest.to_batches(), rest.num_rows
 
     def close(self) -> None:
-        """Write the footer (the file is complete once atomic_file has renamed it)."""
-        if self.writer is not None:
-            self.writer.close()
+        """Write the last row group and the footer (the file is complete once atomic_file
+        has renamed it)."""
+        import pyarrow as pa
+
+        if self.writer is None:
+            return
+        if self.rows:
+            self.writer.write_table(pa.Table.from_batches(self.pending, schema=self.schema),
+                                    row_group_size=self.rows)
+            self.pending, self.rows = [], 0
+        self.writer.close()
 
     def abort(self) -> None:
         """An error: the file is removed (atomic_file); the writer is closed so that it
