@@ -12,6 +12,7 @@ naming the output and the system's reason, exit 1, nothing left behind.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import signal
 import subprocess
@@ -401,10 +402,12 @@ def test_full_disk_in_a_folder_verb_is_one_line_exit_1(tmp_path, monkeypatch):
         return real(self, *a, **kw)
 
     monkeypatch.setattr(Path, "write_text", write_text)
-    rc, _, err = run(["generate", COEFFS, "-o", tmp_path / "gen", "-q", "--json"])
+    rc, out, err = run(["generate", COEFFS, "-o", tmp_path / "gen", "-q", "--json"])
     assert rc == 1, err
-    assert err == [f"magcal generate: {tmp_path / 'gen'}: cannot write the output: "
-                   "No space left on device (ENOSPC)"], err
+    message = (f"{tmp_path / 'gen'}: cannot write the output: No space left on device "
+               "(ENOSPC)")
+    assert err == [f"magcal generate: {message}"], err
+    assert json.loads(out) == {"verb": "generate", "exit": 1, "error": message}
     assert list(tmp_path.iterdir()) == []
 
 
