@@ -19,7 +19,7 @@ import warnings
 from pathlib import Path
 
 from generator import __version__
-from generator.errors import InputError
+from generator.errors import InputError, OutputError
 
 VERBS = {}
 
@@ -64,6 +64,10 @@ class _HeldProgress:
             return
         self.release()
         print(line, file=self.inner.stream, flush=True)
+
+    @property
+    def quiet(self) -> bool:
+        return self.inner.quiet
 
     def release(self):
         for line in self.held or ():
@@ -196,7 +200,10 @@ def cmd_apply(args):
 def _args_apply(p):
     p.add_argument("coeffs", help="coefficients.json")
     p.add_argument("data", help="telemetry file (ICD section 2): CSV or Parquet")
-    p.add_argument("-o", "--output", required=True, help="output CSV")
+    p.add_argument("-o", "--output", required=True,
+                   help="output file: Parquet when its name ends in .parquet or .pq (the "
+                        "same columns; the CSV's comment lines as key-value metadata), "
+                        "else CSV")
     p.add_argument("--boom-stowed", action="store_true",
                    help="the data were taken with the boom stowed (ground jig): H = identity")
     p.add_argument("--coils-off", action="store_true",
@@ -489,6 +496,14 @@ def main(argv=None) -> int:
         if want_json:
             _print_json({"verb": args.verb, "exit": 2, "error": str(e)})
         return 2
+    except OutputError as e:
+        # the system refused to store an output (a full disk, ...): not bad input (2), not
+        # an internal fault; io.outputs has removed what was begun (ICD 3: 1 otherwise)
+        progress.release()
+        print(f"magcal {args.verb}: {_one_line(str(e))}", file=sys.stderr)
+        if want_json:
+            _print_json({"verb": args.verb, "exit": 1, "error": str(e)})
+        return 1
     except (KeyboardInterrupt, _Terminated) as e:
         # Unwinding runs every output's cleanup: nothing half-written stays behind. The
         # exit status is the shell's convention for death by that signal (128 + number).

@@ -23,3 +23,17 @@ class InputError(Exception):
             where += f":{self.line}"
         col = f"column '{self.column}': " if self.column is not None else ""
         return f"{where}: {col}{self.message}"
+
+
+class OutputError(Exception):
+    """An output that could not be written: the operating system refused the writing (a
+    full disk, a quota, a file too large, a read-only or failing filesystem). Not bad
+    input and not an internal fault: `magcal` prints str(err), one line naming the output
+    and the system's reason, and exits with status 1 (ICD section 3). io.outputs raises it
+    after removing what it had begun to write, so no half-written output stays behind.
+    """
+
+    def __init__(self, path, reason):
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: cannot write the output: {reason}")

@@ -403,18 +403,28 @@ def _floor_warning(name, reached, n, noise, model, floor, duration_s, cal, info,
 # ---- apply --------------------------------------------------------------------------------
 
 
+# seconds of wall time between two progress lines of a long apply (not one per chunk)
+PROGRESS_EVERY_S = 5.0
+# output names written as Parquet (any other name: CSV, as ever)
+PARQUET_SUFFIXES = (".parquet", ".pq")
+
+
 def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
-          coils_off=False, at_rest=False, collect=True, chunk_bytes=None) -> dict:
-    """Correct a telemetry file through the compiled flight C; write the ICD output CSV.
+          coils_off=False, at_rest=False, collect=True, chunk_bytes=None,
+          progress_every_s=None, clock=None) -> dict:
+    """Correct a telemetry file through the compiled flight C; write the ICD output: a CSV,
+    or a Parquet file of the same columns when out_path ends in .parquet or .pq.
     coils_off: the data were recorded with the magnetorquers off; at_rest: standing still,
     absent rate and channel columns are 0 (see chain_inputs, aux_off).
 
     The file streams through in chunks (io.telemetry_csv.iter_telemetry, about
     chunk_bytes of text each): each chunk is validated, corrected by the flight C on whole
     arrays (each sensor's chain state carried from chunk to chunk, so the calls are the
-    same sequence as one batch over the file) and written; the output file appears only
-    when the whole input was good (atomic_file). Memory is bounded by the chunk size when
-    collect=False.
+    same sequence as one batch over the file) and written (Parquet: in row groups of
+    _ParquetOutput.ROW_GROUP_ROWS);
+    the output file appears only when the whole input was good (atomic_file). Memory is
+    bounded by the chunk size when collect=False. A progress line every progress_every_s
+    (default PROGRESS_EVERY_S) seconds of clock() (time.monotonic) tells the rows done.
 
     Returns per-sensor outputs (field_body_nT, status, valid, present) for callers and
     tests, with "selected" and "fallback_order"; collect=False (the command line): only
@@ -428,23 +438,32 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     names = [s.name for s in cs.unit.sensors]
     states = {n: host.new_state(n) for n in names}
     n_valid = dict.fromkeys(names, 0)
-    pieces, n, prev_t, started = [], 0, None, False
+    pieces, n, prev_t = [], 0, None
+    ticker = _RowsProgress(progress, data_path, PROGRESS_EVERY_S if progress_every_s is None
+                           else progress_every_s, clock)
+    out_class = _ParquetOutput if is_parquet_name(out_path) else _CsvOutput
     with atomic_file(out_path, "wb") as f:
-        for tel in iter_telemetry(data_path, cs.unit, chunk_bytes=chunk_bytes or CHUNK_BYTES):
-            if not started:
-                started = True
-                f.write(_apply_preamble(tel.path, cs.unit, cs.spec.fallback_order()).encode())
-            res = _apply_chunk(cs, host, tel, states, prev_t, coils_off, at_rest)
-            f.write(_apply_rows(tel.time_s, cs.unit, res))
-            for name in names:
-                n_valid[name] += int(res[name]["valid"].sum())
-            n += tel.n
-            if tel.n:
-                prev_t = float(tel.time_s[-1])
-            if collect:
-                pieces.append(res)
+        out = out_class(f, cs.unit, cs.spec.fallback_order())
+        try:
+            for tel in iter_telemetry(data_path, cs.unit,
+                                      chunk_bytes=chunk_bytes or CHUNK_BYTES):
+                res = _apply_chunk(cs, host, tel, states, prev_t, coils_off, at_rest)
+                out.write(tel.path, tel.time_s, res)
+                for name in names:
+                    n_valid[name] += int(res[name]["valid"].sum())
+                n += tel.n
+                if tel.n:
+                    prev_t = float(tel.time_s[-1])
+                if collect:
+                    pieces.append(res)
+                ticker(n)
+            out.close()
+        except BaseException:
+            out.abort()
+            raise
     for name in names:
         progress(f"{name}: {n_valid[name]} of {n} samples valid")
+    progress(f"wrote {out_path}: {out.FORMAT}, {n:,} rows")
     if not collect:
         return {"n": n, "n_valid": n_valid}
     results = {name: {k: np.concatenate([p[name][k] for p in pieces])
@@ -453,6 +472,45 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
                            for k in pieces[0]["selected"]}
     results["fallback_order"] = cs.spec.fallback_order()
     return results
+
+
+def is_parquet_name(path) -> bool:
+    """Is `path` an output to write as Parquet (its name ends in .parquet or .pq)?"""
+    return str(path).lower().endswith(PARQUET_SUFFIXES)
+
+
+class _RowsProgress:
+    """'apply: 1,200,000 of ~3,000,000 rows (40 %)' at most once every every_s seconds of
+    clock(). The total is io.telemetry_csv._rows_at_most (an upper bound: '~'), counted
+    only when the first line is due (a short run never reads the file twice) and never
+    when progress is quiet."""
+
+    def __init__(self, progress, data_path, every_s, clock=None):
+        import time
+
+        self.progress, self.data_path, self.every_s = progress, data_path, every_s
+        self.clock = clock or time.monotonic
+        self.quiet = bool(getattr(progress, "quiet", False))
+        self.due = self.clock() + every_s
+        self.total = False                    # not counted yet (None: cannot be told)
+
+    def __call__(self, rows: int) -> None:
+        if self.quiet:
+            return
+        now = self.clock()
+        if now < self.due:
+            return
+        self.due = now + self.every_s
+        if self.total is False:
+            from generator.io.telemetry_csv import _rows_at_most
+
+            self.total = _rows_at_most(self.data_path)
+        if self.total:
+            total = max(self.total, rows)
+            self.progress(f"apply: {rows:,} of ~{total:,} rows "
+                          f"({100.0 * rows / total:.0f} %)")
+        else:
+            self.progress(f"apply: {rows:,} rows")
 
 
 def _apply_chunk(cs, host, tel: Telemetry, states: dict, prev_t, coils_off, at_rest) -> dict:
@@ -495,45 +553,183 @@ def _apply_header(unit: Unit) -> list:
     return header + ["sel_x_nT", "sel_y_nT", "sel_z_nT", "sel_sensor", "sel_reason"]
 
 
+def _apply_comments(source, unit: Unit, fallback_order) -> list:
+    """The output's notes, each 'key: text': the CSV's comment lines (after '# '), the
+    Parquet file's key-value metadata."""
+    names = [s.name for s in unit.sensors]
+    return [f"magcal apply: calibrated field in the body frame, from {source}",
+            "<s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
+            + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED",
+            "sel_*: the vector for attitude control (fallback order "
+            + " > ".join(names[i] for i in fallback_order) + ")"]
+
+
 def _apply_preamble(source, unit: Unit, fallback_order) -> str:
     """The comment lines and the header line of the output CSV."""
-    names = [s.name for s in unit.sensors]
-    return (f"# magcal apply: calibrated field in the body frame, from {source}\n"
-            "# <s>_status: bits " + " ".join(f"{k}={v}" for k, v in STATUS_BITS.items())
-            + f" ABSENT={STATUS_ABSENT}; valid = no bit but TEMP_EXTRAPOLATED\n"
-            "# sel_*: the vector for attitude control (fallback order "
-            + " > ".join(names[i] for i in fallback_order) + ")\n"
+    return ("".join(f"# {c}\n" for c in _apply_comments(source, unit, fallback_order))
             + ",".join(_apply_header(unit)) + "\n")
 
 
-def _apply_rows(time_s, unit: Unit, results: dict) -> memoryview:
-    """The data rows of the output CSV, formatted column by column (io.outputs: every
-    float as repr(float(v)), missing values as empty cells)."""
+def _apply_columns(time_s, unit: Unit, results: dict) -> list:
+    """The output's columns in header order, each ("float", float64 values, present or
+    None) -- missing where not present or not finite --, ("int", values, numpy integer
+    type of the Parquet column) or ("str", pyarrow string array, None)."""
     from generator.flight.chain import SELECT_REASONS
     from generator.io.arrow_np import int64_array, string_array
-    from generator.io.outputs import csv_lines, float_cells, int_cells
 
-    cols = [float_cells(time_s)]
+    cols = [("float", time_s, None)]
     for s in unit.sensors:
         r = results[s.name]
         for k in range(3):
-            cols.append(float_cells(r["field_body_nT"][:, k], r["present"]))
-        cols += [int_cells(r["valid"]), int_cells(r["status"])]
+            cols.append(("float", r["field_body_nT"][:, k], r["present"]))
+        cols += [("int", r["valid"], np.int8), ("int", r["status"], np.uint16)]
     sel = results["selected"]
     k_sel = np.asarray(sel["sensor"], dtype=np.int64)
     chosen = k_sel >= 0
     for k in range(3):
-        cols.append(float_cells(sel["field_body_nT"][:, k], chosen))
+        cols.append(("float", sel["field_body_nT"][:, k], chosen))
     names = string_array([s.name for s in unit.sensors])
-    cols.append(names.take(int64_array(np.where(chosen, k_sel, 0), valid=chosen)))
+    cols.append(("str", names.take(int64_array(np.where(chosen, k_sel, 0), valid=chosen)),
+                 None))
     by_value = {v: k for k, v in SELECT_REASONS.items()}
     reason = np.asarray(sel["reason"], dtype=np.int64)
     unknown = sorted(set(np.unique(reason).tolist()) - set(by_value))
     if unknown:
         raise RuntimeError(f"select returned reason {unknown[0]}, not in SELECT_REASONS")
     lut = string_array([by_value.get(i) for i in range(max(by_value) + 1)])
-    cols.append(lut.take(int64_array(reason)))
-    return csv_lines(cols)
+    cols.append(("str", lut.take(int64_array(reason)), None))
+    return cols
+
+
+def _apply_rows(time_s, unit: Unit, results: dict) -> memoryview:
+    """The data rows of the output CSV, formatted column by column (io.outputs: every
+    float as repr(float(v)), missing values as empty cells)."""
+    from generator.io.outputs import csv_lines, float_cells, int_cells
+
+    cells = {"float": lambda v, present: float_cells(v, present),
+             "int": lambda v, _: int_cells(v), "str": lambda v, _: v}
+    return csv_lines([cells[kind](v, extra) for kind, v, extra in
+                      _apply_columns(time_s, unit, results)])
+
+
+def _apply_batch(columns, schema):
+    """One chunk's _apply_columns as a pyarrow RecordBatch of the Parquet output's schema:
+    the values the CSV's cells read back as (a float64: the float32 result widened
+    exactly, as repr writes it; null where the CSV cell is empty), integers as integers."""
+    import pyarrow as pa
+
+    from generator.io.arrow_np import float64_array
+
+    arrays = []
+    for kind, v, extra in columns:
+        if kind == "float":
+            with np.errstate(invalid="ignore"):         # a signalling NaN stays a NaN
+                x = np.asarray(v, dtype=np.float64)
+            ok = np.isfinite(x)
+            if extra is not None:
+                ok &= np.asarray(extra, dtype=bool)
+            arrays.append(float64_array(x, ok))
+        elif kind == "int":
+            arrays.append(pa.array(np.asarray(v).astype(extra)))
+        else:
+            arrays.append(v)
+    return pa.RecordBatch.from_arrays(arrays, schema=schema)
+
+
+def _apply_schema(columns, source, unit: Unit, fallback_order):
+    """The Parquet output's schema: the CSV's column names, a type per column kind of
+    _apply_columns; the CSV's comment lines as key-value metadata ('key: text')."""
+    import pyarrow as pa
+
+    types = {"float": pa.float64(), "str": pa.string()}
+    fields = [pa.field(name, pa.from_numpy_dtype(np.dtype(extra)) if kind == "int"
+                       else types[kind])
+              for name, (kind, _, extra) in zip(_apply_header(unit), columns)]
+    meta = dict(c.split(": ", 1) for c in _apply_comments(source, unit, fallback_order))
+    return pa.schema(fields, metadata=meta)
+
+
+class _CsvOutput:
+    """The apply output as CSV text into an open binary file: the preamble before the
+    first chunk's rows."""
+
+    FORMAT = "CSV"
+
+    def __init__(self, f, unit: Unit, fallback_order):
+        self.f, self.unit, self.fallback_order = f, unit, fallback_order
+        self.started = False
+
+    def write(self, source, time_s, results) -> None:
+        if not self.started:
+            self.started = True
+            self.f.write(_apply_preamble(source, self.unit, self.fallback_order).encode())
+        self.f.write(_apply_rows(time_s, self.unit, results))
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+
+class _ParquetOutput:
+    """The apply output as Parquet into an open binary file (pyarrow ParquetWriter), in
+    row groups of ROW_GROUP_ROWS rows (the last one shorter): the chunks' columns wait
+    until a row group is full, so memory holds at most a row group and a chunk, whatever
+    the file's length. (A row group per chunk would be small -- ~13,000 rows of the
+    default chunk -- and the footer the writer keeps, a few KiB per row group, would grow
+    with the file: 31 MiB more from 2x10^5 to 10^6 rows in 256 KiB chunks.)"""
+
+    FORMAT = "Parquet"
+    # 2^16 rows: ~16 MiB of the fm1 unit's 31 columns as float64; a footer entry per 2^16
+    # rows, as common writers make them (bench/bench_io.write_long_parquet)
+    ROW_GROUP_ROWS = 1 << 16
+
+    def __init__(self, f, unit: Unit, fallback_order):
+        self.f, self.unit, self.fallback_order = f, unit, fallback_order
+        self.writer = self.schema = None
+        self.pending, self.rows = [], 0
+
+    def write(self, source, time_s, results) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        columns = _apply_columns(time_s, self.unit, results)
+        if self.writer is None:          # the first chunk (there is one, maybe empty)
+            self.schema = _apply_schema(columns, source, self.unit, self.fallback_order)
+            self.writer = pq.ParquetWriter(self.f, self.schema)
+        if not len(time_s):
+            return
+        self.pending.append(_apply_batch(columns, self.schema))
+        self.rows += len(time_s)
+        while self.rows >= self.ROW_GROUP_ROWS:
+            table = pa.Table.from_batches(self.pending, schema=self.schema)
+            self.writer.write_table(table.slice(0, self.ROW_GROUP_ROWS),
+                                    row_group_size=self.ROW_GROUP_ROWS)
+            rest = table.slice(self.ROW_GROUP_ROWS)
+            self.pending, self.rows = rest.to_batches(), rest.num_rows
+
+    def close(self) -> None:
+        """Write the last row group and the footer (the file is complete once atomic_file
+        has renamed it)."""
+        import pyarrow as pa
+
+        if self.writer is None:
+            return
+        if self.rows:
+            self.writer.write_table(pa.Table.from_batches(self.pending, schema=self.schema),
+                                    row_group_size=self.rows)
+            self.pending, self.rows = [], 0
+        self.writer.close()
+
+    def abort(self) -> None:
+        """An error: the file is removed (atomic_file); the writer is closed so that it
+        does not write its footer later, into a closed file, when it is collected."""
+        if self.writer is not None and self.writer.is_open:
+            import contextlib
+
+            with contextlib.suppress(Exception):
+                self.writer.close()
 
 
 def write_apply_csv(out_path, tel: Telemetry, unit: Unit, results: dict):

@@ -7,11 +7,17 @@ target folder exists) its files are renamed into it one by one; on any error the
 temporary folder is removed. An output path that names an existing folder where a file is
 needed, an existing file where a folder is needed, or lies under a file, is bad input
 (InputError, exit 2) found before anything is computed or written.
+
+The system refusing the writing itself (a full disk, a quota, a read-only or failing
+filesystem: an OSError while writing, flushing or renaming) is OutputError: one line naming
+the output and the system's reason, exit status 1, after the temporary file or folder has
+been removed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import tempfile
@@ -19,7 +25,40 @@ from pathlib import Path
 
 import numpy as np
 
-from generator.errors import InputError
+from generator.errors import InputError, OutputError
+
+# the system's reasons for refusing to store what is written, whoever writes it: these are
+# about the output's storage, not the command's input (a read of an input that fails is the
+# readers' InputError before it gets here)
+STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+def _reason(e: OSError) -> str:
+    """The system's reason of e, in words, with its errno name (e.g. 'No space left on
+    device (ENOSPC)')."""
+    name = errno.errorcode.get(e.errno) if e.errno is not None else None
+    text = e.strerror or str(e) or type(e).__name__
+    return f"{text} ({name})" if name else text
+
+
+def _is_output_fault(e: OSError, tmp) -> bool:
+    """Does an OSError raised while an output was being written concern that output: a
+    storage errno, or a file name under its temporary file or folder?"""
+    if e.errno in STORAGE_ERRNOS:
+        return True
+    for name in (e.filename, e.filename2):
+        if name is not None and str(name).startswith(str(tmp)):
+            return True
+    return False
+
+
+def _cannot_create(path, e: OSError, what: str):
+    """The error for a temporary file or folder that could not be made beside `path`: the
+    storage refusing (OutputError, exit 1), or a place that cannot hold an output (a
+    folder without write permission: InputError, exit 2)."""
+    if e.errno in STORAGE_ERRNOS:
+        return OutputError(path, _reason(e))
+    return InputError(path, f"{what}: {e.strerror or e}")
 
 
 def _first_file_above(path: Path):
@@ -97,8 +136,7 @@ def _makedirs(folder: Path) -> list:
             except FileExistsError:
                 continue
             except OSError as e:
-                raise InputError(parent, f"cannot create the output folder: "
-                                         f"{e.strerror or e}") from None
+                raise _cannot_create(parent, e, "cannot create the output folder") from None
             made.append(parent)
     return made
 
@@ -114,23 +152,32 @@ def _remove_made(made) -> None:
 @contextlib.contextmanager
 def atomic_file(path, mode: str = "w", **open_kw):
     """Open a temporary file beside `path`; on normal exit it becomes `path` (fsync +
-    os.replace), on an exception it is removed and `path` is untouched."""
+    os.replace), on an exception it is removed and `path` is untouched. An OSError of
+    the writing (the caller's writes into the file: a storage errno; the flush, fsync and
+    rename here: any) is OutputError naming `path`."""
     p = check_output_file(path)
     made = _makedirs(p.parent) if str(p.parent) not in ("", ".") else []
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     except OSError as e:
         _remove_made(made)
-        raise InputError(path, f"cannot write: {e.strerror or e}") from None
+        raise _cannot_create(path, e, "cannot write") from None
     try:
         if "encoding" not in open_kw and "b" not in mode:
             open_kw["encoding"] = "utf-8"
-        with os.fdopen(fd, mode, **open_kw) as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, p)
+        written = False              # the caller's part done: any OSError after is ours
+        try:
+            with os.fdopen(fd, mode, **open_kw) as f:
+                yield f
+                written = True
+                f.flush()
+                os.fsync(f.fileno())
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, p)
+        except OSError as e:
+            if written or _is_output_fault(e, tmp):
+                raise OutputError(path, _reason(e)) from e
+            raise
         _fsync_dir(p.parent)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -188,7 +235,9 @@ class OutputFolder:
 @contextlib.contextmanager
 def output_folder(path):
     """Build a folder of outputs in a temporary folder beside `path` (yields an
-    OutputFolder); commit it on normal exit, remove it on an exception."""
+    OutputFolder); commit it on normal exit, remove it on an exception. An OSError of the
+    writing (the caller's writes under the folder: a storage errno or a file name under
+    it; the commit here: any) is OutputError naming `path`."""
     target = check_output_folder(path)
     parent = target.parent
     made = _makedirs(parent) if str(parent) not in ("", ".") else []
@@ -196,11 +245,18 @@ def output_folder(path):
         tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent))
     except OSError as e:
         _remove_made(made)
-        raise InputError(path, f"cannot create the output folder: {e.strerror or e}") from None
+        raise _cannot_create(path, e, "cannot create the output folder") from None
     try:
         folder = OutputFolder(target, tmp)
-        yield folder
-        folder.earlier = _commit(tmp, target)
+        built = False                # the caller's part done: any OSError after is ours
+        try:
+            yield folder
+            built = True
+            folder.earlier = _commit(tmp, target)
+        except OSError as e:
+            if built or _is_output_fault(e, tmp):
+                raise OutputError(path, _reason(e)) from e
+            raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_made(made)
