@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from generator.flight.chain import MAX_POLY_DEGREE
+from generator.trace.recursion import first_order_loop
 
 FIELD_SCALE_nT = 50000.0          # the cubic's internal parameter: nT at 50 uT on the axis
 
@@ -174,12 +175,9 @@ def first_order(a, x, y0) -> np.ndarray:
     lq = np.where(hard, 0.0, lq)
     L = np.cumsum(lq)
     if (len(np.nonzero(hard)[0]) - L[-1] / LOG_SPAN) * 100 > n:
-        # short memory: many chunks; the plain loop (on Python floats) is faster
-        y = float(y0)
-        al, xl = a.tolist(), x.tolist()
-        for k in range(1, n):
-            y = y + al[k - 1] * (xl[k] - y)
-            out[k] = y
+        # short memory: many chunks; the plain loop is faster (compiled, the same
+        # operations in the same order as on Python floats: trace.recursion)
+        first_order_loop(a, x, y0, out)
         return out
     k, y = 0, float(y0)                         # out[k] = y known; next index k + 1
     cut = np.nonzero(hard)[0]
@@ -196,7 +194,7 @@ def first_order(a, x, y0) -> np.ndarray:
             k += 1
             continue
         Lk = L[k - 1] if k > 0 else 0.0
-        e = int(np.searchsorted(-(L[k:stop] - Lk), LOG_SPAN, side="right")) + k
+        e = _span_end(L, k, stop, Lk)
         e = max(e, k + 1)
         rel = L[k:e] - Lk                                   # log factor from sample k
         csum = np.cumsum(ax[k:e] * np.exp(-rel))
@@ -208,6 +206,23 @@ def first_order(a, x, y0) -> np.ndarray:
 
 
 LOG_SPAN = 500.0     # first_order: e^500 stays far inside float64's range
+_SPAN_WINDOW = 4096  # _span_end's first window (rows)
+
+
+def _span_end(L, k, stop, Lk) -> int:
+    """k + the number of i in k .. stop-1 with -(L[i] - Lk) <= LOG_SPAN, L the running
+    sum of log factors (non-increasing, so the computed -(L[i] - Lk) is non-decreasing
+    and that count is where LOG_SPAN sorts in, as np.searchsorted(-(L[k:stop] - Lk),
+    LOG_SPAN, "right") over the whole stretch gives it) -- found in windows that double
+    from k, so a chunk costs its own length, not the rest of the file's (with many
+    chunks the whole stretch made the recursion quadratic in the rows: issue 20 F5)."""
+    w = _SPAN_WINDOW
+    while True:
+        hi = min(k + w, stop)
+        d = -(L[k:hi] - Lk)
+        if hi == stop or (len(d) and d[-1] > LOG_SPAN):
+            return int(np.searchsorted(d, LOG_SPAN, side="right")) + k
+        w *= 2
 
 
 def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
