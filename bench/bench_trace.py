@@ -55,17 +55,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parent.parent
 CANDIDATES = [REPO.parent / "shared" / "data" / "samsat_fm1",
               Path("/work/shared/data/samsat_fm1")]
 FILES = ["thermal_12pos.csv", "rotation.csv", "coils.csv", "flight_6h.csv"]
 
 
-def run(cmd) -> tuple[float, float, str, float]:
+def run(cmd, tree=REPO) -> tuple[float, float, str, float]:
     """(wall seconds, peak RSS MiB, stderr, CPU seconds user + system) of one
-    subprocess. The CPU time is the steadier figure on a shared machine (the wall time
-    includes waiting for a core)."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    subprocess, with `tree` (a checkout) on PYTHONPATH. The CPU time is the steadier
+    figure on a shared machine (the wall time includes waiting for a core)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
                          text=True)
@@ -123,6 +125,31 @@ def memory(data: Path, lengths, baseline: Path | None, cap: int, sensor: str,
     return 0
 
 
+def long_cli(unit: str, coeffs: str, files, baseline: Path | None) -> int:
+    """`magcal trace UNIT FILE --coeffs C` on each long file, this checkout and then a
+    baseline checkout in the same run (fresh processes): wall, CPU, peak RSS, the ratios
+    this / baseline, and the longest wait between two progress lines."""
+    import re
+    trees = [("this", REPO)] + ([("baseline", baseline)] if baseline else [])
+    got = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in files:
+            for name, tree in trees:
+                w, rss, out, cpu = run([sys.executable, "-m", "generator.cli", "trace", unit,
+                                        f, "--coeffs", coeffs, "-o", f"{tmp}/{name}"], tree)
+                stamps = [float(m) for m in re.findall(r"^\[\s*([0-9.]+) s\]", out, re.M)]
+                gap = max(np.diff([0.0] + stamps)) if stamps else w
+                got[f, name] = (w, cpu, rss)
+                print(f"{Path(f).name}  {name:8s} {w:7.1f} s wall {cpu:7.1f} s CPU "
+                      f"{rss:6.0f} MiB; longest silence {gap:.1f} s", flush=True)
+    if baseline:
+        for f in files:
+            (w, c, r), (wb, cb, rb) = got[f, "this"], got[f, "baseline"]
+            print(f"{Path(f).name}  this / baseline: wall {w / wb:.2f}x, CPU {c / cb:.2f}x, "
+                  f"peak {r / rb:.2f}x")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--memory", type=int, nargs="+", default=None, metavar="ROWS",
@@ -133,10 +160,19 @@ def main(argv=None) -> int:
     ap.add_argument("--cap", type=int, default=20_000)
     ap.add_argument("--sensor", default="mmc1")
     ap.add_argument("--coeffs", default="", help="with --memory: a supplied baseline")
+    ap.add_argument("--long", nargs="+", default=None, metavar="FILE",
+                    help="`magcal trace U FILE --coeffs C` (U: --unit-file) on these long files "
+                         "(needs --unit-file and --coeffs; with --baseline: against it)")
+    ap.add_argument("--unit-file", default=None, help="with --long: the unit")
     ap.add_argument("--data", default=None, help="the samsat_fm1 folder")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--files", nargs="+", default=FILES)
     a = ap.parse_args(argv)
+    if a.long:
+        if not (a.unit_file and a.coeffs):
+            print("--long needs --unit-file and --coeffs", file=sys.stderr)
+            return 2
+        return long_cli(a.unit_file, a.coeffs, a.long, a.baseline)
     data = Path(a.data) if a.data else next((p for p in CANDIDATES if p.is_dir()), None)
     if data is None:
         print("shared samsat_fm1 data not found; pass --data", file=sys.stderr)
