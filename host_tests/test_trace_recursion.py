@@ -233,3 +233,28 @@ def test_span_end_equals_the_whole_stretch_search():
             Lk = L[k - 1] if k > 0 else 0.0
             want = int(np.searchsorted(-(L[k:stop] - Lk), LOG_SPAN, side="right")) + k
             assert fx._span_end(L, k, stop, Lk) == want, (k, stop)
+
+
+# ---- memory: the recursion's temporaries -------------------------------------------------
+
+@pytest.mark.parametrize("tau", [0.005, 50.0])       # the loop branch, the chunked branch
+def test_recursion_temporaries(tau):
+    # review 20e: ~160 B a row of peak growth on long files; the loop branch alone held
+    # its inputs as Python float lists (2 x 32 B a row) besides 6-7 arrays. Now, besides
+    # the caller's inputs, lag_filter_dtau holds at most: the output, the factors, the
+    # forcing, the running log factor (8 B a row each) and the memoryless-step mask (1 B)
+    # -- 33 B a row; the bound: 5 arrays of 8 B (the old code: 57-121 B a row, measured)
+    import tracemalloc
+    n = 200_000
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.choice([1.0, 0.0, 0.5, 3600.0], p=[.6, .1, .2999, .0001], size=n))
+    T = 20.0 + np.cumsum(rng.normal(scale=0.01, size=n))
+    el = fx.lag_filter(t, T, tau)
+    for f in (lambda: fx.lag_filter(t, T, tau), lambda: fx.lag_filter_dtau(t, T, tau, el)):
+        tracemalloc.start()
+        try:
+            f()
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak <= 5 * 8 * n, f"{peak / n:.1f} B a row"
