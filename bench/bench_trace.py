@@ -38,6 +38,31 @@ read whole for the fit and let go after it), same run conditions, 8248fa4 again:
 (the 880,000-row walls are not comparable: other test runs shared the 2 cores during
 this tree's run). What still grows there is the whole read and the fit (generator.fit).
 
+    python3 bench/bench_trace.py --long FILE... --unit-file U --coeffs C [--baseline DIR]
+
+`magcal trace U FILE --coeffs C` on long files, this checkout and a baseline checkout in
+the same run: wall, CPU, peak RSS, the longest silence between progress lines. Issue 20
+F5 (review 20e), tlag14 against d1d6bb7, the reviewer's 3-sensor unit
+(/tmp/review_20e/u1: IST8310 uT, a 24-bit generic with temperature, LIS3MDL G; the
+simulated thermal campaign repeated to length, Parquet), the same command run by hand
+with /usr/bin/time -v on the shared 2-core machine at a load average of 4-5 (the walls
+include waiting for a core; the CPU time, user + system, is the steadier figure):
+
+        rows   d1d6bb7 (before)                    this
+   1,000,000   311.8 s wall  84.9 s CPU 1424 MiB   100.9 s wall 32.1 s CPU 1419 MiB
+   3,000,000   (review 20e: 757 s wall, 1695 MiB)     96.3 s wall 62.3 s CPU 1460 MiB
+   (the thermal-lag sensor's round 1 at 10^6 rows: 238.3 s before, 36.9 s after; the
+   same trace.json but elapsed_s and the same coefficients.json bytes at 10^6 rows)
+
+What it was: effects.first_order's search for each chunk's end over the rest of the
+stretch (quadratic in the rows with many chunks) and its short-memory loop in Python
+(over Python float lists, 64 B a row besides its arrays); now doubling windows and the
+loop compiled (trace.recursion), bit for bit. The peak is mostly the drawn rows' design
+at the default cap (~1.3 GiB already at 250,000 rows); what grows a row is the held file
+(FileRows, 31 B a row on this unit), the two lag caches' floor past ~2 million rows (up
+to 40 B a row each) and one recursion's temporaries (~50 B a row with the unpacked
+inputs; 57-121 B besides them before).
+
 The 60 B a row: the packed series (~30 B, trace.filerows) and the recursions' caches
 (trace.effects, at least 4 series-long arrays a cache); the rest of the peak is the
 samples and the all-rows pieces, which do not grow with the length. The time: the file is
