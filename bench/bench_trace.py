@@ -45,14 +45,17 @@ the same run: wall, CPU, peak RSS, the longest silence between progress lines. I
 F5 (review 20e), tlag14 against d1d6bb7, the reviewer's 3-sensor unit
 (/tmp/review_20e/u1: IST8310 uT, a 24-bit generic with temperature, LIS3MDL G; the
 simulated thermal campaign repeated to length, Parquet), the same command run by hand
-with /usr/bin/time -v on the shared 2-core machine at a load average of 4-5 (the walls
-include waiting for a core; the CPU time, user + system, is the steadier figure):
+with /usr/bin/time -v on the shared 2-core machine at a load average of 3-5, the runs one
+after another, not interleaved (the walls include waiting for a core, and the load
+differed between the runs; the CPU time, user + system, is the steadier figure):
 
         rows   d1d6bb7 (before)                    this
    1,000,000   311.8 s wall  84.9 s CPU 1424 MiB   100.9 s wall 32.1 s CPU 1419 MiB
-   3,000,000   (review 20e: 757 s wall, 1695 MiB)     96.3 s wall 62.3 s CPU 1460 MiB
-   (the thermal-lag sensor's round 1 at 10^6 rows: 238.3 s before, 36.9 s after; the
-   same trace.json but elapsed_s and the same coefficients.json bytes at 10^6 rows)
+   3,000,000   490.0 s wall 326.4 s CPU 1535 MiB    96.3 s wall 62.3 s CPU 1460 MiB
+   peak grows a row (10^6 -> 3 x 10^6): before 58 B, this 21 B
+   (the thermal-lag sensor's round 1: 238.3 s before, 36.9 s after at 10^6 rows, 416.8 s
+   and 26.0 s at 3 x 10^6; at both lengths the same trace.json but elapsed_s and the
+   same coefficients.json bytes)
 
 What it was: effects.first_order's search for each chunk's end over the rest of the
 stretch (quadratic in the rows with many chunks) and its short-memory loop in Python
