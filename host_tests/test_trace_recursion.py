@@ -258,3 +258,14 @@ def test_recursion_temporaries(tau):
         finally:
             tracemalloc.stop()
         assert peak <= 5 * 8 * n, f"{peak / n:.1f} B a row"
+
+
+def test_without_a_compiler_the_python_loop_gives_the_same(monkeypatch):
+    rng = np.random.default_rng(9)
+    t = np.cumsum(rng.choice([1.0, 0.0, 0.5, 900.0], p=[.6, .1, .29, .01], size=3000))
+    T = 20.0 + np.cumsum(rng.normal(scale=0.05, size=3000))
+    compiled = fx.lag_filter(t, T, 0.003)
+    monkeypatch.setattr(recursion, "_lib", False)        # as when the build failed
+    assert not recursion.compiled()
+    assert same_bits(fx.lag_filter(t, T, 0.003), compiled)
+    assert same_bits(fx.lag_filter(t, T, 0.003), old_lag_filter(t, T, 0.003))
