@@ -38,6 +38,34 @@ read whole for the fit and let go after it), same run conditions, 8248fa4 again:
 (the 880,000-row walls are not comparable: other test runs shared the 2 cores during
 this tree's run). What still grows there is the whole read and the fit (generator.fit).
 
+    python3 bench/bench_trace.py --long FILE... --unit-file U --coeffs C [--baseline DIR]
+
+`magcal trace U FILE --coeffs C` on long files, this checkout and a baseline checkout in
+the same run: wall, CPU, peak RSS, the longest silence between progress lines. Issue 20
+F5 (review 20e), tlag14 against d1d6bb7, the reviewer's 3-sensor unit
+(/tmp/review_20e/u1: IST8310 uT, a 24-bit generic with temperature, LIS3MDL G; the
+simulated thermal campaign repeated to length, Parquet), the same command run by hand
+with /usr/bin/time -v on the shared 2-core machine at a load average of 3-5, the runs one
+after another, not interleaved (the walls include waiting for a core, and the load
+differed between the runs; the CPU time, user + system, is the steadier figure):
+
+        rows   d1d6bb7 (before)                    this
+   1,000,000   311.8 s wall  84.9 s CPU 1424 MiB   100.9 s wall 32.1 s CPU 1419 MiB
+   3,000,000   490.0 s wall 326.4 s CPU 1535 MiB    96.3 s wall 62.3 s CPU 1460 MiB
+   peak grows a row (10^6 -> 3 x 10^6): before 58 B, this 21 B
+   (the thermal-lag sensor's round 1: 238.3 s before, 36.9 s after at 10^6 rows, 416.8 s
+   and 26.0 s at 3 x 10^6; at both lengths the same trace.json but elapsed_s and the
+   same coefficients.json bytes)
+
+What it was: effects.first_order's search for each chunk's end over the rest of the
+stretch (quadratic in the rows with many chunks) and its short-memory loop in Python
+(over Python float lists, 64 B a row besides its arrays); now doubling windows and the
+loop compiled (trace.recursion), bit for bit. The peak is mostly the drawn rows' design
+at the default cap (~1.3 GiB already at 250,000 rows); what grows a row is the held file
+(FileRows, 31 B a row on this unit), the two lag caches' floor past ~2 million rows (up
+to 40 B a row each) and one recursion's temporaries (~50 B a row with the unpacked
+inputs; 57-121 B besides them before).
+
 The 60 B a row: the packed series (~30 B, trace.filerows) and the recursions' caches
 (trace.effects, at least 4 series-long arrays a cache); the rest of the peak is the
 samples and the all-rows pieces, which do not grow with the length. The time: the file is
@@ -55,17 +83,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parent.parent
 CANDIDATES = [REPO.parent / "shared" / "data" / "samsat_fm1",
               Path("/work/shared/data/samsat_fm1")]
 FILES = ["thermal_12pos.csv", "rotation.csv", "coils.csv", "flight_6h.csv"]
 
 
-def run(cmd) -> tuple[float, float, str, float]:
+def run(cmd, tree=REPO) -> tuple[float, float, str, float]:
     """(wall seconds, peak RSS MiB, stderr, CPU seconds user + system) of one
-    subprocess. The CPU time is the steadier figure on a shared machine (the wall time
-    includes waiting for a core)."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    subprocess, with `tree` (a checkout) on PYTHONPATH. The CPU time is the steadier
+    figure on a shared machine (the wall time includes waiting for a core)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
                          text=True)
@@ -123,6 +153,31 @@ def memory(data: Path, lengths, baseline: Path | None, cap: int, sensor: str,
     return 0
 
 
+def long_cli(unit: str, coeffs: str, files, baseline: Path | None) -> int:
+    """`magcal trace UNIT FILE --coeffs C` on each long file, this checkout and then a
+    baseline checkout in the same run (fresh processes): wall, CPU, peak RSS, the ratios
+    this / baseline, and the longest wait between two progress lines."""
+    import re
+    trees = [("this", REPO)] + ([("baseline", baseline)] if baseline else [])
+    got = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in files:
+            for name, tree in trees:
+                w, rss, out, cpu = run([sys.executable, "-m", "generator.cli", "trace", unit,
+                                        f, "--coeffs", coeffs, "-o", f"{tmp}/{name}"], tree)
+                stamps = [float(m) for m in re.findall(r"^\[\s*([0-9.]+) s\]", out, re.M)]
+                gap = max(np.diff([0.0] + stamps)) if stamps else w
+                got[f, name] = (w, cpu, rss)
+                print(f"{Path(f).name}  {name:8s} {w:7.1f} s wall {cpu:7.1f} s CPU "
+                      f"{rss:6.0f} MiB; longest silence {gap:.1f} s", flush=True)
+    if baseline:
+        for f in files:
+            (w, c, r), (wb, cb, rb) = got[f, "this"], got[f, "baseline"]
+            print(f"{Path(f).name}  this / baseline: wall {w / wb:.2f}x, CPU {c / cb:.2f}x, "
+                  f"peak {r / rb:.2f}x")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--memory", type=int, nargs="+", default=None, metavar="ROWS",
@@ -133,10 +188,19 @@ def main(argv=None) -> int:
     ap.add_argument("--cap", type=int, default=20_000)
     ap.add_argument("--sensor", default="mmc1")
     ap.add_argument("--coeffs", default="", help="with --memory: a supplied baseline")
+    ap.add_argument("--long", nargs="+", default=None, metavar="FILE",
+                    help="`magcal trace U FILE --coeffs C` (U: --unit-file) on these long files "
+                         "(needs --unit-file and --coeffs; with --baseline: against it)")
+    ap.add_argument("--unit-file", default=None, help="with --long: the unit")
     ap.add_argument("--data", default=None, help="the samsat_fm1 folder")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--files", nargs="+", default=FILES)
     a = ap.parse_args(argv)
+    if a.long:
+        if not (a.unit_file and a.coeffs):
+            print("--long needs --unit-file and --coeffs", file=sys.stderr)
+            return 2
+        return long_cli(a.unit_file, a.coeffs, a.long, a.baseline)
     data = Path(a.data) if a.data else next((p for p in CANDIDATES if p.is_dir()), None)
     if data is None:
         print("shared samsat_fm1 data not found; pass --data", file=sys.stderr)

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from generator.flight.chain import MAX_POLY_DEGREE
+from generator.trace.recursion import first_order_loop
 
 FIELD_SCALE_nT = 50000.0          # the cubic's internal parameter: nT at 50 uT on the axis
 
@@ -167,22 +168,21 @@ def first_order(a, x, y0) -> np.ndarray:
     if n == 1:
         return out
     a = np.asarray(a, float)
-    ax = a * x[1:]
     with np.errstate(divide="ignore"):
-        lq = np.log1p(-a)                       # log(1 - a) <= 0, -inf where a = 1
-    hard = ~np.isfinite(lq) | (lq < -LOG_SPAN)  # no memory: y[k] = x[k] (to e^-LOG_SPAN)
-    lq = np.where(hard, 0.0, lq)
-    L = np.cumsum(lq)
-    if (len(np.nonzero(hard)[0]) - L[-1] / LOG_SPAN) * 100 > n:
-        # short memory: many chunks; the plain loop (on Python floats) is faster
-        y = float(y0)
-        al, xl = a.tolist(), x.tolist()
-        for k in range(1, n):
-            y = y + al[k - 1] * (xl[k] - y)
-            out[k] = y
+        lq = np.negative(a)
+        np.log1p(lq, out=lq)                    # log(1 - a) <= 0, -inf where a = 1
+    hard = ~np.isfinite(lq)
+    hard |= lq < -LOG_SPAN                      # no memory: y[k] = x[k] (to e^-LOG_SPAN)
+    lq[hard] = 0.0
+    L = np.cumsum(lq, out=lq)                   # in place (series-long arrays: memory)
+    if (np.count_nonzero(hard) - L[-1] / LOG_SPAN) * 100 > n:
+        # short memory: many chunks; the plain loop is faster (compiled, the same
+        # operations in the same order as on Python floats: trace.recursion)
+        first_order_loop(a, x, y0, out)
         return out
     k, y = 0, float(y0)                         # out[k] = y known; next index k + 1
     cut = np.nonzero(hard)[0]
+    del hard
     ci = 0
     while k < n - 1:
         # the chunk: indices k+1 .. e (inclusive), up to the next memoryless step and
@@ -196,10 +196,10 @@ def first_order(a, x, y0) -> np.ndarray:
             k += 1
             continue
         Lk = L[k - 1] if k > 0 else 0.0
-        e = int(np.searchsorted(-(L[k:stop] - Lk), LOG_SPAN, side="right")) + k
+        e = _span_end(L, k, stop, Lk)
         e = max(e, k + 1)
         rel = L[k:e] - Lk                                   # log factor from sample k
-        csum = np.cumsum(ax[k:e] * np.exp(-rel))
+        csum = np.cumsum(a[k:e] * x[k + 1:e + 1] * np.exp(-rel))
         seg = np.exp(rel) * (y + csum)
         out[k + 1:e + 1] = seg
         y = float(seg[-1])
@@ -208,6 +208,23 @@ def first_order(a, x, y0) -> np.ndarray:
 
 
 LOG_SPAN = 500.0     # first_order: e^500 stays far inside float64's range
+_SPAN_WINDOW = 4096  # _span_end's first window (rows)
+
+
+def _span_end(L, k, stop, Lk) -> int:
+    """k + the number of i in k .. stop-1 with -(L[i] - Lk) <= LOG_SPAN, L the running
+    sum of log factors (non-increasing, so the computed -(L[i] - Lk) is non-decreasing
+    and that count is where LOG_SPAN sorts in, as np.searchsorted(-(L[k:stop] - Lk),
+    LOG_SPAN, "right") over the whole stretch gives it) -- found in windows that double
+    from k, so a chunk costs its own length, not the rest of the file's (with many
+    chunks the whole stretch made the recursion quadratic in the rows: issue 20 F5)."""
+    w = _SPAN_WINDOW
+    while True:
+        hi = min(k + w, stop)
+        d = -(L[k:hi] - Lk)
+        if hi == stop or (len(d) and d[-1] > LOG_SPAN):
+            return int(np.searchsorted(d, LOG_SPAN, side="right")) + k
+        w *= 2
 
 
 def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
@@ -220,8 +237,17 @@ def lag_filter(time_s, temp_C, tau_s) -> np.ndarray:
         return np.empty_like(T)
     if tau_s <= 0:
         return T.copy()
-    dt = np.maximum(np.diff(t), 0.0)
-    return first_order(dt / (tau_s + dt), T, T[0])
+    return first_order(_lag_factors(t, tau_s), T, T[0])
+
+
+def _lag_factors(t, tau_s) -> np.ndarray:
+    """dt / (tau + dt), dt = max(diff(t), 0): the recursion's factors (in place: two
+    series-long arrays, not four)."""
+    dt = np.diff(t)
+    np.maximum(dt, 0.0, out=dt)
+    a = dt + tau_s
+    np.divide(dt, a, out=a)
+    return a
 
 
 def lag_filter_dtau(time_s, temp_C, tau_s, filtered=None) -> np.ndarray:
@@ -233,9 +259,17 @@ def lag_filter_dtau(time_s, temp_C, tau_s, filtered=None) -> np.ndarray:
     if len(T) < 2 or tau_s <= 0:
         return np.zeros(len(T))
     el = lag_filter(t, T, tau_s) if filtered is None else filtered
-    dt = np.maximum(np.diff(t), 0.0)
-    u = np.concatenate([[0.0], -(T[1:] - el[:-1]) / (tau_s + dt)])
-    return first_order(dt / (tau_s + dt), u, 0.0)
+    dt = np.diff(t)
+    np.maximum(dt, 0.0, out=dt)
+    den = dt + tau_s
+    u = np.empty(len(T))                # in place: the same operations, fewer arrays
+    u[0] = 0.0
+    np.subtract(T[1:], el[:-1], out=u[1:])
+    np.negative(u[1:], out=u[1:])
+    np.divide(u[1:], den, out=u[1:])
+    np.divide(dt, den, out=dt)          # the factors dt / (tau + dt)
+    del den
+    return first_order(dt, u, 0.0)
 
 
 # The recursions' caches on a file's series hold whole-series arrays (8 B a row each);
@@ -257,9 +291,10 @@ def element_temperature(series, tau_s) -> np.ndarray:
     key = round(float(tau_s), 12)
     v = cache.get(key)
     if v is None:
-        if _cache_full(cache, len(series.time_s), 64):
+        t = series.time_s                   # unpacked once (a PackedSeries unpacks on read)
+        if _cache_full(cache, len(t), 64):
             cache.clear()
-        v = cache[key] = lag_filter(series.time_s, series.temp_C, tau_s)
+        v = cache[key] = lag_filter(t, series.temp_C, tau_s)
     return v
 
 
@@ -1003,9 +1038,10 @@ class LaggedChannelBias(ChannelBias):
             key = (self.channel, round(float(self.hyper), 12))
             f = cache.get(key)
             if f is None:
-                if _cache_full(cache, len(series.time_s), 256):
+                t = series.time_s
+                if _cache_full(cache, len(t), 256):
                     cache.clear()
-                f = cache[key] = lag_filter(series.time_s, v, self.hyper)
+                f = cache[key] = lag_filter(t, v, self.hyper)
             out[sel] = f[S.file_row[sel]]
         return out
 

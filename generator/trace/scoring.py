@@ -32,6 +32,7 @@ Significance rule (all three; m = candidates in the round, Bonferroni; ALPHA = 1
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
@@ -130,15 +131,45 @@ class Score:
                     "significant": self.null.significant}})}
 
 
+PROGRESS_EVERY_S = 10.0    # a progress line inside a round at most this often (wall time)
+
+
+class RoundProgress:
+    """Where a scoring round is (candidate i of n, its scan's value j of m), said through
+    the trace's progress callback at most every `every_s` of wall time: a long round
+    (every row of long files through each candidate's recursions) is not silent for
+    minutes, a short one says nothing more."""
+
+    def __init__(self, say=None, prefix="", every_s=None, clock=time.perf_counter):
+        self.say, self.prefix, self.clock = say, prefix, clock
+        self.every_s = PROGRESS_EVERY_S if every_s is None else every_s
+        self.last = clock()
+        self.where = ""
+
+    def candidate(self, i, n, e) -> None:
+        self.where = f"scoring candidate {i} of {n} ({e.label()})"
+        self.tick()
+
+    def tick(self, detail="") -> None:
+        if self.say is None:
+            return
+        now = self.clock()
+        if now - self.last >= self.every_s:
+            self.last = now
+            self.say(self.prefix + self.where + (f": {detail}" if detail else ""))
+
+
 def _f(v):
     v = float(v)
     return v if math.isfinite(v) else (1e300 if v > 0 else -1e300)
 
 
 def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_train,
-                    base_test):
+                    base_test, progress: RoundProgress | None = None):
     """Held-out score of candidate effect e added to the model (hyper-parameters chosen
-    inside each training fold on its own training error)."""
+    inside each training fold on its own training error); progress: told at each scanned
+    value."""
+    tick = progress.tick if progress is not None else (lambda detail="": None)
     grid = e.scan_grid(S)
     H = len(grid)
     best_train = np.full(len(cv.folds), np.inf)
@@ -174,13 +205,14 @@ def score_candidate(model: SensorModel, S: SensorSamples, cv: CVEngine, e, base_
     if stepped:   # a step at each grid value: one pass of sufficient statistics
         cv.step_scan(G_all, e.step_key(S)[S.row_sample], grid, keep)
     for j, h in enumerate([] if stepped else grid):
+        tick(f"scan value {j + 1} of {H}")
         e.set_hyper(h)
         d0, G = columns()
         keep(j, *cv.evaluate(d0, G, bound=best_train))
     jbest = int(np.argmin(fulls))
     if getattr(e, "relinearise", False) and test1 @ test1 < base_test @ base_test:
         return _rescore_refitted(model, S, cv, e, [grid[j] for j in np.argsort(fulls)[:2]],
-                                 base_test)
+                                 base_test, tick)
     h = grid[jbest]
     e.set_hyper(h)
     d0, G = columns()
@@ -271,14 +303,16 @@ def _gain_where_it_acts(u, row_block, n_blocks, sse0_block, sse1_block):
     return (1.0 - math.sqrt(s1 / s0) if s0 > 0 else 0.0), k
 
 
-def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test) -> Score:
+def _rescore_refitted(model, S, cv: CVEngine, e, starts, base_test,
+                      tick=lambda detail="": None) -> Score:
     """Second stage for an effect whose linearisation about the current model is poor
     (a thermal lag moves the temperature the polynomials see by degrees): fit the model
     with the effect from the best scanned values (nonlinear, all parameters), keep the
     best, and cross-validate linearised about that fit (the effect's own parameter in the
     Jacobian, so each training fold refits it)."""
     best = None
-    for h in starts:
+    for i, h in enumerate(starts):
+        tick(f"refit {i + 1} of {len(starts)} from the best scanned values")
         e.set_hyper(h)
         m1 = model.with_effect(e, e.init_params()).fit(S, max_nfev=20)
         sse = m1.sse(S)
@@ -328,14 +362,19 @@ def candidate_list(model, S):
     return cands, why
 
 
-def score_round(model: SensorModel, S_fit, fold_of_block, n_blocks, alpha, min_gain):
+def score_round(model: SensorModel, S_fit, fold_of_block, n_blocks, alpha, min_gain,
+                progress: RoundProgress | None = None):
     cands, why = candidate_list(model, S_fit)
     if not cands:
         return [], why
     r0, J = model.jacobian(S_fit)
     cv = CVEngine(r0, J, S_fit.block[S_fit.row_sample], fold_of_block, n_blocks)
     base_train, _, _, base_test = cv.evaluate()
-    scores = [score_candidate(model, S_fit, cv, e, base_train, base_test) for e in cands]
+    scores = []
+    for i, e in enumerate(cands):
+        if progress is not None:
+            progress.candidate(i + 1, len(cands), e)
+        scores.append(score_candidate(model, S_fit, cv, e, base_train, base_test, progress))
     for s in scores:
         s.judge(len(scores), alpha, min_gain)
     scores.sort(key=lambda s: s.sse1_cv)

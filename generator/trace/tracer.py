@@ -90,8 +90,7 @@ from generator.trace.subsample import (CONFIRM_PREFIX, MAX_TRACE_SAMPLES,
 from generator.trace.scoring import (  # noqa: F401
     ACT_SHARE, ALPHA, EQUIVALENT_CORR, MIN_REL_GAIN, N_FOLDS, Score, _corr, _f,
     _make_score, candidate_columns, candidate_list, choose, equivalent, heldout_z,
-    score_candidate,
-    score_round)
+    RoundProgress, score_candidate, score_round)
 
 SPLIT_EVERY = 5           # split mode: every 5th block held out for the figures
 MAX_EFFECTS = 6           # per sensor
@@ -216,7 +215,8 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
     say(f"{name}: baseline held-out RMS {base_rms:.2f} nT (core fit as given {core:.2f} nT)")
     steps, stop = [], ""
     t0 = time.perf_counter()
-    scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain)
+    scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain,
+                              RoundProgress(progress, f"{name}: round 1: "))
     say(f"{name}: round 1: {len(scores)} candidates scored in {time.perf_counter() - t0:.1f} s")
     while True:
         if steps:
@@ -268,7 +268,8 @@ def trace_sensor(name, base: BaseFit, S_fit, S_eval, *, initial=(), alpha=ALPHA,
             f"(CV gain {100 * win.rel_rms_gain:.1f} %, z = {win.z:.1f})")
         model = m1
         t0 = time.perf_counter()
-        scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain)
+        scores, why = score_round(model, S_fit, fold_of_block, n_blocks, alpha, min_gain,
+                                  RoundProgress(progress, f"{name}: round {len(steps) + 1}: "))
         say(f"{name}: round {len(steps) + 1}: {len(scores)} candidates scored in "
             f"{time.perf_counter() - t0:.1f} s")
     r_eval = model.residual(model.theta[None], S_eval)[0]

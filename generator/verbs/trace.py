@@ -28,9 +28,14 @@ def add_trace_args(p):
                         "all the files' blocks in order, as many as the cap holds (the data "
                         "and --holdout files together: with --holdout at least two blocks); "
                         "the error over every row is checked; said in trace.json and the "
-                        "notes. Memory: a capped trace keeps ~30-60 B per row of the whole "
-                        "files plus the drawn rows; the core fit of the data (without "
-                        "--coeffs) still reads every row (docs/fit_samples.md)")
+                        "notes. Memory: a capped trace keeps ~30 B per row of the whole "
+                        "files, plus, for the sensor being traced, the lag recursions' two "
+                        "caches (~64 MiB each, but 4-5 series-long arrays at least: up to "
+                        "40 B a row each past ~2 million rows a file) and one recursion's temporaries (~50 B a row while "
+                        "it runs), on top of what the drawn rows take (the larger part: "
+                        "1.3-1.5 GiB peak at the default cap on a 3-sensor unit with "
+                        "--coeffs, 250,000 to 3,000,000 rows); the core fit of the data "
+                        "(without --coeffs) still reads every row (docs/fit_samples.md)")
 
 
 def _max_samples(text):
