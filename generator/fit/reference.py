@@ -463,14 +463,47 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
 def _solve_M(P, Mp, v):
     """M(T_n)^-1 v_n (N, 3), M(T) = sum_k P_k Mp[k]: one solve with many right-hand sides
     where M has no temperature terms (the constant fits, a nominal prior), else per
-    sample."""
+    sample by the adjugate (_solve3)."""
     if len(Mp) == 1 or not np.any(Mp[1:]):
         if np.array_equal(Mp[0], _EYE3):
             # M = I (the nominal prior): the solve's values (it may flip the sign of an
             # exact 0, which no sum with a nonzero term sees), without LAPACK per row block
             return v.copy()
         return np.linalg.solve(Mp[0], v.T).T
-    return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+    out = _solve3(Mp.reshape(len(Mp), 9).T @ P.T, v)
+    if out is None:
+        return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+    return out
+
+
+# _solve3 solves by the adjugate only where |det M| >= this fraction of the product of
+# M's row norms (Hadamard's bound: 1 for orthogonal rows, -> 0 as M becomes singular):
+# there the 3x3 inverse's rounding error is a few float64 ulps of the result, as LU's
+CLOSED_SOLVE_MIN_ORTHOGONALITY = 1e-3
+
+
+def _solve3(Mt, v):
+    """M_n^-1 v_n (N, 3) for N 3x3 matrices given as their 9 entries row by row, (9, N)
+    (contiguous rows), by the adjugate: adj(M) v / det M, in whole-array operations (a
+    per-sample LAPACK solve costs ~6x as much). The same solution as LU up to rounding
+    (float64 round-off, a few ulps where M is well conditioned); None where some M is
+    near singular (CLOSED_SOLVE_MIN_ORTHOGONALITY), so that the caller solves by LU."""
+    a, b, c, d, e, f, g, h, i = Mt
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g      # cofactors of row 0
+    det = a * A + b * B + c * C
+    rows = np.sqrt((a * a + b * b + c * c) * (d * d + e * e + f * f)
+                   * (g * g + h * h + i * i))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if not np.all(np.abs(det) >= CLOSED_SOLVE_MIN_ORTHOGONALITY * rows) \
+                or not np.all(rows > 0):
+            return None
+    v0, v1, v2 = v.T
+    out = np.empty((3, len(v0)))
+    out[0] = A * v0 + (c * h - b * i) * v1 + (b * f - c * e) * v2
+    out[1] = B * v0 + (a * i - c * g) * v1 + (c * d - a * f) * v2
+    out[2] = C * v0 + (b * g - a * h) * v1 + (a * e - b * d) * v2
+    out /= det
+    return out.T
 
 
 def _linear_design(P, x, sl):
