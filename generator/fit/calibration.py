@@ -92,14 +92,33 @@ class PerValue:
         self.cal = cal
         self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
         self.at = np.ravel(at)
+        self._at0 = {}          # M_at(), b_at() at the temperatures themselves, kept
 
     def M_at(self, h_C=0.0) -> np.ndarray:
-        return self.cal.M_at(self.values + h_C)[self.at]
+        """M(T + h_C) per sample (at h_C = 0 computed once; not to be written to)."""
+        if h_C == 0.0 and "M" in self._at0:
+            return self._at0["M"]
+        out = self.cal.M_at(self.values + h_C)[self.at]
+        if h_C == 0.0:
+            out.flags.writeable = False
+            self._at0["M"] = out
+        return out
 
     def b_at(self, h_C=0.0) -> np.ndarray:
-        return self.cal.b_at(self.values + h_C)[self.at]
+        """b(T + h_C) per sample (at h_C = 0 computed once; not to be written to)."""
+        if h_C == 0.0 and "b" in self._at0:
+            return self._at0["b"]
+        out = self.cal.b_at(self.values + h_C)[self.at]
+        if h_C == 0.0:
+            out.flags.writeable = False
+            self._at0["b"] = out
+        return out
 
     def apply64(self, field_frame_nT, h_C=0.0) -> np.ndarray:
         """cal.apply64(field_frame_nT, temp_C + h_C)."""
         x = np.asarray(field_frame_nT, dtype=float) - self.b_at(h_C)
         return np.einsum("...ij,...j->...i", self.M_at(h_C), x)
+
+    def finite_values(self) -> np.ndarray:
+        """The distinct finite temperatures, sorted: np.unique of the finite samples."""
+        return self.values[np.isfinite(self.values)]

@@ -29,8 +29,12 @@ class Segment:
 
 def temperature_quantum(temp_C) -> float:
     """Reporting step of a temperature channel (median spacing of its distinct values)."""
-    u = np.unique(np.asarray(temp_C, float)[np.isfinite(temp_C)])
-    return float(np.median(np.diff(u))) if len(u) > 1 else 0.0
+    return quantum_of_values(np.unique(np.asarray(temp_C, float)[np.isfinite(temp_C)]))
+
+
+def quantum_of_values(values) -> float:
+    """temperature_quantum from the channel's distinct finite values, sorted."""
+    return float(np.median(np.diff(values))) if len(values) > 1 else 0.0
 
 
 def temperature_noise(temp_C) -> float:
