@@ -237,21 +237,23 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
         if w is not None:
             D *= w[sl, None]
         xs = x[sl]
-        # H = [1, x, x x^T] (13 columns), or [1, m, x x_c^T] or both (25), written in place
+        # H = [1, x, x x^T] (13 columns), or [1, m, x x_c^T] or both (25), written in place,
+        # a product column at a time from contiguous axes (a broadcast over 3 x 3 runs
+        # inner loops of 3)
         H = np.empty((len(xs), ncol))
         H[:, 0] = 1.0
         c = 1
+        xT = xs.T.copy()
         if x_cross is None or both:
             H[:, 1:4] = xs
-            np.multiply(xs[:, :, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+            _outer_columns(xT, xT, H, 4)
             c = 13
         if x_cross is not None:
             xc = x_cross[sl]
             m = H[:, c:c + 3]
             np.add(xs, xc, out=m)
             m *= 0.5
-            np.multiply(xs[:, :, None], xc[:, None, :],
-                        out=H[:, c + 3:c + 12].reshape(-1, 3, 3))
+            _outer_columns(xT, xc.T.copy(), H, c + 3)
         g = grp_a[sl]
         if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
             sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
@@ -270,6 +272,14 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
         return out if grp is not None else (out[0][0], out[1][0])
     out = [unpack(S_, 1, x_cross is not None) for S_ in sums]
     return out if grp is not None else out[0]
+
+
+def _outer_columns(aT, bT, out, c0):
+    """out[:, c0 + 3 i + j] = a_i b_j per sample (aT, bT: (3, N), contiguous rows): the
+    row-major outer products a b^T, the same values as a broadcast product."""
+    for i in range(3):
+        for j in range(3):
+            np.multiply(aT[i], bT[j], out=out[:, c0 + 3 * i + j])
 
 
 def normal_matrix(mom, bp, Mp, eiv_var=0.0):
