@@ -519,8 +519,14 @@ def _solve3(Mt, v):
 def _linear_design(P, x, sl):
     """Rows [P_k x, P_k] (N, 4K) of the linear model B = M(T) x + c(T), samples sl."""
     K = P.shape[1]
-    return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
-                          axis=1)
+    Ps, xs = P[sl], x[sl]
+    A = np.empty((len(Ps), 4 * K))        # written a contiguous product column at a time
+    PT, xT = Ps.T.copy(), xs.T.copy()
+    for k in range(K):
+        for c in range(3):
+            np.multiply(PT[k], xT[c], out=A[:, 3 * k + c])
+    A[:, 3 * K:] = Ps
+    return A
 
 
 def _linear_sums(P, x, B):
@@ -912,7 +918,7 @@ def temperature_error_rows(P, x, bM, w, T, key, n_bins, tau, t_range):
         H = np.empty((len(xs), 13))
         H[:, 0] = ws
         np.multiply(ws[:, None], xs, out=H[:, 1:4])
-        np.multiply(H[:, 1:4, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+        _outer_columns(H[:, 1:4].T.copy(), xs.T.copy(), H, 4)      # (w x) x^T
         _bin_sums(S, key[sl], H)
     first = np.zeros(n_bins, np.intp)          # a sample of each bin: its T and powers
     first[key[::-1]] = np.arange(n)[::-1]
@@ -989,18 +995,27 @@ def temperature_bins(T, grp):
     """The (file, reported value) bins of temperature_bin_information: (bin of each sample
     (N,), q_f^2 / 12 per bin, figures). Bins in the order of np.unique over the rows
     (file, T)."""
-    from generator.fit.segments import temperature_quantum
+    from generator.fit.segments import quantum_of_values
 
     grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
+    n_grp = int(grp.max()) + 1
+    # T is finite (reference_fit): its distinct values, sorted, serve the step of all
+    # files (temperature_quantum of T) and, with one file, that file's and the bins
+    t_vals, t_idx = np.unique(T, return_inverse=True)
+    t_idx = np.ravel(t_idx)
     # a file reporting one value only (a rotation at room temperature) shows no step of
     # its own: the sensor's step from all its files
-    q_all = temperature_quantum(T)
-    q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
-                  else q_all for g in range(int(grp.max()) + 1)])
-    t_vals, t_idx = np.unique(T, return_inverse=True)
-    _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx.ravel(),
-                       return_inverse=True)
-    key = np.asarray(key).ravel()
+    q_all = quantum_of_values(t_vals)
+    q = []
+    for g in range(n_grp):
+        u = t_vals if n_grp == 1 else np.unique(T[grp == g])
+        q.append(quantum_of_values(u) if len(u) > 1 else q_all)
+    q = np.array(q)
+    if n_grp == 1:          # the bins are the values (np.unique of t_idx is t_idx's own)
+        key = t_idx
+    else:
+        _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx, return_inverse=True)
+        key = np.asarray(key).ravel()
     var_b = np.zeros(int(key.max()) + 1)
     var_b[key] = (q ** 2 / 12.0)[grp]
     return key, var_b, {
@@ -1077,12 +1092,14 @@ def difference_noise_var(series) -> np.ndarray | None:
     for _ in range(5):
         if keep is None:          # every difference: one reduction per axis row (the same
             mu = np.mean(d, axis=1)                       # pairwise sums as per row)
-            var = np.mean((d - mu[:, None]) ** 2, axis=1)
+            dev = d - mu[:, None]
+            var = np.mean(dev ** 2, axis=1)
         else:
             kept = [a[m] for a, m in zip(d, keep)]
             mu = np.array([np.mean(a) for a in kept])
             var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
-        new = np.abs(d - mu[:, None]) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
+            dev = d - mu[:, None]
+        new = np.abs(dev) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
         if new.all() if keep is None else np.array_equal(new, keep):
             break
         keep = new
