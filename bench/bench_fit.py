@@ -318,7 +318,7 @@ _fit_unit, _inner = _thermal.fit_unit, []
 
 def _timed_fit_unit(*a, **k):
     r, wall, own, cpu = timed(lambda: _fit_unit(*a, **k))
-    _inner.append((wall, cpu))
+    _inner.append((wall, cpu, os.getloadavg()[0]))
     return r
 
 
@@ -339,9 +339,11 @@ if hasattr(pipeline, "_settling_analysis"):
 fits = []
 for _ in range(2):          # the first fit also pays the lazy imports inside the fit
     cs, wall, own, cpu = timed(lambda: pipeline.fit(unit, [data]))
-    fits.append((wall, own, cpu))
+    fits.append((wall, own, cpu, os.getloadavg()[0]))
 res = {"fit_wall_s": min(f[0] for f in fits), "fit_s": min(f[1] for f in fits),
        "fit_cpu_s": min(f[2] for f in fits),
+       # the 1-minute load average when the best wall time was taken
+       "fit_wall_load": min(fits)[3], "fit_unit_wall_load": min(_inner)[2],
        "fit_unit_wall_s": min(f[0] for f in _inner), "fit_unit_cpu_s": min(f[1] for f in _inner),
        # the sensors' fits alone: fit_unit less the settling analysis run inside it
        "sensors_cpu_s": min(f[1] - (s[1] if s else 0.0)
@@ -416,7 +418,10 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--baseline-commit", default="f6f3a45")
     ap.add_argument("--report-baseline-commit", default="f639afc")
-    ap.add_argument("--previous-commit", default="8248fa4")
+    ap.add_argument("--previous-commit", default="c6ef128")
+    ap.add_argument("--previous-only", action="store_true",
+                    help="measure today against --previous-commit only (not the two older "
+                         "baselines, whose figures are recorded below)")
     ap.add_argument("--rows", default="36000,144000",
                     help="two input lengths for the memory slope")
     ap.add_argument("--no-memory", action="store_true")
@@ -424,10 +429,10 @@ def main():
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
-        trees = {"baseline": extract(a.baseline_commit, tmp / "baseline"),
-                 "report_baseline": extract(a.report_baseline_commit, tmp / "rb"),
-                 "previous": extract(a.previous_commit, tmp / "previous"),
-                 "today": REPO}
+        trees = {"previous": extract(a.previous_commit, tmp / "previous"), "today": REPO}
+        if not a.previous_only:
+            trees["baseline"] = extract(a.baseline_commit, tmp / "baseline")
+            trees["report_baseline"] = extract(a.report_baseline_commit, tmp / "rb")
         # --repeat rounds, each tree once per round (interleaved: a shared machine's load
         # changes over the run and would otherwise favour one tree); the best of the rounds
         # today twice more: its fit with MAGCAL_WORKERS=1 (the sensors one after the other
@@ -444,11 +449,15 @@ def main():
         for _ in range(a.repeat):
             for k, (tree, report, env) in runs.items():
                 r = timings(tree, tmp / f"rep_{k}", report, **env)
+                # the best of each figure; a load goes with its wall time
                 res[k] = {m: (v if k not in res else min(v, res[k][m])) for m, v in r.items()}
+                for w in ("fit_wall", "fit_unit_wall"):
+                    if r[f"{w}_s"] == res[k][f"{w}_s"]:
+                        res[k][f"{w}_load"] = r[f"{w}_load"]
             for k in ("previous", "today"):        # `magcal fit --no-report`, forked
                 r = cli_timing(trees[k], tmp / f"cli_{k}")
                 cli[k] = {m: (v if k not in cli else min(v, cli[k][m])) for m, v in r.items()}
-        if not a.no_memory:
+        if not a.no_memory and not a.previous_only:
             n1, n2 = (int(v) for v in a.rows.split(","))
             files = {}
             for n in (n1, n2):
@@ -459,22 +468,29 @@ def main():
                 m = {n: peak_rss_mib(tree, files[n], tmp / f"out_{k}_{n}") for n in (n1, n2)}
                 res[k]["rss_MiB"] = m
                 res[k]["bytes_per_sample"] = (m[n2] - m[n1]) * 2**20 / (n2 - n1)
-    b, rb, pv, t = res["baseline"], res["report_baseline"], res["previous"], res["today"]
+    pv, t = res["previous"], res["today"]
+    b, rb = res.get("baseline"), res.get("report_baseline")
     ts = res["today_serial"]
-    print(f"samsat_fm1 thermal_12pos, best of {a.repeat}, BLAS 1 thread; baseline "
-          f"{a.baseline_commit}, report baseline {a.report_baseline_commit}; CPU = the "
-          f"process's own + its reaped children's (the forked sensor fits and figures)")
+    print(f"samsat_fm1 thermal_12pos, best of {a.repeat}, BLAS 1 thread; previous "
+          f"{a.previous_commit}" + ("" if a.previous_only else
+                                    f", baseline {a.baseline_commit}, report baseline "
+                                    f"{a.report_baseline_commit}")
+          + "; CPU = the process's own + its reaped children's (the forked sensor fits "
+          "and figures); load: the 1-minute load average when the best wall was taken")
     print(f"  today's fit, sensors serial (MAGCAL_WORKERS=1) -> forked: wall "
           f"{ts['fit_wall_s']:.2f} s -> {t['fit_wall_s']:.2f} s (ratio "
-          f"{ts['fit_wall_s'] / t['fit_wall_s']:.2f}x), CPU {ts['fit_cpu_s']:.2f} s -> "
+          f"{ts['fit_wall_s'] / t['fit_wall_s']:.2f}x; load {t['fit_wall_load']:.1f}), CPU "
+          f"{ts['fit_cpu_s']:.2f} s -> "
           f"{t['fit_cpu_s']:.2f} s (ratio {ts['fit_cpu_s'] / t['fit_cpu_s']:.2f}x)")
-    print(f"  fit CPU: {b['fit_cpu_s']:.2f} s ({a.baseline_commit}), "
-          f"{rb['fit_cpu_s']:.2f} s ({a.report_baseline_commit}) -> {t['fit_cpu_s']:.2f} s"
-          f"   ratio {b['fit_cpu_s'] / t['fit_cpu_s']:.2f}x, "
-          f"{rb['fit_cpu_s'] / t['fit_cpu_s']:.2f}x")
-    print(f"  fit against {a.previous_commit}: CPU {pv['fit_cpu_s']:.2f} s -> "
+    if b:
+        print(f"  fit CPU: {b['fit_cpu_s']:.2f} s ({a.baseline_commit}), "
+              f"{rb['fit_cpu_s']:.2f} s ({a.report_baseline_commit}) -> "
+              f"{t['fit_cpu_s']:.2f} s   ratio {b['fit_cpu_s'] / t['fit_cpu_s']:.2f}x, "
+              f"{rb['fit_cpu_s'] / t['fit_cpu_s']:.2f}x")
+    print(f"  fit against {a.previous_commit}, forked: CPU {pv['fit_cpu_s']:.2f} s -> "
           f"{t['fit_cpu_s']:.2f} s (ratio {pv['fit_cpu_s'] / t['fit_cpu_s']:.2f}x), wall "
-          f"{pv['fit_wall_s']:.2f} s -> {t['fit_wall_s']:.2f} s (ratio "
+          f"{pv['fit_wall_s']:.2f} s (load {pv['fit_wall_load']:.1f}) -> "
+          f"{t['fit_wall_s']:.2f} s (load {t['fit_wall_load']:.1f}) (ratio "
           f"{pv['fit_wall_s'] / t['fit_wall_s']:.2f}x)")
     ps = res["previous_serial"]
     print(f"  fit against {a.previous_commit}, sensors serial (MAGCAL_WORKERS=1): CPU "
@@ -487,7 +503,9 @@ def main():
           f"{a.previous_commit}'s pipeline.fit ran after it):")
     print(f"    sensors serial (MAGCAL_WORKERS=1): CPU {pu['fit_unit_cpu_s']:.2f} s -> "
           f"{tu['fit_unit_cpu_s']:.2f} s (ratio {pu['fit_unit_cpu_s'] / tu['fit_unit_cpu_s']:.2f}x)")
-    print(f"    forked: wall {pv['fit_unit_wall_s']:.2f} s -> {t['fit_unit_wall_s']:.2f} s "
+    print(f"    forked: wall {pv['fit_unit_wall_s']:.2f} s (load "
+          f"{pv['fit_unit_wall_load']:.1f}) -> {t['fit_unit_wall_s']:.2f} s (load "
+          f"{t['fit_unit_wall_load']:.1f}) "
           f"(ratio {pv['fit_unit_wall_s'] / t['fit_unit_wall_s']:.2f}x), CPU with the "
           f"children's {pv['fit_unit_cpu_s']:.2f} s -> {t['fit_unit_cpu_s']:.2f} s")
     print(f"    today, serial -> forked: wall {tu['fit_unit_wall_s']:.2f} s -> "
@@ -501,7 +519,7 @@ def main():
           f"{cp['cli_wall_s'] / ct['cli_wall_s']:.2f}x), CPU {cp['cli_cpu_s']:.2f} s -> "
           f"{ct['cli_cpu_s']:.2f} s (ratio {cp['cli_cpu_s'] / ct['cli_cpu_s']:.2f}x)")
     res["cli"] = cli
-    if not a.no_report:
+    if not a.no_report and b:
         tf = res["today_forked_report"]
         print(f"  report, figures drawn serially, CPU: {rb['report_cpu_s']:.2f} s "
               f"({a.report_baseline_commit}) -> {t['report_cpu_s']:.2f} s   ratio "
@@ -510,7 +528,7 @@ def main():
         print(f"  today's report, figures serial -> forked (as magcal fit): wall "
               f"{t['report_wall_s']:.2f} s -> {tf['report_wall_s']:.2f} s, CPU "
               f"{t['report_cpu_s']:.2f} s -> {tf['report_cpu_s']:.2f} s")
-    if "bytes_per_sample" in t:
+    if b and "bytes_per_sample" in t:
         print(f"  fit memory per sample (peak RSS slope, pipeline.fit): "
               f"{b['bytes_per_sample']:.0f} B -> {t['bytes_per_sample']:.0f} B   ratio "
               f"{b['bytes_per_sample'] / max(t['bytes_per_sample'], 1.0):.2f}x  "
