@@ -65,7 +65,11 @@ class SensorCalibration:
 
     def b_at(self, temp_C) -> np.ndarray:
         """b(T), shape (..., 3), float64 (for fitting and plots, not the flight reference)."""
-        return _horner(self.b_poly_nT, self.dT(temp_C)[..., None])
+        d = self.dT(temp_C)
+        if d.ndim == 1:         # per axis along the samples (contiguous rows), then (N, 3):
+            # the same arithmetic per element, without inner loops of 3
+            return np.ascontiguousarray(_horner(self.b_poly_nT[:, :, None], d).T)
+        return _horner(self.b_poly_nT, d[..., None])
 
     def M_at(self, temp_C) -> np.ndarray:
         """M(T), shape (..., 3, 3), float64."""
