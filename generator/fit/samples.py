@@ -279,6 +279,9 @@ class _Samples:
     all_usable: list | None = None
 
     def subset(self, mask):
+        mask = np.asarray(mask)
+        if mask.dtype == bool:      # the rows once, then each field taken by index
+            mask = np.flatnonzero(mask)
         return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
                         self.is_vec[mask], self.group[mask],
                         time_s=None if self.time_s is None else self.time_s[mask],
