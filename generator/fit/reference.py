@@ -777,9 +777,10 @@ def reference_fit_steps(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DE
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
         for g in range(n_grp):
-            m = grp == g
-            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
-                * _correlation_inflation(r[m])
+            # one file: all of r (as its copy would be: contiguous), not a copy
+            rg = r if n_grp == 1 and r.flags.c_contiguous else r[grp == g]
+            v_grp[g] = max(float(np.mean(rg ** 2)) * dof_scale, 1e-6) \
+                * _correlation_inflation(rg)
         w = 1.0 / v_grp[grp]
     # said only beyond the bound's own estimation error (DIFF_VAR_REL_SE, 3 sigma)
     if noise_nT and eiv_var * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(max(n_diff, 1))) \
