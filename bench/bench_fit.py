@@ -292,7 +292,8 @@ not: with the other helpers' jobs on both cores (load 4-6, 01:10-01:35 UTC) the 
 took 2.0-2.9 s wall, and serial CPU alternated in the same minutes with c6ef128's was
 1.80-2.21 s against 2.27-2.63 s.
 What made the step (each bit for bit unless said; bench/fit_equivalence.py against
-c6ef128 at 01:32 UTC: all seven cases' decisions, degrees, flags, warnings and texts
+c6ef128, 01:32 UTC and again on 4f8db14 at 01:39 UTC with the same result: all seven
+cases' decisions, degrees, flags, warnings and texts
 identical, coefficients and their 1-sigma identical bit for bit; fm1_all,
 fm1_orbit_on_prior, demo and u_mmc identical in every value; fm1_thermal, u_lis and
 u_phys differ in noise and held-out figures by at most 2.0e-16 relative -- mmc2's
