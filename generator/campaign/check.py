@@ -435,18 +435,7 @@ def settled_segments(unit, samples, nearest_level, settle_tolerance_C) -> dict:
             if L is None or len(sg.index) == 0:
                 rows.append((None, 0.0))
                 continue
-            i0 = sg.index[0]
-            t0 = S.time_s[i0]
-            span = spans.get(int(S.file[i0]))
-            if span is not None:    # the file's samples in time order: the same samples
-                a, b = span         # as the mask below, as one slice
-                tf = S.time_s[a:b]
-                lo = a + int(np.searchsorted(tf, t0 - APPROACH_LOOKBACK_S, "left"))
-                hi = a + int(np.searchsorted(tf, t0, "left"))
-                Tb = S.T[lo:hi]
-            else:
-                Tb = S.T[(S.file == S.file[i0]) & (S.time_s < t0)
-                         & (S.time_s >= t0 - APPROACH_LOOKBACK_S)]
+            Tb = _approach_temps(S, spans, sg.index[0])
             came = float(np.sign(np.mean(Tb) - sg.temp_C)) if len(Tb) else 0.0
             rows.append((sg.temp_C - L, came))
         cool = [d for d, c in rows if d is not None and c > 0]
@@ -468,6 +457,21 @@ def settled_segments(unit, samples, nearest_level, settle_tolerance_C) -> dict:
         out[name] = {"offset_C": float(offset), "tolerance_C": float(tol + q / 2),
                      "step_C": float(q), "segments": segs}
     return out
+
+
+def _approach_temps(S: SensorSamples, spans, i0):
+    """S.T of the samples of sample i0's file in the APPROACH_LOOKBACK_S before it, in
+    order; spans: _sorted_file_spans(S) (a time-ordered file: a slice; else a mask)."""
+    t0 = S.time_s[i0]
+    span = spans.get(int(S.file[i0]))
+    if span is None:
+        return S.T[(S.file == S.file[i0]) & (S.time_s < t0)
+                   & (S.time_s >= t0 - APPROACH_LOOKBACK_S)]
+    a, b = span
+    tf = S.time_s[a:b]
+    lo = a + int(np.searchsorted(tf, t0 - APPROACH_LOOKBACK_S, "left"))
+    hi = a + int(np.searchsorted(tf, t0, "left"))
+    return S.T[lo:hi]
 
 
 def _sorted_file_spans(S: SensorSamples) -> dict:
