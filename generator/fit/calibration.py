@@ -80,10 +80,12 @@ class SensorCalibration:
         x = np.asarray(field_frame_nT, dtype=float) - self.b_at(temp_C)
         return np.einsum("...ij,...j->...i", self.M_at(temp_C), x)
 
-    def per_value(self, temp_C) -> "PerValue":
+    def per_value(self, temp_C, index=None) -> "PerValue":
         """b(T), M(T) and apply64 at many samples' temperatures, evaluated once per
-        distinct value (a reported temperature takes few: its reporting step)."""
-        return PerValue(self, temp_C)
+        distinct value (a reported temperature takes few: its reporting step). index:
+        (values, at) already known (values sorted and distinct, temp_C = values[at]; they
+        may include values no sample has)."""
+        return PerValue(self, temp_C, index)
 
 
 class PerValue:
@@ -92,9 +94,12 @@ class PerValue:
     (each value's polynomial is the same arithmetic), one sort instead of a polynomial
     per sample and call."""
 
-    def __init__(self, cal: SensorCalibration, temp_C):
+    def __init__(self, cal: SensorCalibration, temp_C, index=None):
         self.cal = cal
-        self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
+        if index is None:
+            self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
+        else:
+            self.values, at = index[0], index[1]
         self.at = np.ravel(at)
         self._at0 = {}          # M_at(), b_at() at the temperatures themselves, kept
 
@@ -124,5 +129,6 @@ class PerValue:
         return np.einsum("...ij,...j->...i", self.M_at(h_C), x)
 
     def finite_values(self) -> np.ndarray:
-        """The distinct finite temperatures, sorted: np.unique of the finite samples."""
+        """The distinct finite temperatures, sorted: np.unique of the finite samples (made
+        without an index, or with one of these samples' own)."""
         return self.values[np.isfinite(self.values)]

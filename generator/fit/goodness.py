@@ -83,8 +83,10 @@ class Calibrated:
 
     @property
     def at_T(self):
-        if self._at_T is None:
-            self._at_T = self.cal.per_value(self.S.T)   # b(T), M(T) once per reported value
+        if self._at_T is None:          # b(T), M(T) once per reported value
+            own = getattr(self.S, "t_index", None)
+            self._at_T = self.cal.per_value(
+                self.S.T, own[:2] if own is not None and own[2] else None)
         return self._at_T
 
     @property

@@ -385,6 +385,7 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
         stats["segments"]["unavailable"] = (f"{len(levels)} constant-temperature level(s) "
                                             "found; the segments method needs 2 or more")
     # ---- held-out comparison
+    S.temperature_index()       # shared by the folds' test sets and the final checks
     groups, group_no = np.unique(S.group, return_inverse=True)
     k = min(CV_FOLDS, len(groups))
     methods = ["joint"] + (["segments"] if seg_ok else [])
