@@ -286,15 +286,27 @@ figure, two per process):
     -> 1.79 s (the forks cost ~0.14 s of CPU against the serial fit)
   magcal fit --no-report end to end (imports included): wall 1.93 s -> 1.74 s, CPU 2.94 s
     -> 2.52 s
-The 1 s target for the fit itself is reached: fit_unit forked, 0.92 s wall on a free
-second core (pipeline.fit, which also reads and checks the file, 1.01 s). Under load it is
-not: with the other helpers' jobs on both cores (load 4-6, 01:10-01:35 UTC) the same tree
-took 2.0-2.9 s wall, and serial CPU alternated in the same minutes with c6ef128's was
-1.80-2.21 s against 2.27-2.63 s.
+A second run on the final tree (d908c2e: also the per-value temperature index below;
+02:05-02:07 UTC, load 1.3 at the start, 2.6 at the end, same options):
+  pipeline.fit serial CPU 2.02 s -> 1.62 s (1.25x); fit_unit serial CPU 1.94 s -> 1.52 s
+    (1.28x); the sensors' fits alone 1.70 s -> 1.37 s (1.24x)
+  forked: fit_unit wall 1.13 s (load 2.4) -> 0.91 s (load 1.4) (1.25x), CPU with the
+    children's 2.09 s -> 1.66 s; pipeline.fit wall 1.54 s -> 1.32 s, CPU 2.21 s ->
+    1.77 s (the best pipeline.fit and the best fit_unit come from different fits: in
+    the fit whose fit_unit took 0.91 s, pipeline.fit took 1.32 s or more; where that
+    extra time went was not measured; the load rose during the run)
+  magcal fit --no-report end to end: wall 1.79 s -> 1.57 s, CPU 2.77 s -> 2.32 s (1.19x)
+The 1 s target for the fit itself is reached: fit_unit forked, 0.91-0.92 s wall on a free
+second core (pipeline.fit, which also reads and checks the file, 1.01 s at best). Under
+load it is not: at load ~1.2 (01:43 UTC, tree at 726115c, one process, six fits) fit_unit
+took 0.98-1.21 s; with the other helpers' jobs on both cores (load 4-6, 01:10-01:35 UTC)
+pipeline.fit took 2.0-2.9 s wall forked, and its serial CPU, alternated with c6ef128's in
+the same minutes (01:25 UTC, load ~6, three processes each), was 1.80-2.21 s against
+2.27-2.57 s.
 What made the step (each bit for bit unless said; bench/fit_equivalence.py against
-c6ef128, 01:32 UTC and again on 4f8db14 at 01:39 UTC with the same result: all seven
-cases' decisions, degrees, flags, warnings and texts
-identical, coefficients and their 1-sigma identical bit for bit; fm1_all,
+c6ef128, 01:32 UTC and again on 4f8db14 (01:39) and d908c2e (01:56) with the same
+result: all seven cases' decisions, degrees, flags, warnings and texts identical,
+coefficients and their 1-sigma identical bit for bit; fm1_all,
 fm1_orbit_on_prior, demo and u_mmc identical in every value; fm1_thermal, u_lis and
 u_phys differ in noise and held-out figures by at most 2.0e-16 relative -- mmc2's
 observability noise data_bound_nT 1.2e-16, lis1's holdout.joint.rms_vector_nT 1.7e-16,
@@ -323,7 +335,11 @@ bit, the first below):
   (goodness.Calibrated), one file's temperature step and pseudo-inverses from the same
   np.unique; the temperature bins from one np.unique of T; b(T) by Horner along the
   samples (calibration.b_at, ~4x); the fold subsets by index; one file's residual
-  statistics without a masked copy.
+  statistics without a masked copy;
+* each sensor's distinct temperatures found once (_Samples.temperature_index, kept by the
+  fold subsets): the held-out test sets' residuals, the score and the checks evaluate
+  b(T), M(T) once per reported value (PerValue, the same numbers): ~30 ms of the serial
+  fit.
 Evaluated and not taken: the residual statistics' start residual with one product for
 all powers and in-place sums (bit for bit, but no faster inside the fit: the line
 profile moved within its noise); M(T) by Horner along the samples (bit for bit, but the
