@@ -313,7 +313,7 @@ observability noise data_bound_nT 1.2e-16, lis1's holdout.joint.rms_vector_nT 1.
 gen1's holdout.joint.rms_norm_nT 2.0e-16 -- from the one change that is not bit for
 bit, the first below):
 * M(T_n)^-1 v_n per sample by the adjugate (reference._solve3; LU where some M is near
-  singular, |det| < 1e-3 of the product of its row norms): 5.0 -> 0.8 ms per 27,000
+  singular, |det| < 1e-3 of the product of its row norms): 5.0 -> 1.0 ms per 27,000
   samples, 30 calls a campaign; within a few ulps of LAPACK's LU
   (host_tests/test_solve3.py holds it to 1e-13 of the solution on calibration-like M);
   its result only enters the reading-noise bound, so nothing of the Gauss-Newton runs
