@@ -2,7 +2,8 @@
 """Does a faster fit decide the same? coefficients.json of today's tree against the tree at
 --baseline-commit, on the same inputs, fitted in the same run.
 
-    python3 bench/fit_equivalence.py [--baseline-commit ce2b43f] [--keep DIR]
+    python3 bench/fit_equivalence.py [--baseline-commit c6ef128] [--keep DIR]
+                                     [--cases fm1_thermal,demo]
 
 Cases (each fitted by generator.pipeline.fit in a fresh subprocess per tree, BLAS pinned
 to one thread, MAGCAL_WORKERS=1, run outside any checkout and checked to import the tree's
@@ -223,14 +224,21 @@ def compare(a, b, path, floats: dict, other: list):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline-commit", default="ce2b43f")
+    ap.add_argument("--baseline-commit", default="c6ef128")
     ap.add_argument("--keep", help="keep the inputs and coefficients.json files here")
+    ap.add_argument("--cases", help="comma-separated: only these cases (default: all seven)")
     a = ap.parse_args()
     td = tempfile.mkdtemp(prefix="fit_equivalence_")
     tmp = Path(td)
     try:
         base = extract(a.baseline_commit, tmp / "baseline")
         cases = make_cases(base, tmp / "data")
+        if a.cases:
+            want = a.cases.split(",")
+            unknown = sorted(set(want) - set(cases))
+            if unknown:
+                raise SystemExit(f"--cases: unknown {unknown} (the cases: {sorted(cases)})")
+            cases = {k: v for k, v in cases.items() if k in want}
         res_b = fit_all(base, cases, tmp / "out_baseline")
         res_t = fit_all(REPO, cases, tmp / "out_today")
         failed = False

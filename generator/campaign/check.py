@@ -428,17 +428,15 @@ def settled_segments(unit, samples, nearest_level, settle_tolerance_C) -> dict:
     for name, S in samples.items():
         q, sw = step_and_white_noise_C(S.T, temperature_lsb_C(parts.get(name))) \
             if S.n > 2 else (0.0, 0.0)
+        spans = _sorted_file_spans(S)
         rows = []
         for sg in S.segments:
             L = nearest_level(sg.temp_C)
             if L is None or len(sg.index) == 0:
                 rows.append((None, 0.0))
                 continue
-            i0 = sg.index[0]
-            t0 = S.time_s[i0]
-            before = ((S.file == S.file[i0]) & (S.time_s < t0)
-                      & (S.time_s >= t0 - APPROACH_LOOKBACK_S))
-            came = float(np.sign(np.mean(S.T[before]) - sg.temp_C)) if before.any() else 0.0
+            Tb = _approach_temps(S, spans, sg.index[0])
+            came = float(np.sign(np.mean(Tb) - sg.temp_C)) if len(Tb) else 0.0
             rows.append((sg.temp_C - L, came))
         cool = [d for d, c in rows if d is not None and c > 0]
         heat = [d for d, c in rows if d is not None and c < 0]
@@ -459,6 +457,41 @@ def settled_segments(unit, samples, nearest_level, settle_tolerance_C) -> dict:
         out[name] = {"offset_C": float(offset), "tolerance_C": float(tol + q / 2),
                      "step_C": float(q), "segments": segs}
     return out
+
+
+def _approach_temps(S: SensorSamples, spans, i0):
+    """S.T of the samples of sample i0's file in the APPROACH_LOOKBACK_S before it, in
+    order; spans: _sorted_file_spans(S) (a time-ordered file: a slice; else a mask)."""
+    t0 = S.time_s[i0]
+    span = spans.get(int(S.file[i0]))
+    if span is None:
+        return S.T[(S.file == S.file[i0]) & (S.time_s < t0)
+                   & (S.time_s >= t0 - APPROACH_LOOKBACK_S)]
+    a, b = span
+    tf = S.time_s[a:b]
+    lo = a + int(np.searchsorted(tf, t0 - APPROACH_LOOKBACK_S, "left"))
+    hi = a + int(np.searchsorted(tf, t0, "left"))
+    return S.T[lo:hi]
+
+
+def _sorted_file_spans(S: SensorSamples) -> dict:
+    """{file: (start, stop)} for each file whose samples are one contiguous block of S in
+    non-decreasing time (gather_samples concatenates the files in order); a file that is
+    not is left out (its samples are then found by a mask)."""
+    out = {}
+    if not S.n:
+        return out
+    edges = np.flatnonzero(np.diff(S.file)) + 1
+    starts = np.concatenate([[0], edges])
+    stops = np.concatenate([edges, [S.n]])
+    for a, b in zip(starts, stops):
+        f = int(S.file[a])
+        if f in out:                # a file in two blocks: not contiguous
+            out[f] = None
+            continue
+        t = S.time_s[a:b]
+        out[f] = (int(a), int(b)) if bool(np.all(t[1:] >= t[:-1])) else None
+    return {f: v for f, v in out.items() if v is not None}
 
 
 def level_tolerance_C(temps) -> float:
@@ -686,7 +719,9 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     MIN_SEGMENT_SAMPLES). tels: the files already read (io.telemetry_csv.read_telemetry of
     data_paths, as `magcal fit` has them), else read here. cells_only: stop once the
     position/level cells and the settling are known (what settling_warnings needs; the
-    per-sensor coverage and coefficient prediction are left out).
+    per-sensor coverage and coefficient prediction are left out, and so are the positions'
+    details, the levels' coverage, the cells' saturated counts and the gaps: "positions"
+    and "levels" are empty, the cells carry no "saturated").
     """
     from generator.campaign.plan import PlanProfile, make_plan
     from generator.io.telemetry_csv import preprocess, read_telemetry
@@ -746,7 +781,10 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     planned = {p["number"]: p for p in profile.positions}
     positions_out = []
     ref_dir, renumbered, no_ref = {}, [], []
-    if plan_applies:
+    # cells_only (settling_warnings): the positions' reference directions, counts and
+    # coverage, the levels' coverage, the cells' saturated counts and the gaps are not
+    # computed (nothing of the cells or the settling depends on them)
+    if plan_applies and not cells_only:
         for name, S in samples.items():
             v = S.is_vec
             for q in np.unique(S.position[v & (S.position > 0)]):
@@ -852,7 +890,7 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                      + " degC")
     cells_out, level_out = [], []
     if plan_applies:
-        for L in levels:
+        for L in ([] if cells_only else levels):
             row = {"level_C": L, "sensor_temp_C": {n: float(np.mean(v))
                                                    for n, v in level_seen[L].items()}}
             settled_pos = sorted({p for (p, LL) in cells if LL == L})
@@ -862,14 +900,19 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
             if dirs:   # what a calibration of this level alone (segments method) would see
                 row["direction_coverage"] = direction_coverage(dirs)
             level_out.append(row)
+        # per sensor and level, its samples within match_tol of the level (each mask once,
+        # not per position)
+        near_level = {name: [np.abs(S.T - L) <= match_tol for L in levels]
+                      for name, S in samples.items()}
         for num in planned:
             if pos_rows.get(num, 0) == 0:
                 continue
-            for L in levels:
+            at_pos = {name: S.position == num for name, S in samples.items()}
+            for li, L in enumerate(levels):
                 by = {}
                 for name, S in samples.items():
                     c = cells.get((num, L), {}).get(name)
-                    near = int(((S.position == num) & (np.abs(S.T - L) <= match_tol)).sum())
+                    near = int(np.count_nonzero(at_pos[name] & near_level[name][li]))
                     far = unsettled.get((num, L), {}).get(name)
                     if c and c["samples"] >= min_samples:
                         st = "ok"
@@ -883,14 +926,15 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
                                 "settled_s": c["duration_s"] if c else 0.0,
                                 "temp_C": float(np.mean(c["temps"])) if c else None,
                                 "samples_near_level": near,
-                                "unsettled_from_level_C": far,
-                                "saturated": _count_at(tels, S, "saturated", num, pres, name,
-                                                       (L - match_tol, L + match_tol))}
+                                "unsettled_from_level_C": far}
+                    if not cells_only:
+                        by[name]["saturated"] = _count_at(tels, S, "saturated", num, pres,
+                                                          name, (L - match_tol, L + match_tol))
                 worst = max((b["status"] for b in by.values()), key=STATUS_ORDER.index)
                 cells_out.append({"position": num, "level_C": L, "status": worst,
                                   "sensors": by})
         # gaps: whole levels first, then cells
-        for L in levels:
+        for L in ([] if cells_only else levels):
             lc = [c for c in cells_out if c["level_C"] == L]
             if lc and all(c["status"] in ("missing", "not settled") for c in lc):
                 ns = sum(b["samples_near_level"] for c in lc for b in c["sensors"].values())

@@ -65,7 +65,11 @@ class SensorCalibration:
 
     def b_at(self, temp_C) -> np.ndarray:
         """b(T), shape (..., 3), float64 (for fitting and plots, not the flight reference)."""
-        return _horner(self.b_poly_nT, self.dT(temp_C)[..., None])
+        d = self.dT(temp_C)
+        if d.ndim == 1:         # per axis along the samples (contiguous rows), then (N, 3):
+            # the same arithmetic per element, without inner loops of 3
+            return np.ascontiguousarray(_horner(self.b_poly_nT[:, :, None], d).T)
+        return _horner(self.b_poly_nT, d[..., None])
 
     def M_at(self, temp_C) -> np.ndarray:
         """M(T), shape (..., 3, 3), float64."""
@@ -76,10 +80,12 @@ class SensorCalibration:
         x = np.asarray(field_frame_nT, dtype=float) - self.b_at(temp_C)
         return np.einsum("...ij,...j->...i", self.M_at(temp_C), x)
 
-    def per_value(self, temp_C) -> "PerValue":
+    def per_value(self, temp_C, index=None) -> "PerValue":
         """b(T), M(T) and apply64 at many samples' temperatures, evaluated once per
-        distinct value (a reported temperature takes few: its reporting step)."""
-        return PerValue(self, temp_C)
+        distinct value (a reported temperature takes few: its reporting step). index:
+        (values, at) already known (values sorted and distinct, temp_C = values[at]; they
+        may include values no sample has)."""
+        return PerValue(self, temp_C, index)
 
 
 class PerValue:
@@ -88,18 +94,41 @@ class PerValue:
     (each value's polynomial is the same arithmetic), one sort instead of a polynomial
     per sample and call."""
 
-    def __init__(self, cal: SensorCalibration, temp_C):
+    def __init__(self, cal: SensorCalibration, temp_C, index=None):
         self.cal = cal
-        self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
+        if index is None:
+            self.values, at = np.unique(np.asarray(temp_C, float), return_inverse=True)
+        else:
+            self.values, at = index[0], index[1]
         self.at = np.ravel(at)
+        self._at0 = {}          # M_at(), b_at() at the temperatures themselves, kept
 
     def M_at(self, h_C=0.0) -> np.ndarray:
-        return self.cal.M_at(self.values + h_C)[self.at]
+        """M(T + h_C) per sample (at h_C = 0 computed once; not to be written to)."""
+        if h_C == 0.0 and "M" in self._at0:
+            return self._at0["M"]
+        out = self.cal.M_at(self.values + h_C)[self.at]
+        if h_C == 0.0:
+            out.flags.writeable = False
+            self._at0["M"] = out
+        return out
 
     def b_at(self, h_C=0.0) -> np.ndarray:
-        return self.cal.b_at(self.values + h_C)[self.at]
+        """b(T + h_C) per sample (at h_C = 0 computed once; not to be written to)."""
+        if h_C == 0.0 and "b" in self._at0:
+            return self._at0["b"]
+        out = self.cal.b_at(self.values + h_C)[self.at]
+        if h_C == 0.0:
+            out.flags.writeable = False
+            self._at0["b"] = out
+        return out
 
     def apply64(self, field_frame_nT, h_C=0.0) -> np.ndarray:
         """cal.apply64(field_frame_nT, temp_C + h_C)."""
         x = np.asarray(field_frame_nT, dtype=float) - self.b_at(h_C)
         return np.einsum("...ij,...j->...i", self.M_at(h_C), x)
+
+    def finite_values(self) -> np.ndarray:
+        """The distinct finite temperatures, sorted: np.unique of the finite samples (made
+        without an index, or with one of these samples' own)."""
+        return self.values[np.isfinite(self.values)]

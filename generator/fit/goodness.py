@@ -72,17 +72,42 @@ NOISE_ALPHA = 1e-3
 NO_TEMPERATURE_NOTE = "temperature = false"
 
 
-def vector_misfit(cal, S) -> dict | None:
+class Calibrated:
+    """A fitted calibration evaluated on its samples S, once for the tests of this module
+    (vector_misfit and noise_misfit evaluate the same): at_T, cal.per_value(S.T); z, the
+    calibrated readings (float64)."""
+
+    def __init__(self, cal, S):
+        self.cal, self.S = cal, S
+        self._at_T = self._z = None
+
+    @property
+    def at_T(self):
+        if self._at_T is None:          # b(T), M(T) once per reported value
+            own = getattr(self.S, "t_index", None)
+            self._at_T = self.cal.per_value(
+                self.S.T, own[:2] if own is not None and own[2] else None)
+        return self._at_T
+
+    @property
+    def z(self):
+        if self._z is None:
+            self._z = self.at_T.apply64(self.S.x)
+        return self._z
+
+
+def vector_misfit(cal, S, ev: Calibrated | None = None) -> dict | None:
     """The test above on the samples S (fit.samples._Samples) of a fitted calibration;
-    None without vector rows or for a magnitude-only (symmetric M) calibration. JSON-able: chi2_per_dof, limit, n_eff, refuse, figures."""
+    None without vector rows or for a magnitude-only (symmetric M) calibration. JSON-able: chi2_per_dof, limit, n_eff, refuse, figures.
+    ev: Calibrated(cal, S), shared with noise_misfit (None: made here)."""
     from generator.fit.special import chi2_quantile
 
     from generator.fit.reference import _correlation_inflation
 
     if not S.is_vec.any() or not cal.body_frame:   # magnitudes only: M up to a rotation
         return None
-    at_T = cal.per_value(S.T)        # b(T), M(T) once per reported value
-    z = at_T.apply64(S.x)
+    ev = ev or Calibrated(cal, S)
+    at_T, z = ev.at_T, ev.z
     r = z - S.ref
     v = S.is_vec
     M = at_T.M_at()[v]
@@ -129,29 +154,30 @@ def check_misfit(name, gof, source, accept=False, progress=None):
     raise InputError(source, msg)
 
 
-def noise_misfit(cal, S, floor_nT=None) -> dict | None:
+def noise_misfit(cal, S, floor_nT=None, ev: Calibrated | None = None) -> dict | None:
     """The noise-only test of the module docstring on the samples S (fit.samples._Samples)
     of a fitted calibration. floor_nT: per file (S.file_id) the reference's stated |B|
     error 1-sigma (None or 0: none stated). JSON-able:
     chi2_per_row, limit, n_eff, flagged, rms_residual_nT / explained_nT (per axis for
     vector rows, of |B| for magnitude rows), excess_field_error_nT (the vector error the
     noise does not explain, sqrt(3 (rms^2 - explained^2)) for vector rows, rms^2 -
-    explained^2 of |B| for magnitude-only fits)."""
+    explained^2 of |B| for magnitude-only fits). ev: Calibrated(cal, S), shared with
+    vector_misfit (None: made here)."""
     from generator.fit.special import chi2_quantile
 
     from generator.fit.reference import (_correlation_inflation, noise_source,
                                          noise_var_uncertainty)
-    from generator.fit.segments import temperature_quantum
+    from generator.fit.segments import quantum_of_values, temperature_quantum
 
     if S.n == 0 or not (np.all(np.isfinite(cal.M_poly)) and np.all(np.isfinite(cal.b_poly_nT))):
         return None       # nothing to test (non-finite coefficients: fit.sanity refuses them)
     fid = S.file_id if S.file_id is not None else np.zeros(S.n, int)
     noise = float(S.noise_nT or 0.0)
     has_figure = noise > 0    # stated, or the part catalogue's
-    at_T = cal.per_value(S.T)        # b(T), M(T) once per reported value
-    z = at_T.apply64(S.x)
+    ev = ev or Calibrated(cal, S)
+    at_T, z = ev.at_T, ev.z
     if not has_figure:      # none stated (a generic part): from the residual's own differences
-        noise = _difference_noise(cal, S, z, fid)
+        noise = _difference_noise(cal, S, z, fid, at_T)
         if noise <= 0:
             return None
     floor = np.zeros(S.n)
@@ -161,9 +187,13 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     M = at_T.M_at()
     # the temperature's reporting step: z's change per degC times q^2/12 (per file)
     q2 = np.zeros(S.n)
-    for f in np.unique(fid):
+    files = np.unique(fid)
+    for f in files:
         m = fid == f
-        q2[m] = temperature_quantum(S.T[m]) ** 2 / 12.0
+        # one file: its values are at_T's (the same np.unique)
+        q = (quantum_of_values(at_T.finite_values()) if len(files) == 1
+             else temperature_quantum(S.T[m]))
+        q2[m] = q ** 2 / 12.0
     h = 0.5
     dz = (at_T.apply64(S.x, h) - at_T.apply64(S.x, -h)) / (2 * h)
     # a magnitude-only calibration (M symmetric, known up to a rotation) is judged on |B|
@@ -221,7 +251,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     if src in (NOISE_STATED, NOISE_CATALOGUE):
         below = _figure_below_scatter(cal, S, z, fid, noise, NOISE_VAR_UNCERTAINTY
                                       if src == NOISE_STATED
-                                      else CATALOGUE_NOISE_VAR_UNCERTAINTY)
+                                      else CATALOGUE_NOISE_VAR_UNCERTAINTY, at_T)
         if below:
             below["figure_from"] = src
             out["stated_below_data"] = below
@@ -238,7 +268,7 @@ def noise_misfit(cal, S, floor_nT=None) -> dict | None:
     return out
 
 
-def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
+def _figure_below_scatter(cal, S, z, fid, noise, unc, at_T=None) -> dict | None:
     """A stated noise figure below the data's own sample-to-sample scatter beyond its
     uncertainty (None otherwise). The scatter, per axis, is the smaller of two upper
     bounds of the reading noise (fit.reference.data_noise_var_bound's reasoning): the
@@ -251,7 +281,7 @@ def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
     from generator.fit.reference import DIFF_VAR_REL_SE, data_noise_var_bound
 
     bound = data_noise_var_bound(S.x, fid)
-    res = _difference_noise_var(cal, S, z, fid)
+    res = _difference_noise_var(cal, S, z, fid, at_T)
     if bound is None or res is None:
         return None
     data_var = float(np.mean(np.minimum(bound, res)))
@@ -265,19 +295,21 @@ def _figure_below_scatter(cal, S, z, fid, noise, unc) -> dict | None:
                     "to the reading, the smaller per axis, mean over the axes"}
 
 
-def _difference_noise(cal, S, z, fid) -> float:
+def _difference_noise(cal, S, z, fid, at_T=None) -> float:
     """Per-axis reading noise (nT, in the reading's scale) when the sensor has no figure
     (a generic part, none stated): fit.reference.difference_noise_var of the residual
     within each file, mapped back through M^-1 for vector rows (the |B| residual for
     magnitude rows is one axis's worth), averaged over the axes. Only what changes from
     sample to sample counts (white noise of the reading and of the reference); a slow
     error is exactly what the test is to find. 0 with too few rows."""
-    var = _difference_noise_var(cal, S, z, fid)
+    var = _difference_noise_var(cal, S, z, fid, at_T)
     return 0.0 if var is None else float(np.sqrt(np.mean(var)))
 
 
-def _difference_noise_var(cal, S, z, fid) -> np.ndarray | None:
-    """_difference_noise's variance per axis (3,), None with too few rows."""
+def _difference_noise_var(cal, S, z, fid, at_T=None) -> np.ndarray | None:
+    """_difference_noise's variance per axis (3,), None with too few rows. at_T:
+    cal.per_value(S.T), whose distinct values serve where one file's rows are all of S's
+    and all vector rows."""
     from generator.fit.reference import difference_noise_var
 
     v = S.is_vec if cal.body_frame else np.zeros(S.n, bool)
@@ -289,7 +321,10 @@ def _difference_noise_var(cal, S, z, fid) -> np.ndarray | None:
             # pinv: a degenerate M is refused by fit.sanity after this, not here. M(T) is
             # a function of the reported temperature, which takes few distinct values
             # (a reporting step): one pseudo-inverse per value, the same matrices
-            T_u, at = np.unique(S.T[m & v], return_inverse=True)
+            if at_T is not None and bool(np.all(m & v)):    # the same np.unique
+                T_u, at = at_T.values, at_T.at
+            else:
+                T_u, at = np.unique(S.T[m & v], return_inverse=True)
             Minv = np.linalg.pinv(cal.M_at(T_u))[np.ravel(at)]
             parts.append(np.einsum("nij,nj->ni", Minv, r))
         if (m & ~v).sum() >= 3:

@@ -236,8 +236,11 @@ def observability_of(info) -> dict:
 
 
 def _residuals(cal: SensorCalibration, S: _Samples):
-    """(vector residuals (n_vec, 3), magnitude residuals (n,)) of a calibration on S."""
-    z = cal.apply64(S.x, S.T)
+    """(vector residuals (n_vec, 3), magnitude residuals (n,)) of a calibration on S
+    (b(T), M(T) once per reported value where S has its temperature index: the same
+    numbers)."""
+    z = (cal.per_value(S.T, S.t_index[:2]).apply64(S.x) if S.t_index is not None
+         else cal.apply64(S.x, S.T))
     nz = np.linalg.norm(z, axis=1)
     return z[S.is_vec] - S.ref[S.is_vec], nz - S.norm
 

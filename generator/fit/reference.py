@@ -237,21 +237,23 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
         if w is not None:
             D *= w[sl, None]
         xs = x[sl]
-        # H = [1, x, x x^T] (13 columns), or [1, m, x x_c^T] or both (25), written in place
+        # H = [1, x, x x^T] (13 columns), or [1, m, x x_c^T] or both (25), written in place,
+        # a product column at a time from contiguous axes (a broadcast over 3 x 3 runs
+        # inner loops of 3)
         H = np.empty((len(xs), ncol))
         H[:, 0] = 1.0
         c = 1
+        xT = xs.T.copy()
         if x_cross is None or both:
             H[:, 1:4] = xs
-            np.multiply(xs[:, :, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+            _outer_columns(xT, xT, H, 4)
             c = 13
         if x_cross is not None:
             xc = x_cross[sl]
             m = H[:, c:c + 3]
             np.add(xs, xc, out=m)
             m *= 0.5
-            np.multiply(xs[:, :, None], xc[:, None, :],
-                        out=H[:, c + 3:c + 12].reshape(-1, 3, 3))
+            _outer_columns(xT, xc.T.copy(), H, c + 3)
         g = grp_a[sl]
         if g[0] == g[-1] and (len(g) < 3 or np.all(g[1:] >= g[:-1])):
             sums[g[0]] += D.T @ H           # one file in this chunk (the usual case)
@@ -270,6 +272,14 @@ def reading_moments(P, x, w=None, x_cross=None, grp=None, both=False):
         return out if grp is not None else (out[0][0], out[1][0])
     out = [unpack(S_, 1, x_cross is not None) for S_ in sums]
     return out if grp is not None else out[0]
+
+
+def _outer_columns(aT, bT, out, c0):
+    """out[:, c0 + 3 i + j] = a_i b_j per sample (aT, bT: (3, N), contiguous rows): the
+    row-major outer products a b^T, the same values as a broadcast product."""
+    for i in range(3):
+        for j in range(3):
+            np.multiply(aT[i], bT[j], out=out[:, c0 + 3 * i + j])
 
 
 def normal_matrix(mom, bp, Mp, eiv_var=0.0):
@@ -463,21 +473,60 @@ def vector_normal(P, x, B, bp, Mp, jac=True, w=None, eiv_var=0.0, mom=None):
 def _solve_M(P, Mp, v):
     """M(T_n)^-1 v_n (N, 3), M(T) = sum_k P_k Mp[k]: one solve with many right-hand sides
     where M has no temperature terms (the constant fits, a nominal prior), else per
-    sample."""
+    sample by the adjugate (_solve3)."""
     if len(Mp) == 1 or not np.any(Mp[1:]):
         if np.array_equal(Mp[0], _EYE3):
             # M = I (the nominal prior): the solve's values (it may flip the sign of an
             # exact 0, which no sum with a nonzero term sees), without LAPACK per row block
             return v.copy()
         return np.linalg.solve(Mp[0], v.T).T
-    return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+    out = _solve3(Mp.reshape(len(Mp), 9).T @ P.T, v)
+    if out is None:
+        return np.linalg.solve(np.einsum("nk,kij->nij", P, Mp), v[:, :, None])[:, :, 0]
+    return out
+
+
+# _solve3 solves by the adjugate only where |det M| >= this fraction of the product of
+# M's row norms (Hadamard's bound: 1 for orthogonal rows, -> 0 as M becomes singular):
+# there the 3x3 inverse's rounding error is a few float64 ulps of the result, as LU's
+CLOSED_SOLVE_MIN_ORTHOGONALITY = 1e-3
+
+
+def _solve3(Mt, v):
+    """M_n^-1 v_n (N, 3) for N 3x3 matrices given as their 9 entries row by row, (9, N)
+    (contiguous rows), by the adjugate: adj(M) v / det M, in whole-array operations (a
+    per-sample LAPACK solve costs ~6x as much). The same solution as LU up to rounding
+    (float64 round-off, a few ulps where M is well conditioned); None where some M is
+    near singular (CLOSED_SOLVE_MIN_ORTHOGONALITY), so that the caller solves by LU."""
+    a, b, c, d, e, f, g, h, i = Mt
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g      # cofactors of row 0
+    det = a * A + b * B + c * C
+    rows = np.sqrt((a * a + b * b + c * c) * (d * d + e * e + f * f)
+                   * (g * g + h * h + i * i))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if not np.all(np.abs(det) >= CLOSED_SOLVE_MIN_ORTHOGONALITY * rows) \
+                or not np.all(rows > 0):
+            return None
+    v0, v1, v2 = v.T
+    out = np.empty((3, len(v0)))
+    out[0] = A * v0 + (c * h - b * i) * v1 + (b * f - c * e) * v2
+    out[1] = B * v0 + (a * i - c * g) * v1 + (c * d - a * f) * v2
+    out[2] = C * v0 + (b * g - a * h) * v1 + (a * e - b * d) * v2
+    out /= det
+    return out.T
 
 
 def _linear_design(P, x, sl):
     """Rows [P_k x, P_k] (N, 4K) of the linear model B = M(T) x + c(T), samples sl."""
     K = P.shape[1]
-    return np.concatenate([(P[sl, :, None] * x[sl, None, :]).reshape(-1, 3 * K), P[sl]],
-                          axis=1)
+    Ps, xs = P[sl], x[sl]
+    A = np.empty((len(Ps), 4 * K))        # written a contiguous product column at a time
+    PT, xT = Ps.T.copy(), xs.T.copy()
+    for k in range(K):
+        for c in range(3):
+            np.multiply(PT[k], xT[c], out=A[:, 3 * k + c])
+    A[:, 3 * K:] = Ps
+    return A
 
 
 def _linear_sums(P, x, B):
@@ -728,9 +777,10 @@ def reference_fit_steps(field_frame_nT, ref_body_nT, temp_C=None, degree=POLY_DE
         # the reference's own), dof-corrected over all files
         dof_scale = 3 * n / max(3 * n - int(fitted.sum()), 1)
         for g in range(n_grp):
-            m = grp == g
-            v_grp[g] = max(float(np.mean(r[m] ** 2)) * dof_scale, 1e-6) \
-                * _correlation_inflation(r[m])
+            # one file: all of r (as its copy would be: contiguous), not a copy
+            rg = r if n_grp == 1 and r.flags.c_contiguous else r[grp == g]
+            v_grp[g] = max(float(np.mean(rg ** 2)) * dof_scale, 1e-6) \
+                * _correlation_inflation(rg)
         w = 1.0 / v_grp[grp]
     # said only beyond the bound's own estimation error (DIFF_VAR_REL_SE, 3 sigma)
     if noise_nT and eiv_var * (1.0 + 3.0 * DIFF_VAR_REL_SE / np.sqrt(max(n_diff, 1))) \
@@ -869,7 +919,7 @@ def temperature_error_rows(P, x, bM, w, T, key, n_bins, tau, t_range):
         H = np.empty((len(xs), 13))
         H[:, 0] = ws
         np.multiply(ws[:, None], xs, out=H[:, 1:4])
-        np.multiply(H[:, 1:4, None], xs[:, None, :], out=H[:, 4:13].reshape(-1, 3, 3))
+        _outer_columns(H[:, 1:4].T.copy(), xs.T.copy(), H, 4)      # (w x) x^T
         _bin_sums(S, key[sl], H)
     first = np.zeros(n_bins, np.intp)          # a sample of each bin: its T and powers
     first[key[::-1]] = np.arange(n)[::-1]
@@ -946,18 +996,27 @@ def temperature_bins(T, grp):
     """The (file, reported value) bins of temperature_bin_information: (bin of each sample
     (N,), q_f^2 / 12 per bin, figures). Bins in the order of np.unique over the rows
     (file, T)."""
-    from generator.fit.segments import temperature_quantum
+    from generator.fit.segments import quantum_of_values
 
     grp = np.zeros(len(T), int) if grp is None else np.asarray(grp)
+    n_grp = int(grp.max()) + 1
+    # T is finite (reference_fit): its distinct values, sorted, serve the step of all
+    # files (temperature_quantum of T) and, with one file, that file's and the bins
+    t_vals, t_idx = np.unique(T, return_inverse=True)
+    t_idx = np.ravel(t_idx)
     # a file reporting one value only (a rotation at room temperature) shows no step of
     # its own: the sensor's step from all its files
-    q_all = temperature_quantum(T)
-    q = np.array([temperature_quantum(T[grp == g]) if len(np.unique(T[grp == g])) > 1
-                  else q_all for g in range(int(grp.max()) + 1)])
-    t_vals, t_idx = np.unique(T, return_inverse=True)
-    _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx.ravel(),
-                       return_inverse=True)
-    key = np.asarray(key).ravel()
+    q_all = quantum_of_values(t_vals)
+    q = []
+    for g in range(n_grp):
+        u = t_vals if n_grp == 1 else np.unique(T[grp == g])
+        q.append(quantum_of_values(u) if len(u) > 1 else q_all)
+    q = np.array(q)
+    if n_grp == 1:          # the bins are the values (np.unique of t_idx is t_idx's own)
+        key = t_idx
+    else:
+        _, key = np.unique(grp.astype(np.int64) * len(t_vals) + t_idx, return_inverse=True)
+        key = np.asarray(key).ravel()
     var_b = np.zeros(int(key.max()) + 1)
     var_b[key] = (q ** 2 / 12.0)[grp]
     return key, var_b, {
@@ -1034,12 +1093,14 @@ def difference_noise_var(series) -> np.ndarray | None:
     for _ in range(5):
         if keep is None:          # every difference: one reduction per axis row (the same
             mu = np.mean(d, axis=1)                       # pairwise sums as per row)
-            var = np.mean((d - mu[:, None]) ** 2, axis=1)
+            dev = d - mu[:, None]
+            var = np.mean(dev ** 2, axis=1)
         else:
             kept = [a[m] for a, m in zip(d, keep)]
             mu = np.array([np.mean(a) for a in kept])
             var = np.array([np.mean((a - m) ** 2) for a, m in zip(kept, mu)])
-        new = np.abs(d - mu[:, None]) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
+            dev = d - mu[:, None]
+        new = np.abs(dev) <= (DIFF_CLIP_SIGMAS * np.sqrt(var))[:, None]
         if new.all() if keep is None else np.array_equal(new, keep):
             break
         keep = new

@@ -277,13 +277,30 @@ class _Samples:
     # (FitData, indices of its usable samples, reference (n, 3), magnitude (n,)) for the
     # residual over all of them (all_samples_residual); None when the fit has them all
     all_usable: list | None = None
+    # (values, at, own): the distinct reported temperatures, sorted, and each sample's
+    # place among them (temperature_index); own: of these samples' T (a subset keeps its
+    # parent's values, a superset of its own)
+    t_index: tuple | None = None
+
+    def temperature_index(self) -> tuple:
+        """t_index, computed once (one np.unique of T); subsets taken after it share the
+        values (SensorCalibration.per_value(index=): b(T), M(T) once per value)."""
+        if self.t_index is None:
+            values, at = np.unique(self.T, return_inverse=True)
+            self.t_index = (values, np.ravel(at), True)
+        return self.t_index
 
     def subset(self, mask):
+        mask = np.asarray(mask)
+        if mask.dtype == bool:      # the rows once, then each field taken by index
+            mask = np.flatnonzero(mask)
         return _Samples(self.x[mask], self.T[mask], self.ref[mask], self.norm[mask],
                         self.is_vec[mask], self.group[mask],
                         time_s=None if self.time_s is None else self.time_s[mask],
                         file_id=None if self.file_id is None else self.file_id[mask],
-                        noise_nT=self.noise_nT, prior=self.prior)
+                        noise_nT=self.noise_nT, prior=self.prior,
+                        t_index=None if self.t_index is None else (
+                            self.t_index[0], self.t_index[1][mask], False))
 
     @property
     def n(self):

@@ -29,8 +29,12 @@ class Segment:
 
 def temperature_quantum(temp_C) -> float:
     """Reporting step of a temperature channel (median spacing of its distinct values)."""
-    u = np.unique(np.asarray(temp_C, float)[np.isfinite(temp_C)])
-    return float(np.median(np.diff(u))) if len(u) > 1 else 0.0
+    return quantum_of_values(np.unique(np.asarray(temp_C, float)[np.isfinite(temp_C)]))
+
+
+def quantum_of_values(values) -> float:
+    """temperature_quantum from the channel's distinct finite values, sorted."""
+    return float(np.median(np.diff(values))) if len(values) > 1 else 0.0
 
 
 def temperature_noise(temp_C) -> float:
@@ -246,6 +250,25 @@ class _RangeExtreme:
         return out
 
 
+def _spans(hi, lo, i, j):
+    """hi.query(i, j) - lo.query(i, j) (_RangeExtreme max and min tables of one array):
+    the span of x[i[m]:j[m]] for every m, each table level's lookups done once for both."""
+    out = np.empty(len(j))
+    if not len(j):
+        return out
+    k = np.floor(np.log2(j - i)).astype(int)
+    k0, k1 = int(k.min()), int(k.max())
+    for kk in range(k0, k1 + 1):
+        if k0 == k1:            # one level (a window's spans, or pairs of similar length)
+            ii, jj, m = i, j - (1 << kk), slice(None)
+        else:
+            m = k == kk
+            ii, jj = i[m], j[m] - (1 << kk)
+        h, low = hi.levels[kk], lo.levels[kk]
+        out[m] = np.maximum(h[ii], h[jj]) - np.minimum(low[ii], low[jj])
+    return out
+
+
 # the settled-part search tests the longest (start, stop) pairs first: those lasting at
 # least these fractions of the longest candidate, then the rest (what it finds is the
 # same whatever the fractions: a band is searched only when every longer pair failed)
@@ -269,18 +292,29 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med, extremes=None)
         return None
     g = max(1, n // 200)
     starts = np.arange(0, n - 2 * n_block + 1, g)
-    stops = np.unique(np.concatenate([np.arange(2 * n_block, n + 1, g), [n]]))
+    stops = np.arange(2 * n_block, n + 1, g)          # and n, once
+    if stops[-1] != n:
+        stops = np.append(stops, n)
     # every start's stops: those on the grid at least 2 n_block after it (a start is a
     # multiple of g, so its own grid i + 2 n_block + m g is the common one from there).
     # A segment lasts min_duration_s from its first sample to its last (what
     # Segment.duration_s and the report show), not one sample period less
     t_i, t_j = ts[starts], ts[stops - 1]
     # a bound on the longest pair's duration (the bands are fractions of it)
-    longest = float(t_j.max() - t_i.min())
+    t_j_max, t_i_min = t_j.max(), t_i.min()
+    longest = float(t_j_max - t_i_min)
     if longest < min_duration_s:
         return None
     tc = ts - ts[0]
-    P = [np.concatenate([[0.0], np.cumsum(v)]) for v in (tc, x, tc * tc, tc * x)]
+    # the running sums of tc, x, tc^2, tc x from 0 (each row a sequential sum, as a 1-D
+    # cumsum's)
+    V = np.empty((4, n))
+    V[0], V[1] = tc, x
+    np.multiply(tc, tc, out=V[2])
+    np.multiply(tc, x, out=V[3])
+    P = np.empty((4, n + 1))
+    P[:, 0] = 0.0
+    np.cumsum(V, axis=1, out=P[:, 1:])
     if extremes is None:
         hi, lo, off = _RangeExtreme(x, np.maximum), _RangeExtreme(x, np.minimum), 0
     else:
@@ -291,8 +325,8 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med, extremes=None)
         # the starts and stops that can make a pair lasting `above` (a sub-grid: its pairs
         # in (start, stop) order, so argmax takes the first of equal durations); a
         # difference rounds monotonically, so the row's longest is against the last stop
-        rows = np.nonzero(t_j.max() - t_i >= above)[0]
-        cols = np.nonzero(t_j - t_i.min() >= above)[0]
+        rows = np.nonzero(t_j_max - t_i >= above)[0]
+        cols = np.nonzero(t_j - t_i_min >= above)[0]
         dur2 = t_j[cols][None, :] - t_i[rows][:, None]
         cand = ((stops[cols][None, :] - starts[rows][:, None] >= 2 * n_block)
                 & (dur2 >= min_duration_s) & (dur2 >= above) & (dur2 < below))
@@ -302,19 +336,20 @@ def _longest_settled(ts, x, lim, n_block, min_duration_s, dt_med, extremes=None)
         dur = dur2[I, J]
         I, J = rows[I], cols[J]
         i, j = starts[I], stops[J]
-        span = hi.query(i + off, j + off) - lo.query(i + off, j + off)
+        span = _spans(hi, lo, i + off, j + off)
         N = (j - i).astype(float)
-        St, Sx, Stt, Stx = (p[j] - p[i] for p in P)
+        St, Sx, Stt, Stx = P[:, j] - P[:, i]
         den = N * Stt - St * St
         slope = np.where(den > 0, (N * Stx - St * Sx) / np.where(den > 0, den, 1.0), 0.0)
         drift = slope * (ts[j - 1] - ts[i])
         mean = Sx / N
         first = (P[1][i + n_block] - P[1][i]) / n_block
         last = (P[1][j] - P[1][j - n_block]) / n_block
+        block = lim.block_C(n_block, N)
         ok = ((span <= lim.width_C * (1 + _SLACK))
               & (np.abs(drift) <= lim.drift_C(N))
-              & (np.abs(first - mean) <= lim.block_C(n_block, N))
-              & (np.abs(last - mean) <= lim.block_C(n_block, N)))
+              & (np.abs(first - mean) <= block)
+              & (np.abs(last - mean) <= block))
         if ok.any():
             m = int(np.argmax(np.where(ok, dur, -np.inf)))
             return int(i[m]), int(j[m]), float(drift[m])
@@ -338,7 +373,7 @@ def _segments_in_run(idx, t, T, position, dt_med, window_s, min_duration_s, band
     # own, in O(n log n) rather than O(n n_w)); the tables serve _longest_settled too
     hi, lo = _RangeExtreme(Tf, np.maximum), _RangeExtreme(Tf, np.minimum)
     w0 = np.arange(len(idx) - n_w + 1)
-    quiet = (hi.query(w0, w0 + n_w) - lo.query(w0, w0 + n_w)) <= band_C * (1 + _SLACK)
+    quiet = _spans(hi, lo, w0, w0 + n_w) <= band_C * (1 + _SLACK)
     cover = np.zeros(len(idx) + 1, int)
     starts = np.nonzero(quiet)[0]
     np.add.at(cover, starts, 1)

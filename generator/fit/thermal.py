@@ -72,7 +72,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.fit.calibration import POLY_DEGREE, SensorCalibration
-from generator.fit.goodness import (check_misfit, noise_misfit, noise_warning,
+from generator.fit.goodness import (Calibrated, check_misfit, noise_misfit, noise_warning,
                                     stuck_temperatures, vector_misfit)
 from generator.fit.joint import (DEGREE_STEP_C, _degree_for_span, _fit_joint, _make_cal, _pad,
                                  _residuals, _rms, _score)
@@ -197,11 +197,12 @@ def _finish(cal, S, ref_floor_nT=None):
         "note": "every coefficient from the data (this method has no prior"
                 + ("; the --prior given is used only by the constant and per-level fits"
                    if S.prior is not None else "") + "); 1-sigma in uncertainty_1sigma"}
-    noise_gof = noise_misfit(cal, S, ref_floor_nT)
+    ev = Calibrated(cal, S)        # the calibration on its samples, once for both tests
+    noise_gof = noise_misfit(cal, S, ref_floor_nT, ev)
     if noise_gof is not None:
         st["noise_goodness"] = noise_gof
     st["predicted_error"] = predicted_error(cal, S.norm[np.isfinite(S.norm)], noise_gof)
-    gof = vector_misfit(cal, S)
+    gof = vector_misfit(cal, S, ev)
     if gof is not None:
         st["goodness_of_fit"] = gof
     st["extrapolation"] = extrapolation_growth(cal, S.norm[np.isfinite(S.norm)])
@@ -384,6 +385,7 @@ def _fit_sensor_auto(name, S, datas, degree, say, notes, per_file, source):
         stats["segments"]["unavailable"] = (f"{len(levels)} constant-temperature level(s) "
                                             "found; the segments method needs 2 or more")
     # ---- held-out comparison
+    S.temperature_index()       # shared by the folds' test sets and the final checks
     groups, group_no = np.unique(S.group, return_inverse=True)
     k = min(CV_FOLDS, len(groups))
     methods = ["joint"] + (["segments"] if seg_ok else [])
