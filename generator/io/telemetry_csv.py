@@ -90,6 +90,14 @@ def is_named_column(name: str, named: set) -> bool:
     return name in named or name.startswith(NAMED_PREFIXES)
 
 
+def text_column_notes(tel: Telemetry) -> list:
+    """The file's note on its text columns left out ("<path>: column 'mode': text (first
+    non-number 'NOMINAL' at line 5): not used"; several columns joined by '; '), as a list
+    of one line, or [] when it has none: for the verbs' progress lines and notes."""
+    notes = tel.meta.get(TEXT_COLUMNS_KEY)
+    return [f"{tel.path}: " + "; ".join(notes.values())] if notes else []
+
+
 def _short(cell: str, limit: int = 40) -> str:
     """repr of a cell for a one-line note (a long cell cut)."""
     r = repr(cell)
