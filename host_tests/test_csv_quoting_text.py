@@ -384,3 +384,25 @@ def test_cr_only_line_endings_read_as_lf(tmp_path, capsys, unit, plain):
     with pytest.raises(InputError, match=rf":{h + 51}: column '{name}': not a number: 'abc'"):
         read_telemetry(bad, unit)
     _apply_refused(tmp_path, capsys, bad, f":{h + 51}: column '{name}'")
+
+
+# --------------------------------------------------------------------------- fast path
+
+def test_the_c_parser_takes_quoted_rows_and_skips_text_columns():
+    """Quoted files and files with a text column stay on pyarrow's C parser (the slow
+    path would give the same values, cell by cell in Python: apply's hot path), with the
+    slow path's values."""
+    from generator.io import telemetry_csv as tc
+
+    rows = ['"1","2.5",""', '"3","-4e-3","7"']
+    fast = tc._parse_arrow("\n".join(rows), 3, 2)
+    assert fast is not None
+    slow = tc._parse_slow("x.csv", ["a", "b", "c"], rows, [2, 3])
+    assert np.array_equal(fast.view(np.uint64), slow.view(np.uint64))
+    rows = ['1,"NOMINAL, since 3",2', '3,SAFE,4']
+    kinds = ["num", "text", "num"]
+    fast = tc._parse_arrow("\n".join(rows), 3, 2, kinds)
+    assert fast is not None
+    assert np.array_equal(fast, [[1, np.nan, 2], [3, np.nan, 4]], equal_nan=True)
+    # a literal nan in a numeric column beside a text column: left to the slow path
+    assert tc._parse_arrow("1,SAFE,nan\n", 3, 1, kinds) is None

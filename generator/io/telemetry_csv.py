@@ -431,7 +431,7 @@ def _parse_arrow(body, ncol: int, nrows: int, kinds=None):
                                             ignore_empty_lines=False),
             convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in numeric},
                                                 null_values=[""], strings_can_be_null=False,
-                                                quoted_strings_can_be_null=False,
+                                                quoted_strings_can_be_null=quoted,
                                                 include_columns=numeric if text else None))
     except (pa.ArrowInvalid, pa.ArrowException, ValueError):
         return None
