@@ -11,11 +11,20 @@ read_telemetry joins the chunks' columns. A Parquet file (io/telemetry_parquet.p
 read the same way and passes the same checks.
 
 Parsing has three paths that accept the same cells. A block of data lines without
-comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, no
-quoting, only empty cells missing); lines that pyarrow refuses go to numpy's C parser;
-whenever neither can be sure (a parse failure, a row of the wrong width, letters of
-nan/inf in the data), the lines are parsed cell by cell in Python, which finds and names
-the exact faulty cell.
+comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, RFC 4180
+quoting only where the block has a '"', only empty cells missing); lines that pyarrow
+refuses go to numpy's C parser (no quotes, no text column); whenever neither can be sure
+(a parse failure, a row of the wrong width, letters of nan/inf in the data), the lines are
+parsed cell by cell in Python, which finds and names the exact faulty cell. Old-Mac
+CR-only line endings (a first block with CR and no LF) are read as LF.
+
+Text columns (ICD section 2 "anything else"): a column that named_columns(unit) does not
+name is judged on the first chunk where it has a non-empty cell: text when a cell there is
+not a number (nor a nan/inf literal), numeric otherwise; once numeric, a later non-number
+is bad input as in any numeric column. A text column is left out, its note in
+Telemetry.meta["text_columns"] (text_column_notes: a line for the verbs). The columns of
+a stream are fixed at its first chunk: a column still empty there and found text later is
+carried by the stream as empty cells and left out by read_telemetry (concat_chunks).
 
 preprocess_sensors turns counts into nT in the sensor's frame axes (not calibrated):
     SET/RESET: field = (set - reset)/2 * lsb_nT,  chip offset = ((set + reset)/2 - zero_count) * lsb_nT
