@@ -571,20 +571,17 @@ def _parse_slow(path, names: list, rows: list, row_lines: list, st=None) -> np.n
     ncol = len(names)
     kinds = st.kinds if st is not None else None
     values = np.empty((len(rows), ncol))
-    split = []
+    split = []                # the cells of each row, or the fault of its quoting
     for row, line in zip(rows, row_lines):
-        cells = _split_row(path, row, line)
-        if len(cells) < ncol:
-            raise InputError(path, f"row has {len(cells)} cells, the header has {ncol} columns "
-                                   "(this and later columns have no cell)",
-                             line=line, column=names[len(cells)])
-        if len(cells) > ncol:
-            raise InputError(path, f"row has {len(cells)} cells, the header has {ncol} columns "
-                                   f"(extra cells after the last column '{names[-1]}')", line=line)
-        split.append(cells)
+        try:
+            split.append(_split_row(path, row, line))
+        except InputError as e:
+            split.append(e)   # raised in row order below: the first fault is named
     if kinds:
         for j in [j for j, k in enumerate(kinds) if k is None]:
             for cells, line in zip(split, row_lines):
+                if isinstance(cells, InputError) or len(cells) != ncol:
+                    break     # the first fault comes first
                 c = cells[j].strip()
                 if c and not (_NUMBER_RE.fullmatch(c) or _NONFINITE_RE.fullmatch(c)):
                     st.text_column(names[j], j, c, line)
@@ -593,6 +590,15 @@ def _parse_slow(path, names: list, rows: list, row_lines: list, st=None) -> np.n
                     kinds[j] = "num"
     text = {j for j, k in enumerate(kinds or ()) if k == "text"}
     for r, (cells, line) in enumerate(zip(split, row_lines)):
+        if isinstance(cells, InputError):
+            raise cells
+        if len(cells) < ncol:
+            raise InputError(path, f"row has {len(cells)} cells, the header has {ncol} columns "
+                                   "(this and later columns have no cell)",
+                             line=line, column=names[len(cells)])
+        if len(cells) > ncol:
+            raise InputError(path, f"row has {len(cells)} cells, the header has {ncol} columns "
+                                   f"(extra cells after the last column '{names[-1]}')", line=line)
         for j, cell in enumerate(cells):
             s = cell.strip()
             if not s or j in text:
