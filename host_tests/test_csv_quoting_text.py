@@ -406,3 +406,18 @@ def test_the_c_parser_takes_quoted_rows_and_skips_text_columns():
     assert np.array_equal(fast, [[1, np.nan, 2], [3, np.nan, 4]], equal_nan=True)
     # a literal nan in a numeric column beside a text column: left to the slow path
     assert tc._parse_arrow("1,SAFE,nan\n", 3, 1, kinds) is None
+
+
+def test_the_first_fault_is_named_first(tmp_path, unit, plain):
+    """A bad number on one line and a quoted cell running past its line later in the same
+    chunk: the earlier line is named (the slow path judges the rows in file order)."""
+    p, h = _with_column(plain, tmp_path / "order.csv", "note",
+                        lambda i: '"open' if i == 20 else "x")
+    lines = _lines(p)
+    cells = lines[h + 11].split(",")
+    cells[3] = "12a"
+    lines[h + 11] = ",".join(cells)
+    p.write_text("\n".join(lines))
+    name = lines[h].split(",")[3]
+    with pytest.raises(InputError, match=rf":{h + 12}: column '{name}': not a number: '12a'"):
+        read_telemetry(p, unit)
