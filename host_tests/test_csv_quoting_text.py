@@ -421,3 +421,36 @@ def test_the_first_fault_is_named_first(tmp_path, unit, plain):
     name = lines[h].split(",")[3]
     with pytest.raises(InputError, match=rf":{h + 12}: column '{name}': not a number: '12a'"):
         read_telemetry(p, unit)
+
+
+@pytest.mark.parametrize("cells, kind", [
+    (["1", " 2 ", "", "-3.5e2"], "num"),
+    (["", "  ", ""], None),                       # no cell yet: not judged
+    (["1", "nan", ""], "num"),                    # a nan literal: refused later, as numbers
+    (["1", "SAFE", "2"], "text"),
+    (["", '"x, y"', "1"], "text"),
+    (['"7"', '""', "1e3"], "num"),
+    (["1_0"], "text"),
+])
+def test_the_c_parser_and_the_slow_path_judge_columns_alike(cells, kind):
+    """_judge_arrow (pyarrow) and _parse_slow (Python) give a column the same kind and
+    name the same first non-number (the slow path judges where pyarrow cannot read)."""
+    from generator.io import telemetry_csv as tc
+
+    names = ["a", "b"]
+    rows = [f"{i},{c}" for i, c in enumerate(cells)]
+    lines = list(range(10, 10 + len(rows)))
+    results = []
+    for judge in ("arrow", "slow"):
+        st = tc._SplitState()
+        st.kinds = ["num", None]
+        if judge == "arrow":
+            tc._judge_arrow("\n".join(rows), names, len(rows), st, lines.__getitem__)
+        else:
+            try:
+                tc._parse_slow("x.csv", names, rows, lines, st)
+            except InputError:
+                pass                                  # the nan literal: judged first
+        results.append((st.kinds[1], st.meta.get(TEXT_COLUMNS_KEY)))
+    assert results[0] == results[1]
+    assert results[0][0] == kind

@@ -43,7 +43,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import coil_study
-from generator.io.arrow_np import to_float64
+from generator.io.arrow_np import to_bool, to_float64
 from generator.io.telemetry import SensorData, Telemetry
 from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
 
@@ -385,6 +385,8 @@ def _parse_chunk(path, names, raw: bytes, first_no: int, st):
     if clean:        # no UTF-8 check needed: pyarrow accepts only ASCII number cells
         n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
         values = _parse_arrow(raw, len(names), n, st.kinds)
+        if values is None and _judge_arrow(raw, names, n, st, lambda i: first_no + i):
+            values = _parse_arrow(raw, len(names), n, st.kinds)
         if values is not None:
             return values, np.arange(first_no, first_no + n, dtype=np.int64)
     text = _decode(path, raw, first_no, first=False)
@@ -398,6 +400,9 @@ def _parse_rows(path, names, rows: list, row_lines: list, st=None) -> np.ndarray
     sure."""
     kinds = st.kinds if st is not None else None
     values = _parse_arrow("\n".join(rows), len(names), len(rows), kinds) if rows else None
+    if (values is None and rows and kinds
+            and _judge_arrow("\n".join(rows), names, len(rows), st, row_lines.__getitem__)):
+        values = _parse_arrow("\n".join(rows), len(names), len(rows), kinds)
     if (values is None and all(r.isascii() and '"' not in r for r in rows)
             and not (kinds and "text" in kinds)):
         # numpy's float parser takes other scripts' digits ('１２' as 12): only ASCII rows
@@ -459,6 +464,63 @@ def _parse_arrow(body, ncol: int, nrows: int, kinds=None):
     if kinds:
         _numeric_where_filled(values, kinds)
     return values
+
+
+# a cell _parse_slow takes for a number (or a nan/inf literal, refused there), blanks around
+_NUMBER_LIKE_RE2 = (r"^\s*([+-]?((\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?|(?i:nan|inf|infinity)))?\s*$")
+
+
+def _judge_arrow(body, names, nrows: int, st, line_of) -> bool:
+    """The columns without a kind judged on pyarrow's C parser (their cells read as
+    strings): text where a non-empty cell is not a number (its note names the first such
+    cell, line_of(row index) its line), numeric where a cell is one. True when some
+    column was judged (the caller parses again); False when pyarrow cannot read the block
+    or none has a cell, which leaves the judgement to _parse_slow (the same rule)."""
+    kinds = st.kinds if st is not None else None
+    open_ = [j for j, k in enumerate(kinds or ()) if k is None]
+    if not open_ or nrows == 0:
+        return False
+    if isinstance(body, str):
+        body = body.encode()
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.csv as pcsv
+
+    quoted = b'"' in body
+    cols = [f"c{j}" for j in range(len(names))]
+    wanted = [cols[j] for j in open_]
+    try:
+        table = pcsv.read_csv(
+            pa.BufferReader(body),
+            read_options=pcsv.ReadOptions(column_names=cols),
+            parse_options=pcsv.ParseOptions(quote_char='"' if quoted else False,
+                                            double_quote=quoted, escape_char=False,
+                                            newlines_in_values=False,
+                                            ignore_empty_lines=False),
+            convert_options=pcsv.ConvertOptions(column_types={c: pa.string() for c in wanted},
+                                                include_columns=wanted))
+    except (pa.ArrowInvalid, pa.ArrowException, ValueError):
+        return False
+    if table.num_rows != nrows:
+        return False
+    judged = False
+    for k, j in enumerate(open_):
+        col = table.column(k)
+        filled = pc.not_equal(pc.utf8_trim_whitespace(col), "")
+        if not pc.any(filled).as_py():
+            continue
+        number = pc.match_substring_regex(col, _NUMBER_LIKE_RE2)
+        bad = np.flatnonzero(to_bool(pc.invert(number)))
+        if bad.size:
+            i = int(bad[0])
+            cell = col[i].as_py().strip()
+            if not cell or _NUMBER_RE.fullmatch(cell) or _NONFINITE_RE.fullmatch(cell):
+                return judged        # the two disagree (exotic blanks): _parse_slow decides
+            st.text_column(names[j], j, cell, int(line_of(i)))
+        else:
+            kinds[j] = "num"
+        judged = True
+    return judged
 
 
 def _numeric_where_filled(values: np.ndarray, kinds: list) -> None:
