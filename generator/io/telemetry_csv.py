@@ -184,7 +184,7 @@ def _rows_at_most(path) -> int | None:
     blocks of CHUNK_BYTES (the file is read twice; the second time from the page cache)."""
     if is_parquet(path):
         try:
-            return ParquetTelemetry(path).num_rows
+            return ParquetTelemetry(path, is_named=lambda _name: False).num_rows
         except InputError:
             return None                  # the reader names the fault
     try:
