@@ -190,7 +190,7 @@ def _rows_at_most(path) -> int | None:
     try:
         with open(path, "rb") as f:
             blocks = iter(lambda: f.read(CHUNK_BYTES), b"")      # LF, or CR (old Mac)
-            return sum(max(block.count(b"\n"), block.count(b"\r")) for block in blocks) + 1
+            return sum(block.count(b"\n") or block.count(b"\r") for block in blocks) + 1
     except OSError:
         return None
 
