@@ -454,3 +454,25 @@ def test_the_c_parser_and_the_slow_path_judge_columns_alike(cells, kind):
         results.append((st.kinds[1], st.meta.get(TEXT_COLUMNS_KEY)))
     assert results[0] == results[1]
     assert results[0][0] == kind
+
+
+def test_pandas_quote_nonnumeric(tmp_path, capsys, unit, plain):
+    """pandas' QUOTE_NONNUMERIC: names and text quoted, numbers bare, a missing value as
+    "" (quoted empty): read as the plain file, the text column left out."""
+    pd = pytest.importorskip("pandas")
+    import csv
+
+    skip = _header_at(_lines(plain))
+    df = pd.read_csv(plain, skiprows=skip)
+    df.loc[4, "mpu1_temp_C"] = float("nan")
+    df["mode"] = ["SAFE" if i % 2 else "NOMINAL" for i in range(len(df))]
+    p = tmp_path / "pandas.csv"
+    df.to_csv(p, index=False, quoting=csv.QUOTE_NONNUMERIC)
+    assert '""' in p.read_text() and '"NOMINAL"' in p.read_text()   # the writer did quote
+    want = read_telemetry(plain, unit)
+    want.columns["mpu1_temp_C"][4] = np.nan
+    tel = read_telemetry(p, unit)
+    _same_columns(want, tel)
+    assert set(tel.meta[TEXT_COLUMNS_KEY]) == {"mode"}
+    rc, out = _apply(tmp_path, p, "pandas_out.csv")
+    assert rc == 0, capsys.readouterr().err
