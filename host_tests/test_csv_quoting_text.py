@@ -476,3 +476,24 @@ def test_pandas_quote_nonnumeric(tmp_path, capsys, unit, plain):
     assert set(tel.meta[TEXT_COLUMNS_KEY]) == {"mode"}
     rc, out = _apply(tmp_path, p, "pandas_out.csv")
     assert rc == 0, capsys.readouterr().err
+
+
+def test_text_and_quoted_files_never_take_the_python_path(tmp_path, monkeypatch, unit, plain):
+    """apply's hot path: a file with a text column and a quoted file are read on the C
+    parsers alone (the cell-by-cell Python path is for faults only)."""
+    from generator.io import telemetry_csv as tc
+
+    mode, _ = _with_column(plain, tmp_path / "mode.csv", "mode",
+                           lambda i: "SAFE" if i % 2 else '"NOMINAL, since 12:00"')
+    q = _quoted_copy(mode, tmp_path / "q.csv")
+    want = read_telemetry(plain, unit)
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the cell-by-cell path was taken")
+
+    monkeypatch.setattr(tc, "_parse_slow", refuse)
+    for p in (mode, q):
+        tel = concat_chunks(tc.iter_telemetry(p, unit, chunk_bytes=8192))
+        assert "mode" not in tel.columns and "mode" in tel.meta[TEXT_COLUMNS_KEY]
+        for k in want.columns:
+            assert np.array_equal(tel.columns[k], want.columns[k], equal_nan=True), k

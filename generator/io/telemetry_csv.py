@@ -385,8 +385,6 @@ def _parse_chunk(path, names, raw: bytes, first_no: int, st):
     if clean:        # no UTF-8 check needed: pyarrow accepts only ASCII number cells
         n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
         values = _parse_arrow(raw, len(names), n, st.kinds)
-        if values is None and _judge_arrow(raw, names, n, st, lambda i: first_no + i):
-            values = _parse_arrow(raw, len(names), n, st.kinds)
         if values is not None:
             return values, np.arange(first_no, first_no + n, dtype=np.int64)
     text = _decode(path, raw, first_no, first=False)
