@@ -293,7 +293,7 @@ def test_text_after_empty_chunks_is_left_out(tmp_path, unit, plain):
 
 @pytest.mark.parametrize("column", ["position", "coil_x_A", "ref_norm_nT", "rate_x_dps",
                                     "lat_deg", "ecef_x_km", "kp_index", "panel",
-                                    "mpu1_temp_C"])
+                                    "mpu1_temp_C", "lab_field_nT"])
 def test_text_in_a_column_the_icd_names_is_an_error(tmp_path, capsys, unit, plain, column):
     lines = _lines(plain)
     h = _header_at(lines)

@@ -75,16 +75,19 @@ _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
 TEXT_COLUMNS_KEY = "text_columns"
 # prefixes of columns the ICD gives a meaning (section 2): numeric whatever their name goes on
 NAMED_PREFIXES = ("coil_", "ref_", "rate_")
+# the lab's field magnitude as a column (ICD section 2 beside ref_norm_nT; import --field-nT)
+LAB_FIELD_COLUMN = "lab_field_nT"
 
 
 def named_columns(unit) -> set:
     """Columns the ICD or the unit file names, which must hold numbers wherever they are:
-    time_s, position, the sensors' count and temperature columns, the coil study's
-    columns, the ICD section 4 position columns, the inputs of the unit's regressors
-    ([[trace.regressor]]); with them any coil_*, ref_*, rate_* column (is_named_column). Any
-    other column whose cells are not numbers is text: left out (TEXT_COLUMNS_KEY)."""
+    time_s, position, lab_field_nT, the sensors' count and temperature columns, the
+    coil study's columns, the ICD section 4 position columns, the inputs of the unit's
+    regressors ([[trace.regressor]]); with them any coil_*, ref_*, rate_* column
+    (is_named_column). Any other column whose cells are not numbers is text: left out
+    (TEXT_COLUMNS_KEY)."""
     from generator.io.orbit import ECEF_COLUMNS, GEODETIC_COLUMNS
-    named = {TIME_COLUMN, POSITION_COLUMN, coil_study.DISTANCE_COLUMN,
+    named = {TIME_COLUMN, POSITION_COLUMN, LAB_FIELD_COLUMN, coil_study.DISTANCE_COLUMN,
              coil_study.PANEL_COLUMN, *GEODETIC_COLUMNS, *ECEF_COLUMNS, *GEO_LIMITS}
     for spec in unit.sensors:
         named.update(spec.count_columns)
