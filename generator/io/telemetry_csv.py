@@ -11,11 +11,20 @@ read_telemetry joins the chunks' columns. A Parquet file (io/telemetry_parquet.p
 read the same way and passes the same checks.
 
 Parsing has three paths that accept the same cells. A block of data lines without
-comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, no
-quoting, only empty cells missing); lines that pyarrow refuses go to numpy's C parser;
-whenever neither can be sure (a parse failure, a row of the wrong width, letters of
-nan/inf in the data), the lines are parsed cell by cell in Python, which finds and names
-the exact faulty cell.
+comments or blank lines goes as it is to pyarrow's C CSV parser (float64 columns, RFC 4180
+quoting only where the block has a '"', only empty cells missing); lines that pyarrow
+refuses go to numpy's C parser (no quotes, no text column); whenever neither can be sure
+(a parse failure, a row of the wrong width, letters of nan/inf in the data), the lines are
+parsed cell by cell in Python, which finds and names the exact faulty cell. Old-Mac
+CR-only line endings (a first block with CR and no LF) are read as LF.
+
+Text columns (ICD section 2 "anything else"): a column that named_columns(unit) does not
+name is judged on the first chunk where it has a non-empty cell: text when a cell there is
+not a number (nor a nan/inf literal), numeric otherwise; once numeric, a later non-number
+is bad input as in any numeric column. A text column is left out, its note in
+Telemetry.meta["text_columns"] (text_column_notes: a line for the verbs). The columns of
+a stream are fixed at its first chunk: a column still empty there and found text later is
+carried by the stream as empty cells and left out by read_telemetry (concat_chunks).
 
 preprocess_sensors turns counts into nT in the sensor's frame axes (not calibrated):
     SET/RESET: field = (set - reset)/2 * lsb_nT,  chip offset = ((set + reset)/2 - zero_count) * lsb_nT
@@ -25,6 +34,7 @@ preprocess_sensors turns counts into nT in the sensor's frame axes (not calibrat
 
 from __future__ import annotations
 
+import csv
 import io
 import math
 import re
@@ -33,7 +43,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.io import coil_study
-from generator.io.arrow_np import to_float64
+from generator.io.arrow_np import to_bool, to_float64
 from generator.io.telemetry import SensorData, Telemetry
 from generator.io.telemetry_parquet import ParquetTelemetry, is_parquet
 
@@ -59,6 +69,51 @@ ABSOLUTE_ZERO_C = -273.15
 REF_LIMIT_nT = 1e7
 CELL_LIMIT = 1e15
 _NONFINITE_RE = re.compile(r"[+-]?(nan|inf|infinity)", re.IGNORECASE)
+
+# Telemetry.meta key of the text columns left out: {column: one-line note} (ICD section 2
+# "anything else: further telemetry": a column no part of the chain reads may hold text)
+TEXT_COLUMNS_KEY = "text_columns"
+# prefixes of columns the ICD gives a meaning (section 2): numeric whatever their name goes on
+NAMED_PREFIXES = ("coil_", "ref_", "rate_")
+# the lab's field magnitude as a column (ICD section 2 beside ref_norm_nT; import --field-nT)
+LAB_FIELD_COLUMN = "lab_field_nT"
+
+
+def named_columns(unit) -> set:
+    """Columns the ICD or the unit file names, which must hold numbers wherever they are:
+    time_s, position, lab_field_nT, the sensors' count and temperature columns, the
+    coil study's columns, the ICD section 4 position columns, the inputs of the unit's
+    regressors ([[trace.regressor]]); with them any coil_*, ref_*, rate_* column
+    (is_named_column). Any other column whose cells are not numbers is text: left out
+    (TEXT_COLUMNS_KEY)."""
+    from generator.io.orbit import ECEF_COLUMNS, GEODETIC_COLUMNS
+    named = {TIME_COLUMN, POSITION_COLUMN, LAB_FIELD_COLUMN, coil_study.DISTANCE_COLUMN,
+             coil_study.PANEL_COLUMN, *GEODETIC_COLUMNS, *ECEF_COLUMNS, *GEO_LIMITS}
+    for spec in unit.sensors:
+        named.update(spec.count_columns)
+        named.add(spec.temp_column)
+    for reg in (unit.extra or {}).get("trace_regressors", ()):
+        named.update(reg.get("inputs", ()))
+    return named
+
+
+def is_named_column(name: str, named: set) -> bool:
+    """True for a column of named_columns(unit) (given as named) or of an ICD family."""
+    return name in named or name.startswith(NAMED_PREFIXES)
+
+
+def text_column_notes(tel: Telemetry) -> list:
+    """The file's note on its text columns left out ("<path>: column 'mode': text (first
+    non-number 'NOMINAL' at line 5): not used"; several columns joined by '; '), as a list
+    of one line, or [] when it has none: for the verbs' progress lines and notes."""
+    notes = tel.meta.get(TEXT_COLUMNS_KEY)
+    return [f"{tel.path}: " + "; ".join(notes.values())] if notes else []
+
+
+def _short(cell: str, limit: int = 40) -> str:
+    """repr of a cell for a one-line note (a long cell cut)."""
+    r = repr(cell)
+    return r if len(r) <= limit else r[:limit] + "...'"
 
 
 # --------------------------------------------------------------------------- reading
@@ -119,6 +174,8 @@ def concat_chunks(chunks, rows: int | None = None) -> Telemetry:
         n += c.n
     for a in (*cols.values(), lines):
         a.resize(n, refcheck=False)
+    for name in first.meta.get(TEXT_COLUMNS_KEY, ()):   # text found after the first chunk
+        cols.pop(name, None)          # (the stream carried it as empty cells): left out
     return Telemetry(path=first.path, columns=cols, line_numbers=lines, meta=first.meta,
                      comments=first.comments)
 
@@ -130,13 +187,13 @@ def _rows_at_most(path) -> int | None:
     blocks of CHUNK_BYTES (the file is read twice; the second time from the page cache)."""
     if is_parquet(path):
         try:
-            return ParquetTelemetry(path).num_rows
+            return ParquetTelemetry(path, is_named=lambda _name: False).num_rows
         except InputError:
             return None                  # the reader names the fault
     try:
         with open(path, "rb") as f:
-            blocks = iter(lambda: f.read(CHUNK_BYTES), b"")
-            return sum(block.count(b"\n") for block in blocks) + 1
+            blocks = iter(lambda: f.read(CHUNK_BYTES), b"")      # LF, or CR (old Mac)
+            return sum(block.count(b"\n") or block.count(b"\r") for block in blocks) + 1
     except OSError:
         return None
 
@@ -175,6 +232,8 @@ def iter_telemetry(path, unit, *, require_sensors: bool = True, chunk_bytes: int
                                            f"for '{unit.id}': telemetry of another unit?")
                 names = _check_header(path, st.header, st.header_line, unit, require_sensors)
                 coil_study.check_meta(path, names, st.meta, unit)
+                named = named_columns(unit)
+                st.kinds = ["num" if is_named_column(n, named) else None for n in names]
             values, row_lines = _parse_chunk(path, names, raw, first_no, st)
             del raw
             tel = _validated(path, names, values, row_lines, unit, st, prev)
@@ -205,13 +264,19 @@ def _up_to_header(path, raw: bytes, first_no: int, st):
 
 def _line_blocks(path, f, chunk_bytes: int):
     """The file's bytes in blocks of whole lines, about chunk_bytes each (a line longer
-    than that is one block)."""
+    than that is one block). Old-Mac line endings (a first block with CR and no LF: CR
+    only) are read as LF, block by block."""
     rest = b""
+    cr_only = None
     while True:
         try:
             block = f.read(chunk_bytes)
         except OSError as e:
             raise InputError(path, f"cannot read telemetry file: {e.strerror or e}") from None
+        if cr_only is None and block:
+            cr_only = b"\r" in block and b"\n" not in block
+        if cr_only:
+            block = block.replace(b"\r", b"\n")
         if not block:
             if rest:
                 yield rest
@@ -237,9 +302,13 @@ def _read_text(path) -> str:
 
 
 def _iter_parquet(path, unit, require_sensors, chunk_bytes):
-    pt = ParquetTelemetry(path)
+    named = named_columns(unit)
+    pt = ParquetTelemetry(path, is_named=lambda name: is_named_column(name, named))
     st = _SplitState()
     st.meta = pt.meta
+    for name, kind in pt.text.items():      # the type says text: left out, with a note
+        st.meta.setdefault(TEXT_COLUMNS_KEY, {})[name] = (
+            f"column '{name}': text (Parquet type {kind}): not used")
     if "unit" in st.meta and st.meta["unit"] != unit.id:
         raise InputError(path, f"metadata 'unit: {st.meta['unit']}' but the unit file is "
                                f"for '{unit.id}': telemetry of another unit?")
@@ -264,6 +333,17 @@ class _SplitState:
     def __init__(self):
         self.header = self.header_line = None
         self.meta, self.comments = {}, []
+        # per column: "num" (a named column, or one decided numeric), "text", or None (no
+        # non-empty cell yet); the column indices every chunk carries (set at the first)
+        self.kinds = None
+        self.emitted = None
+
+    def text_column(self, name: str, j: int, cell: str, line: int) -> None:
+        """Column j is text from now on; its note goes into meta["text_columns"]."""
+        self.kinds[j] = "text"
+        self.meta.setdefault(TEXT_COLUMNS_KEY, {})[name] = (
+            f"column '{name}': text (first non-number {_short(cell)} at line {line}): "
+            "not used")
 
 
 def _decode(path, raw: bytes, first_line: int, first: bool) -> str:
@@ -276,7 +356,9 @@ def _decode(path, raw: bytes, first_line: int, first: bool) -> str:
 
 
 def _validated(path, names, values, row_lines, unit, st, prev) -> Telemetry:
-    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
+    if st.emitted is None:     # the columns every chunk carries: fixed at the first chunk
+        st.emitted = [j for j, k in enumerate(st.kinds or [None] * len(names)) if k != "text"]
+    columns = {names[j]: np.ascontiguousarray(values[:, j]) for j in st.emitted}
     line_numbers = np.asarray(row_lines, dtype=np.int64)
     if prev is not None and line_numbers.size:
         _check_time(path, np.concatenate([[prev[0]], columns[TIME_COLUMN]]),
@@ -296,7 +378,7 @@ def _parse_chunk(path, names, raw: bytes, first_no: int, st):
     """(values, line numbers) of a block of data lines after the header. A block with no
     comment, blank or indented line and no CR but in CR LF goes to the C parser as it is, with
     consecutive line numbers; any other (or one the C parser refuses) is decoded and goes
-    line by line (_split_chunk, _parse_rows)."""
+    line by line (_split_chunk, _parse_rows). Text columns (st.kinds) come out NaN."""
     if not raw:
         return np.empty((0, len(names))), []
     clean = (b"#" not in raw and b"\n\n" not in raw and b"\n " not in raw
@@ -305,61 +387,148 @@ def _parse_chunk(path, names, raw: bytes, first_no: int, st):
              and raw.count(b"\r") == raw.count(b"\r\n"))     # CR only in CR LF endings
     if clean:        # no UTF-8 check needed: pyarrow accepts only ASCII number cells
         n = raw.count(b"\n") + (0 if raw.endswith(b"\n") else 1)
-        values = _parse_arrow(raw, len(names), n)
+        values = _parse_arrow(raw, len(names), n, st.kinds)
         if values is not None:
             return values, np.arange(first_no, first_no + n, dtype=np.int64)
     text = _decode(path, raw, first_no, first=False)
     rows, row_lines = _split_chunk(path, text, first_no, st)
-    return _parse_rows(path, names, rows, row_lines), row_lines
+    return _parse_rows(path, names, rows, row_lines, st), row_lines
 
 
-def _parse_rows(path, names, rows: list, row_lines: list) -> np.ndarray:
+def _parse_rows(path, names, rows: list, row_lines: list, st=None) -> np.ndarray:
     """The data rows as (N, ncol) float64: the C parsers first, cell by cell (naming the
-    faulty cell) when they cannot be sure."""
-    values = _parse_arrow("\n".join(rows), len(names), len(rows)) if rows else None
-    if values is None and all(r.isascii() for r in rows):
+    faulty cell, deciding the columns without a kind yet: st.kinds) when they cannot be
+    sure."""
+    kinds = st.kinds if st is not None else None
+    values = _parse_arrow("\n".join(rows), len(names), len(rows), kinds) if rows else None
+    if (values is None and rows and kinds
+            and _judge_arrow("\n".join(rows), names, len(rows), st, row_lines.__getitem__)):
+        values = _parse_arrow("\n".join(rows), len(names), len(rows), kinds)
+    if (values is None and all(r.isascii() and '"' not in r for r in rows)
+            and not (kinds and "text" in kinds)):
         # numpy's float parser takes other scripts' digits ('１２' as 12): only ASCII rows
         values = _parse_fast(rows, len(names))
+        if values is not None and kinds:
+            _numeric_where_filled(values, kinds)
     if values is None:
-        values = _parse_slow(path, names, rows, row_lines)
+        values = _parse_slow(path, names, rows, row_lines, st)
     return values
 
 
-def _parse_arrow(body, ncol: int, nrows: int):
+def _parse_arrow(body, ncol: int, nrows: int, kinds=None):
     """(nrows, ncol) float64 parsed by pyarrow's C CSV reader, or None when it is not sure
     (then the callers' slower paths decide and name the fault). It accepts a subset of what
-    _parse_slow accepts, with the same values (host_tests/test_stream_io.py): no quoting,
-    only empty cells are missing; letters of nan/inf are left to the slow path."""
+    _parse_slow accepts, with the same values (host_tests/test_stream_io.py): RFC 4180
+    quoting (only where the body has a '"'; a quoted number is that number, a quoted empty
+    cell is missing), only empty cells are missing; nan/inf cells are left to the slow
+    path. kinds (st.kinds): "text" columns are not converted (NaN); a column without a
+    kind (None) that has a cell becomes "num"."""
     if nrows == 0:
         return np.empty((0, ncol))
     if isinstance(body, str):
         body = body.encode()
-    if any(ch in body for ch in (b"n", b"N", b"i", b"I")):
-        return None
+    text = [j for j in range(ncol) if kinds and kinds[j] == "text"]
+    if not text and any(ch in body for ch in (b"n", b"N", b"i", b"I")):
+        return None                      # nan/inf (or text): the slow path says which
+    quoted = b'"' in body
     import pyarrow as pa
     import pyarrow.csv as pcsv
 
     cols = [f"c{j}" for j in range(ncol)]
+    numeric = [c for j, c in enumerate(cols) if j not in text]
     try:
         table = pcsv.read_csv(
             pa.BufferReader(body),
             read_options=pcsv.ReadOptions(column_names=cols),
-            parse_options=pcsv.ParseOptions(quote_char=False, double_quote=False,
-                                            escape_char=False, newlines_in_values=False,
+            parse_options=pcsv.ParseOptions(quote_char='"' if quoted else False,
+                                            double_quote=quoted, escape_char=False,
+                                            newlines_in_values=False,
                                             ignore_empty_lines=False),
-            convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in cols},
+            convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in numeric},
                                                 null_values=[""], strings_can_be_null=False,
-                                                quoted_strings_can_be_null=False))
+                                                quoted_strings_can_be_null=quoted,
+                                                include_columns=numeric if text else None))
     except (pa.ArrowInvalid, pa.ArrowException, ValueError):
         return None
-    if table.num_rows != nrows or table.num_columns != ncol:
+    if table.num_rows != nrows or table.num_columns != len(numeric):
         return None
     values = np.empty((nrows, ncol), order="F")    # columns contiguous: no copy per column
-    for j in range(ncol):
-        values[:, j] = to_float64(table.column(j), copy=False)   # empty cell: NaN
+    for j in text:
+        values[:, j] = np.nan
+    for k, j in enumerate(j for j in range(ncol) if j not in text):
+        col = table.column(k)
+        values[:, j] = to_float64(col, copy=False)   # empty cell: NaN
+        if text and np.count_nonzero(np.isnan(values[:, j])) != col.null_count:
+            return None                  # a literal nan cell: the slow path says so
     if np.isinf(values).any():
         return None                      # a value too large for float64: the slow path says so
+    if kinds:
+        _numeric_where_filled(values, kinds)
     return values
+
+
+# a cell _parse_slow takes for a number (or a nan/inf literal, refused there), blanks around
+_NUMBER_LIKE_RE2 = (r"^\s*([+-]?((\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?|(?i:nan|inf|infinity)))?\s*$")
+
+
+def _judge_arrow(body, names, nrows: int, st, line_of) -> bool:
+    """The columns without a kind judged on pyarrow's C parser (their cells read as
+    strings): text where a non-empty cell is not a number (its note names the first such
+    cell, line_of(row index) its line), numeric where a cell is one. True when some
+    column was judged (the caller parses again); False when pyarrow cannot read the block
+    or none has a cell, which leaves the judgement to _parse_slow (the same rule)."""
+    kinds = st.kinds if st is not None else None
+    open_ = [j for j, k in enumerate(kinds or ()) if k is None]
+    if not open_ or nrows == 0:
+        return False
+    if isinstance(body, str):
+        body = body.encode()
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.csv as pcsv
+
+    quoted = b'"' in body
+    cols = [f"c{j}" for j in range(len(names))]
+    wanted = [cols[j] for j in open_]
+    try:
+        table = pcsv.read_csv(
+            pa.BufferReader(body),
+            read_options=pcsv.ReadOptions(column_names=cols),
+            parse_options=pcsv.ParseOptions(quote_char='"' if quoted else False,
+                                            double_quote=quoted, escape_char=False,
+                                            newlines_in_values=False,
+                                            ignore_empty_lines=False),
+            convert_options=pcsv.ConvertOptions(column_types={c: pa.string() for c in wanted},
+                                                include_columns=wanted))
+    except (pa.ArrowInvalid, pa.ArrowException, ValueError):
+        return False
+    if table.num_rows != nrows:
+        return False
+    judged = False
+    for k, j in enumerate(open_):
+        col = table.column(k)
+        filled = pc.not_equal(pc.utf8_trim_whitespace(col), "")
+        if not pc.any(filled).as_py():
+            continue
+        number = pc.match_substring_regex(col, _NUMBER_LIKE_RE2)
+        bad = np.flatnonzero(to_bool(pc.invert(number)))
+        if bad.size:
+            i = int(bad[0])
+            cell = col[i].as_py().strip()
+            if not cell or _NUMBER_RE.fullmatch(cell) or _NONFINITE_RE.fullmatch(cell):
+                return judged        # the two disagree (exotic blanks): _parse_slow decides
+            st.text_column(names[j], j, cell, int(line_of(i)))
+        else:
+            kinds[j] = "num"
+        judged = True
+    return judged
+
+
+def _numeric_where_filled(values: np.ndarray, kinds: list) -> None:
+    """Columns without a kind that hold a value in this chunk are numeric from now on."""
+    for j, k in enumerate(kinds):
+        if k is None and not np.isnan(values[:, j]).all():
+            kinds[j] = "num"
 
 
 def _split_lines(path, text: str):
@@ -403,9 +572,10 @@ def _split_chunk(path, text: str, first_no: int, st: _SplitState):
 
 
 def _check_header(path, header, line, unit, require_sensors: bool) -> list:
-    """The column names of a CSV header line (or a list of names: Parquet), checked."""
+    """The column names of a CSV header line (or a list of names: Parquet), checked. A
+    header with a '"' is split by RFC 4180 (quoted names, "" for a quote in a name)."""
     names = (list(header) if isinstance(header, (list, tuple))
-             else [c.strip() for c in header.split(",")])
+             else [c.strip() for c in _split_row(path, header, line)])
     first_at = {}
     for j, name in enumerate(names, start=1):
         if not name:
@@ -456,12 +626,35 @@ def _parse_fast(rows: list, ncol: int):
     return values
 
 
-def _parse_slow(path, names: list, rows: list, row_lines: list) -> np.ndarray:
-    """Cell by cell; raises InputError at the first faulty cell."""
+def _parse_slow(path, names: list, rows: list, row_lines: list, st=None) -> np.ndarray:
+    """Cell by cell; raises InputError at the first faulty cell. A row with a '"' is split
+    by RFC 4180 (csv module: quoted cells, "" escapes). st (st.kinds): a column without a
+    kind becomes text when one of its cells here is not a number, else numeric when one
+    holds a number; text columns come out NaN."""
     ncol = len(names)
+    kinds = st.kinds if st is not None else None
     values = np.empty((len(rows), ncol))
-    for r, (row, line) in enumerate(zip(rows, row_lines)):
-        cells = row.split(",")
+    split = []                # the cells of each row, or the fault of its quoting
+    for row, line in zip(rows, row_lines):
+        try:
+            split.append(_split_row(path, row, line))
+        except InputError as e:
+            split.append(e)   # raised in row order below: the first fault is named
+    if kinds:
+        for j in [j for j, k in enumerate(kinds) if k is None]:
+            for cells, line in zip(split, row_lines):
+                if isinstance(cells, InputError) or len(cells) != ncol:
+                    break     # the first fault comes first
+                c = cells[j].strip()
+                if c and not (_NUMBER_RE.fullmatch(c) or _NONFINITE_RE.fullmatch(c)):
+                    st.text_column(names[j], j, c, line)
+                    break
+                if c:
+                    kinds[j] = "num"
+    text = {j for j, k in enumerate(kinds or ()) if k == "text"}
+    for r, (cells, line) in enumerate(zip(split, row_lines)):
+        if isinstance(cells, InputError):
+            raise cells
         if len(cells) < ncol:
             raise InputError(path, f"row has {len(cells)} cells, the header has {ncol} columns "
                                    "(this and later columns have no cell)",
@@ -471,7 +664,7 @@ def _parse_slow(path, names: list, rows: list, row_lines: list) -> np.ndarray:
                                    f"(extra cells after the last column '{names[-1]}')", line=line)
         for j, cell in enumerate(cells):
             s = cell.strip()
-            if not s:
+            if not s or j in text:
                 values[r, j] = np.nan
             elif _NUMBER_RE.fullmatch(s):
                 x = float(s)
@@ -486,6 +679,21 @@ def _parse_slow(path, names: list, rows: list, row_lines: list) -> np.ndarray:
             else:
                 raise InputError(path, f"not a number: {s!r}", line=line, column=names[j])
     return values
+
+
+def _split_row(path, row: str, line: int | None) -> list:
+    """The cells of one CSV line: split at commas, or by RFC 4180 where it has a '"'
+    (a quoted cell may hold commas and "" for a quote; it may not run past its line)."""
+    if '"' not in row:
+        return row.split(",")
+    try:
+        parsed = list(csv.reader([row], strict=True))
+    except csv.Error as e:
+        what = ("a quoted cell runs past the end of the line (a line break inside quotes is "
+                "not supported)" if "end of data" in str(e).lower()
+                else f"malformed quoting (RFC 4180: {e})")
+        raise InputError(path, what, line=line) from None
+    return parsed[0] if parsed else [""]
 
 
 def _check_time(path, time_s: np.ndarray, line_numbers: np.ndarray) -> None:

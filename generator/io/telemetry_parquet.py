@@ -4,7 +4,9 @@ recordings.
 The same columns as the ICD CSV (time_s, the sensors' count and temperature columns,
 channels), one numeric column each (integers or floats); a null is a missing value, as an
 empty CSV cell is. The file's key-value metadata plays the part of the CSV's '# key: value'
-lines (e.g. unit). This module only turns the file into blocks of float64 values: the
+lines (e.g. unit). A string or binary column that the chain does not name (is_named) is
+text: left out, listed in `text` (its type says it is no number, as a CSV column of text
+cells is left out). This module only turns the file into blocks of float64 values: the
 validation (header, time order, counts, physical ranges) is the CSV reader's, fed with
 these blocks (io.telemetry_csv.iter_telemetry), so both formats pass the same checks and
 give the same messages; a fault is named by its data row (1-based) where the CSV names
@@ -39,9 +41,14 @@ def is_parquet(path) -> bool:
 
 
 class ParquetTelemetry:
-    """An open Parquet telemetry file: names (column order kept), meta, and blocks()."""
+    """An open Parquet telemetry file: names (of the numeric columns, order kept), text
+    ({name: type} of the text columns left out), meta, and blocks().
 
-    def __init__(self, path):
+    is_named(name): True for a column the chain reads (io.telemetry_csv.named_columns);
+    a string or binary column is text where it is False, bad input where it is True.
+    Without it every column must be numeric."""
+
+    def __init__(self, path, is_named=None):
         import pyarrow as pa
         import pyarrow.parquet as pq
 
@@ -56,9 +63,13 @@ class ParquetTelemetry:
             raise InputError(path, f"not a readable Parquet file: {e}") from None
         schema = self._file.schema_arrow
         self.num_rows = self._file.metadata.num_rows
-        self.names = list(schema.names)
+        self.names, self.text = [], {}
         for field in schema:
             t = field.type
+            if is_named is not None and _is_text(t) and not is_named(field.name):
+                self.text[field.name] = str(t)
+                continue
+            self.names.append(field.name)
             if not (pa.types.is_integer(t) or pa.types.is_floating(t)):
                 raise InputError(path, f"Parquet column of type {t}: telemetry columns hold "
                                        "numbers (integers or floats)", column=field.name)
@@ -81,6 +92,7 @@ class ParquetTelemetry:
         first = 1
         try:
             batches = self._file.iter_batches(batch_size=max(1, int(rows_per_block)),
+                                             columns=self.names if self.text else None,
                                              use_threads=False)
             for batch in batches:
                 n = batch.num_rows
@@ -127,3 +139,14 @@ class ParquetTelemetry:
         if null is not None:
             v[null] = np.nan
         return v
+
+
+def _is_text(t) -> bool:
+    """A string or binary arrow type (a dictionary of them too): text, not numbers."""
+    import pyarrow as pa
+
+    if pa.types.is_dictionary(t):
+        t = t.value_type
+    kinds = ("is_string", "is_large_string", "is_string_view", "is_binary",
+             "is_large_binary", "is_binary_view", "is_fixed_size_binary")
+    return any(getattr(pa.types, k, lambda _t: False)(t) for k in kinds)
