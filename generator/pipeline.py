@@ -177,8 +177,10 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
             if fault:
                 raise InputError(t.path, f"header: coil column {fault}")
     from generator.io.recordings import repeated_rows_warnings
+    from generator.io.telemetry_csv import text_column_notes
     repeated = repeated_rows_warnings(tels)   # overlapping recordings: said, not dropped
-    for w in repeated:
+    text_notes = [n for t in tels for n in text_column_notes(t)]   # text columns left out
+    for w in repeated + text_notes:
         progress(w)
     check_full_scale(unit, tels)      # every sample beyond full scale: a wrong input unit
     check_reading_scale(unit, tels)   # a wrong lsb_nT or input is not a calibration
@@ -190,7 +192,7 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                               accept_misfit=accept_misfit, max_samples=max_samples,
                               beside=lambda: _settling_analysis(data_paths, tels, unit))
     info = {"sources": [str(p) for p in data_paths], "unit_file": str(unit_path),
-            "method": method, "notes": list(repeated),
+            "method": method, "notes": list(repeated) + text_notes,
             "prior": str(prior) if prior else "part nominal (M = I, b = 0, "
                                                 "generator.fit.reference.PART_PRIOR_SIGMA)",
             "set_reset_compensation": {n: c.stats.get("set_reset_compensation")
@@ -431,7 +433,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     {"n": samples, "n_valid": {sensor: count}}.
     """
     from generator.flight.host import HostUnit
-    from generator.io.telemetry_csv import CHUNK_BYTES, iter_telemetry
+    from generator.io.telemetry_csv import CHUNK_BYTES, TEXT_COLUMNS_KEY, iter_telemetry
 
     progress = progress or Progress(quiet=True)
     host = host or HostUnit(cs)
@@ -439,6 +441,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
     states = {n: host.new_state(n) for n in names}
     n_valid = dict.fromkeys(names, 0)
     pieces, n, prev_t = [], 0, None
+    text_columns = {}
     ticker = _RowsProgress(progress, data_path, PROGRESS_EVERY_S if progress_every_s is None
                            else progress_every_s, clock)
     out_class = _ParquetOutput if is_parquet_name(out_path) else _CsvOutput
@@ -452,6 +455,7 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
                 for name in names:
                     n_valid[name] += int(res[name]["valid"].sum())
                 n += tel.n
+                text_columns.update(tel.meta.get(TEXT_COLUMNS_KEY) or {})
                 if tel.n:
                     prev_t = float(tel.time_s[-1])
                 if collect:
@@ -461,6 +465,8 @@ def apply(cs: CoefficientSet, data_path, out_path, host=None, progress=None,
         except BaseException:
             out.abort()
             raise
+    if text_columns:        # columns the chain does not read, not numbers: left out
+        progress(f"{data_path}: " + "; ".join(text_columns.values()))
     for name in names:
         progress(f"{name}: {n_valid[name]} of {n} samples valid")
     progress(f"wrote {out_path}: {out.FORMAT}, {n:,} rows")

@@ -740,7 +740,9 @@ def check_campaign(unit, data_paths, profile=None, *, noise_nT=None, limit_b_nT=
     gaps, notes = [], []
     if not cells_only:      # overlapping recordings: their repeated rows count twice
         from generator.io.recordings import repeated_rows_warnings
+        from generator.io.telemetry_csv import text_column_notes
         notes += repeated_rows_warnings(tels)
+        notes += [n for t in tels for n in text_column_notes(t)]
 
     files = []
     static = False

@@ -843,6 +843,11 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
     # by rows above the cap carry their rows' fingerprints)
     from generator.io.recordings import repeated_rows_warnings
     repeated = repeated_rows_warnings(tels + hold)
+    from generator.io.telemetry_csv import text_column_notes
+    for t in tels + hold:                 # columns that are not numbers: left out, said
+        for n in text_column_notes(t):
+            read_notes.append(n)
+            say(n)
     # the blocks are drawn first (a cap below one block is refused before any fit)
     kept_tels, kept_hold, subsample = subsample_files(
         tels, hold, max_samples, **({"keep": lambda f, mask: f.blocked(mask)} if held else {}))
