@@ -353,6 +353,21 @@ over two children on demand split 3 sensors against 2 sensors + the analysis wha
 the order of the items (first or last: 3 s against 2 s + e either way while e < s), so
 the settling item stays last; the wall is ~3/5 of the sensors' CPU plus the forks
 (0.92 s measured against 3 x 0.28 = 0.84 s).
+
+On main after the merges of this session (fspeed14, fitmem14's read cap, the recordings
+checks, the reader's text columns; afa7856; 2026-11-25 02:16 UTC, no helper running, load
+1.3; `--repeat 5 --previous-only --no-report --no-memory`, against c6ef128 in the same run):
+  fit_unit forked (the issue's "fit itself"): wall 1.09 s -> 0.86 s (ratio 1.26x), CPU with
+    the children's 2.07 s -> 1.59 s; serial CPU 1.97 s -> 1.52 s (1.30x)
+  pipeline.fit forked (reading the file included): wall 1.19 s -> 0.97 s (1.23x); serial
+    CPU 2.05 s -> 1.60 s (1.28x)
+  magcal fit --no-report end to end (imports included): wall 1.79 s -> 1.53 s (1.17x)
+A loop of eight pipeline.fit calls in one process two minutes before (load 0.65-0.76):
+fit_unit 0.84-0.87 s, pipeline.fit 0.94-0.97 s wall. So the fit itself is under 1 s on a
+2-core machine whose second core is free (under load it is not: 1.6-1.7 s with both cores
+taken by other jobs, 01:55 UTC). The figures (bench/bench_figures.py, same minutes,
+baseline c6ef128, load 1.5): they add 0.87-0.90 s to the report's wall time; the report's
+own analysis and pages without figures take 0.67 s more.
 """
 
 from __future__ import annotations
