@@ -147,6 +147,24 @@ def fit_sensor(name, datas, *, degree=POLY_DEGREE, progress=None,
     source = datas[0].source if datas else None
     S = _gather(name, datas, notes, per_file, max_samples, say)
     S.prior = prior
+    try:
+        return _fit_sensor_method(name, S, datas, degree, say, notes, per_file, source,
+                                  method, ref_floor_nT)
+    except InputError as err:
+        if S.all_usable is None:          # every usable sample was in the fit
+            raise
+        # a fit refused on a subsample: the cap, not the file, may be what is short
+        n_usable = sum(len(u[1]) for u in S.all_usable)
+        raise InputError(err.path, f"{err.message} (sensor '{name}' was fitted on a "
+                                   f"subsample of {S.n:,} of its {n_usable:,} usable "
+                                   f"samples, --max-samples {max_samples}: a larger cap, "
+                                   "or 0 for every sample, gives the fit more)",
+                         line=err.line, column=err.column) from None
+
+
+def _fit_sensor_method(name, S, datas, degree, say, notes, per_file, source, method,
+                       ref_floor_nT):
+    """fit_sensor's method dispatch on the gathered samples S."""
     fallback = None
     if method == "analytic":
         if S.is_vec.any():
