@@ -11,7 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from generator.errors import OutputError
 from generator.io.names import MAX_NAME_CHARS
+from generator.io.outputs import STORAGE_ERRNOS
+from generator.io.outputs import _reason as storage_reason
 
 
 STANDIN_TEMP_C = 20.0   # --as-counts: the constant temperature of a sensor that reports none
@@ -40,7 +43,7 @@ class Staging:
         self.dir.mkdir(exist_ok=True)
         return self
 
-    def __exit__(self, exc_type, *exc):
+    def __exit__(self, exc_type, exc, tb):
         for p in self.dir.glob("*"):
             p.unlink()
         self.dir.rmdir()
@@ -50,6 +53,10 @@ class Staging:
                     q.rmdir()
                 except OSError:
                     break
+        if isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS:
+            # a full disk (or quota, read-only filesystem): one line naming the output,
+            # exit 1, as every other verb's outputs (io.outputs)
+            raise OutputError(self.out, storage_reason(exc)) from None
         return False
 
     def commit(self, unit_name: str, data_names: list) -> dict:
