@@ -91,6 +91,24 @@ def rows_of(tel: Telemetry, rows) -> Telemetry:
                      tel.line_numbers[rows], dict(tel.meta), list(tel.comments))
 
 
+def pieces_of(chunks, rows: int):
+    """Validated telemetry chunks (iter_telemetry's, in file order) regrouped into
+    consecutive pieces of `rows` rows (the last shorter), one piece held at a time."""
+    from generator.io.telemetry_csv import concat_chunks
+    buf, have = [], 0
+    for c in chunks:
+        buf.append(c)
+        have += c.n
+        while have >= rows:
+            whole = concat_chunks(buf, rows=have)
+            buf = [rows_of(whole, np.arange(rows, have))] if have > rows else []
+            have -= rows
+            yield rows_of(whole, np.arange(rows))
+            del whole
+    if have:
+        yield concat_chunks(buf, rows=have)
+
+
 def _chunks(path, unit):
     """The file's validated chunks (io.telemetry_csv.iter_telemetry); the field reference
     (io.orbit.attach_field_reference: row by row, the field model along a track, Kp) is
@@ -241,22 +259,11 @@ def every_row_residual(unit, paths, cals, piece_rows: int = EVERY_ROW_PIECE) -> 
     from generator.fit.samples import (fit_data_from, residual_figures, residual_sums,
                                        usable_samples)
     from generator.fit.setreset_fit import _rates_of, compensate_references
-    from generator.io.telemetry_csv import concat_chunks, preprocess
+    from generator.io.telemetry_csv import preprocess
     sums = {n: [0.0, 0, 0.0, 0] for n in cals}
 
     def pieces(path):
-        buf, have = [], 0
-        for c in _chunks(path, unit):
-            buf.append(c)
-            have += c.n
-            while have >= piece_rows:
-                whole = concat_chunks(buf, rows=have)
-                buf = [rows_of(whole, np.arange(piece_rows, have))] if have > piece_rows else []
-                have -= piece_rows
-                yield rows_of(whole, np.arange(piece_rows))
-                del whole
-        if have:
-            yield concat_chunks(buf, rows=have)
+        return pieces_of(_chunks(path, unit), piece_rows)
 
     from generator.io.orbit import attach_field_reference
     for path in paths:

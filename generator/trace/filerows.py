@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from generator.fit.read_cap import rows_of
+from generator.fit.read_cap import pieces_of, rows_of
 from generator.io.recordings import row_fingerprints
 from generator.io.telemetry import Telemetry
 
@@ -231,19 +231,7 @@ class FileRows:
     def pieces(self, rows: int):
         """The file again, every column, in consecutive pieces of `rows` rows (the last
         shorter): read from the file chunk by chunk, one piece held at a time."""
-        from generator.io.telemetry_csv import concat_chunks
-        buf, have = [], 0
-        for c in _chunks(self.path, self.unit, self.regressors):
-            buf.append(c)
-            have += c.n
-            while have >= rows:
-                whole = concat_chunks(buf, rows=have)
-                buf = [kept_rows(whole, np.arange(rows, have))] if have > rows else []
-                have -= rows
-                yield kept_rows(whole, np.arange(rows))
-                del whole
-        if have:
-            yield concat_chunks(buf, rows=have)
+        return pieces_of(_chunks(self.path, self.unit, self.regressors), rows)
 
     def blocked(self, mask: np.ndarray) -> "BlockedRows":
         """The kept file of a capped trace: these rows (the drawn blocks) read again with
