@@ -440,10 +440,7 @@ def _parse_arrow(body, ncol: int, nrows: int, kinds=None):
         table = pcsv.read_csv(
             pa.BufferReader(body),
             read_options=pcsv.ReadOptions(column_names=cols),
-            parse_options=pcsv.ParseOptions(quote_char='"' if quoted else False,
-                                            double_quote=quoted, escape_char=False,
-                                            newlines_in_values=False,
-                                            ignore_empty_lines=False),
+            parse_options=_arrow_parse_options(quoted),
             convert_options=pcsv.ConvertOptions(column_types={c: pa.float64() for c in numeric},
                                                 null_values=[""], strings_can_be_null=False,
                                                 quoted_strings_can_be_null=quoted,
@@ -465,6 +462,16 @@ def _parse_arrow(body, ncol: int, nrows: int, kinds=None):
     if kinds:
         _numeric_where_filled(values, kinds)
     return values
+
+
+def _arrow_parse_options(quoted: bool):
+    """pyarrow's CSV parse options for a block of data lines: RFC 4180 quoting only where
+    the block holds a quote (else none: a stray quote is then the slow path's to name), no
+    escapes, no line break inside a cell, empty lines kept (the callers count rows)."""
+    import pyarrow.csv as pcsv
+    return pcsv.ParseOptions(quote_char='"' if quoted else False, double_quote=quoted,
+                             escape_char=False, newlines_in_values=False,
+                             ignore_empty_lines=False)
 
 
 # a cell _parse_slow takes for a number (or a nan/inf literal, refused there), blanks around
@@ -494,10 +501,7 @@ def _judge_arrow(body, names, nrows: int, st, line_of) -> bool:
         table = pcsv.read_csv(
             pa.BufferReader(body),
             read_options=pcsv.ReadOptions(column_names=cols),
-            parse_options=pcsv.ParseOptions(quote_char='"' if quoted else False,
-                                            double_quote=quoted, escape_char=False,
-                                            newlines_in_values=False,
-                                            ignore_empty_lines=False),
+            parse_options=_arrow_parse_options(quoted),
             convert_options=pcsv.ConvertOptions(column_types={c: pa.string() for c in wanted},
                                                 include_columns=wanted))
     except (pa.ArrowInvalid, pa.ArrowException, ValueError):
