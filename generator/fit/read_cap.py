@@ -140,7 +140,7 @@ def _rows_bound(path, first: Telemetry) -> int | None:
     try:
         with open(path, "rb") as f:
             f.seek(-1, 2)
-            b -= f.read(1) == b"\n"
+            b -= f.read(1) in (b"\n", b"\r")    # LF, CR LF or an old Mac's CR
     except OSError:
         pass
     return max(b, first.n)
