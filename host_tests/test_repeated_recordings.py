@@ -203,3 +203,16 @@ def test_a_capped_trace_warns_from_the_fingerprints_it_holds(tmp_path, capsys):
     warnings = json.loads((tmp_path / "out" / "trace.json").read_text())["warnings"]
     assert any(w.startswith(f"WARNING: {p2}: 1000 row(s) from line {line} repeat rows "
                             f"of {p1}") for w in warnings), warnings
+
+
+def test_a_held_out_file_with_the_fitted_rows_in_other_bytes_is_refused(tmp_path, capsys):
+    """Review 20f N3: a held-out copy in other bytes (CR LF line endings here) of a fitted
+    recording was only warned about, as rows counted twice; it holds nothing out."""
+    unit, data = _fm1("unit.toml"), _fm1("flight_6h.csv")
+    crlf = tmp_path / "crlf.csv"
+    crlf.write_bytes(open(data, "rb").read().replace(b"\n", b"\r\n"))
+    line = _one_line_error(capsys, ["trace", unit, data, "-o", str(tmp_path / "out"),
+                                    "--holdout", str(crlf)])
+    assert line.startswith(f"magcal trace: {crlf}: held-out file: "), line
+    assert f"repeat rows of {data}, which the fit uses" in line
+    assert not (tmp_path / "out").exists()

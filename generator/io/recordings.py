@@ -165,9 +165,10 @@ def repeated_rows(tels) -> list:
     return out
 
 
-def repeated_rows_warnings(tels) -> list:
-    """One WARNING line per finding of repeated_rows."""
+def repeated_rows_warnings(tels, found=None) -> list:
+    """One WARNING line per finding of repeated_rows (found: its result, if already had)."""
+    found = repeated_rows(tels) if found is None else found
     return [f"WARNING: {r['path']}: {r['rows']} row(s) from line {r['first_line']} repeat "
             + ("rows of the same file" if r["of"] == r["path"] else f"rows of {r['of']}")
             + " (the same time and values): those samples count twice; give each "
-              "sample once (cut the overlap)" for r in repeated_rows(tels)]
+              "sample once (cut the overlap)" for r in found]

@@ -841,8 +841,16 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
                                           need_whole=coeffs is None, notes=read_notes)
     # rows that repeat earlier rows (overlapping recordings): said, not dropped (files held
     # by rows above the cap carry their rows' fingerprints)
-    from generator.io.recordings import repeated_rows_warnings
-    repeated = repeated_rows_warnings(tels + hold)
+    from generator.io.recordings import repeated_rows, repeated_rows_warnings
+    found = repeated_rows(tels + hold)
+    held_paths = {str(t.path) for t in hold} - {str(t.path) for t in tels}
+    for r in found:   # held-out rows that the fit also sees: nothing would be held out
+        if str(r["path"]) in held_paths and str(r["of"]) not in held_paths:
+            raise InputError(r["path"], f"held-out file: {r['rows']} row(s) from line "
+                                        f"{r['first_line']} repeat rows of {r['of']}, which "
+                                        "the fit uses (the same time and values): they "
+                                        "would hold nothing out; hold out other rows")
+    repeated = repeated_rows_warnings(tels + hold, found)
     from generator.io.telemetry_csv import text_column_notes
     for t in tels + hold:                 # columns that are not numbers: left out, said
         for n in text_column_notes(t):
