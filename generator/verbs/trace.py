@@ -35,7 +35,8 @@ def add_trace_args(p):
                         "it runs), on top of what the drawn rows take (the larger part: "
                         "1.3-1.5 GiB peak at the default cap on a 3-sensor unit with "
                         "--coeffs, 250,000 to 3,000,000 rows); the core fit of the data "
-                        "(without --coeffs) still reads every row (docs/fit_samples.md)")
+                        "(without --coeffs) reads them whole up to 400,000 rows, above as "
+                        "magcal fit does, in blocks, streaming (docs/fit_samples.md)")
 
 
 def _max_samples(text):
