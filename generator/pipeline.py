@@ -178,7 +178,9 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
                 raise InputError(t.path, f"header: coil column {fault}")
     from generator.io.recordings import repeated_rows_warnings
     from generator.io.telemetry_csv import text_column_notes
-    repeated = repeated_rows_warnings(tels)   # overlapping recordings: said, not dropped
+    # overlapping recordings: said, not dropped; above the read cap over every row, in the
+    # every-row pass (fit.read_cap.check_every_row), not over the blocks read
+    repeated = repeated_rows_warnings(tels) if read_cap is None else []
     text_notes = [n for t in tels for n in text_column_notes(t)]   # text columns left out
     for w in repeated + text_notes:
         progress(w)

@@ -216,3 +216,61 @@ def test_a_held_out_file_with_the_fitted_rows_in_other_bytes_is_refused(tmp_path
     assert line.startswith(f"magcal trace: {crlf}: held-out file: "), line
     assert f"repeat rows of {data}, which the fit uses" in line
     assert not (tmp_path / "out").exists()
+
+
+# ---- above the fit's read cap: every row, streamed (review 20f N1) -----------------------
+
+from generator.io.recordings import StreamedRepeats  # noqa: E402
+
+
+def _pieces(tel, size):
+    for a in range(0, tel.n, size):
+        idx = np.arange(a, min(tel.n, a + size))
+        yield Telemetry(tel.path, {c: v[idx] for c, v in tel.columns.items()},
+                        tel.line_numbers[idx])
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(2, 50), overlap=st.integers(0, 20), twice=st.integers(0, 3),
+       piece=st.integers(1, 17), seed=st.integers(0, 2**31 - 1))
+def test_streamed_repeats_find_what_repeated_rows_finds(n, overlap, twice, piece, seed):
+    """Fed piece by piece (pieces of any size), StreamedRepeats finds what repeated_rows
+    finds on the whole files: an overlap between files and rows written twice, whatever
+    piece they fall in."""
+    rng = np.random.default_rng(seed)
+    overlap = min(overlap, n - 1)
+    t = np.cumsum(rng.uniform(0.01, 1.0, 2 * n))
+    v = rng.normal(size=(2, 2 * n))
+    a_rows = np.arange(n)
+    dup = np.sort(rng.choice(n, size=min(twice, n), replace=False))
+    a_rows = np.sort(np.concatenate([a_rows, dup]))            # rows written twice in a
+    a = _tel("a.csv", t[a_rows], v[:, a_rows])
+    b = _tel("b.csv", t[n - overlap:], v[:, n - overlap:], first_line=10)
+    want = repeated_rows([a, b])
+    sr = StreamedRepeats(["a.csv", "b.csv"], [(a.time_s[0], a.time_s[-1]),
+                                              (b.time_s[0], b.time_s[-1])],
+                         [tuple(a.columns), tuple(b.columns)])
+    for j, tel in enumerate((a, b)):
+        for p in _pieces(tel, piece):
+            sr.add(j, p)
+    key = lambda r: (r["path"], r["of"])  # noqa: E731
+    assert sorted(sr.findings(), key=key) == sorted(want, key=key)
+
+
+def test_a_capped_fit_warns_on_overlaps_among_rows_it_did_not_read(tmp_path):
+    """Review 20f N1: above the read cap the fit keeps blocks; an overlap outside them went
+    unseen. Now the every-row pass finds it, and the fit's notes say it."""
+    from generator import pipeline
+    unit, data = _fm1("unit.toml"), _fm1("thermal_12pos.csv")
+    lines = open(data).read().splitlines(True)
+    head = [ln for ln in lines if ln.startswith("#") or ln.startswith("time_s")]
+    body = lines[len(head):]
+    (tmp_path / "t1.csv").write_text("".join(head + body[:30000]))
+    (tmp_path / "t2.csv").write_text("".join(head + body[29000:31000]))
+    cs = pipeline.fit(unit, [str(tmp_path / "t1.csv"), str(tmp_path / "t2.csv")],
+                      max_rows=5000)
+    notes = cs.fit_info["notes"]
+    assert any(n.startswith("read cap:") for n in notes)
+    want = (f"WARNING: {tmp_path / 't2.csv'}: 1000 row(s) from line {len(head) + 1} repeat "
+            f"rows of {tmp_path / 't1.csv'}")
+    assert any(n.startswith(want) for n in notes), notes

@@ -72,6 +72,8 @@ class FileRead:
     rows: int                 # data rows of the file (every row parsed and checked)
     rows_read: int            # rows of its drawn blocks (kept)
     blocks: int               # blocks drawn in it
+    span_s: tuple | None = None    # (first, last) time_s of its rows (None: no row)
+    columns: tuple = ()            # its column names (io.recordings.StreamedRepeats)
 
 
 @dataclass
@@ -198,19 +200,24 @@ def read_for_fit(unit, paths, max_samples: int, progress, max_rows=None):
     for (f, picks), path, bound in zip(draws, paths, bounds):
         runs = block_runs(bound, picks, L)
         want = np.concatenate(runs) if runs else np.zeros(0, int)
-        a = 0
+        a, span, names = 0, [None, None], ()
 
         def picked():
             """Every chunk of the file (every row parsed and checked), each cut to its
             drawn rows (maybe none): concat_chunks fills the file's columns once."""
-            nonlocal a
+            nonlocal a, names
             for c in _chunks(path, unit):
+                if c.n:
+                    span[0] = float(c.time_s[0]) if span[0] is None else span[0]
+                    span[1] = float(c.time_s[-1])
+                names = names or tuple(c.columns)
                 lo, hi = np.searchsorted(want, [a, a + c.n])
                 yield rows_of(c, want[lo:hi] - a)
                 a += c.n
         tel = attach_field_reference(concat_chunks(picked(), rows=len(want)), unit)
         n_blocks = sum(1 for r in runs if len(r) and r[0] < a)    # blocks with rows
-        reads.append(FileRead(str(path), int(a), int(tel.n), int(n_blocks)))
+        reads.append(FileRead(str(path), int(a), int(tel.n), int(n_blocks),
+                              tuple(span) if span[0] is not None else None, names))
         progress(f"read {path}: {a:,} rows, kept {tel.n:,} in {n_blocks} blocks of "
                  f"{L:,} consecutive rows (the fit's read cap {R:,})")
         if tel.n:
@@ -248,14 +255,16 @@ def _file_note(r: FileRead, L: int) -> str:
             "every row")
 
 
-def every_row_residual(unit, paths, cals, piece_rows: int = EVERY_ROW_PIECE) -> dict:
+def every_row_residual(unit, paths, cals, piece_rows: int = EVERY_ROW_PIECE,
+                       repeats=None) -> dict:
     """{sensor: stats all_samples_residual_nT}: each calibration of cals applied to EVERY
     usable sample of every row of the files, one streaming pass (pieces of piece_rows
     rows, one held at a time): per piece and sensor the samples as the fit takes them
     (fit.samples.fit_data_from, the SET/RESET gyro compensation of the fit where it is
     on, fit.samples.usable_samples: the temperature screen over the piece) and the sums of
     fit.samples.residual_sums, the one definition of that residual; n_not_in_fit against
-    the fit's stats samples_used."""
+    the fit's stats samples_used. repeats: an io.recordings.StreamedRepeats fed every
+    piece, in the same pass."""
     from generator.fit.samples import (fit_data_from, residual_figures, residual_sums,
                                        usable_samples)
     from generator.fit.setreset_fit import _rates_of, compensate_references
@@ -266,8 +275,10 @@ def every_row_residual(unit, paths, cals, piece_rows: int = EVERY_ROW_PIECE) -> 
         return pieces_of(_chunks(path, unit), piece_rows)
 
     from generator.io.orbit import attach_field_reference
-    for path in paths:
+    for j, path in enumerate(paths):
         for tel in pieces(path):
+            if repeats is not None:
+                repeats.add(j, tel)
             tel = attach_field_reference(tel, unit)    # row by row: as on the whole file
             pre = preprocess(tel, unit, sensors=list(cals))
             for name, cal in cals.items():
@@ -306,7 +317,13 @@ def check_every_row(unit, paths, cals, cap: ReadCap | None, info: dict, progress
     for cal in cals.values():
         cal.stats.setdefault("notes", []).extend(file_notes)
     progress("every row: the calibrations applied to every usable sample of every file")
-    res = every_row_residual(unit, paths, cals)
+    from generator.io.recordings import StreamedRepeats, repeated_rows_warnings
+    repeats = StreamedRepeats(paths, [r.span_s for r in cap.files],
+                              [r.columns for r in cap.files])
+    res = every_row_residual(unit, paths, cals, repeats=repeats)
+    for w in repeated_rows_warnings(None, repeats.findings()):   # over every row
+        info["notes"].append(w)
+        progress(w)
     for n, v in res.items():
         record_all_samples_residual(cals[n], None, say=progress, res=v,
                                     where=" (every row of every file)")

@@ -172,3 +172,73 @@ def repeated_rows_warnings(tels, found=None) -> list:
             + ("rows of the same file" if r["of"] == r["path"] else f"rows of {r['of']}")
             + " (the same time and values): those samples count twice; give each "
               "sample once (cut the overlap)" for r in found]
+
+
+class StreamedRepeats:
+    """repeated_rows over files read piece by piece, in file order (the fit's every-row
+    pass above its read cap: the rows it keeps are blocks, so repeats between rows it did
+    not keep would go unseen). Held: for each file, the fingerprints of its rows that lie
+    in a later file's time span (memory grows with the overlap, not with the files), and
+    the rows of the last time of the piece before (a row written twice across pieces).
+    spans: (first, last time) per file; columns: each file's column names."""
+
+    def __init__(self, paths, spans, columns):
+        self.paths, self.spans = [str(p) for p in paths], list(spans)
+        shared = set(columns[0]) if columns else set()
+        for c in columns[1:]:
+            shared &= set(c)
+        self.names = row_names(shared) if "time_s" in shared and len(shared) > 1 else None
+        self.kept = [[] for _ in self.paths]
+        self.found = {}                     # (later file, earlier file) -> [rows, line]
+        self.tail = None                    # (time, prints, file) of the last time seen
+
+    def _overlap(self, i, j) -> bool:
+        a, b = self.spans[i], self.spans[j]
+        return a is not None and b is not None and a[0] <= b[1] and b[0] <= a[1]
+
+    def _count(self, j, i, hit, lines):
+        if hit.any():
+            r = self.found.setdefault((j, i), [0, int(lines[np.argmax(hit)])])
+            r[0] += int(hit.sum())
+
+    def add(self, j: int, tel) -> None:
+        """The next piece of file j (its rows in order)."""
+        if self.names is None or not tel.n:
+            return
+        t = np.asarray(tel.time_s, float)
+        f = row_fingerprints(tel, self.names)
+        lines = np.asarray(tel.line_numbers)
+        for i in range(j):
+            if self._overlap(i, j) and len(self.kept[i]):
+                if isinstance(self.kept[i], list):   # file i is done: its prints, once
+                    self.kept[i] = np.unique(np.concatenate(self.kept[i]))
+                lo, hi = self.spans[i]
+                m = (t >= lo) & (t <= hi)
+                self._count(j, i, m & np.isin(f, self.kept[i]), lines)
+        later = np.zeros(tel.n, bool)
+        for k in range(j + 1, len(self.paths)):
+            if self._overlap(j, k):
+                later |= (t >= self.spans[k][0]) & (t <= self.spans[k][1])
+        if later.any():
+            self.kept[j].append(f[later])
+        # a row written twice: equal rows have equal times, so sorted by (time, print)
+        # a repeat follows a row equal to it; the last time of the piece before joins in
+        prev_t, prev_f = ((self.tail[0], self.tail[1]) if self.tail is not None
+                          and self.tail[2] == j else (np.zeros(0), np.zeros(0, np.uint64)))
+        T, F = np.concatenate([prev_t, t]), np.concatenate([prev_f, f])
+        order = np.lexsort((F, T))
+        same = np.zeros(len(T), bool)
+        same[1:] = (F[order][1:] == F[order][:-1]) & (T[order][1:] == T[order][:-1])
+        new = order >= len(prev_t)
+        rows = order[same & new] - len(prev_t)
+        if len(rows):
+            hit = np.zeros(tel.n, bool)
+            hit[rows] = True
+            self._count(j, j, hit, lines)
+        last = t == t[-1]
+        self.tail = (t[last], f[last], j)
+
+    def findings(self) -> list:
+        """repeated_rows' findings, in file order."""
+        return [{"path": self.paths[j], "rows": r[0], "first_line": r[1],
+                 "of": self.paths[i]} for (j, i), r in sorted(self.found.items())]
