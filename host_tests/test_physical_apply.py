@@ -5,20 +5,16 @@ flight C (HostUnit passes them as the flight float type) and agrees bit for bit 
 Python reference, selection included; the output CSV holds those bits. A sensor without
 a temperature needs no <s>_temp_C column in the apply path.
 
-The ICD telemetry reader (io/telemetry_csv.py) still asks every sensor for a temperature
-column and whole counts in its part's range; it is being extended for ICD section 4 in
-another branch. Until then the apply tests here read the file with the reader's parser
-and time checks but without its per-sensor checks (`_read_without_sensor_checks`), and
-`test_apply_command_reads_physical_telemetry` runs the real command.
+apply reads the file with the full ICD reader (io.telemetry_csv.iter_telemetry, every
+check, section 4 included); `test_apply_command_reads_physical_telemetry` also runs the
+real command.
 """
 
 from __future__ import annotations
 
 import csv
-import dataclasses
 
 import numpy as np
-import pytest
 
 from chain_fixtures import bits, random_coeffs, random_inputs
 from generator import pipeline
@@ -27,7 +23,6 @@ from generator.flight import chain
 from generator.flight.chain import (NULL_STATE, SensorState, reference_select,
                                     reference_sensor)
 from generator.flight.host import HostUnit
-from generator.io.telemetry_csv import read_telemetry
 from generator.io.unit import SensorSpec, Unit
 from test_any_unit import physical_inputs
 from test_cli import read_apply_csv
@@ -89,11 +84,6 @@ def _write_telemetry(path, cs, rng, n=N):
     return cols
 
 
-def _read_without_sensor_checks(path, unit, **kw):
-    """read_telemetry's parser and checks of the file, without the per-sensor ones (see
-    the module docstring)."""
-    return read_telemetry(path, dataclasses.replace(unit, sensors=()), require_sensors=False)
-
 
 def _expected(cs, cols):
     """The reference of `apply`: per sensor reference_sensor over the rows (missing cells
@@ -123,12 +113,11 @@ def _expected(cs, cols):
     return out, present, sel
 
 
-def test_apply_physical_unit_bit_identical(tmp_path, monkeypatch):
+def test_apply_physical_unit_bit_identical(tmp_path):
     cs = _coeffs()
     rng = np.random.default_rng(42)
     data = tmp_path / "tel.csv"
     cols = _write_telemetry(data, cs, rng)
-    monkeypatch.setattr(pipeline, "read_telemetry", _read_without_sensor_checks)
     out_csv = tmp_path / "out.csv"
     res = pipeline.apply(cs, data, out_csv, host=HostUnit(cs))
     want, present, sel = _expected(cs, cols)
@@ -157,7 +146,7 @@ def test_apply_physical_unit_bit_identical(tmp_path, monkeypatch):
                                   bits(sel["field_body_nT"]))
 
 
-def test_apply_scales_physical_readings_to_nT(tmp_path, monkeypatch):
+def test_apply_scales_physical_readings_to_nT(tmp_path):
     """Independent of the reference: the temperature-free uT sensor's valid outputs are
     M (A x_uT * 1000 - b) of its constant calibration (A: the axis map), within float32
     rounding: a dozen roundings of 2^-24 relative each, so 1e-5 of |B| is ample, while a
@@ -166,7 +155,6 @@ def test_apply_scales_physical_readings_to_nT(tmp_path, monkeypatch):
     rng = np.random.default_rng(43)
     data = tmp_path / "tel.csv"
     cols = _write_telemetry(data, cs, rng)
-    monkeypatch.setattr(pipeline, "read_telemetry", _read_without_sensor_checks)
     res = pipeline.apply(cs, data, tmp_path / "out.csv", host=HostUnit(cs))
     s = cs.unit.sensor("ist")
     valid = res["ist"]["valid"]
