@@ -691,7 +691,7 @@ def _split_row(path, row: str, line: int | None) -> list:
     if '"' not in row:
         return row.split(",")
     try:
-        parsed = list(csv.reader([row], strict=True))
+        parsed = list(csv.reader([row], strict=True, skipinitialspace=True))
     except csv.Error as e:
         what = ("a quoted cell runs past the end of the line (a line break inside quotes is "
                 "not supported)" if "end of data" in str(e).lower()
