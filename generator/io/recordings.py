@@ -115,54 +115,23 @@ def repeated_rows(tels) -> list:
     row_fingerprints (row_fingerprints of its columns, computed as it was read: a file
     a capped trace holds by rows, trace.filerows.FileRows); such a file is compared only
     when its columns are the shared ones (else its fingerprints cover other columns and
-    its repeats are not looked for)."""
+    its repeats are not looked for). Each file is one piece of StreamedRepeats, the one
+    definition of a repeat."""
     if not tels:
         return []
-    shared = set(tels[0].columns)
-    for t in tels[1:]:
-        shared &= set(t.columns)
-    if "time_s" not in shared or len(shared) < 2:
-        return []
-    names = row_names(shared)
+    cols = [tuple(t.columns) for t in tels]
+    shared = set(cols[0]).intersection(*cols[1:])
 
     def comparable(t):
-        return t.n and (not hasattr(t, "row_fingerprints") or set(t.columns) == shared)
-
-    def prints_of(t):
-        held = getattr(t, "row_fingerprints", None)
-        return held if held is not None else row_fingerprints(t, names)
+        return t.n and (getattr(t, "row_fingerprints", None) is None
+                        or set(t.columns) == shared)
     times = [np.asarray(t.time_s) if comparable(t) else None for t in tels]
     spans = [(float(ts[0]), float(ts[-1])) if ts is not None else None for ts in times]
-    out, prints = [], [None] * len(tels)
+    streamed = StreamedRepeats([t.path for t in tels], spans, cols)
     for j, t in enumerate(tels):
-        if spans[j] is None:
-            continue
-        earlier = [i for i in range(j) if spans[i] is not None
-                   and spans[i][0] <= spans[j][1] and spans[j][0] <= spans[i][1]]
-        own = bool(np.any(np.diff(times[j]) == 0))
-        if not earlier and not own:
-            continue
-        for i in earlier + [j]:
-            if prints[i] is None:
-                prints[i] = prints_of(tels[i])
-        for i in earlier:
-            hit = np.isin(prints[j], prints[i])
-            if hit.any():
-                out.append({"path": t.path, "rows": int(hit.sum()),
-                            "first_line": int(t.line_numbers[np.argmax(hit)]),
-                            "of": tels[i].path})
-        if own:
-            # a row written twice: equal rows of one file have equal times, so sorted by
-            # (time, fingerprint) each repeat follows a row equal to it
-            order = np.lexsort((prints[j], times[j]))
-            f, ts = prints[j][order], times[j][order]
-            same = np.zeros(t.n, bool)
-            same[1:] = (f[1:] == f[:-1]) & (ts[1:] == ts[:-1])
-            if same.any():
-                out.append({"path": t.path, "rows": int(same.sum()),
-                            "first_line": int(t.line_numbers[order[same]].min()),
-                            "of": t.path})
-    return out
+        if spans[j] is not None:
+            streamed.add(j, t, prints=getattr(t, "row_fingerprints", None))
+    return streamed.findings()
 
 
 def repeated_rows_warnings(tels, found=None) -> list:
@@ -175,9 +144,10 @@ def repeated_rows_warnings(tels, found=None) -> list:
 
 
 class StreamedRepeats:
-    """repeated_rows over files read piece by piece, in file order (the fit's every-row
-    pass above its read cap: the rows it keeps are blocks, so repeats between rows it did
-    not keep would go unseen). Held: for each file, the fingerprints of its rows that lie
+    """Repeated rows found over files fed piece by piece, in file order: repeated_rows
+    feeds each file whole, the fit's every-row pass above its read cap feeds pieces (the
+    rows it keeps are blocks, so repeats between rows it did not keep would go unseen).
+    Held: for each file, the fingerprints of its rows that lie
     in a later file's time span (memory grows with the overlap, not with the files), and
     the rows of the last time of the piece before (a row written twice across pieces).
     spans: (first, last time) per file; columns: each file's column names."""
@@ -201,42 +171,53 @@ class StreamedRepeats:
             r = self.found.setdefault((j, i), [0, int(lines[np.argmax(hit)])])
             r[0] += int(hit.sum())
 
-    def add(self, j: int, tel) -> None:
-        """The next piece of file j (its rows in order)."""
+    def add(self, j: int, tel, prints=None) -> None:
+        """The next piece of file j (its rows in order); prints: its rows' fingerprints
+        where they were computed as it was read (else computed here, only if a row of the
+        piece can repeat one: a time span shared with another file, or a time twice)."""
         if self.names is None or not tel.n:
             return
         t = np.asarray(tel.time_s, float)
-        f = row_fingerprints(tel, self.names)
         lines = np.asarray(tel.line_numbers)
+        f = prints
+
+        def fingerprints():
+            nonlocal f
+            if f is None:
+                f = row_fingerprints(tel, self.names)
+            return f
         for i in range(j):
             if self._overlap(i, j) and len(self.kept[i]):
                 if isinstance(self.kept[i], list):   # file i is done: its prints, once
                     self.kept[i] = np.unique(np.concatenate(self.kept[i]))
                 lo, hi = self.spans[i]
                 m = (t >= lo) & (t <= hi)
-                self._count(j, i, m & np.isin(f, self.kept[i]), lines)
+                if m.any():
+                    self._count(j, i, m & np.isin(fingerprints(), self.kept[i]), lines)
         later = np.zeros(tel.n, bool)
         for k in range(j + 1, len(self.paths)):
             if self._overlap(j, k):
                 later |= (t >= self.spans[k][0]) & (t <= self.spans[k][1])
         if later.any():
-            self.kept[j].append(f[later])
+            self.kept[j].append(fingerprints()[later])
         # a row written twice: equal rows have equal times, so sorted by (time, print)
         # a repeat follows a row equal to it; the last time of the piece before joins in
-        prev_t, prev_f = ((self.tail[0], self.tail[1]) if self.tail is not None
-                          and self.tail[2] == j else (np.zeros(0), np.zeros(0, np.uint64)))
-        T, F = np.concatenate([prev_t, t]), np.concatenate([prev_f, f])
-        order = np.lexsort((F, T))
-        same = np.zeros(len(T), bool)
-        same[1:] = (F[order][1:] == F[order][:-1]) & (T[order][1:] == T[order][:-1])
-        new = order >= len(prev_t)
-        rows = order[same & new] - len(prev_t)
-        if len(rows):
-            hit = np.zeros(tel.n, bool)
-            hit[rows] = True
-            self._count(j, j, hit, lines)
-        last = t == t[-1]
-        self.tail = (t[last], f[last], j)
+        tail = self.tail if self.tail is not None and self.tail[2] == j else None
+        if np.any(np.diff(t) == 0) or (tail is not None and tail[0][0] == t[0]):
+            prev_t, prev_f = (tail[0], tail[1]()) if tail is not None else (
+                np.zeros(0), np.zeros(0, np.uint64))
+            T, F = np.concatenate([prev_t, t]), np.concatenate([prev_f, fingerprints()])
+            order = np.lexsort((F, T))
+            same = np.zeros(len(T), bool)
+            same[1:] = (F[order][1:] == F[order][:-1]) & (T[order][1:] == T[order][:-1])
+            rows = order[same & (order >= len(prev_t))] - len(prev_t)
+            if len(rows):
+                hit = np.zeros(tel.n, bool)
+                hit[rows] = True
+                self._count(j, j, hit, lines)
+        last = np.flatnonzero(t == t[-1])
+        # the last time's prints, computed only if the next piece starts at that time
+        self.tail = (t[last], lambda: fingerprints()[last], j)
 
     def findings(self) -> list:
         """repeated_rows' findings, in file order."""
