@@ -494,21 +494,16 @@ class _RowsProgress:
     when progress is quiet."""
 
     def __init__(self, progress, data_path, every_s, clock=None):
-        import time
+        from generator.progress import Every
 
-        self.progress, self.data_path, self.every_s = progress, data_path, every_s
-        self.clock = clock or time.monotonic
+        self.progress, self.data_path = progress, data_path
+        self.due = Every(every_s, clock) if clock is not None else Every(every_s)
         self.quiet = bool(getattr(progress, "quiet", False))
-        self.due = self.clock() + every_s
         self.total = False                    # not counted yet (None: cannot be told)
 
     def __call__(self, rows: int) -> None:
-        if self.quiet:
+        if self.quiet or not self.due():
             return
-        now = self.clock()
-        if now < self.due:
-            return
-        self.due = now + self.every_s
         if self.total is False:
             from generator.io.telemetry_csv import _rows_at_most
 

@@ -19,3 +19,19 @@ class Progress:
         if not self.quiet:
             print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream,
                   flush=True)
+
+
+class Every:
+    """A throttle for progress lines during long work: calling it answers True at most
+    once every every_s seconds of clock() (the first time every_s after it was made)."""
+
+    def __init__(self, every_s: float, clock=time.monotonic):
+        self.every_s, self.clock = every_s, clock
+        self.last = clock()
+
+    def __call__(self) -> bool:
+        now = self.clock()
+        if now - self.last < self.every_s:
+            return False
+        self.last = now
+        return True

@@ -141,9 +141,11 @@ class RoundProgress:
     minutes, a short one says nothing more."""
 
     def __init__(self, say=None, prefix="", every_s=None, clock=time.perf_counter):
-        self.say, self.prefix, self.clock = say, prefix, clock
+        from generator.progress import Every
+
+        self.say, self.prefix = say, prefix
         self.every_s = PROGRESS_EVERY_S if every_s is None else every_s
-        self.last = clock()
+        self.due = Every(self.every_s, clock)
         self.where = ""
 
     def candidate(self, i, n, e) -> None:
@@ -151,11 +153,7 @@ class RoundProgress:
         self.tick()
 
     def tick(self, detail="") -> None:
-        if self.say is None:
-            return
-        now = self.clock()
-        if now - self.last >= self.every_s:
-            self.last = now
+        if self.say is not None and self.due():
             self.say(self.prefix + self.where + (f": {detail}" if detail else ""))
 
 
