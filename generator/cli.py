@@ -88,11 +88,8 @@ def cmd_fit(args):
 
     from generator.io.outputs import check_output_folder, output_folder
 
-    from generator.io.recordings import refuse_repeated_recordings
-
     progress = _progress(args)
     check_output_folder(args.output)
-    refuse_repeated_recordings(args.data)
     cs = fit(args.unit, args.data, progress=progress, method=args.method, prior=args.prior,
              accept_misfit=args.accept_misfit, max_samples=args.max_samples)
     cs.check_plausible(args.data[0] if len(args.data) == 1 else

@@ -165,6 +165,8 @@ def fit(unit_path, data_paths, progress=None, method="auto", prior=None,
     max_samples = check_max_samples(MAX_FIT_SAMPLES if max_samples is None else max_samples,
                                     "--max-samples")
     progress = progress or Progress(quiet=True)
+    from generator.io.recordings import refuse_repeated_recordings
+    refuse_repeated_recordings(data_paths)   # each recording counts once
     unit = load_unit(unit_path)
     progress(f"unit {unit.id}: {len(unit.sensors)} sensors")
     priors = _load_prior(prior, unit) if prior else None

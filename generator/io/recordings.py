@@ -75,9 +75,12 @@ def refuse_repeated_recordings(paths, held_out=()) -> None:
                 what = ("the same file given twice" if os.path.samefile(p, first)
                         else "identical bytes")
                 if i >= len(paths) > seen[d]:
+                    same = "file" if what == "the same file given twice" else "content"
                     raise InputError(p, f"held-out file: the same recording as {first} "
-                                        f"({what}), which the fit uses: it would hold "
-                                        "nothing out; hold out another recording")
+                                        f"({what}), which the fit uses (--holdout: the "
+                                        f"same {same} as a data file): the held-out "
+                                        "figures would be in-sample; hold out another "
+                                        "recording")
                 raise InputError(p, f"the same recording as {first} ({what}): each sample "
                                     "would count twice (sigmas too small by sqrt(2), "
                                     "effects found in shared noise); give each recording "

@@ -69,6 +69,7 @@ import numpy as np
 
 from generator.errors import InputError
 from generator.flight.coeffs import CoefficientSet
+from generator.io.recordings import refuse_repeated_recordings
 from generator.io.formula import add_regressors
 from generator.fit.calibration import SensorCalibration  # noqa: F401 (tests use tr.SensorCalibration)
 from generator.trace import effects as fx  # noqa: F401
@@ -688,38 +689,6 @@ def _channel_units_fit(traces, tels):
                                       f"{e.scale:.3g}); give it in larger units")
 
 
-def _holdout_not_data(data, holdout):
-    """--holdout may not be a data file (the same path or the same bytes): its figures
-    would be in-sample."""
-    import hashlib
-
-    def key(it):
-        p = getattr(it, "path", it)
-        try:
-            p = Path(p)
-            h = hashlib.sha256()
-            with open(p, "rb") as f:          # in blocks: not the whole file at once
-                for b in iter(lambda: f.read(1 << 20), b""):
-                    h.update(b)
-            return p.resolve(), h.hexdigest()
-        except OSError:
-            return None, None
-    keys = {}
-    for d in data:
-        r, h = key(d)
-        if r is not None:
-            keys[r] = d
-            keys[h] = d
-    for ho in holdout:
-        r, h = key(ho)
-        for k in (r, h):
-            if k is not None and k in keys:
-                raise InputError(getattr(ho, "path", ho),
-                                 f"--holdout: the same {'file' if k == r else 'content'} as "
-                                 f"the data file {getattr(keys[k], 'path', keys[k])}: the "
-                                 "held-out figures would be in-sample")
-
-
 def _drop_series_caches(S) -> None:
     """The recursions' caches on a traced sensor's per-file series (trace.effects: whole-
     series arrays, up to SERIES_CACHE_BYTES a cache) let go once its trace is done: the
@@ -833,7 +802,10 @@ def trace(unit, data, holdout=(), coeffs=None, progress=None, *, sensors=None,
         raise InputError(unit.path, "trace: no telemetry files given")
     max_samples = check_max_samples(max_samples, unit.path)
     regs = declared_regressors(unit)
-    _holdout_not_data(data, holdout)
+    # each recording once, and no held-out file that the fit also sees (io.recordings:
+    # the same path, a link or the same bytes; Telemetry objects by their path)
+    refuse_repeated_recordings([getattr(d, "path", d) for d in data],
+                               held_out=[getattr(h, "path", h) for h in holdout])
     # above the cap, files on disk are held by what the trace needs of every row
     # (trace.filerows: the drawn rows read again, the all-rows figures read piece by piece)
     read_notes = []

@@ -5,7 +5,6 @@ from __future__ import annotations
 from generator.errors import InputError
 from generator.fit.samples import check_max_samples
 from generator.io.outputs import check_output_folder, output_folder
-from generator.io.recordings import refuse_repeated_recordings
 from generator.progress import Progress
 from generator.report.trace_report import write_report
 from generator.trace.subsample import MAX_TRACE_SAMPLES
@@ -52,7 +51,6 @@ def _max_samples(text):
 def cmd_trace(args) -> int:
     progress = getattr(args, "progress", None) or Progress(quiet=getattr(args, "quiet", False))
     check_output_folder(args.output)
-    refuse_repeated_recordings(args.data, held_out=args.holdout)
     res = trace(args.unit, args.data, args.holdout, args.coeffs, progress=progress,
                 max_samples=getattr(args, "max_samples", MAX_TRACE_SAMPLES))
     res.coefficients.check_plausible(args.data[0] if len(args.data) == 1 else
